@@ -1,0 +1,113 @@
+"""Checkpoints: safetensors weights + a JSON sidecar, loaded without unpickling code.
+
+A checkpoint ``name`` is two files: ``name.safetensors`` (float64 tensors, read with
+``safetensors.numpy`` so the control runtime needs no torch) and ``name.json``::
+
+    {"format": "fvin_mpc.checkpoint/1", "model": {ModelConfig fields},
+     "scene": "pendulum", "body": "pole", "data": {...}, "training": {...},
+     "versions": {...}}
+
+Every problem (missing file, truncated or malformed weights, bad JSON, weights that do
+not match the config) raises :class:`CheckpointError` with a one-line message naming it.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+from .networks import ModelConfig, check_weights
+
+FORMAT = "fvin_mpc.checkpoint/1"
+#: Where the shipped checkpoints live (next to the package in a source checkout or
+#: installed as package data).
+CHECKPOINT_DIR = Path(__file__).resolve().parent.parent / "checkpoints"
+DEFAULT_CHECKPOINT = "pendulum_sign-invariant"
+
+
+class CheckpointError(ValueError):
+    """A checkpoint could not be read; the message says which file and why."""
+
+
+@dataclass(frozen=True)
+class Checkpoint:
+    """A trained model: its config, NumPy float64 weights and free-form metadata."""
+
+    config: ModelConfig
+    weights: Mapping[str, np.ndarray]
+    metadata: Mapping[str, Any] = field(default_factory=dict)
+    path: Path | None = None
+
+    @property
+    def scene(self) -> str | None:
+        return self.metadata.get("scene")
+
+
+def resolve_checkpoint_path(name_or_path: str | Path) -> Path:
+    """``name_or_path`` as a path stem: a shipped name (``pendulum_sign-invariant``), or a
+    path with or without the ``.safetensors``/``.json`` suffix."""
+    path = Path(name_or_path)
+    if path.suffix in (".safetensors", ".json"):
+        path = path.with_suffix("")
+    if not path.with_suffix(".json").exists() and not path.is_absolute() and len(path.parts) == 1:
+        shipped = CHECKPOINT_DIR / path
+        if shipped.with_suffix(".json").exists():
+            return shipped
+    return path
+
+
+def save_checkpoint(path: str | Path, config: ModelConfig, weights: Mapping[str, np.ndarray], **metadata: Any) -> Path:
+    """Write ``path.safetensors`` and ``path.json``; returns the stem."""
+    from safetensors.numpy import save_file
+
+    check_weights(weights, config)
+    stem = Path(path)
+    if stem.suffix in (".safetensors", ".json"):
+        stem = stem.with_suffix("")
+    stem.parent.mkdir(parents=True, exist_ok=True)
+    arrays = {name: np.ascontiguousarray(np.asarray(value, dtype=np.float64)) for name, value in weights.items()}
+    save_file(arrays, str(stem.with_suffix(".safetensors")))
+    sidecar = {"format": FORMAT, "model": config.to_dict(), **metadata}
+    stem.with_suffix(".json").write_text(json.dumps(sidecar, indent=2, sort_keys=False) + "\n")
+    return stem
+
+
+def load_checkpoint(name_or_path: str | Path = DEFAULT_CHECKPOINT) -> Checkpoint:
+    """Read a checkpoint written by :func:`save_checkpoint`; see the module docstring."""
+    stem = resolve_checkpoint_path(name_or_path)
+    sidecar_path, weights_path = stem.with_suffix(".json"), stem.with_suffix(".safetensors")
+    for required in (sidecar_path, weights_path):
+        if not required.exists():
+            raise CheckpointError(f"checkpoint file not found: {required}")
+    try:
+        sidecar = json.loads(sidecar_path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as error:
+        raise CheckpointError(f"{sidecar_path}: not valid JSON ({error})") from None
+    if not isinstance(sidecar, dict) or sidecar.get("format") != FORMAT:
+        raise CheckpointError(f"{sidecar_path}: not a {FORMAT} sidecar (format field is {sidecar.get('format') if isinstance(sidecar, dict) else None!r})")
+    try:
+        config = ModelConfig.from_dict(sidecar["model"])
+    except (KeyError, TypeError, ValueError) as error:
+        raise CheckpointError(f"{sidecar_path}: invalid model config ({error})") from None
+    try:
+        from safetensors import SafetensorError
+        from safetensors.numpy import load_file
+
+        weights = load_file(str(weights_path))
+    except (SafetensorError, OSError, ValueError) as error:
+        raise CheckpointError(f"{weights_path}: unreadable or truncated safetensors file ({error})") from None
+    try:
+        check_weights(weights, config)
+    except ValueError as error:
+        raise CheckpointError(f"{weights_path}: {error}") from None
+    for name, value in weights.items():
+        if value.dtype != np.float64:
+            raise CheckpointError(f"{weights_path}: weight {name!r} has dtype {value.dtype}, expected float64")
+        if not np.all(np.isfinite(value)):
+            raise CheckpointError(f"{weights_path}: weight {name!r} contains NaN or inf")
+    metadata = {key: value for key, value in sidecar.items() if key not in ("format", "model")}
+    return Checkpoint(config=config, weights=weights, metadata=metadata, path=stem)

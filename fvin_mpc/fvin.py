@@ -1,0 +1,163 @@
+"""The forced S³ variational integrator step (paper eqs. 3.23–3.25), written once.
+
+Given ``(q_k, ω_k, u_k)``, a step size ``h`` and the rigid-body terms ``J(q)`` (SPD),
+``U(q)``, ``g(q)`` (3×m) and optionally a dissipation ``D(q)`` (PSD):
+
+1. ``π_k = 2 J(q_k) ω_k``, ``f⁻ = f⁺ = (h/2) (g(q_k) u_k − D(q_k) ω_k)``.
+2. ``C = −(h/4) (π_k + f⁻ − (h/2) H(q_k) ∇U(q_k))``.
+3. Solve ``Φ(ξ) := G(exp(−ξ)) J Im(exp(−ξ)) = C`` by Newton from ``ξ = 0``.
+   The first iterate is exact and nearly free: ``∂Φ/∂ξ(0) = −J`` so ``ξ₁ = −J⁻¹C``.
+4. ``q_{k+1} = q_k ⊗ exp(ξ)``.
+5. ``π_{k+1} = (4/h) G(exp ξ) J Im(exp ξ) − (h/2) H(q_{k+1}) ∇U(q_{k+1}) + f⁺``,
+   ``ω_{k+1} = ½ J(q_{k+1})⁻¹ π_{k+1}``.
+
+``J`` in steps 3 and 5 is the discrete Lagrangian's inertia, evaluated at ``q_k``; the
+Legendre map at ``q_{k+1}`` uses ``J(q_{k+1})``. For a constant ``J`` the two agree.
+
+Where it breaks down: for ``J = jI``, ``|Φ| ≤ j/2`` so a solution exists only while
+``h|ω| ≲ 1``, and ``∂Φ/∂ξ`` is singular at ``|ξ| = π/4``. Unrolled Newton still returns
+numbers past that; :attr:`StepResult.residual` (``|Φ(ξ_K) − C| / |C|``-style, see
+:func:`fvin_step`) is how a caller notices.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+from . import s3
+from .backend import Ops
+
+
+class RigidBodyTerms(Protocol):
+    """The learned (or closed-form) parts of a rigid body, evaluated on components.
+
+    All methods take a quaternion ``q`` (4-tuple of components) and return tuples of
+    components: ``inertia`` a symmetric 3×3 ``Mat3``; ``potential_gradient`` the
+    Euclidean gradient of ``U`` in R⁴ (4-tuple); ``control_gain`` 3 rows of ``m``
+    entries; ``dissipation`` a PSD ``Mat3`` or ``None`` when the model has none.
+    """
+
+    control_dim: int
+    constant_inertia: bool
+
+    def inertia(self, q: s3.Quat) -> s3.Mat3: ...
+    def potential(self, q: s3.Quat) -> Any: ...
+    def potential_gradient(self, q: s3.Quat) -> s3.Quat: ...
+    def control_gain(self, q: s3.Quat) -> tuple[tuple[Any, ...], ...]: ...
+    def dissipation(self, q: s3.Quat) -> s3.Mat3 | None: ...
+
+
+@dataclass(frozen=True)
+class StepResult:
+    """One FVIN step. Components follow the backend (see :mod:`fvin_mpc.backend`).
+
+    ``residual`` is ``|Φ(ξ_K) − C|`` scaled by ``2/(h·|J|)`` so that it reads as an
+    angular-velocity error in rad/s; ``None`` when not requested.
+    """
+
+    q: s3.Quat
+    omega: s3.Vec3
+    residual: Any | None
+
+
+def implicit_lhs(xi: s3.Vec3, inertia: s3.Mat3, ops: Ops) -> s3.Vec3:
+    """``Φ(ξ) = G(exp(−ξ)) J Im(exp(−ξ))`` (left-hand side of eq. 3.25)."""
+    p = s3.exp(s3.scale(-1.0, xi), ops)
+    return s3.G_apply(p, s3.matvec(inertia, s3.imaginary(p)))
+
+
+def implicit_lhs_jacobian(xi: s3.Vec3, inertia: s3.Mat3, ops: Ops) -> tuple[s3.Vec3, s3.Mat3]:
+    """``Φ(ξ)`` and its analytic Jacobian ``∂Φ/∂ξ`` (3×3, rows).
+
+    With ``t = |ξ|²``, ``c = cos√t``, ``s = sin√t/√t``, ``s' = ds/dt``:
+    ``exp(−ξ) = (c, v)`` with ``v = −s ξ`` and ``Φ = c Jv − v × Jv``. From
+    ``∂c/∂ξ = −s ξᵀ`` and ``∂v/∂ξ = −s I − 2 s' ξ ξᵀ``:
+    ``∂Φ/∂ξ = −s A + (−2 s' A ξ − s Jv) ξᵀ`` with ``A = c J − [v]× J + [Jv]×``.
+    """
+    t = s3.dot(xi, xi)
+    c, s, ds = s3.trig_of_sqrt(t, ops, with_derivative=True)
+    v = s3.scale(-s, xi)
+    jv = s3.matvec(inertia, v)
+    phi = s3.sub(s3.scale(c, jv), s3.cross(v, jv))
+    # Columns of [v]× J are v × (columns of J); J is symmetric so its columns are its rows.
+    v_cross_j = [s3.cross(v, inertia[k]) for k in range(3)]
+    a = tuple(
+        tuple(c * inertia[i][j] - v_cross_j[j][i] for j in range(3)) for i in range(3)
+    )
+    a = (
+        (a[0][0], a[0][1] - jv[2], a[0][2] + jv[1]),
+        (a[1][0] + jv[2], a[1][1], a[1][2] - jv[0]),
+        (a[2][0] - jv[1], a[2][1] + jv[0], a[2][2]),
+    )
+    a_xi = s3.matvec(a, xi)
+    w = tuple(-2.0 * ds * a_xi[i] - s * jv[i] for i in range(3))
+    jacobian = tuple(tuple(w[i] * xi[j] - s * a[i][j] for j in range(3)) for i in range(3))
+    return phi, jacobian  # type: ignore[return-value]
+
+
+def solve_implicit(rhs: s3.Vec3, inertia: s3.Mat3, newton_iters: int, ops: Ops) -> s3.Vec3:
+    """``K = newton_iters`` Newton iterations on ``Φ(ξ) = C`` from ``ξ = 0``."""
+    if newton_iters < 1:
+        raise ValueError(f"newton_iters must be >= 1, got {newton_iters}")
+    xi = s3.scale(-1.0, s3.solve3(inertia, rhs))  # exact first iterate: ∂Φ/∂ξ(0) = −J
+    for _ in range(newton_iters - 1):
+        phi, jacobian = implicit_lhs_jacobian(xi, inertia, ops)
+        xi = s3.sub(xi, s3.solve3(jacobian, s3.sub(phi, rhs)))
+    return xi
+
+
+def generalized_force(q: s3.Quat, omega: s3.Vec3, u: tuple[Any, ...], terms: RigidBodyTerms) -> s3.Vec3:
+    """``g(q) u − D(q) ω`` — the continuous left-trivialized force on S³ (twice the SO(3) torque)."""
+    force = s3.matvec(terms.control_gain(q), u)
+    damping = terms.dissipation(q)
+    if damping is not None:
+        force = s3.sub(force, s3.matvec(damping, omega))
+    return force  # type: ignore[return-value]
+
+
+def fvin_step(
+    q: s3.Quat,
+    omega: s3.Vec3,
+    u: tuple[Any, ...],
+    terms: RigidBodyTerms,
+    step_size: float,
+    newton_iters: int,
+    ops: Ops,
+    with_residual: bool = False,
+) -> StepResult:
+    """One forced S3FVIN step ``(q_k, ω_k, u_k) → (q_{k+1}, ω_{k+1})``; see the module docstring."""
+    h = step_size
+    inertia = terms.inertia(q)
+    momentum = s3.scale(2.0, s3.matvec(inertia, omega))
+    discrete_force = s3.scale(h / 2.0, generalized_force(q, omega, u, terms))
+    gravity = s3.H_apply(q, terms.potential_gradient(q))
+    rhs = s3.scale(-h / 4.0, s3.sub(s3.add(momentum, discrete_force), s3.scale(h / 2.0, gravity)))
+
+    xi = solve_implicit(rhs, inertia, newton_iters, ops)
+
+    increment = s3.exp(xi, ops)
+    q_next = s3.multiply(q, increment)
+    gravity_next = s3.H_apply(q_next, terms.potential_gradient(q_next))
+    kinetic = s3.G_apply(increment, s3.matvec(inertia, s3.imaginary(increment)))
+    momentum_next = s3.add(s3.sub(s3.scale(4.0 / h, kinetic), s3.scale(h / 2.0, gravity_next)), discrete_force)
+    inertia_next = inertia if terms.constant_inertia else terms.inertia(q_next)
+    omega_next = s3.scale(0.5, s3.solve3(inertia_next, momentum_next))
+
+    residual = None
+    if with_residual:
+        mismatch = s3.sub(implicit_lhs(xi, inertia, ops), rhs)
+        # Φ ≈ −Jξ and ξ ≈ hω/2: dividing by h·j/2 turns the mismatch into rad/s.
+        inertia_scale = (inertia[0][0] + inertia[1][1] + inertia[2][2]) / 3.0
+        residual = ops.sqrt(s3.dot(mismatch, mismatch)) * (2.0 / h) / inertia_scale
+    return StepResult(q=q_next, omega=omega_next, residual=residual)  # type: ignore[arg-type]
+
+
+def kinetic_energy(q: s3.Quat, omega: s3.Vec3, terms: RigidBodyTerms) -> Any:
+    """``½ ωᵀ J(q) ω``."""
+    return 0.5 * s3.dot(omega, s3.matvec(terms.inertia(q), omega))
+
+
+def total_energy(q: s3.Quat, omega: s3.Vec3, terms: RigidBodyTerms) -> Any:
+    """``E = ½ ωᵀ J ω + U(q)`` in the model's own (learned) scale."""
+    return kinetic_energy(q, omega, terms) + terms.potential(q)

@@ -1,0 +1,237 @@
+"""The learned S3FVIN terms ``J(q)``, ``U(q)``, ``g(q)`` (and optional ``D``) from weights.
+
+Weights are a flat mapping ``name → array`` (NumPy arrays, torch tensors or anything the
+backend's ``linear`` accepts). The same :class:`LearnedTerms` code runs in torch for
+training, in NumPy for the control runtime and in CasADi for the export.
+
+Networks are tanh MLPs on the quaternion ``q ∈ R⁴`` (``hidden_layers`` layers of
+``hidden_width``). Names: ``{net}_w{i}`` with shape ``(out, in)``, ``{net}_b{i}`` with
+shape ``(out,)``, for ``net`` in ``potential`` (→ 1), ``inertia`` (→ 6, the lower
+triangle of ``L`` with ``J = LLᵀ + εI``), ``gain`` (→ 3m, row-major 3×m). Constant
+parts: ``inertia_cholesky`` (6,) for the fixed-inertia variant, ``dissipation_cholesky``
+(6,) when ``dissipation`` is on (``D = L_D L_Dᵀ``, constant).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from typing import Any, Literal, Mapping
+
+import numpy as np
+
+from . import s3
+from .backend import Ops
+
+Variant = Literal["sign-invariant", "fixed-inertia", "plain"]
+VARIANTS: tuple[str, ...] = ("sign-invariant", "fixed-inertia", "plain")
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    """Architecture and integration settings of an S3FVIN model.
+
+    Attributes:
+        variant: ``"sign-invariant"`` (default; ``J``, ``U``, ``g`` averaged over ``q``
+            and ``−q``, configuration-dependent ``J``), ``"fixed-inertia"`` (constant
+            learned ``J``; ``U``, ``g`` not averaged) or ``"plain"`` (no restriction).
+            Paper §4.
+        control_dim: number of controls ``m``.
+        hidden_width: width of every hidden layer.
+        hidden_layers: number of hidden layers of each MLP.
+        step_size: integrator step ``h`` (s); equals the data's control period.
+        newton_iters: Newton iterations ``K`` unrolled per step.
+        dissipation: learn a constant PSD damping ``D`` (force ``−Dω``); off for
+            conservative scenes.
+        inertia_epsilon: ``ε`` in ``J = LLᵀ + εI``.
+    """
+
+    variant: Variant = "sign-invariant"
+    control_dim: int = 1
+    hidden_width: int = 10
+    hidden_layers: int = 2
+    step_size: float = 0.05
+    newton_iters: int = 2
+    dissipation: bool = False
+    inertia_epsilon: float = 1e-3
+
+    def __post_init__(self) -> None:
+        if self.variant not in VARIANTS:
+            raise ValueError(f"unknown variant {self.variant!r}; expected one of {VARIANTS}")
+        if self.control_dim < 1:
+            raise ValueError(f"control_dim must be >= 1, got {self.control_dim}")
+        if self.hidden_width < 1 or self.hidden_layers < 1:
+            raise ValueError("hidden_width and hidden_layers must be >= 1")
+        if not self.step_size > 0:
+            raise ValueError(f"step_size must be > 0, got {self.step_size}")
+        if self.newton_iters < 1:
+            raise ValueError(f"newton_iters must be >= 1, got {self.newton_iters}")
+
+    @property
+    def sign_invariant(self) -> bool:
+        return self.variant == "sign-invariant"
+
+    @property
+    def constant_inertia(self) -> bool:
+        return self.variant == "fixed-inertia"
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> "ModelConfig":
+        known = set(cls.__dataclass_fields__)
+        unknown = set(data) - known
+        if unknown:
+            raise ValueError(f"unknown model config fields: {sorted(unknown)}")
+        return cls(**data)
+
+
+def weight_shapes(config: ModelConfig) -> dict[str, tuple[int, ...]]:
+    """Name → shape of every weight of a model with this config."""
+    shapes: dict[str, tuple[int, ...]] = {}
+
+    def mlp(name: str, outputs: int) -> None:
+        sizes = [4] + [config.hidden_width] * config.hidden_layers + [outputs]
+        for i in range(len(sizes) - 1):
+            shapes[f"{name}_w{i}"] = (sizes[i + 1], sizes[i])
+            shapes[f"{name}_b{i}"] = (sizes[i + 1],)
+
+    mlp("potential", 1)
+    if config.constant_inertia:
+        shapes["inertia_cholesky"] = (6,)
+    else:
+        mlp("inertia", 6)
+    mlp("gain", 3 * config.control_dim)
+    if config.dissipation:
+        shapes["dissipation_cholesky"] = (6,)
+    return shapes
+
+
+def init_weights(config: ModelConfig, seed: int, initial_inertia: float = 0.3) -> dict[str, np.ndarray]:
+    """Seeded initial weights: Glorot-uniform hidden layers, small output layers, the
+    inertia starting near ``initial_inertia · I`` and no damping."""
+    rng = np.random.default_rng(seed)
+    weights: dict[str, np.ndarray] = {}
+    diag_root = np.sqrt(initial_inertia)
+    for name, shape in weight_shapes(config).items():
+        if name == "inertia_cholesky":
+            weights[name] = np.array([diag_root] * 3 + [0.0] * 3)
+        elif name == "dissipation_cholesky":
+            weights[name] = np.array([0.1] * 3 + [0.0] * 3)
+        elif len(shape) == 2:
+            is_output = name.endswith(f"_w{config.hidden_layers}")
+            limit = np.sqrt(6.0 / (shape[0] + shape[1])) * (0.1 if is_output else 1.0)
+            weights[name] = rng.uniform(-limit, limit, size=shape)
+        else:
+            weights[name] = np.zeros(shape)
+            if name == f"inertia_b{config.hidden_layers}":
+                weights[name][:3] = diag_root
+    return weights
+
+
+def check_weights(weights: Mapping[str, Any], config: ModelConfig) -> None:
+    """Raise ``ValueError`` naming the first missing, unexpected or mis-shaped weight."""
+    expected = weight_shapes(config)
+    missing = sorted(set(expected) - set(weights))
+    extra = sorted(set(weights) - set(expected))
+    if missing or extra:
+        raise ValueError(f"weights do not match the model config: missing {missing}, unexpected {extra}")
+    for name, shape in expected.items():
+        actual = tuple(weights[name].shape)
+        if actual != shape:
+            raise ValueError(f"weight {name!r} has shape {actual}, expected {shape}")
+
+
+def _mlp_hidden(weights: Mapping[str, Any], name: str, layers: int, x: Any, ops: Ops) -> list[Any]:
+    activations = [x]
+    for i in range(layers):
+        activations.append(ops.tanh(ops.linear(activations[-1], weights[f"{name}_w{i}"], weights[f"{name}_b{i}"])))
+    return activations
+
+
+def mlp(weights: Mapping[str, Any], name: str, layers: int, x: Any, ops: Ops) -> Any:
+    """The MLP ``name`` on the vector ``x``."""
+    hidden = _mlp_hidden(weights, name, layers, x, ops)[-1]
+    return ops.linear(hidden, weights[f"{name}_w{layers}"], weights[f"{name}_b{layers}"])
+
+
+def scalar_mlp_value_and_gradient(
+    weights: Mapping[str, Any], name: str, layers: int, x: Any, ops: Ops
+) -> tuple[Any, Any]:
+    """A scalar MLP and its input gradient in one pass (hand-written backpropagation,
+    so every backend gets the same expression and torch needs no double backward)."""
+    activations = _mlp_hidden(weights, name, layers, x, ops)
+    value = ops.linear(activations[-1], weights[f"{name}_w{layers}"], weights[f"{name}_b{layers}"])
+    upstream = ops.linear_transpose(0.0 * value + 1.0, weights[f"{name}_w{layers}"])
+    for i in range(layers, 0, -1):
+        a = activations[i]
+        upstream = ops.linear_transpose(upstream * (1.0 - a * a), weights[f"{name}_w{i - 1}"])
+    return value, upstream
+
+
+class LearnedTerms:
+    """:class:`~fvin_mpc.fvin.RigidBodyTerms` of a learned model on one backend."""
+
+    def __init__(self, weights: Mapping[str, Any], config: ModelConfig, ops: Ops) -> None:
+        self.weights = weights
+        self.config = config
+        self.ops = ops
+        self.control_dim = config.control_dim
+        self.constant_inertia = config.constant_inertia
+
+    # -- helpers --------------------------------------------------------------
+    def _vector_net(self, name: str, q: s3.Quat) -> tuple[Any, ...]:
+        """Outputs of MLP ``name``, averaged over ``±q`` for the sign-invariant variant."""
+        ops, layers = self.ops, self.config.hidden_layers
+        out = ops.unstack(mlp(self.weights, name, layers, ops.stack(q), ops))
+        if not self.config.sign_invariant:
+            return out
+        mirrored = ops.unstack(mlp(self.weights, name, layers, ops.stack(s3.negate(q)), ops))
+        return tuple(0.5 * (a + b) for a, b in zip(out, mirrored))
+
+    def _cholesky_constant(self, name: str, q: s3.Quat) -> tuple[Any, ...]:
+        zero = 0.0 * q[0]
+        weights = self.weights[name]
+        return tuple(zero + weights[i] for i in range(6))
+
+    # -- RigidBodyTerms -------------------------------------------------------
+    def inertia(self, q: s3.Quat) -> s3.Mat3:
+        eps = self.config.inertia_epsilon
+        if self.config.constant_inertia:
+            return s3.symmetric_from_cholesky(self._cholesky_constant("inertia_cholesky", q), eps)
+        ops, layers = self.ops, self.config.hidden_layers
+        inertia = s3.symmetric_from_cholesky(ops.unstack(mlp(self.weights, "inertia", layers, ops.stack(q), ops)), eps)
+        if not self.config.sign_invariant:
+            return inertia
+        mirrored_l = ops.unstack(mlp(self.weights, "inertia", layers, ops.stack(s3.negate(q)), ops))
+        mirrored = s3.symmetric_from_cholesky(mirrored_l, eps)
+        return tuple(tuple(0.5 * (a + b) for a, b in zip(ra, rb)) for ra, rb in zip(inertia, mirrored))  # type: ignore[return-value]
+
+    def _potential_and_gradient(self, q: s3.Quat) -> tuple[Any, s3.Quat]:
+        ops, layers = self.ops, self.config.hidden_layers
+        value, grad = scalar_mlp_value_and_gradient(self.weights, "potential", layers, ops.stack(q), ops)
+        value, grad = ops.unstack(value)[0], ops.unstack(grad)
+        if self.config.sign_invariant:
+            # Û(q) = ½(U(q) + U(−q))  ⇒  ∇Û(q) = ½(∇U(q) − ∇U(−q)).
+            value_m, grad_m = scalar_mlp_value_and_gradient(
+                self.weights, "potential", layers, ops.stack(s3.negate(q)), ops
+            )
+            value = 0.5 * (value + ops.unstack(value_m)[0])
+            grad = tuple(0.5 * (a - b) for a, b in zip(grad, ops.unstack(grad_m)))
+        return value, grad  # type: ignore[return-value]
+
+    def potential(self, q: s3.Quat) -> Any:
+        return self._potential_and_gradient(q)[0]
+
+    def potential_gradient(self, q: s3.Quat) -> s3.Quat:
+        return self._potential_and_gradient(q)[1]
+
+    def control_gain(self, q: s3.Quat) -> tuple[tuple[Any, ...], ...]:
+        flat = self._vector_net("gain", q)
+        m = self.control_dim
+        return tuple(tuple(flat[i * m + j] for j in range(m)) for i in range(3))
+
+    def dissipation(self, q: s3.Quat) -> s3.Mat3 | None:
+        if not self.config.dissipation:
+            return None
+        return s3.symmetric_from_cholesky(self._cholesky_constant("dissipation_cholesky", q))

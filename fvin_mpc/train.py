@@ -1,0 +1,175 @@
+"""Train an S3FVIN on trajectory data: ``python -m fvin_mpc.train``.
+
+Loss: multi-step rollout over windows of ``--window`` steps, the sign-invariant
+orientation error ``4(1 − ⟨q̂, q⟩²)`` (≈ squared angle error in rad²) plus
+``--omega-weight``·‖ω̂ − ω‖², averaged over windows and steps. Full-batch Adam;
+trajectories are split into train/validation sets before windowing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .data import TrajectoryData, load_data
+from .networks import VARIANTS, ModelConfig
+
+DEFAULT_DATA = Path("data/pendulum.npz")
+
+
+@dataclass(frozen=True)
+class TrainSettings:
+    """Optimization settings.
+
+    Attributes:
+        iterations: full-batch Adam steps.
+        learning_rate: initial Adam learning rate (cosine-decayed to 5 % of it).
+        window: rollout length in steps of every training window.
+        omega_weight: weight of ‖ω̂ − ω‖² against the orientation error.
+        validation_fraction: share of trajectories held out.
+        seed: seeds the initialization and the split.
+        eval_every: iterations between validation evaluations.
+    """
+
+    iterations: int = 1500
+    learning_rate: float = 1e-2
+    window: int = 8
+    omega_weight: float = 0.1
+    validation_fraction: float = 0.1
+    seed: int = 0
+    eval_every: int = 50
+
+
+def rollout_loss(model: Any, q: Any, omega: Any, u: Any, omega_weight: float) -> Any:
+    """Mean multi-step loss of ``model`` on windows ``q (W, T+1, 4)``, ``ω (W, T+1, 3)``, ``u (W, T, m)``."""
+    q_hat, omega_hat = model.rollout(q[:, 0], omega[:, 0], u)
+    alignment = (q_hat[:, 1:] * q[:, 1:]).sum(-1)
+    orientation = 4.0 * (1.0 - alignment**2)
+    velocity = ((omega_hat[:, 1:] - omega[:, 1:]) ** 2).sum(-1)
+    return orientation.mean() + omega_weight * velocity.mean()
+
+
+def split_data(data: TrajectoryData, validation_fraction: float, seed: int) -> tuple[TrajectoryData, TrajectoryData]:
+    order = np.random.default_rng(seed).permutation(data.num_trajectories)
+    n_val = max(1, int(round(validation_fraction * data.num_trajectories)))
+    return data.subset(np.sort(order[n_val:])), data.subset(np.sort(order[:n_val]))
+
+
+def train(data: TrajectoryData, config: ModelConfig, settings: TrainSettings, progress: bool = True) -> tuple[Any, dict[str, Any]]:
+    """Train a model; returns ``(model, report)`` with losses and timings."""
+    import torch
+    from tqdm.auto import tqdm
+
+    from .model import DTYPE, S3FVIN
+
+    if abs(data.control_period - config.step_size) > 1e-12:
+        raise ValueError(f"model step {config.step_size} differs from the data's control period {data.control_period}")
+    if data.u.shape[2] != config.control_dim:
+        raise ValueError(f"data has {data.u.shape[2]} controls, the model config {config.control_dim}")
+    torch.manual_seed(settings.seed)
+    train_set, validation_set = split_data(data, settings.validation_fraction, settings.seed)
+    tensors = lambda arrays: tuple(torch.as_tensor(a, dtype=DTYPE) for a in arrays)  # noqa: E731
+    train_windows = tensors(train_set.windows(settings.window))
+    validation_windows = tensors(validation_set.windows(settings.window))
+
+    model = S3FVIN(config, seed=settings.seed)
+    optimizer = torch.optim.Adam(model.parameters(), lr=settings.learning_rate)
+    schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, settings.iterations, eta_min=0.05 * settings.learning_rate)
+    history: list[dict[str, float]] = []
+    validation_loss = float("nan")
+    start = time.perf_counter()
+    bar = tqdm(range(settings.iterations), desc=f"train {config.variant}", disable=not progress)
+    for iteration in bar:
+        optimizer.zero_grad()
+        loss = rollout_loss(model, *train_windows, settings.omega_weight)
+        if not torch.isfinite(loss):
+            raise FloatingPointError(f"training loss became {loss.item()} at iteration {iteration}")
+        loss.backward()
+        optimizer.step()
+        schedule.step()
+        if iteration % settings.eval_every == 0 or iteration == settings.iterations - 1:
+            with torch.no_grad():
+                validation_loss = rollout_loss(model, *validation_windows, settings.omega_weight).item()
+            history.append({"iteration": iteration, "train": loss.item(), "validation": validation_loss})
+        bar.set_postfix(train=f"{loss.item():.2e}", val=f"{validation_loss:.2e}")
+    seconds = time.perf_counter() - start
+    with torch.no_grad():
+        final_train = rollout_loss(model, *train_windows, settings.omega_weight).item()
+        final_validation = rollout_loss(model, *validation_windows, settings.omega_weight).item()
+    report = {
+        "iterations": settings.iterations,
+        "settings": settings.__dict__,
+        "train_windows": int(train_windows[0].shape[0]),
+        "validation_windows": int(validation_windows[0].shape[0]),
+        "final_train_loss": final_train,
+        "final_validation_loss": final_validation,
+        "wall_clock_s": seconds,
+        "seconds_per_iteration": seconds / settings.iterations,
+        "history": history,
+    }
+    return model, report
+
+
+def package_versions() -> dict[str, str]:
+    import importlib.metadata as md
+
+    versions = {}
+    for name in ("fvin_mpc", "torch", "numpy", "casadi", "mujoco", "gymnasium"):
+        try:
+            versions[name] = md.version(name)
+        except md.PackageNotFoundError:
+            versions[name] = "not installed"
+    return versions
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m fvin_mpc.train", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--data", type=Path, default=DEFAULT_DATA, help="data file from fvin_mpc.collect (default: %(default)s)")
+    parser.add_argument("--out", type=Path, default=None, help="checkpoint stem (default: checkpoints/<scene>_<variant>)")
+    parser.add_argument("--variant", choices=VARIANTS, default="sign-invariant")
+    parser.add_argument("--hidden-width", type=int, default=ModelConfig.hidden_width)
+    parser.add_argument("--hidden-layers", type=int, default=ModelConfig.hidden_layers)
+    parser.add_argument("--newton-iters", type=int, default=ModelConfig.newton_iters)
+    parser.add_argument("--dissipation", action="store_true", help="learn a damping term −Dω (for dissipative scenes)")
+    parser.add_argument("--iterations", type=int, default=TrainSettings.iterations)
+    parser.add_argument("--lr", type=float, default=TrainSettings.learning_rate)
+    parser.add_argument("--window", type=int, default=TrainSettings.window)
+    parser.add_argument("--omega-weight", type=float, default=TrainSettings.omega_weight)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    args = parser.parse_args(argv)
+
+    from .checkpoint import save_checkpoint
+
+    data = load_data(args.data)
+    config = ModelConfig(
+        variant=args.variant, control_dim=int(data.u.shape[2]), hidden_width=args.hidden_width,
+        hidden_layers=args.hidden_layers, step_size=data.control_period, newton_iters=args.newton_iters,
+        dissipation=args.dissipation,
+    )
+    settings = TrainSettings(iterations=args.iterations, learning_rate=args.lr, window=args.window,
+                             omega_weight=args.omega_weight, seed=args.seed)
+    model, report = train(data, config, settings, progress=not args.quiet)
+    scene = data.metadata.get("scene", "unknown")
+    out = args.out or Path("checkpoints") / f"{scene}_{args.variant}"
+    stem = save_checkpoint(
+        out, config, model.numpy_weights(), scene=scene, body=data.metadata.get("body"),
+        data={"path": str(args.data), "trajectories": data.num_trajectories, "transitions": data.num_transitions,
+              "seed": data.metadata.get("seed"), "control_period": data.control_period},
+        training=report, versions=package_versions(),
+    )
+    print(json.dumps({"checkpoint": str(stem), "final_train_loss": report["final_train_loss"],
+                      "final_validation_loss": report["final_validation_loss"],
+                      "wall_clock_s": round(report["wall_clock_s"], 1)}, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
