@@ -7,7 +7,7 @@ All math lives in :mod:`fvin_mpc.s3`, :mod:`fvin_mpc.fvin` and
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Mapping
+from typing import Callable, Mapping
 
 import numpy as np
 import torch
@@ -64,11 +64,15 @@ class S3FVIN(nn.Module):
         )
         return TorchStep(ops.stack(result.q), ops.stack(result.omega), result.residual)
 
-    def rollout(self, q0: torch.Tensor, omega0: torch.Tensor, controls: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Roll out ``T`` steps: ``controls (B, T, m)`` → ``q (B, T+1, 4)``, ``omega (B, T+1, 3)``."""
+    def rollout(self, q0: torch.Tensor, omega0: torch.Tensor, controls: torch.Tensor,
+                step: Callable[..., TorchStep] | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Roll out ``T`` steps: ``controls (B, T, m)`` → ``q (B, T+1, 4)``, ``omega (B, T+1, 3)``.
+
+        ``step`` replaces :meth:`step` (e.g. a ``torch.compile``-d version of it)."""
+        step = step or self.step
         qs, omegas = [q0], [omega0]
         for k in range(controls.shape[1]):
-            out = self.step(qs[-1], omegas[-1], controls[:, k])
+            out = step(qs[-1], omegas[-1], controls[:, k])
             qs.append(out.q)
             omegas.append(out.omega)
         return torch.stack(qs, dim=1), torch.stack(omegas, dim=1)
