@@ -1,0 +1,271 @@
+"""Scene registry and physics declarations: simulate only the effects a scene calls for.
+
+A scene is an MJCF file plus a :class:`SceneSpec` naming the observed body, the control
+period, the goal orientation and a :class:`ScenePhysics` declaration of the physical
+effects it needs. :func:`build_model` compiles the MJCF and switches off, through
+``model.opt.disableflags``, every effect the declaration does not call for.
+
+Policy for declaration vs. MJCF (one rule per direction):
+
+* **Declared off, present in the MJCF** — switched off. This is the point of the
+  declaration (e.g. the same MJCF without gravity or damping); no error.
+* **Declared on, absent from the MJCF** — ``ValueError``. Nothing can be switched on that
+  the file does not contain (zero gravity vector, no joint with ``damping > 0``, ...), so
+  the declaration would be a false statement about the simulation.
+* **Effects the declaration has no word for** (joint springs, joint limits, equality
+  constraints, tendons) are always switched off; if the MJCF contains one, ``ValueError``
+  rather than silently simulating something else than the file says.
+
+For a user MJCF, :func:`infer_physics` reads the declaration off the file (as the file would
+simulate it, including its own ``<flag>`` settings); callers override fields with
+``dataclasses.replace(infer_physics(model), ...)``. Built-in scenes declare ``contact=False``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import mujoco
+import numpy as np
+
+SCENE_DIR = Path(__file__).resolve().parent / "scenes"
+
+_DSBL = mujoco.mjtDisableBit
+
+#: Disable flags of effects :class:`ScenePhysics` has no field for; always set.
+ALWAYS_DISABLED = int(_DSBL.mjDSBL_SPRING | _DSBL.mjDSBL_LIMIT | _DSBL.mjDSBL_EQUALITY)
+
+
+@dataclass(frozen=True)
+class ScenePhysics:
+    """The physical effects a scene calls for; everything else is switched off.
+
+    Attributes:
+        gravity: gravity acts (``mjDSBL_GRAVITY`` cleared).
+        joint_damping: joint damping acts (``mjDSBL_DAMPER`` cleared).
+        dry_friction: joint friction loss acts (``mjDSBL_FRICTIONLOSS`` cleared).
+        actuator_limits: controls are clamped to the actuators' ``ctrlrange``
+            (``mjDSBL_CLAMPCTRL`` cleared) and the env's action space is bounded by it.
+        contact: collisions are detected and resolved (``mjDSBL_CONTACT`` cleared).
+        sensor_noise_std: standard deviation of Gaussian noise added to each of the 7
+            observation entries (the quaternion is then renormalized); 0 draws nothing.
+    """
+
+    gravity: bool
+    joint_damping: bool
+    dry_friction: bool
+    actuator_limits: bool
+    contact: bool
+    sensor_noise_std: float = 0.0
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.sensor_noise_std) and self.sensor_noise_std >= 0.0):
+            raise ValueError(f"sensor_noise_std must be finite and >= 0, got {self.sensor_noise_std!r}")
+
+    def disable_flags(self) -> int:
+        """The ``mjtDisableBit`` mask that switches off everything not declared."""
+        flags = ALWAYS_DISABLED
+        for declared, bit in (
+            (self.gravity, _DSBL.mjDSBL_GRAVITY),
+            (self.joint_damping, _DSBL.mjDSBL_DAMPER),
+            (self.dry_friction, _DSBL.mjDSBL_FRICTIONLOSS),
+            (self.actuator_limits, _DSBL.mjDSBL_CLAMPCTRL),
+            (self.contact, _DSBL.mjDSBL_CONTACT),
+        ):
+            if not declared:
+                flags |= int(bit)
+        return flags
+
+
+@dataclass(frozen=True)
+class SceneSpec:
+    """A built-in scene: where its MJCF lives and what the task is.
+
+    Attributes:
+        name: registry key, e.g. ``"pendulum"``.
+        xml_path: the MJCF file.
+        body: name of the observed body (its orientation and body-frame angular velocity).
+        control_period: seconds per env step; a whole multiple of the MJCF timestep.
+        goal: goal orientation quaternion ``(w, x, y, z)``, shape ``(4,)``.
+        physics: the effects simulated (see :class:`ScenePhysics`).
+    """
+
+    name: str
+    xml_path: Path
+    body: str
+    control_period: float
+    goal: tuple[float, float, float, float]
+    physics: ScenePhysics
+
+
+_UPRIGHT = (0.0, 0.0, 1.0, 0.0)  # rotation by π about +y: the rod points up
+
+SCENES: dict[str, SceneSpec] = {
+    spec.name: spec
+    for spec in (
+        SceneSpec(
+            name="pendulum",
+            xml_path=SCENE_DIR / "pendulum.xml",
+            body="pendulum",
+            control_period=0.05,
+            goal=_UPRIGHT,
+            physics=ScenePhysics(gravity=True, joint_damping=False, dry_friction=False,
+                                 actuator_limits=True, contact=False),
+        ),
+        SceneSpec(
+            name="pendulum_damped",
+            xml_path=SCENE_DIR / "pendulum_damped.xml",
+            body="pendulum",
+            control_period=0.05,
+            goal=_UPRIGHT,
+            physics=ScenePhysics(gravity=True, joint_damping=True, dry_friction=False,
+                                 actuator_limits=True, contact=False),
+        ),
+        SceneSpec(
+            name="spherical_pendulum",
+            xml_path=SCENE_DIR / "spherical_pendulum.xml",
+            body="pendulum",
+            control_period=0.05,
+            goal=_UPRIGHT,
+            physics=ScenePhysics(gravity=True, joint_damping=False, dry_friction=False,
+                                 actuator_limits=True, contact=False),
+        ),
+    )
+}
+
+
+def get_scene(name: str) -> SceneSpec:
+    """The built-in :class:`SceneSpec` called ``name``; ``ValueError`` listing the known ones."""
+    try:
+        return SCENES[name]
+    except KeyError:
+        raise ValueError(
+            f"unknown scene {name!r}: expected one of {sorted(SCENES)} or a path to an existing MJCF (.xml) file"
+        ) from None
+
+
+def _disabled(model: mujoco.MjModel, bit: int) -> bool:
+    return bool(model.opt.disableflags & int(bit))
+
+
+def _can_collide(model: mujoco.MjModel) -> bool:
+    """Whether any geom pair could ever produce a contact (explicit ``<pair>`` or contype/conaffinity).
+
+    Follows MuJoCo's filters: geoms of one weld group never collide, nor do geoms of a
+    parent and child body (unless the parent is the world or ``filterparent`` is disabled).
+    Excluded body pairs (``<exclude>``) are ignored, so the answer errs towards ``True``.
+    """
+    if model.npair > 0:
+        return True
+    filter_parent = not _disabled(model, _DSBL.mjDSBL_FILTERPARENT)
+    weld_of_geom = model.body_weldid[model.geom_bodyid]
+    weld_parent = model.body_weldid[model.body_parentid]
+    for i in range(model.ngeom):
+        for j in range(i + 1, model.ngeom):
+            weld_i, weld_j = int(weld_of_geom[i]), int(weld_of_geom[j])
+            if weld_i == weld_j:
+                continue
+            parent_child = weld_i == weld_parent[weld_j] or weld_j == weld_parent[weld_i]
+            if filter_parent and parent_child and weld_i != 0 and weld_j != 0:
+                continue
+            if (model.geom_contype[i] & model.geom_conaffinity[j]) or (model.geom_contype[j] & model.geom_conaffinity[i]):
+                return True
+    return False
+
+
+def present_effects(model: mujoco.MjModel) -> dict[str, bool]:
+    """Which declarable effects the compiled MJCF contains, ignoring its disable flags."""
+    return {
+        "gravity": bool(np.linalg.norm(model.opt.gravity) > 0.0),
+        "joint_damping": bool(np.any(model.dof_damping > 0.0)),
+        "dry_friction": bool(np.any(model.dof_frictionloss > 0.0)),
+        "actuator_limits": bool(np.any(model.actuator_ctrllimited)),
+        "contact": _can_collide(model),
+    }
+
+
+def infer_physics(model: mujoco.MjModel) -> ScenePhysics:
+    """The declaration a user MJCF implies: each effect present and not disabled by the file's own flags."""
+    present = present_effects(model)
+    own_flag = {
+        "gravity": _DSBL.mjDSBL_GRAVITY,
+        "joint_damping": _DSBL.mjDSBL_DAMPER,
+        "dry_friction": _DSBL.mjDSBL_FRICTIONLOSS,
+        "actuator_limits": _DSBL.mjDSBL_CLAMPCTRL,
+        "contact": _DSBL.mjDSBL_CONTACT,
+    }
+    return ScenePhysics(**{name: present[name] and not _disabled(model, bit) for name, bit in own_flag.items()})
+
+
+def check_unsupported_effects(model: mujoco.MjModel) -> None:
+    """``ValueError`` if the MJCF contains an effect :class:`ScenePhysics` cannot declare."""
+    problems = []
+    if np.any(model.jnt_stiffness != 0.0):
+        problems.append("joint springs (stiffness != 0)")
+    if np.any(model.jnt_limited):
+        problems.append("joint limits (limited joints)")
+    if model.neq > 0:
+        problems.append("equality constraints")
+    if model.ntendon > 0:
+        problems.append("tendons")
+    if problems:
+        raise ValueError(
+            "the MJCF contains effects the scene physics declaration has no field for and that would be "
+            f"switched off: {', '.join(problems)}; remove them from the file"
+        )
+
+
+def apply_physics(model: mujoco.MjModel, physics: ScenePhysics) -> None:
+    """Set ``model.opt.disableflags`` from ``physics`` (in place), after checking it against the MJCF.
+
+    Raises:
+        ValueError: an effect is declared on but absent from the MJCF, or the MJCF contains
+            an effect no declaration covers (see the module docstring for the policy).
+    """
+    check_unsupported_effects(model)
+    present = present_effects(model)
+    missing = [name for name, is_present in present.items() if getattr(physics, name) and not is_present]
+    if missing:
+        raise ValueError(
+            f"physics declares {missing} but the MJCF contains no such effect "
+            "(gravity vector zero / no dof damping / no frictionloss / no ctrllimited actuator / "
+            "no geom pair that can collide); declare it off or add it to the MJCF"
+        )
+    managed = ALWAYS_DISABLED | int(
+        _DSBL.mjDSBL_GRAVITY | _DSBL.mjDSBL_DAMPER | _DSBL.mjDSBL_FRICTIONLOSS
+        | _DSBL.mjDSBL_CLAMPCTRL | _DSBL.mjDSBL_CONTACT
+    )
+    model.opt.disableflags = (int(model.opt.disableflags) & ~managed) | physics.disable_flags()
+
+
+def load_model(xml_path: str | Path) -> mujoco.MjModel:
+    """Compile an MJCF file; ``ValueError`` naming the file if it is missing or invalid."""
+    path = Path(xml_path)
+    if not path.is_file():
+        raise ValueError(f"MJCF file not found: {str(path)!r}")
+    try:
+        return mujoco.MjModel.from_xml_path(str(path))
+    except ValueError as error:
+        raise ValueError(f"could not compile MJCF {str(path)!r}: {error}") from error
+
+
+def build_model(xml_path: str | Path, physics: ScenePhysics | None = None) -> tuple[mujoco.MjModel, ScenePhysics]:
+    """Compile ``xml_path`` and switch off every effect not in ``physics``.
+
+    Args:
+        xml_path: MJCF file.
+        physics: the declaration; ``None`` infers it from the file (:func:`infer_physics`).
+
+    Returns:
+        ``(model, physics)``: the model with ``opt.disableflags`` set (and energy
+        computation enabled), and the declaration actually used.
+    """
+    model = load_model(xml_path)
+    if physics is None:
+        physics = infer_physics(model)
+    apply_physics(model, physics)
+    model.opt.enableflags |= int(mujoco.mjtEnableBit.mjENBL_ENERGY)
+    return model, physics
+
