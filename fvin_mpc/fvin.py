@@ -149,7 +149,12 @@ def fvin_step(
         mismatch = s3.sub(implicit_lhs(xi, inertia, ops), rhs)
         # Φ ≈ −Jξ and ξ ≈ hω/2: dividing by h·j/2 turns the mismatch into rad/s.
         inertia_scale = (inertia[0][0] + inertia[1][1] + inertia[2][2]) / 3.0
-        residual = ops.sqrt(s3.dot(mismatch, mismatch)) * (2.0 / h) / inertia_scale
+        squared = s3.dot(mismatch, mismatch)
+        # A converged solve has mismatch exactly 0, where √ has no derivative; the safe
+        # argument keeps the residual's derivatives finite (0 there) in every backend.
+        nonzero = squared > 0.0
+        norm = ops.where(nonzero, ops.sqrt(ops.where(nonzero, squared, 1.0 + 0.0 * squared)), 0.0 * squared)
+        residual = norm * (2.0 / h) / inertia_scale
     return StepResult(q=q_next, omega=omega_next, residual=residual)  # type: ignore[arg-type]
 
 

@@ -105,3 +105,60 @@ PENDULUM_DAMPED = PivotedRigidBody(
     actuator_axes=PENDULUM.actuator_axes,
     damping=0.1,
 )
+
+
+def from_mujoco(model: Any, body: str) -> PivotedRigidBody:
+    """The closed-form :class:`PivotedRigidBody` of ``body`` in a compiled MuJoCo model.
+
+    Read off the model, not the scene files: mass, centre of mass and inertia (moved to the
+    joint's anchor by the parallel-axis theorem), gravity, joint damping, and each actuator's
+    torque axis (its ``gear``). For a hinge only the inertia about the hinge axis is physical;
+    the body gets ``J = I_axis·I`` (isotropic, as :data:`PENDULUM`) so the unactuated axes stay
+    well posed. Requires the body to hang from the world on one hinge or ball joint, with the
+    world frame aligned to the body's rest orientation (true of the built-in scenes).
+
+    Args:
+        model: a ``mujoco.MjModel``.
+        body: the body's name.
+    """
+    import mujoco
+    import numpy as np
+
+    body_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, body)
+    if body_id < 0:
+        raise ValueError(f"no body named {body!r} in the model")
+    joints = [j for j in range(model.njnt) if model.jnt_bodyid[j] == body_id]
+    hinge, ball = int(mujoco.mjtJoint.mjJNT_HINGE), int(mujoco.mjtJoint.mjJNT_BALL)
+    if len(joints) != 1 or int(model.jnt_type[joints[0]]) not in (hinge, ball):
+        raise ValueError(f"body {body!r} must have exactly one hinge or ball joint")
+    joint = joints[0]
+    anchor = np.asarray(model.jnt_pos[joint], dtype=float)
+    com = np.asarray(model.body_ipos[body_id], dtype=float) - anchor
+    mass = float(model.body_mass[body_id])
+    frame = np.zeros(9)
+    mujoco.mju_quat2Mat(frame, np.asarray(model.body_iquat[body_id], dtype=float))
+    frame = frame.reshape(3, 3)
+    inertia = frame @ np.diag(model.body_inertia[body_id]) @ frame.T + mass * (com @ com * np.eye(3) - np.outer(com, com))
+    dof = int(model.jnt_dofadr[joint])
+    actuators = [a for a in range(model.nu) if model.actuator_trnid[a, 0] == joint]
+    if int(model.jnt_type[joint]) == hinge:
+        axis = np.asarray(model.jnt_axis[joint], dtype=float)
+        inertia = float(axis @ inertia @ axis) * np.eye(3)
+        axes = np.array([model.actuator_gear[a, 0] * axis for a in actuators]).T
+        damping = float(model.dof_damping[dof])
+    else:
+        axes = np.array([model.actuator_gear[a, :3] for a in actuators]).T
+        dampings = np.asarray(model.dof_damping[dof : dof + 3], dtype=float)
+        if np.ptp(dampings) > 0:
+            raise ValueError("a ball joint with unequal damping per axis has no scalar damping")
+        damping = float(dampings[0])
+    gravity = np.asarray(model.opt.gravity, dtype=float)
+    if gravity[0] != 0.0 or gravity[1] != 0.0:
+        raise ValueError(f"gravity must point along −z, got {gravity}")
+    if model.opt.disableflags & mujoco.mjtDisableBit.mjDSBL_GRAVITY:
+        gravity = np.zeros(3)
+    if model.opt.disableflags & mujoco.mjtDisableBit.mjDSBL_DAMPER:
+        damping = 0.0
+    as_tuple = lambda matrix: tuple(tuple(float(x) for x in row) for row in matrix)  # noqa: E731
+    return PivotedRigidBody(inertia=as_tuple(inertia), center_of_mass=tuple(float(c) for c in com),
+                            mass_gravity=-mass * float(gravity[2]), actuator_axes=as_tuple(axes), damping=damping)

@@ -1,0 +1,466 @@
+"""A Gymnasium environment over a MuJoCo scene: one rigid body on one actuated hinge or ball joint.
+
+The observation is the model state of ``DESIGN.md``, ``x = (q, ω)``: the body's orientation
+quaternion ``(w, x, y, z)`` and its body-frame angular velocity. The physics is built with
+:func:`envs.scenes.build_model`, so every effect the scene does not declare is switched off.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+import gymnasium
+import mujoco
+import numpy as np
+from gymnasium import spaces
+
+from .scenes import SCENES, SceneSpec, ScenePhysics, build_model, get_scene
+
+#: Control period a user MJCF gets by default: the whole number of its timesteps closest to this.
+DEFAULT_CONTROL_PERIOD = 0.05
+#: Largest initial |ω| (rad/s) of ``reset(options={"random": True})`` unless ``"max_omega"`` is given
+#: (Pendulum-v1 draws θ̇ from [−1, 1]).
+DEFAULT_RANDOM_MAX_OMEGA = 1.0
+#: Weights of the quadratic cost (Pendulum-v1's): angle², |ω|², |u|².
+COST_WEIGHTS = (1.0, 0.1, 0.001)
+
+_JOINT_TYPES = {int(mujoco.mjtJoint.mjJNT_HINGE): "hinge", int(mujoco.mjtJoint.mjJNT_BALL): "ball"}
+_RESET_OPTIONS = frozenset({"qpos", "qvel", "random", "max_omega"})
+
+
+def geodesic_angle(q: np.ndarray, p: np.ndarray) -> float:
+    """Rotation angle in ``[0, π]`` between unit quaternions ``q`` and ``p``; sign invariant."""
+    d = abs(float(np.dot(q, p)))
+    # 2·atan2(√(1−d²), d) is accurate near 0 and π, unlike 2·acos(d) near 0.
+    return 2.0 * math.atan2(math.sqrt(max(0.0, 1.0 - d * d)), d)
+
+
+class RigidBodyEnv(gymnasium.Env):
+    """Bring a rigid body on an actuated hinge or ball joint to a goal orientation.
+
+    ## Description
+
+    A MuJoCo scene (a built-in one from :data:`envs.scenes.SCENES` or any MJCF file) with one
+    observed body, which hangs from the world on a single hinge or ball joint driven by one or
+    more actuators. The built-in scenes are pendulums whose task is the swing-up: start hanging
+    at rest, reach the upright orientation and stay there. ``pendulum`` has the physics of
+    Gymnasium's Pendulum-v1 (``θ̈ = −15 sin θ + 3τ``, but θ = 0 *hanging*, see
+    :mod:`envs.pendulum_v1` for the conversion); ``pendulum_damped`` adds joint damping 0.1;
+    ``spherical_pendulum`` is a body with a cross bar on a ball joint with a motor per body axis.
+
+    Only the effects the scene's :class:`~envs.scenes.ScenePhysics` declares are simulated
+    (gravity, joint damping, dry friction, actuator limits, contact, sensor noise); MuJoCo's
+    other effects are switched off (:func:`envs.scenes.build_model`).
+
+    ## Action Space
+
+    ``ndarray`` of shape ``(nu,)``, float64: the actuators' controls (for the built-in scenes,
+    torques in N·m). Bounded by the actuators' ``ctrlrange`` when the physics declares actuator
+    limits, unbounded otherwise. Actions outside the bounds are clipped to them (MuJoCo would
+    clamp them too); a wrong shape or a non-finite entry raises ``ValueError`` and sends nothing.
+
+    | Scene                | Num | Action                     | Min  | Max |
+    |----------------------|-----|----------------------------|------|-----|
+    | `pendulum(_damped)`  | 0   | torque about the hinge (+y)| -2.0 | 2.0 |
+    | `spherical_pendulum` | 0–2 | torque about body x, y, z  | -1.5 | 1.5 |
+
+    ## Observation Space
+
+    ``ndarray`` of shape ``(7,)``, float64: the body's world orientation and its angular velocity
+    in the body frame (``Ṙ = R[ω]×``), i.e. the state ``x = (q, ω)`` of ``DESIGN.md``.
+
+    | Num | Observation                                  | Min  | Max |
+    |-----|----------------------------------------------|------|-----|
+    | 0   | q_w, scalar part of the orientation (`xquat`) | -1.0 | 1.0 |
+    | 1   | q_x                                          | -1.0 | 1.0 |
+    | 2   | q_y                                          | -1.0 | 1.0 |
+    | 3   | q_z                                          | -1.0 | 1.0 |
+    | 4   | ω_x, body-frame angular velocity (rad/s)     | -Inf | Inf |
+    | 5   | ω_y                                          | -Inf | Inf |
+    | 6   | ω_z                                          | -Inf | Inf |
+
+    The quaternion order is (w, x, y, z), MuJoCo's. ``q`` and ``−q`` are the same rotation; the
+    sign MuJoCo reports is left as is. For the planar pendulum ``q = (cos θ/2, 0, sin θ/2, 0)``
+    and ``ω = (0, θ̇, 0)``. If the physics declares ``sensor_noise_std > 0``, Gaussian noise of
+    that standard deviation (from the env's ``np_random``) is added to all 7 entries and ``q`` is
+    renormalized; reward and ``info`` use the noise-free state.
+
+    ## Rewards
+
+    In the style of Pendulum-v1:
+
+    *r = -(angle² + 0.1 |ω|² + 0.001 |u|²)*
+
+    where *angle* ∈ [0, π] is the sign-invariant geodesic angle between the body's orientation and
+    the goal (``2 atan2(√(1−⟨q,g⟩²), |⟨q,g⟩|)``), ω the true body-frame angular velocity after the
+    step and u the (clipped) action applied. The maximum reward is 0 (at the goal, at rest, u = 0).
+
+    ## Starting State
+
+    Hanging at rest: the joint at the MJCF's ``qpos0`` with zero velocity (the hard start of the
+    swing-up). ``reset(options=...)`` accepts:
+
+    - ``{"qpos": ..., "qvel": ...}``: the joint state exactly (either may be omitted: ``qpos0`` /
+      zero). Shapes ``(1,)``/``(1,)`` for a hinge (angle in rad, rate in rad/s), ``(4,)``/``(3,)``
+      for a ball (quaternion (w, x, y, z), normalized here; body-frame angular velocity).
+    - ``{"random": True, "max_omega": 1.0}``: an orientation uniform over the joint's range (hinge
+      angle uniform in [−π, π), ball quaternion uniform on S³) and an angular velocity uniform in
+      ``|ω| ≤ max_omega`` (an interval for a hinge, a ball for a ball joint), drawn from the env's
+      ``np_random``. ``max_omega`` defaults to :data:`DEFAULT_RANDOM_MAX_OMEGA` = 1 rad/s.
+
+    ## Episode End
+
+    ``terminated`` is always ``False``. The registered ids truncate after 200 steps (10 s) through
+    Gymnasium's ``TimeLimit``.
+
+    ## Info
+
+    ``angle_from_goal`` (rad, noise-free), ``time`` (simulated s), ``energy`` (MuJoCo's total
+    mechanical energy ``data.energy.sum()``, J; potential energy counts only while gravity acts).
+
+    ## Arguments
+
+    - ``scene``: built-in scene name (``"pendulum"``, ``"pendulum_damped"``,
+      ``"spherical_pendulum"``) or path to an MJCF file. Default ``"pendulum"``.
+    - ``body``: the observed body. Default: the scene's; for an MJCF, the only body with a joint
+      (``ValueError`` if there are several).
+    - ``goal``: goal orientation quaternion (w, x, y, z), normalized here. Default: the scene's
+      (upright, ``(0, 0, 1, 0)``, for the built-ins); for an MJCF, the body's orientation at
+      ``qpos0`` (hanging at rest in the usual case, where it is the identity).
+    - ``physics``: the :class:`~envs.scenes.ScenePhysics` to simulate. Default: the scene's; for an
+      MJCF, :func:`~envs.scenes.infer_physics` (what the file would simulate).
+    - ``control_period``: seconds per step, a whole multiple of the MJCF timestep. Default: the
+      scene's (0.05 s); for an MJCF, the multiple of its timestep closest to 0.05 s.
+    - ``render_mode``: ``None`` or ``"rgb_array"`` (``MUJOCO_GL=egl`` headless); ``width``,
+      ``height``: image size in pixels (at most the MJCF's offscreen buffer, 640×480 built in).
+
+    Requirements on the MJCF (``ValueError`` otherwise): the body has exactly one joint, a hinge
+    or a ball, and it is the model's only degree of freedom (so that ``(q, ω)`` is the whole
+    state); every actuator drives that joint and has no internal state.
+
+    ## Version History
+
+    * v0: initial version (``fvin_mpc/Pendulum-v0``, ``fvin_mpc/PendulumDamped-v0``,
+      ``fvin_mpc/SphericalPendulum-v0``).
+    """
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": round(1 / DEFAULT_CONTROL_PERIOD)}
+
+    def __init__(
+        self,
+        scene: str | Path = "pendulum",
+        body: str | None = None,
+        goal: Any = None,
+        physics: ScenePhysics | None = None,
+        control_period: float | None = None,
+        render_mode: str | None = None,
+        width: int = 480,
+        height: int = 480,
+    ) -> None:
+        scene_spec, xml_path = _resolve_scene(scene)
+        self.scene_spec: SceneSpec | None = scene_spec
+        if scene_spec is not None and physics is None:
+            physics = scene_spec.physics
+        self._model, self._physics = build_model(xml_path, physics)
+        self._data = mujoco.MjData(self._model)
+        model = self._model
+
+        if body is None:
+            body = scene_spec.body if scene_spec is not None else _only_jointed_body(model)
+        self._body_id, self._joint_id = _validate_body_and_joint(model, body)
+        self._body_name = body
+        self._joint_type = _JOINT_TYPES[int(model.jnt_type[self._joint_id])]
+
+        timestep = float(model.opt.timestep)
+        if control_period is None:
+            control_period = (
+                scene_spec.control_period if scene_spec is not None
+                else timestep * max(1, round(DEFAULT_CONTROL_PERIOD / timestep))
+            )
+        self._frame_skip = _frame_skip(float(control_period), timestep)
+        self._dt = self._frame_skip * timestep
+
+        mujoco.mj_forward(model, self._data)
+        if goal is None:
+            goal = scene_spec.goal if scene_spec is not None else self._data.xquat[self._body_id].copy()
+        self._goal = _unit_quaternion(goal, "goal")
+
+        limited = self._physics.actuator_limits & model.actuator_ctrllimited.astype(bool)
+        low = np.where(limited, model.actuator_ctrlrange[:, 0], -np.inf)
+        high = np.where(limited, model.actuator_ctrlrange[:, 1], np.inf)
+        self.action_space = spaces.Box(low=low, high=high, dtype=np.float64)
+        obs_high = np.array([1.0] * 4 + [np.inf] * 3)
+        self.observation_space = spaces.Box(low=-obs_high, high=obs_high, dtype=np.float64)
+
+        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
+            raise ValueError(f"render_mode must be None or one of {self.metadata['render_modes']}, got {render_mode!r}")
+        self.render_mode = render_mode
+        self.metadata = {**type(self).metadata, "render_fps": round(1.0 / self._dt)}
+        self._width, self._height = int(width), int(height)
+        self._renderer: mujoco.Renderer | None = None
+        self._camera: mujoco.MjvCamera | None = None
+
+    # ------------------------------------------------------------------ accessors
+    @property
+    def model(self) -> mujoco.MjModel:
+        return self._model
+
+    @property
+    def data(self) -> mujoco.MjData:
+        return self._data
+
+    @property
+    def physics(self) -> ScenePhysics:
+        """The physics declaration actually simulated."""
+        return self._physics
+
+    @property
+    def body_name(self) -> str:
+        return self._body_name
+
+    @property
+    def joint_type(self) -> str:
+        """``"hinge"`` or ``"ball"``."""
+        return self._joint_type
+
+    @property
+    def dt(self) -> float:
+        """Control period (s): ``frame_skip`` MuJoCo timesteps."""
+        return self._dt
+
+    @property
+    def frame_skip(self) -> int:
+        return self._frame_skip
+
+    @property
+    def goal(self) -> np.ndarray:
+        """Goal orientation, unit quaternion (w, x, y, z), shape ``(4,)``."""
+        return self._goal.copy()
+
+    @property
+    def torque_low(self) -> np.ndarray:
+        return self.action_space.low.copy()
+
+    @property
+    def torque_high(self) -> np.ndarray:
+        return self.action_space.high.copy()
+
+    def state(self) -> tuple[np.ndarray, np.ndarray]:
+        """The noise-free ``(q, ω)``: body orientation (w, x, y, z) ``(4,)``, body-frame ω ``(3,)``."""
+        velocity = np.zeros(6)
+        mujoco.mj_objectVelocity(self._model, self._data, mujoco.mjtObj.mjOBJ_BODY, self._body_id, velocity, 1)
+        return self._data.xquat[self._body_id].copy(), velocity[:3].copy()
+
+    def set_state(self, qpos: Any, qvel: Any) -> None:
+        """Set the joint state exactly (see the class docstring for shapes) and run ``mj_forward``.
+
+        A ball joint's quaternion is normalized. ``ValueError`` on a wrong shape or a non-finite
+        entry (the state is then left unchanged).
+        """
+        qpos = _finite_array(qpos, (self._model.nq,), "qpos")
+        qvel = _finite_array(qvel, (self._model.nv,), "qvel")
+        if self._joint_type == "ball":
+            qpos = _unit_quaternion(qpos, "ball-joint qpos")
+        self._data.qpos[:] = qpos
+        self._data.qvel[:] = qvel
+        mujoco.mj_forward(self._model, self._data)
+
+    # ------------------------------------------------------------------ gymnasium API
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
+        super().reset(seed=seed)
+        options = {} if options is None else dict(options)
+        unknown = set(options) - _RESET_OPTIONS
+        if unknown:
+            raise ValueError(f"unknown reset options {sorted(unknown)}; expected some of {sorted(_RESET_OPTIONS)}")
+        if options.get("random", False):
+            if "qpos" in options or "qvel" in options:
+                raise ValueError("reset options: give either 'random' or 'qpos'/'qvel', not both")
+            qpos, qvel = self._random_joint_state(float(options.get("max_omega", DEFAULT_RANDOM_MAX_OMEGA)))
+        else:
+            if "max_omega" in options:
+                raise ValueError("reset option 'max_omega' only applies with 'random': True")
+            qpos = options.get("qpos", self._model.qpos0)
+            qvel = options.get("qvel", np.zeros(self._model.nv))
+        # Validate before touching the simulation, so a bad option leaves it as it was.
+        qpos = _finite_array(qpos, (self._model.nq,), "qpos")
+        qvel = _finite_array(qvel, (self._model.nv,), "qvel")
+        mujoco.mj_resetData(self._model, self._data)
+        self.set_state(qpos, qvel)
+        return self._observation(), self._info()
+
+    def step(self, action: Any):
+        u = _finite_array(action, (self._model.nu,), "action")
+        u = np.clip(u, self.action_space.low, self.action_space.high)
+        self._data.ctrl[:] = u
+        for _ in range(self._frame_skip):
+            mujoco.mj_step(self._model, self._data)
+        # mj_step leaves positions/velocities-derived quantities (xquat, cvel, energy) at the
+        # state *before* the last substep; bring them up to date.
+        mujoco.mj_forward(self._model, self._data)
+        q, omega = self.state()
+        angle = geodesic_angle(q, self._goal)
+        w_angle, w_omega, w_u = COST_WEIGHTS
+        reward = -(w_angle * angle**2 + w_omega * float(omega @ omega) + w_u * float(u @ u))
+        return self._observation(), reward, False, False, self._info(angle)
+
+    def render(self):
+        if self.render_mode is None:
+            gymnasium.logger.warn(
+                "render() called without a render_mode; create the env with render_mode='rgb_array'"
+            )
+            return None
+        if self._renderer is None:
+            self._renderer = mujoco.Renderer(self._model, height=self._height, width=self._width)
+            self._camera = mujoco.MjvCamera()
+            mujoco.mjv_defaultFreeCamera(self._model, self._camera)
+            self._camera.lookat[:] = self._data.xpos[self._body_id]
+            self._camera.azimuth, self._camera.elevation = 90.0, -15.0
+            self._camera.distance = 1.5 * float(self._model.stat.extent)
+        self._renderer.update_scene(self._data, camera=self._camera)
+        return self._renderer.render()
+
+    def close(self) -> None:
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None
+
+    # ------------------------------------------------------------------ internals
+    def _observation(self) -> np.ndarray:
+        q, omega = self.state()
+        observation = np.concatenate([q, omega])
+        noise_std = self._physics.sensor_noise_std
+        if noise_std > 0.0:
+            observation = observation + self.np_random.normal(0.0, noise_std, size=7)
+            observation[:4] /= np.linalg.norm(observation[:4])
+        # Guard the [-1, 1] bounds against a one-ulp excess from normalization.
+        observation[:4] = np.clip(observation[:4], -1.0, 1.0)
+        return observation
+
+    def _info(self, angle: float | None = None) -> dict[str, float]:
+        if angle is None:
+            angle = geodesic_angle(self._data.xquat[self._body_id], self._goal)
+        return {
+            "angle_from_goal": angle,
+            "time": float(self._data.time),
+            "energy": float(self._data.energy.sum()),
+        }
+
+    def _random_joint_state(self, max_omega: float) -> tuple[np.ndarray, np.ndarray]:
+        if not (math.isfinite(max_omega) and max_omega >= 0.0):
+            raise ValueError(f"reset option max_omega must be finite and >= 0, got {max_omega!r}")
+        rng = self.np_random
+        if self._joint_type == "hinge":
+            return rng.uniform(-np.pi, np.pi, size=1), rng.uniform(-max_omega, max_omega, size=1)
+        quaternion = rng.normal(size=4)
+        direction = rng.normal(size=3)
+        radius = max_omega * rng.uniform() ** (1.0 / 3.0)  # uniform in the ball |ω| ≤ max_omega
+        return quaternion / np.linalg.norm(quaternion), direction / np.linalg.norm(direction) * radius
+
+
+# ---------------------------------------------------------------------- helpers
+def _resolve_scene(scene: str | Path) -> tuple[SceneSpec | None, Path]:
+    if isinstance(scene, str) and scene in SCENES:
+        spec = SCENES[scene]
+        return spec, spec.xml_path
+    path = Path(scene)
+    if isinstance(scene, Path) or path.suffix.lower() == ".xml" or path.exists():
+        return None, path  # build_model reports a missing or invalid file
+    get_scene(str(scene))  # raises ValueError listing the built-in scenes
+    raise AssertionError("unreachable")
+
+
+def _only_jointed_body(model: mujoco.MjModel) -> str:
+    jointed = [b for b in range(model.nbody) if model.body_jntnum[b] > 0]
+    names = [mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, b) for b in jointed]
+    if len(jointed) != 1:
+        raise ValueError(
+            f"the MJCF has {len(jointed)} bodies with joints ({names}); pass body=... to choose the observed one"
+        )
+    if names[0] is None:
+        raise ValueError("the only body with a joint has no name; name it in the MJCF")
+    return names[0]
+
+
+def _validate_body_and_joint(model: mujoco.MjModel, body: str) -> tuple[int, int]:
+    body_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, body)
+    if body_id < 0:
+        names = [mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, b) for b in range(1, model.nbody)]
+        raise ValueError(f"no body named {body!r} in the MJCF; bodies: {names}")
+    if model.body_jntnum[body_id] != 1:
+        raise ValueError(f"body {body!r} must have exactly one joint (a hinge or a ball), it has {model.body_jntnum[body_id]}")
+    joint_id = int(model.body_jntadr[body_id])
+    joint_type = int(model.jnt_type[joint_id])
+    if joint_type not in _JOINT_TYPES:
+        raise ValueError(
+            f"body {body!r}: its joint must be a hinge or a ball, got {mujoco.mjtJoint(joint_type).name}"
+        )
+    if model.nv != (1 if joint_type == int(mujoco.mjtJoint.mjJNT_HINGE) else 3):
+        raise ValueError(
+            f"the body's joint must be the model's only degree of freedom (so that (q, ω) is the whole state); "
+            f"the model has nv={model.nv}"
+        )
+    if model.nu == 0:
+        raise ValueError(f"body {body!r}: its joint is not actuated (the MJCF has no actuators)")
+    for a in range(model.nu):
+        name = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_ACTUATOR, a) or f"#{a}"
+        if model.actuator_trntype[a] != mujoco.mjtTrn.mjTRN_JOINT or model.actuator_trnid[a, 0] != joint_id:
+            raise ValueError(f"actuator {name!r} must drive the joint of body {body!r} directly")
+    if model.na > 0:
+        raise ValueError("actuators with internal state (dyntype != none) are not supported: (q, ω) would not be the whole state")
+    return body_id, joint_id
+
+
+def _frame_skip(control_period: float, timestep: float) -> int:
+    if not (math.isfinite(control_period) and control_period > 0.0):
+        raise ValueError(f"control_period must be finite and > 0, got {control_period!r}")
+    frame_skip = round(control_period / timestep)
+    if frame_skip < 1 or abs(frame_skip * timestep - control_period) > 1e-9 * control_period:
+        raise ValueError(
+            f"control_period {control_period} s must be a whole multiple of the MJCF timestep {timestep} s"
+        )
+    return int(frame_skip)
+
+
+def _finite_array(value: Any, shape: tuple[int, ...], what: str) -> np.ndarray:
+    try:
+        array = np.array(value, dtype=np.float64)
+    except (TypeError, ValueError) as error:
+        raise ValueError(f"{what} must be a float array of shape {shape}: {error}") from error
+    if array.shape != shape:
+        raise ValueError(f"{what} must have shape {shape}, got {array.shape}")
+    if not np.all(np.isfinite(array)):
+        raise ValueError(f"{what} must be finite, got {array}")
+    return array
+
+
+def _unit_quaternion(value: Any, what: str) -> np.ndarray:
+    q = _finite_array(value, (4,), what)
+    norm = float(np.linalg.norm(q))
+    if norm < 1e-12:
+        raise ValueError(f"{what} must be a nonzero quaternion (w, x, y, z), got {q}")
+    return q / norm
+
+
+# ---------------------------------------------------------------------- registration
+#: Registered ids: ``gymnasium.make(id)`` after ``import envs``.
+ENV_IDS = {
+    "fvin_mpc/Pendulum-v0": "pendulum",
+    "fvin_mpc/PendulumDamped-v0": "pendulum_damped",
+    "fvin_mpc/SphericalPendulum-v0": "spherical_pendulum",
+}
+MAX_EPISODE_STEPS = 200
+
+
+def register_envs() -> None:
+    """Register the built-in scenes with Gymnasium (idempotent): see :data:`ENV_IDS`."""
+    for env_id, scene in ENV_IDS.items():
+        if env_id in gymnasium.registry:
+            continue
+        gymnasium.register(
+            id=env_id,
+            entry_point="envs.rigid_body_env:RigidBodyEnv",
+            kwargs={"scene": scene},
+            max_episode_steps=MAX_EPISODE_STEPS,
+        )

@@ -1,0 +1,360 @@
+"""Nonlinear MPC over an exported S3FVIN step, solved by IPOPT.
+
+``controller = MPC(model, settings, goal, torque_low, torque_high)``, then
+``u, info = controller(q, omega)`` once per control period.
+
+The problem (multiple shooting, ``N = settings.horizon`` steps of the model's ``h``):
+
+* **decision variables** — states ``x_0 … x_N`` (7 each: ``q``, ``ω``) and controls
+  ``u_0 … u_{N−1}``; ``x_0`` is fixed to the measured state through its bounds.
+* **objective** — ``Σ_k w_q c(q_k) + w_ω|ω_k|² + w_u|u_k|²`` plus a terminal
+  ``W_q c(q_N) + W_ω|ω_N|²``, with the sign-invariant orientation cost
+  ``c(q) = |q|² − ⟨q, q_goal⟩²``. The dynamics preserve ``|q| = 1``, where ``c`` equals
+  ``1 − ⟨q, q_goal⟩² = sin²(angle/2)``; written this way it is a *convex quadratic*, so
+  the cost Hessian is constant and ``q_goal`` and ``−q_goal`` give the same problem.
+* **dynamics** — ``x_{k+1} = F(x_k, u_k)``, ``F`` mapped over the horizon (one copy of
+  the step's code however long the horizon).
+* **bounds** — ``u`` within the actuators' range; every ``ω`` component of ``x_1 … x_N``
+  within ``omega_bound_fraction / h``, inside the step's solvability limit ``h|ω| ≈ 1``
+  (``DESIGN.md``).
+
+Speed comes from three choices, measured in ``docs/bench/solver.md``: the Gauss–Newton
+Lagrangian Hessian (the constant cost Hessian; no second derivatives of the networks),
+the NLP's functions compiled to C once and cached on disk
+(:func:`fvin_mpc.export.compile_functions`), and a primal–dual warm start from the
+previous plan shifted by one step.
+
+Hanging at rest is a stationary point of the swing-up problem (mirror symmetry), so the
+first guess is the model rolled out under a constant torque (``initial_torque_fraction``
+of the upper bound). A failed or non-finite solve never reaches the actuator: the
+controller returns the previous plan shifted by one step, else zero, clipped to the
+bounds, and says so in ``info``.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import casadi as ca
+import numpy as np
+
+from .export import STATE_DIM, CompileReport, ExportedModel, compile_functions
+
+#: IPOPT return statuses accepted as a solution.
+SUCCESS_STATUSES = frozenset({"Solve_Succeeded", "Solved_To_Acceptable_Level"})
+
+#: How far a quaternion's norm may be from 1 before the controller refuses it. Within it
+#: the quaternion is normalized (float32 observations, sensor rounding).
+UNIT_NORM_TOLERANCE = 1e-3
+
+
+@dataclass(frozen=True)
+class MPCSettings:
+    """Settings of :class:`MPC`.
+
+    Attributes:
+        horizon: ``N`` model steps (horizon ``N·h`` seconds).
+        orientation_weight: ``w_q`` on ``c(q) = sin²(angle/2)`` (``4`` ≈ angle² near the goal).
+        omega_weight: ``w_ω`` on ``|ω|²``.
+        control_weight: ``w_u`` on ``|u|²``.
+        terminal_orientation_weight: ``W_q`` on ``c(q_N)``.
+        terminal_omega_weight: ``W_ω`` on ``|ω_N|²``.
+        omega_bound_fraction: bound ``|ω_i| ≤ fraction / h`` on predicted states; the step has
+            no solution past ``h|ω| ≈ 1``.
+        hessian: ``"gauss-newton"`` (constant cost Hessian, default), ``"exact"`` (with the
+            dynamics' second derivatives) or ``"limited-memory"`` (IPOPT's L-BFGS).
+        compile: ``"cached"`` compiles the NLP's functions to C once (cached on disk);
+            ``"none"`` evaluates them in CasADi's virtual machine.
+        warm_start: ``"primal-dual"`` (shifted plan and multipliers), ``"primal"`` (shifted
+            plan only) or ``"none"`` (every solve from the rolled-out first guess).
+        initial_torque_fraction: the first guess applies this fraction of the upper torque
+            bound; must be non-zero to leave the symmetric rest state.
+        max_iter: IPOPT iteration limit per solve.
+        tol: IPOPT convergence tolerance.
+        warm_mu_init: IPOPT's initial barrier parameter on warm-started solves.
+        ipopt_options: extra IPOPT options as ``(name, value)`` pairs.
+    """
+
+    horizon: int = 30
+    orientation_weight: float = 4.0
+    omega_weight: float = 0.1
+    control_weight: float = 0.01
+    terminal_orientation_weight: float = 40.0
+    terminal_omega_weight: float = 1.0
+    omega_bound_fraction: float = 0.6
+    hessian: Literal["gauss-newton", "exact", "limited-memory"] = "gauss-newton"
+    compile: Literal["cached", "none"] = "cached"
+    warm_start: Literal["primal-dual", "primal", "none"] = "primal-dual"
+    initial_torque_fraction: float = 0.5
+    max_iter: int = 100
+    tol: float = 1e-6
+    warm_mu_init: float = 1e-4
+    ipopt_options: tuple[tuple[str, Any], ...] = field(default_factory=tuple)
+
+    def __post_init__(self) -> None:
+        if self.horizon < 1:
+            raise ValueError(f"horizon must be >= 1, got {self.horizon}")
+        if not 0.0 < self.omega_bound_fraction <= 1.0:
+            raise ValueError(f"omega_bound_fraction must be in (0, 1], got {self.omega_bound_fraction}")
+        for name in ("orientation_weight", "omega_weight", "control_weight", "terminal_orientation_weight",
+                     "terminal_omega_weight"):
+            if not getattr(self, name) >= 0.0:
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
+        if self.hessian not in ("gauss-newton", "exact", "limited-memory"):
+            raise ValueError(f"unknown hessian {self.hessian!r}")
+        if self.compile not in ("cached", "none"):
+            raise ValueError(f"unknown compile mode {self.compile!r}")
+        if self.warm_start not in ("primal-dual", "primal", "none"):
+            raise ValueError(f"unknown warm_start {self.warm_start!r}")
+        if self.initial_torque_fraction == 0.0:
+            raise ValueError("initial_torque_fraction must be non-zero: rest is a stationary point")
+
+
+@dataclass(frozen=True)
+class _Plan:
+    """A solution in array form: states ``(N+1, 7)``, controls ``(N, m)`` and the multipliers."""
+
+    states: np.ndarray
+    controls: np.ndarray
+    lam_g: np.ndarray | None
+    lam_x: np.ndarray | None
+
+
+def check_state(q: Any, omega: Any) -> tuple[np.ndarray, np.ndarray]:
+    """Validate a measured state; returns ``(unit q (4,), ω (3,))`` as float64.
+
+    Policy for non-unit quaternions: within :data:`UNIT_NORM_TOLERANCE` of unit norm they
+    are normalized; otherwise ``ValueError`` (a non-unit ``q`` is not a rotation, and
+    silently normalizing a wrong one would hide a bug upstream).
+    """
+    q, omega = np.asarray(q, dtype=float), np.asarray(omega, dtype=float)
+    if q.shape != (4,) or omega.shape != (3,):
+        raise ValueError(f"expected q of shape (4,) and omega of shape (3,), got {q.shape} and {omega.shape}")
+    if not (np.all(np.isfinite(q)) and np.all(np.isfinite(omega))):
+        raise ValueError(f"state contains NaN or inf: q={q}, omega={omega}")
+    norm = float(np.linalg.norm(q))
+    if abs(norm - 1.0) > UNIT_NORM_TOLERANCE:
+        raise ValueError(f"q is not a unit quaternion (|q| = {norm:.6g}; tolerance {UNIT_NORM_TOLERANCE})")
+    return q / norm, omega
+
+
+class MPC:
+    """Receding-horizon controller over an :class:`~fvin_mpc.export.ExportedModel`.
+
+    Args:
+        model: the discrete-time model (``from_checkpoint`` or ``from_rigid_body``).
+        settings: see :class:`MPCSettings`.
+        goal: goal orientation ``(4,)`` (either sign).
+        torque_low, torque_high: control bounds ``(m,)``, e.g. the scene's ``ctrlrange``.
+
+    Attributes:
+        compile_report: how the compiled functions were obtained (``None`` if not compiled).
+        build_s: seconds spent building (and compiling) the solver.
+    """
+
+    def __init__(self, model: ExportedModel, settings: MPCSettings = MPCSettings(), goal: Any = (0.0, 0.0, 1.0, 0.0),
+                 torque_low: Any = (-2.0,), torque_high: Any = (2.0,)) -> None:
+        self.model = model
+        self.settings = settings
+        self.goal = np.asarray(goal, dtype=float)
+        if self.goal.shape != (4,) or not np.all(np.isfinite(self.goal)) or np.linalg.norm(self.goal) == 0:
+            raise ValueError(f"goal must be a finite non-zero quaternion of shape (4,), got {goal!r}")
+        self.goal = self.goal / np.linalg.norm(self.goal)
+        m = model.control_dim
+        self.torque_low = np.broadcast_to(np.asarray(torque_low, dtype=float), (m,)).copy()
+        self.torque_high = np.broadcast_to(np.asarray(torque_high, dtype=float), (m,)).copy()
+        if not np.all(self.torque_low < self.torque_high):
+            raise ValueError(f"need torque_low < torque_high, got {self.torque_low} and {self.torque_high}")
+        self.omega_bound = settings.omega_bound_fraction / model.step_size
+        start = time.perf_counter()
+        self._build()
+        self.build_s = time.perf_counter() - start
+        self._previous: _Plan | None = None
+
+    # ------------------------------------------------------------------ layout
+    @property
+    def horizon(self) -> int:
+        return self.settings.horizon
+
+    def _unpack(self, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        n, m = self.horizon, self.model.control_dim
+        split = STATE_DIM * (n + 1)
+        # CasADi vectorizes column-major: column k of X (state k) is contiguous.
+        return w[:split].reshape(n + 1, STATE_DIM), w[split:].reshape(n, m)
+
+    @staticmethod
+    def _pack(states: np.ndarray, controls: np.ndarray) -> np.ndarray:
+        return np.concatenate([states.ravel(), controls.ravel()])
+
+    # ------------------------------------------------------------------ problem
+    def _build(self) -> None:
+        s, n, m = self.settings, self.horizon, self.model.control_dim
+        states = ca.MX.sym("X", STATE_DIM, n + 1)
+        controls = ca.MX.sym("U", m, n)
+        goal = ca.MX.sym("goal", 4)
+        x_sym, u_sym = ca.SX.sym("x", STATE_DIM), ca.SX.sym("u", m)
+        next_state = ca.Function("next_state", [x_sym, u_sym], [self.model.step(x_sym, u_sym)[0]])
+
+        # --- objective
+        def orientation_cost(q: ca.MX) -> ca.MX:
+            return ca.sum1(q * q) - ca.mtimes(goal.T, q) ** 2
+
+        stage_q, terminal_q = states[:4, :n], states[:4, n]
+        objective = (
+            s.orientation_weight * ca.sum2(orientation_cost(stage_q))
+            + s.omega_weight * ca.sumsqr(states[4:, :n])
+            + s.control_weight * ca.sumsqr(controls)
+            + s.terminal_orientation_weight * orientation_cost(terminal_q)
+            + s.terminal_omega_weight * ca.sumsqr(states[4:, n])
+        )
+        # --- dynamics
+        defects = next_state.map(n)(states[:, :n], controls) - states[:, 1:]
+        decision = ca.vertcat(ca.vec(states), ca.vec(controls))
+        nlp = {"x": decision, "p": goal, "f": objective, "g": ca.vec(defects)}
+        self._num_constraints = STATE_DIM * n
+
+        # --- bounds (x_0 is fixed per call)
+        lower = np.full(decision.shape[0], -np.inf)
+        upper = np.full(decision.shape[0], np.inf)
+        state_lower, control_lower = self._unpack(lower)
+        state_upper, control_upper = self._unpack(upper)
+        state_lower[1:, 4:], state_upper[1:, 4:] = -self.omega_bound, self.omega_bound
+        control_lower[:], control_upper[:] = self.torque_low, self.torque_high
+        self._lower, self._upper = lower, upper
+
+        options: dict[str, Any] = {}
+        if s.hessian == "gauss-newton":
+            lam_f, lam_g = ca.MX.sym("lam_f"), ca.MX.sym("lam_g", self._num_constraints)
+            cost_hessian = ca.hessian(objective, decision)[0]
+            options["hess_lag"] = ca.Function(
+                "nlp_hess_l", [decision, goal, lam_f, lam_g], [ca.triu(lam_f * cost_hessian)],
+                ["x", "p", "lam_f", "lam_g"], ["triu_hess_gamma_x_x"])
+        symbolic = ca.nlpsol("mpc_symbolic", "ipopt", nlp, {**options, **self._ipopt_options(warm=False)})
+        self.compile_report: CompileReport | None = None
+        if s.compile == "none":
+            self._nlp = nlp
+            self._oracle_options = options
+        else:
+            names = ["nlp_f", "nlp_g", "nlp_grad_f", "nlp_jac_g"]
+            if s.hessian != "limited-memory":
+                names.append("nlp_hess_l")
+            oracles = [symbolic.get_function(name) for name in names]
+            if s.hessian == "gauss-newton":
+                oracles[-1] = options["hess_lag"]
+            # IPOPT's interface insists on being able to differentiate f and g (for lam_p, which
+            # calc_lam_p=False never computes); finite differences satisfy it and are never run.
+            compiled, self.compile_report = compile_functions(
+                oracles, prefix=f"mpc_{self.model.name}".replace("-", "_"), external_options={"enable_fd": True})
+            x, p = ca.MX.sym("x", decision.shape[0]), ca.MX.sym("p", 4)
+            self._nlp = {"x": x, "p": p, "f": compiled["nlp_f"](x, p), "g": compiled["nlp_g"](x, p)}
+            self._oracle_options = {"grad_f": compiled["nlp_grad_f"], "jac_g": compiled["nlp_jac_g"]}
+            if "nlp_hess_l" in compiled:
+                self._oracle_options["hess_lag"] = compiled["nlp_hess_l"]
+        self._cold = ca.nlpsol("mpc_cold", "ipopt", self._nlp, {**self._oracle_options, **self._ipopt_options(warm=False)})
+        warm = s.warm_start == "primal-dual"
+        self._warm = ca.nlpsol("mpc_warm", "ipopt", self._nlp, {**self._oracle_options, **self._ipopt_options(warm=warm)}) \
+            if warm else self._cold
+
+    def _ipopt_options(self, warm: bool) -> dict[str, Any]:
+        s = self.settings
+        ipopt: dict[str, Any] = {"print_level": 0, "sb": "yes", "max_iter": s.max_iter, "tol": s.tol,
+                                 "linear_solver": "mumps"}
+        if s.hessian == "limited-memory":
+            ipopt["hessian_approximation"] = "limited-memory"
+        if warm:
+            ipopt.update({"warm_start_init_point": "yes", "mu_init": s.warm_mu_init,
+                          "warm_start_bound_push": 1e-8, "warm_start_mult_bound_push": 1e-8,
+                          "warm_start_slack_bound_push": 1e-8})
+        ipopt.update(dict(s.ipopt_options))
+        # lam_p is never used; computing it would need derivatives of the compiled functions.
+        return {"ipopt": ipopt, "print_time": False, "error_on_fail": False, "calc_lam_p": False}
+
+    # ------------------------------------------------------------------ guesses
+    def _first_guess(self, x0: np.ndarray) -> _Plan:
+        controls = np.tile(self.settings.initial_torque_fraction * self.torque_high, (self.horizon, 1))
+        controls = np.clip(controls, self.torque_low, self.torque_high)
+        states = self.model.rollout(x0, controls)
+        states[1:, 4:] = np.clip(states[1:, 4:], -self.omega_bound, self.omega_bound)
+        return _Plan(states, controls, None, None)
+
+    def _shifted(self, plan: _Plan, x0: np.ndarray) -> _Plan:
+        """``plan`` advanced one step: drop the first stage, repeat the last."""
+        states = np.vstack([plan.states[1:], plan.states[-1:]])
+        states[0] = x0
+        controls = np.vstack([plan.controls[1:], plan.controls[-1:]])
+        lam_g = lam_x = None
+        if plan.lam_g is not None and plan.lam_x is not None:
+            m = self.model.control_dim
+            defects = plan.lam_g.reshape(self.horizon, STATE_DIM)
+            lam_g = np.vstack([defects[1:], defects[-1:]]).ravel()
+            state_mult, control_mult = self._unpack(plan.lam_x)
+            lam_x = self._pack(np.vstack([state_mult[1:], state_mult[-1:]]),
+                               np.vstack([control_mult[1:], control_mult[-1:]]).reshape(-1, m))
+        return _Plan(states, controls, lam_g, lam_x)
+
+    # ------------------------------------------------------------------ control
+    def reset(self) -> None:
+        """Forget the previous plan (the next call starts from the first guess)."""
+        self._previous = None
+
+    def solve(self, q: Any, omega: Any) -> tuple[np.ndarray, dict[str, Any]]:
+        """Alias of :meth:`__call__`."""
+        return self(q, omega)
+
+    def __call__(self, q: Any, omega: Any) -> tuple[np.ndarray, dict[str, Any]]:
+        """Plan from the measured state; returns ``(u (m,), info)``.
+
+        ``info``: ``status`` (IPOPT's), ``success``, ``iterations``, ``solve_time_s``,
+        ``fallback`` (``None``, ``"previous-plan"`` or ``"zero"``), ``cost``,
+        ``step_residual`` (the model's Newton residual for the applied first step, rad/s),
+        ``states`` ``(N+1, 7)`` and ``controls`` ``(N, m)`` of the plan.
+
+        Raises:
+            ValueError: non-finite or wrongly shaped state, or ``q`` not of unit norm.
+        """
+        q, omega = check_state(q, omega)
+        x0 = np.concatenate([q, omega])
+        warm = self._previous is not None and self.settings.warm_start != "none"
+        guess = self._shifted(self._previous, x0) if warm else self._first_guess(x0)
+        lower, upper = self._lower.copy(), self._upper.copy()
+        lower[:STATE_DIM] = upper[:STATE_DIM] = x0
+        arguments: dict[str, Any] = {"x0": self._pack(guess.states, guess.controls), "p": self.goal,
+                                     "lbx": lower, "ubx": upper, "lbg": 0.0, "ubg": 0.0}
+        use_duals = warm and self.settings.warm_start == "primal-dual" and guess.lam_g is not None
+        if use_duals:
+            arguments.update(lam_g0=guess.lam_g, lam_x0=guess.lam_x)
+        solver = self._warm if use_duals else self._cold
+        start = time.perf_counter()
+        solution = solver(**arguments)
+        solve_time = time.perf_counter() - start
+        stats = solver.stats()
+        status = str(stats.get("return_status", "unknown"))
+        w = np.asarray(solution["x"], dtype=float).ravel()
+        finite = bool(np.all(np.isfinite(w)))
+        success = status in SUCCESS_STATUSES and finite
+        fallback = None
+        if success:
+            states, controls = self._unpack(w)
+            self._previous = _Plan(states, controls, np.asarray(solution["lam_g"], float).ravel(),
+                                   np.asarray(solution["lam_x"], float).ravel())
+            u = controls[0].copy()
+        elif self._previous is not None and np.all(np.isfinite(self._previous.controls)):
+            # The plan made one period ago, advanced by one step: its second control is for now.
+            self._previous = self._shifted(self._previous, x0)
+            states, controls = self._previous.states, self._previous.controls
+            u, fallback = controls[0].copy(), "previous-plan"
+        else:
+            self._previous = None
+            states, controls = guess.states, guess.controls
+            u, fallback = np.zeros(self.model.control_dim), "zero"
+        u = np.clip(u, self.torque_low, self.torque_high)
+        _, residual = self.model(x0, u)
+        info = {
+            "status": status, "success": success, "iterations": int(stats.get("iter_count", -1)),
+            "solve_time_s": solve_time, "fallback": fallback,
+            "cost": float(solution["f"]) if success else float("nan"),
+            "step_residual": residual, "states": states, "controls": controls,
+        }
+        return u, info

@@ -1,0 +1,108 @@
+"""The CasADi export against the torch model: values, Jacobians, smoothness at ξ = 0, files, cache."""
+
+import casadi as ca
+import numpy as np
+import pytest
+
+from fvin_mpc import export
+from fvin_mpc.checkpoint import save_checkpoint
+from fvin_mpc.networks import ModelConfig, init_weights
+from fvin_mpc.rigid_body import PENDULUM
+
+
+def random_states(n, seed, omega_scale=3.0):
+    rng = np.random.default_rng(seed)
+    q = rng.normal(size=(n, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    return q, omega_scale * rng.normal(size=(n, 3))
+
+
+@pytest.fixture(params=[("sign-invariant", 1, False), ("fixed-inertia", 1, False), ("plain", 3, True)],
+                ids=["sign-invariant-m1", "fixed-inertia-m1", "plain-m3-damped"])
+def model_pair(request, tmp_path):
+    """A random-weight checkpoint as a torch model and as its CasADi export."""
+    torch = pytest.importorskip("torch")
+    from fvin_mpc.model import S3FVIN
+
+    variant, control_dim, dissipation = request.param
+    config = ModelConfig(variant=variant, control_dim=control_dim, dissipation=dissipation, newton_iters=3)
+    weights = init_weights(config, seed=7)
+    stem = save_checkpoint(tmp_path / "model", config, weights, scene="test")
+    return S3FVIN(config, weights), export.from_checkpoint(stem), torch
+
+
+def test_export_equals_torch_step_to_1e_10(model_pair):
+    torch_model, exported, torch = model_pair
+    q, omega = random_states(16, seed=1)
+    u = np.random.default_rng(2).uniform(-2, 2, size=(16, exported.control_dim))
+    out = torch_model.step(*(torch.as_tensor(a) for a in (q, omega, u)))
+    expected = np.concatenate([out.q.detach().numpy(), out.omega.detach().numpy()], axis=1)
+    mapped = exported.step.map(16)
+    actual = np.asarray(mapped(np.concatenate([q, omega], 1).T, u.T)[0]).T
+    np.testing.assert_allclose(actual, expected, atol=1e-10, rtol=0)
+
+
+def test_export_jacobian_equals_torch_autograd_to_1e_8(model_pair):
+    torch_model, exported, torch = model_pair
+    x_sym, u_sym = ca.SX.sym("x", 7), ca.SX.sym("u", exported.control_dim)
+    x_next = exported.step(x_sym, u_sym)[0]
+    jacobian = ca.Function("step_jacobian", [x_sym, u_sym], [ca.jacobian(x_next, ca.vertcat(x_sym, u_sym))])
+    q, omega = random_states(4, seed=3)
+    for i in range(4):
+        x = np.concatenate([q[i], omega[i]])
+        u = np.linspace(-1.0, 1.5, exported.control_dim)
+
+        def torch_step(xu):
+            out = torch_model.step(xu[None, :4], xu[None, 4:7], xu[None, 7:])
+            return torch.cat([out.q[0], out.omega[0]])
+
+        expected = torch.autograd.functional.jacobian(torch_step, torch.as_tensor(np.concatenate([x, u])))
+        np.testing.assert_allclose(np.asarray(jacobian(x, u)), expected.numpy(), atol=1e-8, rtol=0)
+
+
+def test_derivatives_finite_at_zero_increment():
+    """At rest with no torque and no gravity gradient the increment ξ is exactly 0."""
+    model = export.from_rigid_body(PENDULUM, 0.05, 3)
+    x_sym, u_sym = ca.SX.sym("x", 7), ca.SX.sym("u", 1)
+    x_next, residual = model.step(x_sym, u_sym)
+    xu = ca.vertcat(x_sym, u_sym)
+    derivatives = ca.Function("step_derivatives", [x_sym, u_sym], [ca.jacobian(x_next, xu), ca.hessian(ca.sumsqr(x_next), xu)[0],
+                                                     ca.jacobian(residual, xu)])
+    for x in ([1.0, 0, 0, 0, 0, 0, 0], [0.0, 0, 1.0, 0, 0, 0, 0]):  # hanging and upright: ∇U·H = 0
+        x_next_value, _ = model(np.array(x), np.zeros(1))
+        np.testing.assert_allclose(x_next_value, x, atol=1e-15)
+        for value in derivatives(x, [0.0]):
+            assert np.all(np.isfinite(np.asarray(value)))
+
+
+def test_save_and_load_round_trip(tmp_path):
+    model = export.from_rigid_body(PENDULUM, 0.05, 2)
+    loaded = export.load_function(export.save_function(model.step, tmp_path / "step.casadi"))
+    x, u = np.array([0.8, 0.0, 0.6, 0.0, 0.0, 1.0, 0.0]), np.array([0.5])
+    np.testing.assert_array_equal(np.asarray(loaded(x, u)[0]), np.asarray(model.step(x, u)[0]))
+
+
+def test_load_errors_are_clear(tmp_path):
+    with pytest.raises(FileNotFoundError, match="not found"):
+        export.load_function(tmp_path / "missing.casadi")
+    (tmp_path / "junk.casadi").write_bytes(b"not a casadi file")
+    with pytest.raises(ValueError, match="not a readable CasADi function"):
+        export.load_function(tmp_path / "junk.casadi")
+
+
+def test_compiled_functions_are_cached_and_equal(tmp_path, monkeypatch):
+    monkeypatch.setenv("FVIN_MPC_CACHE", str(tmp_path / "cache"))
+    model = export.from_rigid_body(PENDULUM, 0.05, 2)
+    x_sym, u_sym = ca.SX.sym("x", 7), ca.SX.sym("u", 1)
+    step = ca.Function("step_only", [x_sym, u_sym], [model.step(x_sym, u_sym)[0]])
+    first, report_first = export.compile_functions([step], prefix="test")
+    second, report_second = export.compile_functions([step], prefix="test")
+    assert not report_first.cached and report_first.compile_s > 0
+    assert report_second.cached and report_second.compile_s == 0 and report_second.library == report_first.library
+    x, u = np.array([0.8, 0.0, 0.6, 0.0, 0.0, 1.0, 0.0]), np.array([0.5])
+    np.testing.assert_allclose(np.asarray(second["step_only"](x, u)), np.asarray(step(x, u)), atol=1e-15)
+    # Different math (another K) is another library.
+    other = export.from_rigid_body(PENDULUM, 0.05, 3)
+    step_k3 = ca.Function("step_only", [x_sym, u_sym], [other.step(x_sym, u_sym)[0]])
+    _, report_other = export.compile_functions([step_k3], prefix="test")
+    assert not report_other.cached and report_other.library != report_first.library

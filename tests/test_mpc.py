@@ -1,0 +1,162 @@
+"""IPOPT MPC over the exported step: swing-up in MuJoCo, sign invariance, failures, input checks."""
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from fvin_mpc import export
+from fvin_mpc.mpc import MPC, MPCSettings
+from fvin_mpc.rigid_body import PENDULUM
+
+UPRIGHT = np.array([0.0, 0.0, 1.0, 0.0])
+HANGING = np.array([1.0, 0.0, 0.0, 0.0])
+
+
+@pytest.fixture(scope="module")
+def true_model():
+    return export.from_rigid_body(PENDULUM, 0.05, 2, name="test_true_pendulum")
+
+
+@pytest.fixture(scope="module")
+def controller(true_model):
+    return MPC(true_model, MPCSettings(), UPRIGHT, [-2.0], [2.0])
+
+
+def hinge(theta, theta_dot):
+    return np.array([np.cos(theta / 2), 0.0, np.sin(theta / 2), 0.0]), np.array([0.0, theta_dot, 0.0])
+
+
+def test_swings_up_the_mujoco_pendulum_from_rest_and_holds(true_model):
+    from envs import RigidBodyEnv
+
+    from fvin_mpc.closed_loop import episode_metrics, run_episode
+
+    env = RigidBodyEnv("pendulum")
+    mpc = MPC(true_model, MPCSettings(), env.goal, env.torque_low, env.torque_high)
+    episode, _ = run_episode(env, mpc, duration_s=8.0)
+    metrics = episode_metrics(episode)
+    assert metrics["swung_up"], metrics
+    assert metrics["hold_error_rad"] < 0.05
+    assert metrics["max_abs_torque"] <= 2.0
+    assert metrics["controller_failures"] == 0
+    # With |τ| ≤ 2 the pendulum cannot go straight up (max gravity torque is 5): it must pump.
+    assert metrics["time_to_upright_s"] > 1.5
+    assert np.all(np.isfinite(episode.u))
+
+
+def test_goal_sign_and_state_sign_do_not_change_the_torque(true_model):
+    plus = MPC(true_model, MPCSettings(), UPRIGHT, [-2.0], [2.0])
+    minus = MPC(true_model, MPCSettings(), -UPRIGHT, [-2.0], [2.0])
+    for theta, theta_dot in [(2.5, 1.0), (-2.9, -0.5), (1.0, 3.0)]:
+        q, omega = hinge(theta, theta_dot)
+        for controller in (plus, minus):
+            controller.reset()
+        u_plus, info_plus = plus(q, omega)
+        u_minus, info_minus = minus(q, omega)
+        plus.reset()
+        u_flipped, info_flipped = plus(-q, omega)
+        assert info_plus["success"] and info_minus["success"] and info_flipped["success"]
+        np.testing.assert_allclose(u_minus, u_plus, atol=1e-6)
+        np.testing.assert_allclose(u_flipped, u_plus, atol=1e-6)
+        assert info_minus["cost"] == pytest.approx(info_plus["cost"], rel=1e-6)
+        assert info_flipped["cost"] == pytest.approx(info_plus["cost"], rel=1e-6)
+
+
+def test_leaves_exact_rest(controller):
+    """Hanging at rest is a stationary point; the first guess must break the symmetry."""
+    controller.reset()
+    u, info = controller(HANGING, np.zeros(3))
+    assert info["success"]
+    assert abs(u[0]) > 1.0
+
+
+def test_failed_solve_returns_previous_plan_then_zero(true_model):
+    """IPOPT stopped after one iteration: the torque is finite, bounded and the status reported."""
+    good = MPC(true_model, MPCSettings(), UPRIGHT, [-2.0], [2.0])
+    failing = MPC(true_model, MPCSettings(max_iter=1), UPRIGHT, [-2.0], [2.0])
+    q, omega = hinge(0.3, 0.0)
+    u, info = failing(q, omega)
+    assert not info["success"] and info["status"] == "Maximum_Iterations_Exceeded"
+    assert info["fallback"] == "zero" and np.array_equal(u, [0.0])
+    # After a successful plan, a failure falls back to that plan advanced by one step.
+    u_good, good_info = good(q, omega)
+    failing._previous = good._previous
+    u_fallback, info = failing(q, omega)
+    assert info["fallback"] == "previous-plan" and not info["success"]
+    assert u_fallback[0] == pytest.approx(good_info["controls"][1, 0])
+    assert np.all(np.abs(u_fallback) <= 2.0)
+
+
+def test_infeasible_problem_falls_back_within_bounds(true_model):
+    """An ω bound the measured state already violates makes the NLP infeasible."""
+    controller = MPC(true_model, replace(MPCSettings(), omega_bound_fraction=0.05), UPRIGHT, [-2.0], [2.0])
+    q, omega = hinge(0.0, 6.0)  # |ω| = 6 > 0.05/h = 1, and torque 2 cannot brake it in one step
+    u, info = controller(q, omega)
+    assert not info["success"]
+    assert np.all(np.isfinite(u)) and np.all(np.abs(u) <= 2.0)
+
+
+@pytest.mark.parametrize("q, omega, message", [
+    (np.array([1.0, 0, 0]), np.zeros(3), "shape"),
+    (HANGING, np.zeros(4), "shape"),
+    (np.array([np.nan, 0, 0, 1.0]), np.zeros(3), "NaN or inf"),
+    (HANGING, np.array([0.0, np.inf, 0.0]), "NaN or inf"),
+    (2.0 * HANGING, np.zeros(3), "not a unit quaternion"),
+])
+def test_rejects_bad_states(controller, q, omega, message):
+    with pytest.raises(ValueError, match=message):
+        controller(q, omega)
+
+
+def test_nearly_unit_quaternion_is_normalized(controller):
+    q, omega = hinge(2.0, 0.5)
+    controller.reset()
+    u_exact, _ = controller(q, omega)
+    controller.reset()
+    u_scaled, _ = controller(q * (1 + 5e-4), omega)
+    np.testing.assert_allclose(u_scaled, u_exact, atol=1e-6)
+
+
+@pytest.mark.parametrize("hessian", ["exact", "limited-memory"])
+def test_hessian_options_reach_the_same_plan(true_model, controller, hessian):
+    """Near upright the NLP is well posed: every Hessian option converges to the same optimum."""
+    other = MPC(true_model, replace(MPCSettings(), hessian=hessian, tol=1e-9), UPRIGHT, [-2.0], [2.0])
+    reference = MPC(true_model, replace(MPCSettings(), tol=1e-9), UPRIGHT, [-2.0], [2.0])
+    q, omega = hinge(np.pi - 0.3, 0.5)
+    u_ref, info_ref = reference(q, omega)
+    u_other, info_other = other(q, omega)
+    assert info_ref["success"] and info_other["success"]
+    np.testing.assert_allclose(u_other, u_ref, atol=1e-4)
+    assert info_other["cost"] == pytest.approx(info_ref["cost"], rel=1e-6)
+
+
+def test_uncompiled_solver_matches_compiled(true_model):
+    compiled = MPC(true_model, replace(MPCSettings(), tol=1e-9), UPRIGHT, [-2.0], [2.0])
+    interpreted = MPC(true_model, replace(MPCSettings(), compile="none", tol=1e-9), UPRIGHT, [-2.0], [2.0])
+    assert interpreted.compile_report is None and compiled.compile_report is not None
+    q, omega = hinge(1.0, -2.0)
+    u_c, info_c = compiled(q, omega)
+    u_i, info_i = interpreted(q, omega)
+    np.testing.assert_allclose(u_i, u_c, atol=1e-7)
+    np.testing.assert_allclose(info_i["states"], info_c["states"], atol=1e-6)
+
+
+def test_plan_obeys_bounds_and_dynamics(controller, true_model):
+    controller.reset()
+    q, omega = hinge(0.5, 4.0)
+    _, info = controller(q, omega)
+    states, controls = info["states"], info["controls"]
+    assert np.all(np.abs(controls) <= 2.0 + 1e-8)
+    assert np.all(np.abs(states[1:, 4:]) <= controller.omega_bound + 1e-8)
+    for k in range(controller.horizon):
+        np.testing.assert_allclose(true_model(states[k], controls[k])[0], states[k + 1], atol=1e-6)
+
+
+def test_settings_are_validated():
+    with pytest.raises(ValueError, match="horizon"):
+        MPCSettings(horizon=0)
+    with pytest.raises(ValueError, match="initial_torque_fraction"):
+        MPCSettings(initial_torque_fraction=0.0)
+    with pytest.raises(ValueError, match="omega_bound_fraction"):
+        MPCSettings(omega_bound_fraction=1.5)
