@@ -47,15 +47,27 @@ class Checkpoint:
         return self.metadata.get("scene")
 
 
+_SUFFIXES = (".safetensors", ".json")
+
+
+def _stem(path: str | Path) -> Path:
+    """``path`` without a ``.safetensors``/``.json`` suffix. Other dots stay part of the name
+    (``pendulum-h0.02_sign-invariant``), which is why ``Path.with_suffix`` is not used."""
+    path = Path(path)
+    return path.with_suffix("") if path.suffix in _SUFFIXES else path
+
+
+def _with(stem: Path, suffix: str) -> Path:
+    return stem.parent / (stem.name + suffix)
+
+
 def resolve_checkpoint_path(name_or_path: str | Path) -> Path:
     """``name_or_path`` as a path stem: a shipped name (``pendulum_sign-invariant``), or a
     path with or without the ``.safetensors``/``.json`` suffix."""
-    path = Path(name_or_path)
-    if path.suffix in (".safetensors", ".json"):
-        path = path.with_suffix("")
-    if not path.with_suffix(".json").exists() and not path.is_absolute() and len(path.parts) == 1:
+    path = _stem(name_or_path)
+    if not _with(path, ".json").exists() and not path.is_absolute() and len(path.parts) == 1:
         shipped = CHECKPOINT_DIR / path
-        if shipped.with_suffix(".json").exists():
+        if _with(shipped, ".json").exists():
             return shipped
     return path
 
@@ -65,21 +77,19 @@ def save_checkpoint(path: str | Path, config: ModelConfig, weights: Mapping[str,
     from safetensors.numpy import save_file
 
     check_weights(weights, config)
-    stem = Path(path)
-    if stem.suffix in (".safetensors", ".json"):
-        stem = stem.with_suffix("")
+    stem = _stem(path)
     stem.parent.mkdir(parents=True, exist_ok=True)
     arrays = {name: np.ascontiguousarray(np.asarray(value, dtype=np.float64)) for name, value in weights.items()}
-    save_file(arrays, str(stem.with_suffix(".safetensors")))
+    save_file(arrays, str(_with(stem, ".safetensors")))
     sidecar = {"format": FORMAT, "model": config.to_dict(), **metadata}
-    stem.with_suffix(".json").write_text(json.dumps(sidecar, indent=2, sort_keys=False) + "\n")
+    _with(stem, ".json").write_text(json.dumps(sidecar, indent=2, sort_keys=False) + "\n")
     return stem
 
 
 def load_checkpoint(name_or_path: str | Path = DEFAULT_CHECKPOINT) -> Checkpoint:
     """Read a checkpoint written by :func:`save_checkpoint`; see the module docstring."""
     stem = resolve_checkpoint_path(name_or_path)
-    sidecar_path, weights_path = stem.with_suffix(".json"), stem.with_suffix(".safetensors")
+    sidecar_path, weights_path = _with(stem, ".json"), _with(stem, ".safetensors")
     for required in (sidecar_path, weights_path):
         if not required.exists():
             raise CheckpointError(f"checkpoint file not found: {required}")

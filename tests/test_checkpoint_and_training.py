@@ -112,3 +112,13 @@ def test_training_is_seeded_and_reduces_the_rollout_loss():
     first = report_a["history"][0]["train"]
     assert report_a["final_train_loss"] < 0.05 * first, report_a["history"]
     assert np.isfinite(report_a["final_validation_loss"])
+
+
+def test_dots_in_a_checkpoint_name_are_kept(tmp_path):
+    """``pendulum-h0.02_x`` once became ``pendulum-h0.*``: ``Path.with_suffix`` took ``.02_x`` for a suffix."""
+    config = ModelConfig(hidden_width=4)
+    stem = save_checkpoint(tmp_path / "pendulum-h0.02_sign-invariant", config, init_weights(config, seed=0))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["pendulum-h0.02_sign-invariant.json",
+                                                         "pendulum-h0.02_sign-invariant.safetensors"]
+    assert load_checkpoint(stem).config == config
+    assert load_checkpoint(tmp_path / "pendulum-h0.02_sign-invariant.json").config == config
