@@ -212,3 +212,27 @@ def compile_functions(functions: Sequence[ca.Function], prefix: str, flags: Sequ
     loaded = {function.name(): ca.external(function.name(), str(library), external_options or {})
               for function in functions}
     return loaded, CompileReport(library=library, cached=cached, codegen_s=codegen_s, compile_s=compile_s)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``python -m fvin_mpc.export``: write a checkpoint's step ``F(x, u)`` as a CasADi file."""
+    import argparse
+    import json
+
+    parser = argparse.ArgumentParser(prog="python -m fvin_mpc.export", description=main.__doc__,
+                                     formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    parser.add_argument("--checkpoint", default="pendulum_sign-invariant", help="shipped name or path")
+    parser.add_argument("--newton-iters", type=int, default=None, help="K unrolled (default: the checkpoint's)")
+    parser.add_argument("--out", type=Path, default=None, help="output file (default: <checkpoint>_K<K>.casadi)")
+    parser.add_argument("--seed", type=int, default=0, help="unused (the export is deterministic); for CLI uniformity")
+    args = parser.parse_args(argv)
+    model = from_checkpoint(args.checkpoint, args.newton_iters)
+    out = args.out or Path(f"{model.name}_K{model.newton_iters}.casadi")
+    save_function(model.step, out)
+    print(json.dumps({"out": str(out), "function": str(model.step), "newton_iters": model.newton_iters,
+                      "step_size": model.step_size, "instructions": int(model.step.n_instructions())}))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
