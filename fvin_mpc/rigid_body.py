@@ -152,6 +152,10 @@ def from_mujoco(model: Any, body: str) -> PivotedRigidBody:
         if np.ptp(dampings) > 0:
             raise ValueError("a ball joint with unequal damping per axis has no scalar damping")
         damping = float(dampings[0])
+    friction_on = not model.opt.disableflags & mujoco.mjtDisableBit.mjDSBL_FRICTIONLOSS
+    joint_dofs = slice(dof, dof + (1 if int(model.jnt_type[joint]) == hinge else 3))
+    if friction_on and np.any(model.dof_frictionloss[joint_dofs] > 0):
+        raise ValueError(f"body {body!r}'s joint has dry friction (frictionloss), which a PivotedRigidBody cannot represent")
     gravity = np.asarray(model.opt.gravity, dtype=float)
     if gravity[0] != 0.0 or gravity[1] != 0.0:
         raise ValueError(f"gravity must point along −z, got {gravity}")
