@@ -3,7 +3,7 @@
 A checkpoint ``name`` is two files: ``name.safetensors`` (float64 tensors, read with
 ``safetensors.numpy`` so the control runtime needs no torch) and ``name.json``::
 
-    {"format": "fvin_mpc.checkpoint/1", "model": {ModelConfig fields},
+    {"format": "fvin_mpc.checkpoint/1", "model": {ModelConfig fields}, "weights_sha256": "…",
      "scene": "pendulum", "body": "pole", "data": {...}, "training": {...},
      "versions": {...}}
 
@@ -13,6 +13,7 @@ not match the config) raises :class:`CheckpointError` with a one-line message na
 
 from __future__ import annotations
 
+import hashlib
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -72,6 +73,11 @@ def resolve_checkpoint_path(name_or_path: str | Path) -> Path:
     return path
 
 
+def weights_digest(weights_path: Path) -> str:
+    """SHA-256 of the weights file: a flipped bit inside the float data parses fine, this does not."""
+    return hashlib.sha256(weights_path.read_bytes()).hexdigest()
+
+
 def save_checkpoint(path: str | Path, config: ModelConfig, weights: Mapping[str, np.ndarray], **metadata: Any) -> Path:
     """Write ``path.safetensors`` and ``path.json``; returns the stem."""
     from safetensors.numpy import save_file
@@ -81,7 +87,8 @@ def save_checkpoint(path: str | Path, config: ModelConfig, weights: Mapping[str,
     stem.parent.mkdir(parents=True, exist_ok=True)
     arrays = {name: np.ascontiguousarray(np.asarray(value, dtype=np.float64)) for name, value in weights.items()}
     save_file(arrays, str(_with(stem, ".safetensors")))
-    sidecar = {"format": FORMAT, "model": config.to_dict(), **metadata}
+    sidecar = {"format": FORMAT, "model": config.to_dict(),
+               "weights_sha256": weights_digest(_with(stem, ".safetensors")), **metadata}
     _with(stem, ".json").write_text(json.dumps(sidecar, indent=2, sort_keys=False) + "\n")
     return stem
 
@@ -110,6 +117,9 @@ def load_checkpoint(name_or_path: str | Path = DEFAULT_CHECKPOINT) -> Checkpoint
         weights = load_file(str(weights_path))
     except (SafetensorError, OSError, ValueError) as error:
         raise CheckpointError(f"{weights_path}: unreadable or truncated safetensors file ({error})") from None
+    expected_digest = sidecar.get("weights_sha256")
+    if expected_digest is not None and expected_digest != weights_digest(weights_path):
+        raise CheckpointError(f"{weights_path}: SHA-256 differs from the sidecar's weights_sha256 (corrupted or replaced)")
     try:
         check_weights(weights, config)
     except ValueError as error:

@@ -16,12 +16,15 @@ Legendre map at ``q_{k+1}`` uses ``J(q_{k+1})``. For a constant ``J`` the two ag
 
 Where it breaks down: for ``J = jI``, ``|Φ| ≤ j/2`` so a solution exists only while
 ``h|ω| ≲ 1``, and ``∂Φ/∂ξ`` is singular at ``|ξ| = π/4``. Unrolled Newton still returns
-numbers past that; :attr:`StepResult.residual` (``|Φ(ξ_K) − C| / |C|``-style, see
+numbers past that — always finite: iterates are kept within ``|ξ| ≤ 3π/8`` and the Newton
+determinant is floored (:data:`MAX_INCREMENT`, :data:`SINGULAR_JACOBIAN`; both inactive in the
+solvable region) — and :attr:`StepResult.residual` (``|Φ(ξ_K) − C| / |C|``-style, see
 :func:`fvin_step`) is how a caller notices.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -100,11 +103,44 @@ def solve_implicit(rhs: s3.Vec3, inertia: s3.Mat3, newton_iters: int, ops: Ops) 
     """``K = newton_iters`` Newton iterations on ``Φ(ξ) = C`` from ``ξ = 0``."""
     if newton_iters < 1:
         raise ValueError(f"newton_iters must be >= 1, got {newton_iters}")
-    xi = s3.scale(-1.0, s3.solve3(inertia, rhs))  # exact first iterate: ∂Φ/∂ξ(0) = −J
+    xi = _clamp_increment(s3.scale(-1.0, s3.solve3(inertia, rhs)), ops)  # exact first iterate: ∂Φ/∂ξ(0) = −J
+    det_floor = SINGULAR_JACOBIAN * s3.determinant(inertia)
     for _ in range(newton_iters - 1):
         phi, jacobian = implicit_lhs_jacobian(xi, inertia, ops)
-        xi = s3.sub(xi, s3.solve3(jacobian, s3.sub(phi, rhs)))
+        xi = _clamp_increment(s3.sub(xi, _guarded_solve3(jacobian, s3.sub(phi, rhs), det_floor, ops)), ops)
     return xi
+
+
+#: ``|det ∂Φ/∂ξ|`` is kept above this fraction of ``det J`` (its value at ``ξ = 0``). Past the
+#: solvability limit an iterate can land exactly on a singular point (e.g. ``|ξ| = π/4`` for
+#: ``J = jI``, reached in one step from ``h|ω| = π/2``), where Cramer's rule divides by 0.
+SINGULAR_JACOBIAN = 1e-12
+
+
+def _guarded_solve3(m: s3.Mat3, r: s3.Vec3, det_floor: Any, ops: Ops) -> s3.Vec3:
+    """``m⁻¹ r`` by Cramer's rule with ``|det m|`` floored at ``det_floor`` (inactive when regular)."""
+    c0, c1, c2 = s3.cross(m[1], m[2]), s3.cross(m[2], m[0]), s3.cross(m[0], m[1])
+    det = s3.dot(m[0], c0)
+    det = ops.where(det >= 0.0, ops.where(det > det_floor, det, det_floor + 0.0 * det),
+                    ops.where(det < -det_floor, det, -det_floor + 0.0 * det))
+    return tuple((c0[i] * r[0] + c1[i] * r[1] + c2[i] * r[2]) / det for i in range(3))  # type: ignore[return-value]
+
+
+#: Newton iterates are kept within ``|ξ| ≤ 3π/8`` (135° per step). The solution of interest lies
+#: well inside (``|ξ| < π/4`` for ``J = jI``). Past the solvability limit unclamped iterates grow
+#: without bound until the Jacobian's determinant underflows to 0 and the step returns NaN; the
+#: radius avoids ``π/4`` and ``π/2``, where ``∂Φ/∂ξ`` of an isotropic ``J`` is singular on the
+#: whole sphere (radially, resp. transversally).
+MAX_INCREMENT = 3.0 * math.pi / 8.0
+
+
+def _clamp_increment(xi: s3.Vec3, ops: Ops) -> s3.Vec3:
+    """``ξ`` scaled back onto ``|ξ| = 3π/8`` when longer; the identity (value and derivatives) inside."""
+    t = s3.dot(xi, xi)
+    outside = t > MAX_INCREMENT * MAX_INCREMENT
+    safe_t = ops.where(outside, t, MAX_INCREMENT * MAX_INCREMENT + 0.0 * t)
+    factor = ops.where(outside, MAX_INCREMENT / ops.sqrt(safe_t), 1.0 + 0.0 * t)
+    return s3.scale(factor, xi)
 
 
 def generalized_force(q: s3.Quat, omega: s3.Vec3, u: tuple[Any, ...], terms: RigidBodyTerms) -> s3.Vec3:

@@ -122,3 +122,23 @@ def test_dots_in_a_checkpoint_name_are_kept(tmp_path):
                                                          "pendulum-h0.02_sign-invariant.safetensors"]
     assert load_checkpoint(stem).config == config
     assert load_checkpoint(tmp_path / "pendulum-h0.02_sign-invariant.json").config == config
+
+
+def test_a_flipped_bit_inside_the_weights_is_caught_by_the_checksum(saved):
+    stem, *_ = saved
+    path = stem.with_suffix(".safetensors")
+    data = bytearray(path.read_bytes())
+    data[-3] ^= 0x01  # inside the last float: the file still parses, the number changed
+    path.write_bytes(bytes(data))
+    with pytest.raises(CheckpointError, match="SHA-256"):
+        load_checkpoint(stem)
+
+
+def test_shipped_checkpoints_carry_a_matching_checksum():
+    from fvin_mpc.checkpoint import CHECKPOINT_DIR
+
+    sidecars = sorted(CHECKPOINT_DIR.glob("*.json"))
+    assert sidecars, "no shipped checkpoints"
+    for sidecar in sidecars:
+        assert "weights_sha256" in json.loads(sidecar.read_text()), sidecar
+        load_checkpoint(sidecar)  # verifies the digest
