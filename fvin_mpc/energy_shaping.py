@@ -13,6 +13,13 @@ Catch: within ``catch_angle`` of the goal the controller switches to a discrete 
 the model's own step linearized at ``(q_goal, ω = 0, u = 0)``, in coordinates restricted
 to the actuated axes (for a planar pendulum the out-of-plane modes are neither actuated
 nor learned, so a full 6-state LQR would not be stabilizable).
+
+Constructors: :meth:`EnergyShapingController.from_checkpoint` (the learned ``J``, ``U``,
+``g`` of a trained model), :meth:`EnergyShapingController.from_model` (any
+:class:`~fvin_mpc.export.ExportedModel`), :meth:`EnergyShapingController.from_rigid_body`
+(the closed-form "true model") and :func:`scene_controller` (goal and torque bounds of a
+scene's env). The LQR design is kept in :attr:`EnergyShapingController.lqr`
+(:class:`LQRDesign`: ``A``, ``B``, the weights, the Riccati solution ``P`` and gain ``K``).
 """
 
 from __future__ import annotations
@@ -27,6 +34,34 @@ from . import fvin, s3
 from .backend import get_ops
 
 NP = get_ops("numpy")
+HANGING = np.array([1.0, 0.0, 0.0, 0.0])
+
+
+class EnergyShapingNotApplicable(ValueError):
+    """The scene is outside what energy shaping handles here (e.g. a ball joint)."""
+
+
+@dataclass(frozen=True)
+class LQRDesign:
+    """Discrete LQR on the model's step linearized at the goal, in reduced coordinates.
+
+    The reduced state is ``x = (Bᵀ·angle error, Bᵀ·ω)`` with ``B`` the orthonormal basis of
+    the actuated axes (``r`` columns), so ``x ∈ R^{2r}``. ``x_{k+1} ≈ A x_k + B u_k``;
+    the gain ``K`` minimizes ``Σ xᵀQx + uᵀRu``, whose minimum from ``x_0`` is ``x_0ᵀ P x_0``.
+
+    Attributes:
+        a: ``(2r, 2r)`` state matrix. b: ``(2r, m)`` input matrix.
+        q_cost: ``(2r, 2r)`` state weight. r_cost: ``(m, m)`` control weight.
+        p: ``(2r, 2r)`` solution of the discrete algebraic Riccati equation.
+        k: ``(m, 2r)`` gain, ``u = −K x``.
+    """
+
+    a: np.ndarray
+    b: np.ndarray
+    q_cost: np.ndarray
+    r_cost: np.ndarray
+    p: np.ndarray
+    k: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -55,7 +90,7 @@ class EnergyShapingController:
 
     def __init__(self, terms: Any, step_size: float, newton_iters: int, goal: np.ndarray, torque_low: np.ndarray,
                  torque_high: np.ndarray, settings: EnergyShapingSettings = EnergyShapingSettings(),
-                 hanging: np.ndarray = np.array([1.0, 0.0, 0.0, 0.0])) -> None:
+                 hanging: np.ndarray = HANGING) -> None:
         self.terms = terms
         self.h = step_size
         self.newton_iters = newton_iters
@@ -72,8 +107,43 @@ class EnergyShapingController:
         # Orthonormal basis of the actuated axes: LQR lives in this subspace.
         u_svd, singular, _ = np.linalg.svd(gain_goal, full_matrices=False)
         self.actuated_basis = u_svd[:, singular > 1e-9 * singular.max()]
-        self.lqr_gain = self._lqr()
+        self.lqr = self._lqr()
+        self.lqr_gain = self.lqr.k
         self.catching = False
+
+    # ------------------------------------------------------------------ constructors
+    @classmethod
+    def from_model(cls, model: Any, goal: Any, torque_low: Any, torque_high: Any,
+                   settings: EnergyShapingSettings = EnergyShapingSettings(),
+                   hanging: np.ndarray = HANGING) -> "EnergyShapingController":
+        """From an :class:`~fvin_mpc.export.ExportedModel` (its NumPy ``J``, ``U``, ``g``, ``h``, ``K``)."""
+        return cls(model.numpy_terms, model.step_size, model.newton_iters, goal, torque_low, torque_high, settings,
+                   hanging)
+
+    @classmethod
+    def from_checkpoint(cls, checkpoint: Any, goal: Any, torque_low: Any, torque_high: Any,
+                        settings: EnergyShapingSettings = EnergyShapingSettings(), newton_iters: int | None = None,
+                        hanging: np.ndarray = HANGING) -> "EnergyShapingController":
+        """From a trained model only: a :class:`~fvin_mpc.checkpoint.Checkpoint`, shipped name or path.
+
+        Uses the checkpoint's ``h`` and (unless ``newton_iters`` is given) its ``K``; no torch.
+        """
+        from .checkpoint import Checkpoint, load_checkpoint
+        from .networks import LearnedTerms
+
+        if not isinstance(checkpoint, Checkpoint):
+            checkpoint = load_checkpoint(checkpoint)
+        config = checkpoint.config
+        terms = LearnedTerms(checkpoint.weights, config, NP)
+        return cls(terms, config.step_size, newton_iters or config.newton_iters, goal, torque_low, torque_high,
+                   settings, hanging)
+
+    @classmethod
+    def from_rigid_body(cls, body: Any, step_size: float, goal: Any, torque_low: Any, torque_high: Any,
+                        newton_iters: int = 2, settings: EnergyShapingSettings = EnergyShapingSettings(),
+                        hanging: np.ndarray = HANGING) -> "EnergyShapingController":
+        """The true-model counterpart: a closed-form :class:`~fvin_mpc.rigid_body.PivotedRigidBody`."""
+        return cls(body.terms(NP), step_size, newton_iters, goal, torque_low, torque_high, settings, hanging)
 
     # ------------------------------------------------------------------ model
     def energy(self, q: np.ndarray, omega: np.ndarray) -> float:
@@ -90,7 +160,11 @@ class EnergyShapingController:
         error = 2.0 * np.array(s3.log(tuple(relative), NP), dtype=float)
         return np.concatenate([self.actuated_basis.T @ error, self.actuated_basis.T @ omega])
 
-    def _lqr(self) -> np.ndarray:
+    def reduced_state(self, q: np.ndarray, omega: np.ndarray) -> np.ndarray:
+        """The LQR's coordinates ``x`` of a state (see :class:`LQRDesign`)."""
+        return self._reduced_state(np.asarray(q, float) / np.linalg.norm(q), np.asarray(omega, float))
+
+    def _lqr(self) -> LQRDesign:
         r = self.actuated_basis.shape[1]
         m = self.low.size
         eps = 1e-6
@@ -112,14 +186,14 @@ class EnergyShapingController:
         weights = np.r_[np.ones(r), 0.01 * np.ones(r)] * self.settings.lqr_state_weight
         q_cost, r_cost = np.diag(weights), self.settings.lqr_control_weight * np.eye(m)
         p = scipy.linalg.solve_discrete_are(a_matrix, b_matrix, q_cost, r_cost)
-        return np.linalg.solve(r_cost + b_matrix.T @ p @ b_matrix, b_matrix.T @ p @ a_matrix)
+        gain = np.linalg.solve(r_cost + b_matrix.T @ p @ b_matrix, b_matrix.T @ p @ a_matrix)
+        return LQRDesign(a=a_matrix, b=b_matrix, q_cost=q_cost, r_cost=r_cost, p=p, k=gain)
 
     # ------------------------------------------------------------------ control
     def __call__(self, q: np.ndarray, omega: np.ndarray) -> tuple[np.ndarray, dict[str, Any]]:
-        q, omega = np.asarray(q, dtype=float), np.asarray(omega, dtype=float)
-        if q.shape != (4,) or omega.shape != (3,) or not (np.all(np.isfinite(q)) and np.all(np.isfinite(omega))):
-            raise ValueError(f"expected finite q (4,) and omega (3,), got {q.shape}, {omega.shape}")
-        q = q / np.linalg.norm(q)
+        from .mpc import check_state  # the controllers' shared input policy (shapes, NaN/inf, unit norm)
+
+        q, omega = check_state(q, omega)
         angle = float(s3.geodesic_angle(tuple(self.goal), tuple(q), NP))
         threshold = self.settings.release_angle if self.catching else self.settings.catch_angle
         self.catching = angle < threshold
@@ -141,3 +215,45 @@ class EnergyShapingController:
 
     def reset(self) -> None:
         self.catching = False
+
+
+def scene_controller(env: Any, checkpoint: Any = None, true_model: bool = False,
+                     settings: EnergyShapingSettings = EnergyShapingSettings(),
+                     newton_iters: int | None = None) -> EnergyShapingController:
+    """Energy shaping on a scene's env: its goal, torque bounds and hanging orientation.
+
+    ``true_model=True`` uses the closed-form body read off the scene's MJCF
+    (:func:`fvin_mpc.rigid_body.from_mujoco`) at the env's control period; otherwise the
+    learned ``J``, ``U``, ``g`` of ``checkpoint`` (whose step must equal the control period).
+
+    Raises:
+        EnergyShapingNotApplicable: the scene's joint is not a hinge. On a ball joint,
+            reaching the upright energy does not bring the body upright (the energy can sit
+            in a conical swing or a spin about the vertical), so the swing-up law above does
+            not apply.
+        ValueError: the checkpoint's step or control dimension does not match the scene.
+    """
+    base = env.unwrapped
+    if base.joint_type != "hinge":
+        raise EnergyShapingNotApplicable(
+            f"energy shaping needs a single hinge; the scene's joint is a {base.joint_type} joint, on which "
+            "reaching the upright energy does not mean reaching upright (conical swings, spin)")
+    hanging = HANGING  # from_mujoco's convention: the world frame is the body's rest orientation
+    if true_model:
+        from .rigid_body import from_mujoco
+
+        body = from_mujoco(base.model, base.body_name)
+        return EnergyShapingController.from_rigid_body(body, base.dt, base.goal, base.torque_low, base.torque_high,
+                                                       newton_iters or 2, settings, hanging)
+    from .checkpoint import Checkpoint, load_checkpoint
+
+    if not isinstance(checkpoint, Checkpoint):
+        checkpoint = load_checkpoint(checkpoint)
+    if abs(checkpoint.config.step_size - base.dt) > 1e-9:
+        raise ValueError(f"the model's step {checkpoint.config.step_size} s differs from the scene's control period "
+                         f"{base.dt} s")
+    if checkpoint.config.control_dim != base.action_space.shape[0]:
+        raise ValueError(f"the model has {checkpoint.config.control_dim} controls, the scene "
+                         f"{base.action_space.shape[0]}")
+    return EnergyShapingController.from_checkpoint(checkpoint, base.goal, base.torque_low, base.torque_high, settings,
+                                                   newton_iters, hanging)

@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+import scipy.linalg
 
 from fvin_mpc import fvin, s3
 from fvin_mpc.backend import get_ops
@@ -68,3 +69,116 @@ def test_scale_of_the_model_cancels():
 def test_rejects_non_finite_state():
     with pytest.raises(ValueError):
         make()(np.array([np.nan, 0, 0, 1.0]), np.zeros(3))
+
+
+# ---------------------------------------------------------------------- LQR oracle
+def test_lqr_catch_cost_on_the_linear_model_equals_the_riccati_value():
+    """dm_control's lqr_test in spirit: closed-loop cost of u = −Kx on x⁺ = Ax + Bu is xᵀPx."""
+    design = make().lqr
+    closed = design.a - design.b @ design.k
+    assert np.max(np.abs(np.linalg.eigvals(closed))) < 1.0  # stabilizing
+    rng = np.random.default_rng(0)
+    for _ in range(5):
+        x0 = rng.normal(size=design.a.shape[0]) * 0.1
+        x, cost = x0.copy(), 0.0
+        for _ in range(5000):
+            u = -design.k @ x
+            cost += x @ design.q_cost @ x + u @ design.r_cost @ u
+            x = closed @ x
+        np.testing.assert_allclose(cost, x0 @ design.p @ x0, rtol=1e-9)
+
+
+def test_lqr_linearization_matches_the_continuous_pendulum():
+    """A, B of the model's step at upright agree with θ̈ = 15 φ + 3τ (φ = angle from upright) to O(h²)."""
+    design = make().lqr
+    h = 0.05
+    continuous_a, continuous_b = np.array([[0.0, 1.0], [15.0, 0.0]]), np.array([[0.0], [3.0]])
+    exact_a = scipy.linalg.expm(continuous_a * h)
+    # The basis vector of the actuated axis may point along ±y; the reduced coordinates then flip sign together.
+    sign = np.sign(design.b[1, 0])
+    np.testing.assert_allclose(design.a, exact_a, atol=5 * h**3 * 15)
+    np.testing.assert_allclose(sign * design.b[:, 0], (exact_a - np.eye(2)) @ np.linalg.solve(continuous_a, continuous_b)[:, 0],
+                               rtol=0.05)
+
+
+def test_controller_applies_the_lqr_gain_near_upright_and_its_closed_loop_cost_approaches_xPx():
+    """On the model's own (nonlinear) step near upright the catch is u = −Kx, and its cost → xᵀPx as x → 0."""
+    controller = make()
+    terms = PENDULUM.terms(NP)
+    design = controller.lqr
+    ratios = []
+    for scale in (0.2, 0.05, 0.0125):
+        q, omega = hinge(np.pi - scale, 0.5 * scale)
+        controller.reset()
+        x0 = controller.reduced_state(q, omega)
+        cost = 0.0
+        for _ in range(400):
+            x = controller.reduced_state(q, omega)
+            u, info = controller(q, omega)
+            assert info["mode"] == "lqr"
+            np.testing.assert_allclose(u, np.clip(-design.k @ x, -2, 2), atol=1e-12)
+            cost += x @ design.q_cost @ x + u @ design.r_cost @ u
+            out = fvin.fvin_step(tuple(q), tuple(omega), tuple(u), terms, 0.05, 3, NP)
+            q, omega = np.array(out.q, float), np.array(out.omega, float)
+        ratios.append(cost / (x0 @ design.p @ x0))
+    errors = np.abs(np.array(ratios) - 1.0)
+    assert errors[-1] < 1e-2, ratios
+    assert errors[2] < errors[1] < errors[0], ratios  # the linearization error shrinks with the deviation
+
+
+def hinge(theta, theta_dot):
+    return np.array([np.cos(theta / 2), 0.0, np.sin(theta / 2), 0.0]), np.array([0.0, theta_dot, 0.0])
+
+
+# ---------------------------------------------------------------------- constructors and scenes
+def test_constructors_agree_with_the_direct_one():
+    from fvin_mpc import export
+
+    direct = EnergyShapingController(PENDULUM.terms(NP), 0.05, 2, GOAL, np.array([-2.0]), np.array([2.0]))
+    via_body = EnergyShapingController.from_rigid_body(PENDULUM, 0.05, GOAL, [-2.0], [2.0], newton_iters=2)
+    via_model = EnergyShapingController.from_model(export.from_rigid_body(PENDULUM, 0.05, 2), GOAL, [-2.0], [2.0])
+    for q, omega in [hinge(0.3, 1.0), hinge(2.9, -0.4), hinge(np.pi - 0.1, 0.2)]:
+        expected, _ = direct(q, omega)
+        for other in (via_body, via_model):
+            np.testing.assert_allclose(other(q, omega)[0], expected, atol=1e-12)
+    np.testing.assert_allclose(via_model.lqr.p, direct.lqr.p, rtol=1e-9)
+
+
+def test_scene_controller_rejects_a_ball_joint_with_a_reason():
+    from envs import RigidBodyEnv
+
+    from fvin_mpc.energy_shaping import EnergyShapingNotApplicable, scene_controller
+
+    with pytest.raises(EnergyShapingNotApplicable, match="hinge"):
+        scene_controller(RigidBodyEnv("spherical_pendulum"), true_model=True)
+
+
+def test_true_model_swings_up_the_mujoco_pendulum_from_rest():
+    from envs import RigidBodyEnv
+
+    from fvin_mpc.closed_loop import episode_metrics, run_episode
+    from fvin_mpc.energy_shaping import scene_controller
+
+    env = RigidBodyEnv("pendulum")
+    metrics = episode_metrics(run_episode(env, scene_controller(env, true_model=True), 8.0)[0])
+    assert metrics["swung_up"], metrics
+    assert metrics["max_abs_torque"] <= 2.0
+
+
+def test_learned_model_swings_up_the_mujoco_pendulum_from_rest():
+    """Energy shaping from the shipped learned J, U, g alone (its own E*, its own LQR) on MuJoCo."""
+    from envs import RigidBodyEnv
+
+    from fvin_mpc.checkpoint import CHECKPOINT_DIR
+    from fvin_mpc.closed_loop import episode_metrics, run_episode
+    from fvin_mpc.energy_shaping import scene_controller
+
+    name = "pendulum_sign-invariant"
+    if not (CHECKPOINT_DIR / f"{name}.json").exists():
+        pytest.skip(f"shipped checkpoint {name} not found in {CHECKPOINT_DIR} (train it with python -m fvin_mpc.train)")
+    env = RigidBodyEnv("pendulum")
+    controller = scene_controller(env, name)
+    episode, _ = run_episode(env, controller, 10.0)
+    metrics = episode_metrics(episode)
+    assert metrics["success"], metrics
+    assert metrics["max_abs_torque"] <= 2.0

@@ -1,0 +1,184 @@
+"""Closed-loop evaluation CLI/library, the multi-start MPC, and the Pendulum-v1 benchmark's exact dynamics."""
+
+import json
+
+import gymnasium
+import numpy as np
+import pytest
+
+from fvin_mpc import evaluate as ev
+from fvin_mpc import pendulum_v1 as v1
+
+
+def hinge(theta, theta_dot=0.0):
+    return np.array([np.cos(theta / 2), 0.0, np.sin(theta / 2), 0.0]), np.array([0.0, theta_dot, 0.0])
+
+
+# ---------------------------------------------------------------------- evaluate
+def test_episode_starts_rest_then_seeded_random():
+    starts = ev.episode_starts(ev.EvaluationConfig(episodes=4, seed=10, max_omega=1.5))
+    assert starts[0].reset_options is None and starts[0].seed == 10
+    assert [s.seed for s in starts[1:]] == [11, 12, 13]
+    assert all(s.reset_options == {"random": True, "max_omega": 1.5} for s in starts[1:])
+
+
+def test_signed_angle_from_goal_on_the_hinge():
+    goal, axis = np.array([0.0, 0.0, 1.0, 0.0]), np.array([0.0, 1.0, 0.0])
+    for theta, expected in [(np.pi, 0.0), (np.pi - 0.3, -0.3), (np.pi + 0.3, 0.3), (0.0, np.pi), (0.2, 0.2 - np.pi)]:
+        q, _ = hinge(theta)
+        for sign in (1, -1):  # q and −q are the same rotation
+            angle = float(ev.signed_angle_from_goal(sign * q, goal, axis))
+            assert np.isclose(np.cos(angle), np.cos(expected)) and np.isclose(np.sin(angle), np.sin(expected)), theta
+
+
+@pytest.mark.parametrize("kwargs", [{"episodes": 0}, {"duration_s": 0.0}, {"controllers": ("mpc-magic",)},
+                                    {"controllers": ()}, {"max_omega": -1.0}, {"horizon": 0}])
+def test_config_is_validated(kwargs):
+    with pytest.raises(ValueError):
+        ev.EvaluationConfig(**kwargs)
+
+
+def test_evaluate_energy_and_zero_serial_equals_parallel():
+    config = ev.EvaluationConfig(episodes=3, duration_s=5.0, controllers=("energy-true", "zero"), seed=3)
+    serial = ev.evaluate(config, workers=1, progress=False)
+    parallel = ev.evaluate(config, workers=2, progress=False)
+    assert serial.summary["zero"]["success_rate"] == 0.0  # hanging or swinging, never upright
+    assert serial.summary["energy-true"]["success_rate"] == 1.0  # incl. the swing-up from rest
+    for name in ("energy-true", "zero"):
+        for a, b in zip(serial.episodes, parallel.episodes):
+            assert a["seed"] == b["seed"]
+            ma, mb = a["results"][name], b["results"][name]
+            assert ma["time_to_upright_s"] == mb["time_to_upright_s"]
+            assert ma["accumulated_cost"] == pytest.approx(mb["accumulated_cost"], rel=1e-12)
+    # The rest start is the hard one: it must pump, so it takes longer than a second.
+    assert serial.episodes[0]["results"]["energy-true"]["time_to_upright_s"] > 1.0
+
+
+def test_missing_default_checkpoint_skips_learned_controllers(monkeypatch, tmp_path):
+    import fvin_mpc.checkpoint
+
+    monkeypatch.setattr(fvin_mpc.checkpoint, "CHECKPOINT_DIR", tmp_path)
+    config = ev.EvaluationConfig(episodes=1, duration_s=0.5, controllers=("energy-learned", "zero"))
+    messages = []
+    result = ev.evaluate(config, progress=False, log=messages.append)
+    assert list(result.summary) == ["zero"]
+    assert "not shipped" in result.skipped["energy-learned"] and messages
+
+
+def test_missing_explicit_checkpoint_is_an_error():
+    config = ev.EvaluationConfig(episodes=1, duration_s=0.5, controllers=("energy-learned",), checkpoint="nope/missing")
+    with pytest.raises(FileNotFoundError, match="missing"):
+        ev.evaluate(config, progress=False)
+
+
+def test_cli_writes_report_and_skips_energy_shaping_on_a_ball_joint(tmp_path, capsys):
+    code = ev.main(["--scene", "spherical_pendulum", "--episodes", "2", "--duration", "0.5", "--controllers",
+                    "energy-true,zero", "--out-dir", str(tmp_path), "--quiet", "--json", str(tmp_path / "copy.json")])
+    assert code == 0
+    captured = capsys.readouterr()
+    assert "skipping energy-true" in captured.err and "hinge" in captured.err
+    report = json.loads((tmp_path / "evaluation.json").read_text())
+    assert list(report["summary"]) == ["zero"] and "energy-true" in report["skipped"]
+    assert (tmp_path / "evaluation.md").read_text().count("| zero |") == 1
+    assert (tmp_path / "time_to_upright.png").exists() and not (tmp_path / "phase_portraits.png").exists()
+    assert json.loads((tmp_path / "copy.json").read_text())["summary"] == report["summary"]
+
+
+@pytest.mark.parametrize("argv, message", [(["--controllers", "bogus"], "unknown controllers"),
+                                           (["--episodes", "0"], "episodes"), (["--workers", "0"], "workers"),
+                                           (["--scene", "no_such_scene"], "unknown scene")])
+def test_cli_bad_input_is_a_one_line_error(argv, message, capsys, tmp_path):
+    assert ev.main([*argv, "--out-dir", str(tmp_path), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error:") and message in err and "\n" not in err
+
+
+def test_cli_help(capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        ev.main(["--help"])
+    assert exit_info.value.code == 0 and "--workers" in capsys.readouterr().out
+
+
+# ---------------------------------------------------------------------- multi-start MPC
+def test_multistart_catches_a_nearly_upright_pendulum_that_the_single_guess_lets_fall():
+    """Near upright every constant-torque first guess falls; IPOPT then returns a full-turn plan.
+    The "goal" guess lies in the basin of catching it; the multi-start keeps the cheaper plan."""
+    from fvin_mpc import export
+    from fvin_mpc.mpc import MPC, MPCSettings
+    from fvin_mpc.multistart import MultiStartMPC
+    from fvin_mpc.rigid_body import PENDULUM
+
+    model = export.from_rigid_body(PENDULUM, 0.05, 2, name="test_multistart")
+    settings = MPCSettings(compile="none", max_iter=300)
+    goal = (0.0, 0.0, 1.0, 0.0)
+    q, omega = hinge(np.pi + 0.07, 0.9)
+    _, single = MPC(model, settings, goal, [-2.0], [2.0])(q, omega)
+    multi_controller = MultiStartMPC(model, settings, goal, [-2.0], [2.0])
+    _, multi = multi_controller(q, omega)
+    assert multi["success"] and set(multi["cold_costs"]) == {"rollout+", "rollout-", "goal"}
+    assert multi["cost"] == pytest.approx(np.nanmin(list(multi["cold_costs"].values())))
+    # The single guess's plan passes through hanging; the multi-start's never leaves the top.
+    def worst_angle(states):
+        return max(2 * np.arccos(min(1.0, abs(float(s[2])))) for s in states)
+    assert worst_angle(single["states"]) > 2.0
+    assert worst_angle(multi["states"]) < 0.5
+    assert multi["cost"] < 0.1 * single["cost"]
+    # Warm calls afterwards are single solves again.
+    _, warm = multi_controller(*hinge(np.pi + 0.1, 0.5))
+    assert "cold_costs" not in warm
+
+
+def test_multistart_rejects_unknown_guesses():
+    from fvin_mpc import export
+    from fvin_mpc.multistart import MultiStartMPC
+    from fvin_mpc.rigid_body import PENDULUM
+
+    with pytest.raises(ValueError, match="unknown guesses"):
+        MultiStartMPC(export.from_rigid_body(PENDULUM, 0.05, 2), guesses=("magic",))
+
+
+# ---------------------------------------------------------------------- Pendulum-v1
+def test_v1_step_replicates_gymnasium_exactly():
+    env = gymnasium.make("Pendulum-v1")
+    rng = np.random.default_rng(0)
+    for seed in range(3):
+        env.reset(seed=seed)
+        clipped = 0
+        for _ in range(200):  # pumping (torque along θ̇, beyond the bound) reaches the speed clip
+            theta, theta_dot = (float(x) for x in env.unwrapped.state)
+            u = float(np.float32(np.copysign(2.5, theta_dot) + rng.uniform(-0.3, 0.3)))
+            _, reward, *_ = env.step(np.array([u], dtype=np.float32))
+            theta, theta_dot, expected = v1.v1_step(theta, theta_dot, u)
+            # One step from the same state; gymnasium mixes in the float32 action, hence 1e-6.
+            assert expected == pytest.approx(reward, rel=1e-6, abs=1e-9)
+            np.testing.assert_allclose(env.unwrapped.state, [theta, theta_dot], rtol=1e-6, atol=1e-9)
+            clipped += abs(theta_dot) == v1.MAX_SPEED
+        assert clipped > 0
+
+
+def test_benchmark_settings_cost_matches_the_reward_near_upright():
+    """4 sin²(a/2) ≈ a² and the ω, u weights are Pendulum-v1's; the speed bound is its clip."""
+    settings = v1.benchmark_settings()
+    for angle in (0.01, 0.1, 0.3):
+        assert settings.orientation_weight * np.sin(angle / 2) ** 2 == pytest.approx(angle**2, rel=0.01)
+    assert (settings.omega_weight, settings.control_weight) == (0.1, 0.001)
+    assert settings.omega_bound_fraction / v1.DT == pytest.approx(v1.MAX_SPEED)
+
+
+def test_episode_optimizer_beats_its_guess_and_its_return_is_replayable():
+    optimizer = v1.EpisodeOptimizer(steps=60)
+    theta0, theta_dot0 = 0.8, -0.3  # θ = 0 upright in Pendulum-v1
+    guess = np.zeros(60)
+    guess_return, _ = v1.replay(theta0, theta_dot0, guess)
+    total, controls, status, defect = optimizer.solve(theta0, theta_dot0, guess)
+    assert status in ("Solve_Succeeded", "Solved_To_Acceptable_Level") and defect < 1e-8
+    assert total > guess_return + 10.0
+    # Over 3 s the open-loop replay stays close to the optimized trajectory; its return is the NLP's value.
+    assert total == pytest.approx(v1.replay(theta0, theta_dot0, controls)[0], rel=1e-4)
+    reference = v1.reference_return(theta0, theta_dot0, [guess], optimizer)
+    assert reference["return"] == pytest.approx(total) and reference["source"] == "optimized guess 0"
+    # Optimality check against simple perturbations of the optimum (a local optimum of a smooth problem).
+    rng = np.random.default_rng(1)
+    for _ in range(5):
+        perturbed = np.clip(controls + 0.05 * rng.normal(size=60), -2, 2)
+        assert v1.replay(theta0, theta_dot0, perturbed)[0] <= total + 1e-6
