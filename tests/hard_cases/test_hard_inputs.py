@@ -132,33 +132,6 @@ def saved_checkpoint(tmp_path_factory):
     return stem, original
 
 
-def decode_with_header(raw: bytes, header_source: bytes) -> dict[str, np.ndarray]:
-    """Tensors of ``raw`` read with the layout (names, F64, shapes, offsets) of ``header_source``."""
-    n = int.from_bytes(header_source[:8], "little")
-    header = json.loads(header_source[8 : 8 + n])
-    base = 8 + n
-    arrays = {}
-    for name, entry in header.items():
-        if name == "__metadata__":
-            continue
-        start, end = entry["data_offsets"]
-        arrays[name] = np.frombuffer(raw[base + start : base + end], dtype="<f8").reshape(entry["shape"])
-    return arrays
-
-
-def flipped_elements(raw: bytes, positions: list[int]) -> set[tuple[str, int]]:
-    """``(tensor name, flat element index)`` of the float64 elements containing the byte ``positions``."""
-    n = int.from_bytes(raw[:8], "little")
-    header = json.loads(raw[8 : 8 + n])
-    elements = set()
-    for p in positions:
-        for name, entry in header.items():
-            start, end = entry["data_offsets"] if name != "__metadata__" else (0, 0)
-            if start <= p - 8 - n < end:
-                elements.add((name, (p - 8 - n - start) // 8))
-    return elements
-
-
 def corrupt(data: bytes, draw) -> tuple[bytes, str, list[int]]:
     kind = draw(st.sampled_from(["flip", "truncate"]))
     if kind == "truncate":
@@ -186,19 +159,15 @@ def same_weights(a, b) -> bool:
 @settings(max_examples=S.budget(300))
 @given(target=st.sampled_from(["safetensors", "json"]), data=st.data())
 @S.counted
-def test_corrupted_checkpoint_raises_checkpoint_error_or_loads_exactly_what_the_bytes_say(saved_checkpoint, target,
+def test_corrupted_checkpoint_raises_checkpoint_error_or_loads_exactly_what_the_files_say(saved_checkpoint, target,
                                                                                           data):
     """Byte flips (1–3, random masks) and truncations of either file.
 
-    Without a checksum a flip inside float data cannot be detected, so what is assertable is:
-    the loader raises ``CheckpointError`` (never another exception), or it returns *exactly* what
-    the corrupted bytes encode — and it must not refuse bytes that encode a valid model:
+    The loader raises ``CheckpointError`` (never another exception) or returns exactly what the
+    files say:
 
-    * truncated ``.safetensors``: always ``CheckpointError``;
-    * ``.safetensors`` flips only inside tensor data: success iff every decoded value is finite,
-      and then the weights are the decoded ones (differing from the original exactly where flipped);
-    * ``.safetensors`` flips touching the header: ``CheckpointError``, or (a flip that leaves the
-      layout intact, e.g. in padding) the decoded weights;
+    * ``.safetensors``: the sidecar records the file's SHA-256, so every changed file is refused —
+      truncated, header flipped, or a flip inside float data that still parses;
     * ``.json`` flips/truncations: ``CheckpointError``, or the config/metadata the corrupted JSON
       parses to, with the original weights; a JSON that parses to the original must load.
     """
@@ -216,22 +185,7 @@ def test_corrupted_checkpoint_raises_checkpoint_error_or_loads_exactly_what_the_
         shutil.rmtree(workdir)
 
     if target == "safetensors":
-        header_end = 8 + int.from_bytes(raw[:8], "little")
-        if kind == "truncate":
-            assert error is not None, "a truncated weights file loaded"
-            return
-        decoded = decode_with_header(corrupted, raw)
-        if all(p >= header_end for p in positions):
-            finite = all(np.all(np.isfinite(a)) for a in decoded.values())
-            assert (loaded is not None) == finite, (error, finite)
-        if loaded is not None:
-            assert loaded.config == original.config
-            assert same_weights(dict(loaded.weights), decoded)
-            # Bitwise, the loaded weights differ from the original in exactly the float64 elements
-            # that contain a flipped data byte (a value may still compare equal: 0.0 ↔ −0.0).
-            changed = {(k, i) for k in decoded for i in np.flatnonzero(
-                decoded[k].view("<u8").ravel() != np.asarray(original.weights[k], "<f8").view("<u8").ravel())}
-            assert changed == flipped_elements(raw, positions), (changed, positions)
+        assert corrupted != raw and loaded is None and error is not None, f"a corrupted ({kind}) weights file loaded"
     else:
         try:
             parsed = json.loads(corrupted.decode("utf-8"))
