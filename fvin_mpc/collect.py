@@ -46,13 +46,16 @@ def control_sequence(rng: np.random.Generator, low: np.ndarray, high: np.ndarray
 
 def collect(scene: str = "pendulum", trajectories: int = 320, steps: int = 20, seed: int = 0,
             max_omega: float = 6.0, hold_steps: int = 4, body: str | None = None,
-            progress: bool = True) -> TrajectoryData:
-    """Roll out ``trajectories`` seeded episodes of ``steps`` control periods in the scene."""
+            progress: bool = True, control_period: float | None = None) -> TrajectoryData:
+    """Roll out ``trajectories`` seeded episodes of ``steps`` control periods in the scene.
+
+    ``control_period`` (s) overrides the scene's (a whole multiple of the MJCF timestep),
+    e.g. ``0.02`` for data of a model with step ``h = 0.02``."""
     from tqdm.auto import tqdm
 
     from envs import RigidBodyEnv
 
-    env = RigidBodyEnv(scene=scene, body=body)
+    env = RigidBodyEnv(scene=scene, body=body, control_period=control_period)
     rng = np.random.default_rng(seed)
     low, high = env.action_space.low.astype(np.float64), env.action_space.high.astype(np.float64)
     qs = np.empty((trajectories, steps + 1, 4))
@@ -89,12 +92,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--steps", type=int, default=20, help="control periods per trajectory")
     parser.add_argument("--max-omega", type=float, default=6.0, help="largest initial |ω| (rad/s)")
     parser.add_argument("--hold-steps", type=int, default=4, help="periods per level of piecewise-constant controls")
+    parser.add_argument("--control-period", type=float, default=None,
+                        help="seconds per step (default: the scene's; a whole multiple of its MJCF timestep)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, default=None, help="output .npz (default: data/<scene>.npz)")
     parser.add_argument("--quiet", action="store_true")
     args = parser.parse_args(argv)
     data = collect(args.scene, args.trajectories, args.steps, args.seed, args.max_omega, args.hold_steps,
-                   args.body, progress=not args.quiet)
+                   args.body, progress=not args.quiet, control_period=args.control_period)
     out = args.out or Path("data") / f"{Path(args.scene).stem}.npz"
     save_data(out, data)
     print(json.dumps({"out": str(out), **{k: data.metadata[k] for k in ("scene", "trajectories", "transitions", "control_period")}}))

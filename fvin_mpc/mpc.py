@@ -24,6 +24,11 @@ the NLP's functions compiled to C once and cached on disk
 (:func:`fvin_mpc.export.compile_functions`), and a primal–dual warm start from the
 previous plan shifted by one step.
 
+The NLP solver is IPOPT by default; ``solver="sqpmethod"`` (CasADi's SQP with the qrqp
+active-set QP solver) and ``solver="fatrop"`` (structure-exploiting interior point; exact
+Hessian, stage-wise variable order, functions expanded and evaluated in CasADi's virtual
+machine) solve the same problem, for the comparison in ``docs/bench/solver.md``.
+
 Hanging at rest is a stationary point of the swing-up problem (mirror symmetry), so the
 first guess is the model rolled out under a constant torque (``initial_torque_fraction``
 of the upper bound). A failed or non-finite solve never reaches the actuator: the
@@ -33,6 +38,7 @@ bounds, and says so in ``info``.
 
 from __future__ import annotations
 
+import re
 import time
 from dataclasses import dataclass, field
 from typing import Any, Literal
@@ -71,10 +77,18 @@ class MPCSettings:
             plan only) or ``"none"`` (every solve from the rolled-out first guess).
         initial_torque_fraction: the first guess applies this fraction of the upper torque
             bound; must be non-zero to leave the symmetric rest state.
-        max_iter: IPOPT iteration limit per solve.
+        max_iter: IPOPT iteration limit per warm-started solve (primal–dual warm start).
+        cold_max_iter: limit for solves without multipliers — the first call, the call after
+            a failure, and every call with ``warm_start`` ``"primal"``/``"none"``. A cold swing-up
+            from rest may need over 100 iterations; with too tight a limit it fails, the zero
+            fallback keeps the body at rest, and the next cold solve fails the same way.
         tol: IPOPT convergence tolerance.
         warm_mu_init: IPOPT's initial barrier parameter on warm-started solves.
         ipopt_options: extra IPOPT options as ``(name, value)`` pairs.
+        solver: ``"ipopt"`` (default), ``"sqpmethod"`` (CasADi's SQP with qrqp; all three
+            Hessians; the warm start passes the plan and, with ``"primal-dual"``, the
+            multipliers) or ``"fatrop"`` (needs ``hessian="exact"`` and ``compile="none"``:
+            it forms its own exact Hessian from the expanded functions).
     """
 
     horizon: int = 30
@@ -89,9 +103,11 @@ class MPCSettings:
     warm_start: Literal["primal-dual", "primal", "none"] = "primal-dual"
     initial_torque_fraction: float = 0.5
     max_iter: int = 100
+    cold_max_iter: int = 500
     tol: float = 1e-6
     warm_mu_init: float = 1e-4
     ipopt_options: tuple[tuple[str, Any], ...] = field(default_factory=tuple)
+    solver: Literal["ipopt", "sqpmethod", "fatrop"] = "ipopt"
 
     def __post_init__(self) -> None:
         if self.horizon < 1:
@@ -108,6 +124,11 @@ class MPCSettings:
             raise ValueError(f"unknown compile mode {self.compile!r}")
         if self.warm_start not in ("primal-dual", "primal", "none"):
             raise ValueError(f"unknown warm_start {self.warm_start!r}")
+        if self.solver not in ("ipopt", "sqpmethod", "fatrop"):
+            raise ValueError(f"unknown solver {self.solver!r}")
+        if self.solver == "fatrop" and (self.hessian != "exact" or self.compile != "none"):
+            raise ValueError("solver='fatrop' forms its own exact Hessian from expanded functions: "
+                             "use hessian='exact' and compile='none'")
         if self.initial_torque_fraction == 0.0:
             raise ValueError("initial_torque_fraction must be non-zero: rest is a stationary point")
 
@@ -129,7 +150,10 @@ def check_state(q: Any, omega: Any) -> tuple[np.ndarray, np.ndarray]:
     are normalized; otherwise ``ValueError`` (a non-unit ``q`` is not a rotation, and
     silently normalizing a wrong one would hide a bug upstream).
     """
-    q, omega = np.asarray(q, dtype=float), np.asarray(omega, dtype=float)
+    try:
+        q, omega = np.asarray(q, dtype=float), np.asarray(omega, dtype=float)
+    except (TypeError, ValueError) as error:  # None-like, strings, dicts, ragged lists
+        raise ValueError(f"expected q (4,) and omega (3,) as float arrays: {error}") from None
     if q.shape != (4,) or omega.shape != (3,):
         raise ValueError(f"expected q of shape (4,) and omega of shape (3,), got {q.shape} and {omega.shape}")
     if not (np.all(np.isfinite(q)) and np.all(np.isfinite(omega))):
@@ -224,20 +248,26 @@ class MPC:
         control_lower[:], control_upper[:] = self.torque_low, self.torque_high
         self._lower, self._upper = lower, upper
 
+        self.compile_report: CompileReport | None = None
+        self._order = None
+        if s.solver == "fatrop":
+            self._build_fatrop(states, controls, goal, objective, defects)
+            return
         options: dict[str, Any] = {}
         if s.hessian == "gauss-newton":
             lam_f, lam_g = ca.MX.sym("lam_f"), ca.MX.sym("lam_g", self._num_constraints)
             cost_hessian = ca.hessian(objective, decision)[0]
-            options["hess_lag"] = ca.Function(
-                "nlp_hess_l", [decision, goal, lam_f, lam_g], [ca.triu(lam_f * cost_hessian)],
-                ["x", "p", "lam_f", "lam_g"], ["triu_hess_gamma_x_x"])
-        symbolic = ca.nlpsol("mpc_symbolic", "ipopt", nlp, {**options, **self._ipopt_options(warm=False)})
-        self.compile_report: CompileReport | None = None
+            # IPOPT reads the upper triangle, sqpmethod the whole symmetric matrix.
+            hessian, label = (ca.triu(lam_f * cost_hessian), "triu_hess_gamma_x_x") if s.solver == "ipopt" \
+                else (lam_f * cost_hessian, "hess_gamma_x_x")
+            options["hess_lag"] = ca.Function("nlp_hess_l", [decision, goal, lam_f, lam_g], [hessian],
+                                              ["x", "p", "lam_f", "lam_g"], [label])
+        symbolic = ca.nlpsol("mpc_symbolic", s.solver, nlp, {**options, **self._ipopt_options(warm=False)})
         if s.compile == "none":
             self._nlp = nlp
             self._oracle_options = options
         else:
-            names = ["nlp_f", "nlp_g", "nlp_grad_f", "nlp_jac_g"]
+            names = ["nlp_f", "nlp_g", "nlp_grad_f", "nlp_jac_g"] if s.solver == "ipopt" else ["nlp_fg", "nlp_jac_fg"]
             if s.hessian != "limited-memory":
                 names.append("nlp_hess_l")
             oracles = [symbolic.get_function(name) for name in names]
@@ -246,21 +276,51 @@ class MPC:
             # IPOPT's interface insists on being able to differentiate f and g (for lam_p, which
             # calc_lam_p=False never computes); finite differences satisfy it and are never run.
             compiled, self.compile_report = compile_functions(
-                oracles, prefix=f"mpc_{self.model.name}".replace("-", "_"), external_options={"enable_fd": True})
+                oracles, prefix=re.sub(r"[^0-9A-Za-z_]", "_", f"mpc_{self.model.name}"), external_options={"enable_fd": True})
             x, p = ca.MX.sym("x", decision.shape[0]), ca.MX.sym("p", 4)
-            self._nlp = {"x": x, "p": p, "f": compiled["nlp_f"](x, p), "g": compiled["nlp_g"](x, p)}
-            self._oracle_options = {"grad_f": compiled["nlp_grad_f"], "jac_g": compiled["nlp_jac_g"]}
+            f, g = (compiled["nlp_f"](x, p), compiled["nlp_g"](x, p)) if s.solver == "ipopt" else compiled["nlp_fg"](x, p)
+            self._nlp = {"x": x, "p": p, "f": f, "g": g}
+            self._oracle_options = {"grad_f": compiled["nlp_grad_f"], "jac_g": compiled["nlp_jac_g"]} \
+                if s.solver == "ipopt" else {"jac_fg": compiled["nlp_jac_fg"]}
             if "nlp_hess_l" in compiled:
                 self._oracle_options["hess_lag"] = compiled["nlp_hess_l"]
-        self._cold = ca.nlpsol("mpc_cold", "ipopt", self._nlp, {**self._oracle_options, **self._ipopt_options(warm=False)})
-        warm = s.warm_start == "primal-dual"
-        self._warm = ca.nlpsol("mpc_warm", "ipopt", self._nlp, {**self._oracle_options, **self._ipopt_options(warm=warm)}) \
+        self._cold = ca.nlpsol("mpc_cold", s.solver, self._nlp, {**self._oracle_options, **self._ipopt_options(warm=False)})
+        warm = s.warm_start == "primal-dual" and s.solver == "ipopt"
+        self._warm = ca.nlpsol("mpc_warm", s.solver, self._nlp, {**self._oracle_options, **self._ipopt_options(warm=warm)}) \
             if warm else self._cold
+
+    def _build_fatrop(self, states: ca.MX, controls: ca.MX, goal: ca.MX, objective: ca.MX, defects: ca.MX) -> None:
+        """The same NLP for fatrop: variables stage by stage ``(x_0, u_0, x_1, …, x_N)`` and the
+        dynamics as gap-closing constraints ``x_{k+1} − F(x_k, u_k) = 0``, the form its structure
+        detection requires. ``self._order`` maps the stage-wise vector to the default layout."""
+        n, m = self.horizon, self.model.control_dim
+        problem = ca.Function("mpc_problem", [states, controls, goal], [objective, -ca.vec(defects)])
+        index = np.arange(STATE_DIM * (n + 1) + m * n)
+        state_index, control_index = self._unpack(index)
+        order = np.concatenate([np.concatenate([state_index[k], control_index[k]]) if k < n else state_index[k]
+                                for k in range(n + 1)])
+        self._order = order  # stage-wise vector v = w[order]
+        v, p = ca.MX.sym("v", order.size), ca.MX.sym("p", 4)
+        w = v[np.argsort(order).tolist()]  # default layout from the stage-wise one
+        w_states, w_controls = ca.reshape(w[: STATE_DIM * (n + 1)], STATE_DIM, n + 1), ca.reshape(w[STATE_DIM * (n + 1):], m, n)
+        f, g = problem(w_states, w_controls, p)
+        self._nlp = {"x": v, "p": p, "f": f, "g": g}
+        self._oracle_options = {}
+        options = {"structure_detection": "auto", "equality": [True] * self._num_constraints, "expand": True,
+                   "fatrop": {"print_level": 0, "max_iter": self.settings.max_iter, "tol": self.settings.tol},
+                   "print_time": False, "error_on_fail": False}
+        self._cold = self._warm = ca.nlpsol("mpc_fatrop", "fatrop", self._nlp, options)
 
     def _ipopt_options(self, warm: bool) -> dict[str, Any]:
         s = self.settings
-        ipopt: dict[str, Any] = {"print_level": 0, "sb": "yes", "max_iter": s.max_iter, "tol": s.tol,
-                                 "linear_solver": "mumps"}
+        if s.solver == "sqpmethod":
+            return {"qpsol": "qrqp", "qpsol_options": {"print_iter": False, "print_header": False, "error_on_fail": False},
+                    "hessian_approximation": "limited-memory" if s.hessian == "limited-memory" else "exact",
+                    "max_iter": s.max_iter, "tol_pr": s.tol, "tol_du": s.tol, "print_header": False,
+                    "print_iteration": False, "print_status": False, "print_time": False, "error_on_fail": False,
+                    "calc_lam_p": False}
+        ipopt: dict[str, Any] = {"print_level": 0, "sb": "yes", "max_iter": s.max_iter if warm else s.cold_max_iter,
+                                 "tol": s.tol, "linear_solver": "mumps"}
         if s.hessian == "limited-memory":
             ipopt["hessian_approximation"] = "limited-memory"
         if warm:
@@ -326,14 +386,27 @@ class MPC:
         if use_duals:
             arguments.update(lam_g0=guess.lam_g, lam_x0=guess.lam_x)
         solver = self._warm if use_duals else self._cold
+        if self._order is not None:  # fatrop: stage-wise order, negated constraints
+            arguments = {**arguments, **{key: arguments[key][self._order] for key in ("x0", "lbx", "ubx", "lam_x0")
+                                         if key in arguments}}
+            if "lam_g0" in arguments:
+                arguments["lam_g0"] = -arguments["lam_g0"]
         start = time.perf_counter()
         solution = solver(**arguments)
         solve_time = time.perf_counter() - start
+        if self._order is not None:
+            solution = dict(solution)
+            for key in ("x", "lam_x"):
+                stage_wise = np.asarray(solution[key], dtype=float).ravel()
+                solution[key] = np.empty_like(stage_wise)
+                solution[key][self._order] = stage_wise
+            solution["lam_g"] = -np.asarray(solution["lam_g"], dtype=float)
         stats = solver.stats()
         status = str(stats.get("return_status", "unknown"))
         w = np.asarray(solution["x"], dtype=float).ravel()
         finite = bool(np.all(np.isfinite(w)))
-        success = status in SUCCESS_STATUSES and finite
+        converged = status in SUCCESS_STATUSES if self.settings.solver == "ipopt" else bool(stats.get("success", False))
+        success = converged and finite
         fallback = None
         if success:
             states, controls = self._unpack(w)

@@ -74,7 +74,7 @@ def test_leaves_exact_rest(controller):
 def test_failed_solve_returns_previous_plan_then_zero(true_model):
     """IPOPT stopped after one iteration: the torque is finite, bounded and the status reported."""
     good = MPC(true_model, MPCSettings(), UPRIGHT, [-2.0], [2.0])
-    failing = MPC(true_model, MPCSettings(max_iter=1), UPRIGHT, [-2.0], [2.0])
+    failing = MPC(true_model, MPCSettings(max_iter=1, cold_max_iter=1), UPRIGHT, [-2.0], [2.0])
     q, omega = hinge(0.3, 0.0)
     u, info = failing(q, omega)
     assert not info["success"] and info["status"] == "Maximum_Iterations_Exceeded"

@@ -39,6 +39,10 @@ class StudyResult:
     notes: list[str] = field(default_factory=list)
 
 
+class StudySkipped(Exception):
+    """A study cannot run here (e.g. its checkpoint is absent); the message says why and what to do."""
+
+
 def median_time(function: Callable[[], Any], repeats: int, warmup: int = 1) -> tuple[float, float]:
     """Median and 95th percentile wall time (s) of ``function()`` over ``repeats`` calls."""
     for _ in range(warmup):

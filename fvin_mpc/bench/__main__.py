@@ -1,4 +1,8 @@
-"""``python -m fvin_mpc.bench <study>`` — accuracy-vs-time studies (see :mod:`fvin_mpc.bench`)."""
+"""``python -m fvin_mpc.bench <study>`` — accuracy-vs-time studies (see :mod:`fvin_mpc.bench`).
+
+Every study writes ``<out-dir>/<study>.{json,md,png}``; ``python -m fvin_mpc.bench <study> --help``
+lists its own options.
+"""
 
 from __future__ import annotations
 
@@ -7,25 +11,55 @@ import importlib
 import sys
 from pathlib import Path
 
-#: study name → module (each has ``run(quick, seed, repeats, **options) -> StudyResult``).
+#: study name → module (each has ``run(quick, seed, repeats, **options) -> StudyResult`` and
+#: optionally ``add_arguments(parser)`` for its own options).
 STUDIES = {
     "train-speed": "fvin_mpc.bench.train_speed",
+    "newton": "fvin_mpc.bench.newton",
+    "horizon": "fvin_mpc.bench.horizon",
+    "width": "fvin_mpc.bench.width",
+    "solver": "fvin_mpc.bench.solver",
+    "sim": "fvin_mpc.bench.sim",
 }
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="python -m fvin_mpc.bench", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    subparsers = parser.add_subparsers(dest="study", required=True, metavar="study",
+                                       help=f"one of: {', '.join(STUDIES)}")
+    for name, module_name in STUDIES.items():
+        module = importlib.import_module(module_name)
+        summary = (module.__doc__ or "").strip().splitlines()[0] if module.__doc__ else name
+        sub = subparsers.add_parser(name, help=summary, description=module.__doc__,
+                                    formatter_class=argparse.RawDescriptionHelpFormatter)
+        sub.add_argument("--quick", action="store_true", help="tiny workload (used by the test suite)")
+        sub.add_argument("--out-dir", type=Path, default=Path("docs/bench"), help="where to write (default: %(default)s)")
+        sub.add_argument("--repeats", type=int, default=5, help="timing repeats per configuration (default: %(default)s)")
+        sub.add_argument("--seed", type=int, default=0, help="seeds data, initial states and training (default: %(default)s)")
+        if hasattr(module, "add_arguments"):
+            module.add_arguments(sub)
+    return parser
 
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
-    parser = argparse.ArgumentParser(prog="python -m fvin_mpc.bench", description=__doc__)
-    parser.add_argument("study", choices=sorted(STUDIES), help="which study to run")
-    parser.add_argument("--quick", action="store_true", help="tiny workload (used by the test suite)")
-    parser.add_argument("--out-dir", type=Path, default=Path("docs/bench"), help="where to write (default: %(default)s)")
-    parser.add_argument("--repeats", type=int, default=5, help="timing repeats per configuration")
-    parser.add_argument("--seed", type=int, default=0)
-    args = parser.parse_args(argv)
-    from . import write_study
+    args = build_parser().parse_args(argv)
+    if args.repeats < 1:
+        print(f"error: --repeats must be >= 1, got {args.repeats}", file=sys.stderr)
+        return 2
+    from . import StudySkipped, write_study
 
     module = importlib.import_module(STUDIES[args.study])
-    result = module.run(quick=args.quick, seed=args.seed, repeats=args.repeats)
+    options = {k: v for k, v in vars(args).items() if k not in ("study", "quick", "out_dir", "repeats", "seed")}
+    try:
+        result = module.run(quick=args.quick, seed=args.seed, repeats=args.repeats, **options)
+    except StudySkipped as reason:
+        print(f"skipped {args.study}: {reason}", file=sys.stderr)
+        return 0
+    except (ValueError, FileNotFoundError) as error:
+        print(f"error: {error}", file=sys.stderr)
+        return 2
     paths = write_study(result, args.out_dir, argv)
     print(paths["md"].read_text())
     return 0

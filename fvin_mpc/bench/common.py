@@ -1,0 +1,185 @@
+"""Helpers shared by the studies: held-out data, models, closed-loop swing-ups, Pareto plots."""
+
+from __future__ import annotations
+
+import sys
+import time
+from contextlib import contextmanager
+from dataclasses import replace
+from pathlib import Path
+from typing import Any, Iterator, Sequence
+
+import numpy as np
+
+#: The note every timing study carries.
+NOISE_NOTE = ("Timings were taken on a 2-core machine shared with other jobs (training, tests): absolute "
+              "times are noisy; compare configurations by the ratios within this one run.")
+
+
+def heldout_data(scene: str = "pendulum", control_period: float | None = None, seed: int = 1,
+                 trajectories: int = 64, steps: int = 40, path: Path | None = None, progress: bool = False) -> Any:
+    """Held-out MuJoCo trajectories, collected (seeded) and saved under ``data/`` if missing.
+
+    The default is the data of ``python -m fvin_mpc.collect --seed 1 --trajectories 64 --steps 40
+    --out data/<scene>_heldout.npz``; ``control_period`` other than the scene's adds ``-h<period>``
+    to the file name.
+    """
+    from ..collect import collect
+    from ..data import load_data, save_data
+
+    stem = Path(scene).stem + (f"-h{control_period:g}" if control_period is not None else "")
+    if path is None:
+        path = Path("data") / f"{stem}_heldout.npz"
+        if (trajectories, steps, seed) != (64, 40, 1):
+            path = Path("data") / f"{stem}_heldout_{trajectories}x{steps}_s{seed}.npz"
+    if path.is_file():
+        data = load_data(path)
+        meta = data.metadata
+        if (meta.get("trajectories"), meta.get("steps"), meta.get("seed")) == (trajectories, steps, seed) and (
+                control_period is None or abs(data.control_period - control_period) < 1e-12):
+            return data
+    print(f"collecting held-out data {path} (seed {seed}, {trajectories}×{steps})", file=sys.stderr)
+    data = collect(scene, trajectories, steps, seed, progress=progress, control_period=control_period)
+    save_data(path, data)
+    return data
+
+
+def checkpoint_or_none(name: str) -> Any:
+    """The checkpoint called ``name`` or ``None`` if it is not there (studies skip it and say so)."""
+    from ..checkpoint import CheckpointError, load_checkpoint
+
+    try:
+        return load_checkpoint(name)
+    except CheckpointError:
+        return None
+
+
+def make_env(scene: str, control_period: float | None = None) -> Any:
+    from envs import RigidBodyEnv
+
+    return RigidBodyEnv(scene=scene, control_period=control_period)
+
+
+def swingup(env: Any, model: Any, settings: Any, duration_s: float, reset_options: dict | None = None,
+            seed: int = 0) -> dict[str, Any]:
+    """Build an MPC on ``model`` for ``env``'s goal and bounds and run one episode; metrics + build info."""
+    from ..closed_loop import episode_metrics, run_episode
+    from ..mpc import MPC
+
+    base = env.unwrapped
+    controller = MPC(model, settings, base.goal, base.torque_low, base.torque_high)
+    episode, _ = run_episode(env, controller, duration_s, reset_options, seed=seed)
+    metrics = episode_metrics(episode)
+    report = controller.compile_report
+    metrics.update(build_s=controller.build_s, compile_cached=None if report is None else report.cached,
+                   compile_s=None if report is None else report.compile_s)
+    return metrics
+
+
+def solve_stats(env: Any, model: Any, settings: Any, duration_s: float, reset_options: dict | None = None,
+                seed: int = 0) -> dict[str, Any]:
+    """Like :func:`swingup` but also the IPOPT iterations and solve times of every call (not the wrapper's)."""
+    from ..closed_loop import episode_metrics, run_episode
+    from ..mpc import MPC
+
+    base = env.unwrapped
+    controller = MPC(model, settings, base.goal, base.torque_low, base.torque_high)
+    infos: list[dict[str, Any]] = []
+
+    class Recording:
+        def __call__(self, q: Any, omega: Any) -> Any:
+            u, info = controller(q, omega)
+            infos.append({"iterations": info["iterations"], "solve_time_s": info["solve_time_s"],
+                          "success": info["success"]})
+            return u, info
+
+        def reset(self) -> None:
+            controller.reset()
+
+    episode, _ = run_episode(env, Recording(), duration_s, reset_options, seed=seed)
+    metrics = episode_metrics(episode)
+    solve_ms = 1e3 * np.array([i["solve_time_s"] for i in infos])
+    report = controller.compile_report
+    metrics.update(
+        build_s=controller.build_s, compile_cached=None if report is None else report.cached,
+        compile_s=None if report is None else report.compile_s,
+        solver_ms_median=float(np.median(solve_ms)), solver_ms_p95=float(np.percentile(solve_ms, 95)),
+        iterations_mean=float(np.mean([i["iterations"] for i in infos])),
+        solver_failures=int(sum(not i["success"] for i in infos)),
+    )
+    return metrics
+
+
+def pareto_mask(x: Sequence[float], y: Sequence[float]) -> np.ndarray:
+    """Points not dominated (smaller ``x`` and smaller ``y`` are better); NaN/None never on the front."""
+    x = np.array([np.nan if v is None else v for v in x], dtype=float)
+    y = np.array([np.nan if v is None else v for v in y], dtype=float)
+    ok = np.isfinite(x) & np.isfinite(y)
+    mask = np.zeros(x.size, dtype=bool)
+    for i in np.flatnonzero(ok):
+        dominated = ok & (x <= x[i]) & (y <= y[i]) & ((x < x[i]) | (y < y[i]))
+        mask[i] = not dominated.any()
+    return mask
+
+
+def plot_pareto(axis: Any, rows: list[dict[str, Any]], x: str, y: str, label: str, xlabel: str, ylabel: str,
+                log: bool = True, group: str | None = None) -> None:
+    """Scatter ``rows`` as (``x``, ``y``), label each point, draw the Pareto front as a step line."""
+    xs = [r.get(x) for r in rows]
+    ys = [r.get(y) for r in rows]
+    groups = sorted({str(r.get(group)) for r in rows}) if group else [None]
+    colors = dict(zip(groups, ["tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple", "tab:brown"] * 3))
+    for r, xv, yv in zip(rows, xs, ys):
+        if xv is None or yv is None or not (np.isfinite(xv) and np.isfinite(yv)):
+            continue
+        g = str(r.get(group)) if group else None
+        axis.scatter([xv], [yv], color=colors[g], s=25, zorder=3)
+        axis.annotate(str(r.get(label)), (xv, yv), fontsize=6, xytext=(3, 3), textcoords="offset points")
+    mask = pareto_mask(xs, ys)
+    if mask.any():
+        front = sorted((xs[i], ys[i]) for i in np.flatnonzero(mask))
+        axis.step([p[0] for p in front], [p[1] for p in front], where="post", color="tab:gray", ls="--",
+                  label="Pareto front", zorder=2)
+        axis.legend(loc="best", fontsize=8)
+    if group:
+        for g in groups:
+            axis.scatter([], [], color=colors[g], label=f"{group} = {g}")
+        axis.legend(loc="best", fontsize=8)
+    finite = [(a, b) for a, b in zip(xs, ys) if a is not None and b is not None and np.isfinite(a) and np.isfinite(b)]
+    from matplotlib.ticker import NullFormatter
+
+    for values, set_scale, scale_axis in (([a for a, _ in finite], axis.set_xscale, axis.xaxis),
+                                          ([b for _, b in finite], axis.set_yscale, axis.yaxis)):
+        if log and values and min(values) > 0:
+            set_scale("log")
+            if max(values) / min(values) > 10:  # within one decade the minor labels are the only labels
+                scale_axis.set_minor_formatter(NullFormatter())
+    axis.set_xlabel(xlabel)
+    axis.set_ylabel(ylabel)
+    axis.grid(True, which="both", alpha=0.3)
+
+
+@contextmanager
+def torch_threads(threads: int) -> Iterator[None]:
+    """Run torch with ``threads`` intra-op threads, restoring the previous setting afterwards.
+
+    The studies use one thread: on a shared, oversubscribed 2-core machine two torch threads
+    were measured ≈ 20× slower than one (they spin waiting for each other)."""
+    import torch
+
+    previous = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(previous)
+
+
+def timed(function: Any) -> tuple[Any, float]:
+    start = time.perf_counter()
+    value = function()
+    return value, time.perf_counter() - start
+
+
+__all__ = ["NOISE_NOTE", "heldout_data", "checkpoint_or_none", "make_env", "swingup", "solve_stats", "pareto_mask",
+           "plot_pareto", "timed", "replace"]
