@@ -34,7 +34,7 @@ import shlex
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field
 from multiprocessing import get_context
 from pathlib import Path
 from typing import Any, Sequence
@@ -152,13 +152,10 @@ def build_controller(name: str, env: Any, config: EvaluationConfig) -> Any:
 
 
 def mpc_settings(config: EvaluationConfig) -> Any:
-    """The MPC settings of the scene (:func:`fvin_mpc.swingup.scene_settings` where it exists), ``horizon`` applied."""
-    from . import swingup
-    from .mpc import MPCSettings
+    """The MPC settings of the scene (:func:`fvin_mpc.swingup.scene_settings`), ``horizon`` applied."""
+    from .swingup import scene_settings
 
-    if hasattr(swingup, "scene_settings"):
-        return swingup.scene_settings(config.scene, horizon=config.horizon)
-    return MPCSettings() if config.horizon is None else replace(MPCSettings(), horizon=config.horizon)
+    return scene_settings(config.scene, horizon=config.horizon)
 
 
 def _check_checkpoint(config: EvaluationConfig) -> None:
