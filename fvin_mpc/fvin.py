@@ -152,6 +152,59 @@ def generalized_force(q: s3.Quat, omega: s3.Vec3, u: tuple[Any, ...], terms: Rig
     return force  # type: ignore[return-value]
 
 
+@dataclass(frozen=True)
+class ImplicitProblem:
+    """Steps 1–2 of a step: the implicit equation ``Φ(ξ) = rhs`` and what finishing needs.
+
+    Attributes:
+        inertia: ``J(q_k)`` (rows).
+        rhs: ``C`` of DESIGN.md step 2.
+        discrete_force: ``f⁻ = f⁺ = (h/2)(g u − D ω)``.
+    """
+
+    inertia: s3.Mat3
+    rhs: s3.Vec3
+    discrete_force: s3.Vec3
+
+
+def implicit_problem(q: s3.Quat, omega: s3.Vec3, u: tuple[Any, ...], terms: RigidBodyTerms,
+                     step_size: float) -> ImplicitProblem:
+    """Steps 1–2: momentum, discrete forces and the right-hand side ``C``."""
+    h = step_size
+    inertia = terms.inertia(q)
+    momentum = s3.scale(2.0, s3.matvec(inertia, omega))
+    discrete_force = s3.scale(h / 2.0, generalized_force(q, omega, u, terms))
+    gravity = s3.H_apply(q, terms.potential_gradient(q))
+    rhs = s3.scale(-h / 4.0, s3.sub(s3.add(momentum, discrete_force), s3.scale(h / 2.0, gravity)))
+    return ImplicitProblem(inertia=inertia, rhs=rhs, discrete_force=discrete_force)
+
+
+def finish_step(q: s3.Quat, xi: s3.Vec3, problem: ImplicitProblem, terms: RigidBodyTerms, step_size: float,
+                ops: Ops, with_residual: bool = False) -> StepResult:
+    """Steps 4–5 from a solution ``ξ`` of ``problem`` (however it was solved), and its residual."""
+    h, inertia = step_size, problem.inertia
+    increment = s3.exp(xi, ops)
+    q_next = s3.multiply(q, increment)
+    gravity_next = s3.H_apply(q_next, terms.potential_gradient(q_next))
+    kinetic = s3.G_apply(increment, s3.matvec(inertia, s3.imaginary(increment)))
+    momentum_next = s3.add(s3.sub(s3.scale(4.0 / h, kinetic), s3.scale(h / 2.0, gravity_next)), problem.discrete_force)
+    inertia_next = inertia if terms.constant_inertia else terms.inertia(q_next)
+    omega_next = s3.scale(0.5, s3.solve3(inertia_next, momentum_next))
+
+    residual = None
+    if with_residual:
+        mismatch = s3.sub(implicit_lhs(xi, inertia, ops), problem.rhs)
+        # Φ ≈ −Jξ and ξ ≈ hω/2: dividing by h·j/2 turns the mismatch into rad/s.
+        inertia_scale = (inertia[0][0] + inertia[1][1] + inertia[2][2]) / 3.0
+        squared = s3.dot(mismatch, mismatch)
+        # A converged solve has mismatch exactly 0, where √ has no derivative; the safe
+        # argument keeps the residual's derivatives finite (0 there) in every backend.
+        nonzero = squared > 0.0
+        norm = ops.where(nonzero, ops.sqrt(ops.where(nonzero, squared, 1.0 + 0.0 * squared)), 0.0 * squared)
+        residual = norm * (2.0 / h) / inertia_scale
+    return StepResult(q=q_next, omega=omega_next, residual=residual)  # type: ignore[arg-type]
+
+
 def fvin_step(
     q: s3.Quat,
     omega: s3.Vec3,
@@ -163,35 +216,9 @@ def fvin_step(
     with_residual: bool = False,
 ) -> StepResult:
     """One forced S3FVIN step ``(q_k, ω_k, u_k) → (q_{k+1}, ω_{k+1})``; see the module docstring."""
-    h = step_size
-    inertia = terms.inertia(q)
-    momentum = s3.scale(2.0, s3.matvec(inertia, omega))
-    discrete_force = s3.scale(h / 2.0, generalized_force(q, omega, u, terms))
-    gravity = s3.H_apply(q, terms.potential_gradient(q))
-    rhs = s3.scale(-h / 4.0, s3.sub(s3.add(momentum, discrete_force), s3.scale(h / 2.0, gravity)))
-
-    xi = solve_implicit(rhs, inertia, newton_iters, ops)
-
-    increment = s3.exp(xi, ops)
-    q_next = s3.multiply(q, increment)
-    gravity_next = s3.H_apply(q_next, terms.potential_gradient(q_next))
-    kinetic = s3.G_apply(increment, s3.matvec(inertia, s3.imaginary(increment)))
-    momentum_next = s3.add(s3.sub(s3.scale(4.0 / h, kinetic), s3.scale(h / 2.0, gravity_next)), discrete_force)
-    inertia_next = inertia if terms.constant_inertia else terms.inertia(q_next)
-    omega_next = s3.scale(0.5, s3.solve3(inertia_next, momentum_next))
-
-    residual = None
-    if with_residual:
-        mismatch = s3.sub(implicit_lhs(xi, inertia, ops), rhs)
-        # Φ ≈ −Jξ and ξ ≈ hω/2: dividing by h·j/2 turns the mismatch into rad/s.
-        inertia_scale = (inertia[0][0] + inertia[1][1] + inertia[2][2]) / 3.0
-        squared = s3.dot(mismatch, mismatch)
-        # A converged solve has mismatch exactly 0, where √ has no derivative; the safe
-        # argument keeps the residual's derivatives finite (0 there) in every backend.
-        nonzero = squared > 0.0
-        norm = ops.where(nonzero, ops.sqrt(ops.where(nonzero, squared, 1.0 + 0.0 * squared)), 0.0 * squared)
-        residual = norm * (2.0 / h) / inertia_scale
-    return StepResult(q=q_next, omega=omega_next, residual=residual)  # type: ignore[arg-type]
+    problem = implicit_problem(q, omega, u, terms, step_size)
+    xi = solve_implicit(problem.rhs, problem.inertia, newton_iters, ops)
+    return finish_step(q, xi, problem, terms, step_size, ops, with_residual)
 
 
 def kinetic_energy(q: s3.Quat, omega: s3.Vec3, terms: RigidBodyTerms) -> Any:

@@ -29,8 +29,8 @@ BATCH = 1024
 def rootfinder_step(terms_ca: Any, step_size: float, plugin: str = "newton") -> Any:
     """``F(x[7], u[m]) -> (x_next[7], residual)`` with the implicit equation solved by CasADi's ``rootfinder``.
 
-    Steps 1–2 and 4–5 are :func:`fvin_mpc.fvin.fvin_step`'s (same :mod:`fvin_mpc.s3` calls);
-    step 3, ``Φ(ξ) = C``, is solved to convergence (abstol 1e-14) from the first Newton iterate.
+    Steps 1–2 and 4–5 are :func:`fvin_mpc.fvin.fvin_step`'s own (:func:`~fvin_mpc.fvin.implicit_problem`,
+    :func:`~fvin_mpc.fvin.finish_step`); step 3, ``Φ(ξ) = C``, is solved to convergence (abstol 1e-14) from the first Newton iterate.
     """
     import casadi as ca
 
@@ -42,27 +42,15 @@ def rootfinder_step(terms_ca: Any, step_size: float, plugin: str = "newton") -> 
     x, u, xi = ca.SX.sym("x", 7), ca.SX.sym("u", m), ca.SX.sym("xi", 3)
     q, omega = tuple(x[i] for i in range(4)), tuple(x[4 + i] for i in range(3))
     controls = tuple(u[i] for i in range(m))
-    inertia = terms_ca.inertia(q)
-    momentum = s3.scale(2.0, s3.matvec(inertia, omega))
-    discrete_force = s3.scale(h / 2.0, fvin.generalized_force(q, omega, controls, terms_ca))
-    gravity = s3.H_apply(q, terms_ca.potential_gradient(q))
-    rhs = s3.scale(-h / 4.0, s3.sub(s3.add(momentum, discrete_force), s3.scale(h / 2.0, gravity)))
-    mismatch = s3.sub(fvin.implicit_lhs(tuple(xi[i] for i in range(3)), inertia, ops), rhs)
+    problem = fvin.implicit_problem(q, omega, controls, terms_ca, h)
+    xi_components = tuple(xi[i] for i in range(3))
+    mismatch = s3.sub(fvin.implicit_lhs(xi_components, problem.inertia, ops), problem.rhs)
     equation = ca.Function("implicit", [xi, ca.vertcat(x, u)], [ca.vertcat(*mismatch)])
     options = {"abstol": 1e-15, "abstolStep": 1e-16, "max_iter": 50} if plugin == "newton" else {"abstol": 1e-15}
     solver = ca.rootfinder("implicit_solve", plugin, equation, options)
-    first = ca.Function("first_iterate", [x, u], [ca.vertcat(*s3.scale(-1.0, s3.solve3(inertia, rhs)))])
-
-    increment = s3.exp(tuple(xi[i] for i in range(3)), ops)
-    q_next = s3.multiply(q, increment)
-    gravity_next = s3.H_apply(q_next, terms_ca.potential_gradient(q_next))
-    kinetic = s3.G_apply(increment, s3.matvec(inertia, s3.imaginary(increment)))
-    momentum_next = s3.add(s3.sub(s3.scale(4.0 / h, kinetic), s3.scale(h / 2.0, gravity_next)), discrete_force)
-    inertia_next = inertia if terms_ca.constant_inertia else terms_ca.inertia(q_next)
-    omega_next = s3.scale(0.5, s3.solve3(inertia_next, momentum_next))
-    trace = (inertia[0][0] + inertia[1][1] + inertia[2][2]) / 3.0
-    residual = ca.norm_2(ca.vertcat(*mismatch)) * (2.0 / h) / trace
-    finish = ca.Function("finish", [x, u, xi], [ca.vertcat(*q_next, *omega_next), residual])
+    first = ca.Function("first_iterate", [x, u], [ca.vertcat(*s3.scale(-1.0, s3.solve3(problem.inertia, problem.rhs)))])
+    result = fvin.finish_step(q, xi_components, problem, terms_ca, h, ops, with_residual=True)
+    finish = ca.Function("finish", [x, u, xi], [ca.vertcat(*result.q, *result.omega), result.residual])
 
     X, U = ca.MX.sym("x", 7), ca.MX.sym("u", m)
     xi_star = solver(first(X, U), ca.vertcat(X, U))
