@@ -5,12 +5,12 @@ import json
 import numpy as np
 import pytest
 
-from fvin_mpc import fvin
 from fvin_mpc.backend import get_ops
 from fvin_mpc.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
-from fvin_mpc.data import TrajectoryData, load_data, save_data
+from fvin_mpc.data import load_data, save_data
 from fvin_mpc.networks import ModelConfig, init_weights
 from fvin_mpc.rigid_body import PENDULUM
+from synthetic import synthetic_hinge_data
 
 NP = get_ops("numpy")
 
@@ -74,21 +74,7 @@ def test_nan_weights_rejected(tmp_path):
 
 
 def synthetic_pendulum_data(trajectories=48, steps=10, seed=0):
-    """Trajectories of the true pendulum integrated with 20 FVIN substeps per period."""
-    rng = np.random.default_rng(seed)
-    terms = PENDULUM.terms(NP)
-    theta, omega0 = rng.uniform(-np.pi, np.pi, trajectories), rng.uniform(-5, 5, trajectories)
-    u = rng.uniform(-2, 2, (trajectories, steps, 1))
-    zero = 0 * theta
-    q, omega = (np.cos(theta / 2), zero, np.sin(theta / 2), zero), (zero, omega0, zero)
-    qs, omegas = [np.stack(q, -1)], [np.stack(omega, -1)]
-    for k in range(steps):
-        for _ in range(20):
-            out = fvin.fvin_step(q, omega, (u[:, k, 0],), terms, 0.0025, 4, NP)
-            q, omega = out.q, out.omega
-        qs.append(np.stack(q, -1))
-        omegas.append(np.stack(omega, -1))
-    return TrajectoryData(np.stack(qs, 1), np.stack(omegas, 1), u, {"control_period": 0.05, "scene": "synthetic"})
+    return synthetic_hinge_data(PENDULUM, trajectories, steps, seed)
 
 
 def test_data_round_trip(tmp_path):

@@ -18,11 +18,11 @@ from scipy.integrate import solve_ivp
 
 from envs import SCENES, RigidBodyEnv, ScenePhysics
 from envs.scenes import ALWAYS_DISABLED, build_model, infer_physics
-from fvin_mpc import fvin
 from fvin_mpc.backend import get_ops
 from fvin_mpc.data import TrajectoryData
 from fvin_mpc.networks import ModelConfig
 from fvin_mpc.rigid_body import PENDULUM_DAMPED, from_mujoco
+from synthetic import synthetic_hinge_data
 
 NP = get_ops("numpy")
 DSBL = mujoco.mjtDisableBit
@@ -274,21 +274,7 @@ def test_inferred_physics_follows_the_files_own_flags(tmp_path):
 
 # --------------------------------------------------------------------------- learning the damping
 def synthetic_damped_data(trajectories: int, steps: int, seed: int) -> TrajectoryData:
-    """Trajectories of the closed-form damped pendulum integrated with 20 FVIN substeps per period."""
-    rng = np.random.default_rng(seed)
-    terms = PENDULUM_DAMPED.terms(NP)
-    theta, omega0 = rng.uniform(-np.pi, np.pi, trajectories), rng.uniform(-5, 5, trajectories)
-    u = rng.uniform(-2, 2, (trajectories, steps, 1))
-    zero = 0 * theta
-    q, omega = (np.cos(theta / 2), zero, np.sin(theta / 2), zero), (zero, omega0, zero)
-    qs, omegas = [np.stack(q, -1)], [np.stack(omega, -1)]
-    for k in range(steps):
-        for _ in range(20):
-            out = fvin.fvin_step(q, omega, (u[:, k, 0],), terms, 0.0025, 4, NP)
-            q, omega = out.q, out.omega
-        qs.append(np.stack(q, -1))
-        omegas.append(np.stack(omega, -1))
-    return TrajectoryData(np.stack(qs, 1), np.stack(omegas, 1), u, {"control_period": 0.05, "scene": "synthetic"})
+    return synthetic_hinge_data(PENDULUM_DAMPED, trajectories, steps, seed)
 
 
 def test_training_with_dissipation_recovers_the_damping():
