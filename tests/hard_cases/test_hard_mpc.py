@@ -22,9 +22,8 @@ UPRIGHT = np.array([0.0, 0.0, 1.0, 0.0])
 HANGING = np.array([1.0, 0.0, 0.0, 0.0])
 LOW, HIGH = np.array([-2.0]), np.array([2.0])
 
-# IPOPT limited to one iteration on warm and (if the settings distinguish them) cold solves.
-ONE_ITERATION = MPCSettings(max_iter=1, **({"cold_max_iter": 1} if "cold_max_iter" in MPCSettings.__dataclass_fields__
-                                           else {}))
+# IPOPT limited to one iteration on warm and cold solves.
+ONE_ITERATION = MPCSettings(max_iter=1, cold_max_iter=1)
 angles = S.floats(-np.pi, np.pi)
 rates = S.floats(-8.0, 8.0)
 
