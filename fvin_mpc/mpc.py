@@ -333,8 +333,11 @@ class MPC:
 
     # ------------------------------------------------------------------ guesses
     def _first_guess(self, x0: np.ndarray) -> _Plan:
-        controls = np.tile(self.settings.initial_torque_fraction * self.torque_high, (self.horizon, 1))
-        controls = np.clip(controls, self.torque_low, self.torque_high)
+        return self._rollout_guess(x0, self.settings.initial_torque_fraction * self.torque_high)
+
+    def _rollout_guess(self, x0: np.ndarray, torque: np.ndarray) -> _Plan:
+        """The model rolled out under the constant ``torque`` (clipped to the bounds), ω clipped to its bound."""
+        controls = np.clip(np.tile(torque, (self.horizon, 1)), self.torque_low, self.torque_high)
         states = self.model.rollout(x0, controls)
         states[1:, 4:] = np.clip(states[1:, 4:], -self.omega_bound, self.omega_bound)
         return _Plan(states, controls, None, None)

@@ -71,11 +71,7 @@ class MultiStartMPC(MPC):
             states[0] = x0
             return _Plan(states, np.zeros((n, self.model.control_dim)), None, None)
         sign = 1.0 if self._guess == "rollout+" else -1.0
-        controls = np.tile(sign * abs(self.settings.initial_torque_fraction) * self.torque_high, (n, 1))
-        controls = np.clip(controls, self.torque_low, self.torque_high)
-        states = self.model.rollout(x0, controls)
-        states[1:, 4:] = np.clip(states[1:, 4:], -self.omega_bound, self.omega_bound)
-        return _Plan(states, controls, None, None)
+        return self._rollout_guess(x0, sign * abs(self.settings.initial_torque_fraction) * self.torque_high)
 
     def __call__(self, q: Any, omega: Any) -> tuple[np.ndarray, dict[str, Any]]:
         self._calls += 1
