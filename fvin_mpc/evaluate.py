@@ -66,7 +66,9 @@ class EvaluationConfig:
         horizon: MPC horizon (steps); ``None`` = the scene's default
             (:func:`fvin_mpc.swingup.scene_settings`).
         multistart: build the MPCs as :class:`~fvin_mpc.multistart.MultiStartMPC` (cold solves
-            from several first guesses, the lowest-cost one kept).
+            from several first guesses, the lowest-cost one kept; default) instead of
+            :class:`~fvin_mpc.mpc.MPC` (one first guess).
+        terminal_energy_weight: the MPC's ``W_E``; ``None`` = the scene's.
     """
 
     scene: str = "pendulum"
@@ -77,7 +79,8 @@ class EvaluationConfig:
     seed: int = 0
     max_omega: float = DEFAULT_MAX_OMEGA
     horizon: int | None = None
-    multistart: bool = False
+    multistart: bool = True
+    terminal_energy_weight: float | None = None
 
     def __post_init__(self) -> None:
         if self.episodes < 1:
@@ -91,6 +94,8 @@ class EvaluationConfig:
             raise ValueError(f"max_omega must be finite and >= 0, got {self.max_omega}")
         if self.horizon is not None and self.horizon < 1:
             raise ValueError(f"horizon must be >= 1, got {self.horizon}")
+        if self.terminal_energy_weight is not None and not self.terminal_energy_weight >= 0:
+            raise ValueError(f"terminal_energy_weight must be >= 0, got {self.terminal_energy_weight}")
 
     @property
     def checkpoint_name(self) -> str:
@@ -152,10 +157,10 @@ def build_controller(name: str, env: Any, config: EvaluationConfig) -> Any:
 
 
 def mpc_settings(config: EvaluationConfig) -> Any:
-    """The MPC settings of the scene (:func:`fvin_mpc.swingup.scene_settings`), ``horizon`` applied."""
+    """The MPC settings of the scene (:func:`fvin_mpc.swingup.scene_settings`), ``horizon`` and ``W_E`` applied."""
     from .swingup import scene_settings
 
-    return scene_settings(config.scene, horizon=config.horizon)
+    return scene_settings(config.scene, horizon=config.horizon, terminal_energy_weight=config.terminal_energy_weight)
 
 
 def _check_checkpoint(config: EvaluationConfig) -> None:
@@ -446,8 +451,9 @@ def plot_phase_portraits(result: EvaluationResult, path: Path) -> None:
 
 def _settings_text(config: EvaluationConfig) -> str:
     settings = mpc_settings(config)
-    text = f"horizon {settings.horizon}, Hessian {settings.hessian}, max_iter {settings.max_iter}"
-    return text + (", multi-start cold solves" if config.multistart else ", single first guess (default)")
+    text = (f"horizon {settings.horizon}, Hessian {settings.hessian}, max_iter {settings.max_iter}, "
+            f"terminal energy weight {settings.terminal_energy_weight:g}")
+    return text + (", multi-start cold solves (default)" if config.multistart else ", single first guess")
 
 
 def write_report(result: EvaluationResult, out_dir: Path, command: str) -> list[Path]:
@@ -503,8 +509,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--max-omega", type=float, default=DEFAULT_MAX_OMEGA,
                         help="largest |ω| of the random initial states, rad/s (default: %(default)s)")
     parser.add_argument("--horizon", type=int, default=None, help="MPC horizon in steps (default: MPCSettings')")
-    parser.add_argument("--multistart", action="store_true",
-                        help="MPC cold solves from several first guesses (fvin_mpc.multistart)")
+    parser.add_argument("--energy-weight", type=float, default=None,
+                        help="MPC terminal energy-deficit weight W_E (default: the scene's, swingup.SCENE_SETTINGS)")
+    parser.add_argument("--single-start", action="store_true",
+                        help="plain MPC with one first guess, instead of cold solves from several (fvin_mpc.multistart)")
     parser.add_argument("--workers", type=int, default=1, help="parallel processes (default: %(default)s)")
     parser.add_argument("--out-dir", type=Path, default=Path("docs/evaluation"),
                         help="where evaluation.{json,md} and the plots go (default: %(default)s)")
@@ -521,7 +529,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         config = EvaluationConfig(
             scene=args.scene, checkpoint=args.checkpoint, episodes=args.episodes, duration_s=args.duration,
             controllers=tuple(n.strip() for n in args.controllers.split(",") if n.strip()), seed=args.seed,
-            max_omega=args.max_omega, horizon=args.horizon, multistart=args.multistart)
+            max_omega=args.max_omega, horizon=args.horizon, multistart=not args.single_start,
+            terminal_energy_weight=args.energy_weight)
         if args.workers < 1:
             raise ValueError(f"--workers must be >= 1, got {args.workers}")
         make_env(config).close()  # fails early on an unknown scene

@@ -66,6 +66,13 @@ def step_function(terms: Any, step_size: float, newton_iters: int, name: str = "
     return ca.Function(name, [x, u], [x_next, result.residual], ["x", "u"], ["x_next", "residual"])
 
 
+def energy_function(terms: Any, name: str = "fvin_energy") -> ca.Function:
+    """``E(x[7]) -> ½ωᵀJ(q)ω + U(q)`` as an SX function, from the same terms as the step."""
+    x = ca.SX.sym("x", STATE_DIM)
+    energy = fvin.total_energy(tuple(x[i] for i in range(4)), tuple(x[4 + i] for i in range(3)), terms)
+    return ca.Function(name, [x], [energy], ["x"], ["energy"])
+
+
 @dataclass(frozen=True)
 class ExportedModel:
     """A discrete-time model ``x_{k+1} = F(x_k, u_k)`` ready for a controller.
@@ -77,6 +84,8 @@ class ExportedModel:
         control_dim: ``m``.
         numpy_terms: the same ``J``, ``U``, ``g`` evaluated with NumPy (energies, LQR).
         name: a short label (checkpoint stem or ``"true:<body>"``).
+        energy_function: ``E(x[7]) -> energy`` symbolic (see :func:`energy_function`), for
+            costs on the model's energy (the MPC's ``terminal_energy_weight``).
     """
 
     step: ca.Function
@@ -85,6 +94,7 @@ class ExportedModel:
     control_dim: int
     numpy_terms: Any
     name: str
+    energy_function: ca.Function
 
     def __call__(self, x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, float]:
         """One numeric step: ``(x_next (7,), residual)``."""
@@ -115,14 +125,16 @@ def from_checkpoint(checkpoint: Checkpoint | str | Path, newton_iters: int | Non
     return ExportedModel(
         step=step_function(terms, config.step_size, k), step_size=config.step_size, newton_iters=k,
         control_dim=config.control_dim, numpy_terms=LearnedTerms(checkpoint.weights, config, NP), name=label,
+        energy_function=energy_function(terms),
     )
 
 
 def from_rigid_body(body: Any, step_size: float, newton_iters: int = 2, name: str = "true") -> ExportedModel:
     """Export a closed-form :class:`~fvin_mpc.rigid_body.PivotedRigidBody` through the same step."""
+    terms = body.terms(CA)
     return ExportedModel(
-        step=step_function(body.terms(CA), step_size, newton_iters), step_size=step_size, newton_iters=newton_iters,
-        control_dim=body.control_dim, numpy_terms=body.terms(NP), name=name,
+        step=step_function(terms, step_size, newton_iters), step_size=step_size, newton_iters=newton_iters,
+        control_dim=body.control_dim, numpy_terms=body.terms(NP), name=name, energy_function=energy_function(terms),
     )
 
 

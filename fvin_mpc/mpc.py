@@ -8,10 +8,16 @@ The problem (multiple shooting, ``N = settings.horizon`` steps of the model's ``
 * **decision variables** — states ``x_0 … x_N`` (7 each: ``q``, ``ω``) and controls
   ``u_0 … u_{N−1}``; ``x_0`` is fixed to the measured state through its bounds.
 * **objective** — ``Σ_k w_q c(q_k) + w_ω|ω_k|² + w_u|u_k|²`` plus a terminal
-  ``W_q c(q_N) + W_ω|ω_N|²``, with the sign-invariant orientation cost
+  ``W_q c(q_N) + W_ω|ω_N|² + W_E e(x_N)²``, with the sign-invariant orientation cost
   ``c(q) = |q|² − ⟨q, q_goal⟩²``. The dynamics preserve ``|q| = 1``, where ``c`` equals
   ``1 − ⟨q, q_goal⟩² = sin²(angle/2)``; written this way it is a *convex quadratic*, so
   the cost Hessian is constant and ``q_goal`` and ``−q_goal`` give the same problem.
+  ``e(x) = (E(x) − E(q_goal, 0)) / |E(q_goal, 0) − E(q_rest, 0)|`` is the model's own
+  energy deficit (``E = ½ωᵀJω + U``, so the learned scale λ cancels): a horizon shorter
+  than a swing-up cannot see the goal from near hanging, and without ``W_E`` the plan
+  that defers pumping is as cheap as the one that pumps; the energy term makes pumping
+  pay inside the horizon. Off by default (``W_E = 0``); the scenes that need it set it
+  (:data:`fvin_mpc.swingup.SCENE_SETTINGS`).
 * **dynamics** — ``x_{k+1} = F(x_k, u_k)``, ``F`` mapped over the horizon (one copy of
   the step's code however long the horizon).
 * **bounds** — ``u`` within the actuators' range; every ``ω`` component of ``x_1 … x_N``
@@ -19,7 +25,8 @@ The problem (multiple shooting, ``N = settings.horizon`` steps of the model's ``
   (``DESIGN.md``).
 
 Speed comes from three choices, measured in ``docs/bench/solver.md``: the Gauss–Newton
-Lagrangian Hessian (the constant cost Hessian; no second derivatives of the networks),
+Lagrangian Hessian (the constant quadratic cost Hessian plus ``2W_E ∇e∇eᵀ``; no second
+derivatives of the networks),
 the NLP's functions compiled to C once and cached on disk
 (:func:`fvin_mpc.export.compile_functions`), and a primal–dual warm start from the
 previous plan shifted by one step.
@@ -67,6 +74,8 @@ class MPCSettings:
         control_weight: ``w_u`` on ``|u|²``.
         terminal_orientation_weight: ``W_q`` on ``c(q_N)``.
         terminal_omega_weight: ``W_ω`` on ``|ω_N|²``.
+        terminal_energy_weight: ``W_E`` on the squared normalized energy deficit ``e(x_N)²``
+            (module docstring); ``0`` leaves it out of the problem.
         omega_bound_fraction: bound ``|ω_i| ≤ fraction / h`` on predicted states; the step has
             no solution past ``h|ω| ≈ 1``.
         hessian: ``"gauss-newton"`` (constant cost Hessian, default), ``"exact"`` (with the
@@ -97,6 +106,7 @@ class MPCSettings:
     control_weight: float = 0.01
     terminal_orientation_weight: float = 40.0
     terminal_omega_weight: float = 1.0
+    terminal_energy_weight: float = 0.0
     omega_bound_fraction: float = 0.6
     hessian: Literal["gauss-newton", "exact", "limited-memory"] = "gauss-newton"
     compile: Literal["cached", "none"] = "cached"
@@ -115,7 +125,7 @@ class MPCSettings:
         if not 0.0 < self.omega_bound_fraction <= 1.0:
             raise ValueError(f"omega_bound_fraction must be in (0, 1], got {self.omega_bound_fraction}")
         for name in ("orientation_weight", "omega_weight", "control_weight", "terminal_orientation_weight",
-                     "terminal_omega_weight"):
+                     "terminal_omega_weight", "terminal_energy_weight"):
             if not getattr(self, name) >= 0.0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
         if self.hessian not in ("gauss-newton", "exact", "limited-memory"):
@@ -172,6 +182,8 @@ class MPC:
         settings: see :class:`MPCSettings`.
         goal: goal orientation ``(4,)`` (either sign).
         torque_low, torque_high: control bounds ``(m,)``, e.g. the scene's ``ctrlrange``.
+        rest: the orientation of the potential's minimum (hanging), which sets the energy
+            scale of the terminal energy cost; the built-in scenes hang at the identity.
 
     Attributes:
         compile_report: how the compiled functions were obtained (``None`` if not compiled).
@@ -179,7 +191,7 @@ class MPC:
     """
 
     def __init__(self, model: ExportedModel, settings: MPCSettings = MPCSettings(), goal: Any = (0.0, 0.0, 1.0, 0.0),
-                 torque_low: Any = (-2.0,), torque_high: Any = (2.0,)) -> None:
+                 torque_low: Any = (-2.0,), torque_high: Any = (2.0,), rest: Any = (1.0, 0.0, 0.0, 0.0)) -> None:
         self.model = model
         self.settings = settings
         self.goal = np.asarray(goal, dtype=float)
@@ -192,6 +204,15 @@ class MPC:
         if not np.all(self.torque_low < self.torque_high):
             raise ValueError(f"need torque_low < torque_high, got {self.torque_low} and {self.torque_high}")
         self.omega_bound = settings.omega_bound_fraction / model.step_size
+        self.rest = np.asarray(rest, dtype=float)
+        if self.rest.shape != (4,) or not np.all(np.isfinite(self.rest)) or np.linalg.norm(self.rest) == 0:
+            raise ValueError(f"rest must be a finite non-zero quaternion of shape (4,), got {rest!r}")
+        self.rest = self.rest / np.linalg.norm(self.rest)
+        if settings.terminal_energy_weight > 0:
+            span = abs(model.energy(self.goal, np.zeros(3)) - model.energy(self.rest, np.zeros(3)))
+            if not span > 1e-9 * (1.0 + abs(model.energy(self.rest, np.zeros(3)))):
+                raise ValueError("terminal_energy_weight > 0 needs different goal and rest energies; "
+                                 f"the model gives {span:.3g} between {self.goal} and {self.rest}")
         start = time.perf_counter()
         self._build()
         self.build_s = time.perf_counter() - start
@@ -226,13 +247,21 @@ class MPC:
             return ca.sum1(q * q) - ca.mtimes(goal.T, q) ** 2
 
         stage_q, terminal_q = states[:4, :n], states[:4, n]
-        objective = (
+        quadratic = (
             s.orientation_weight * ca.sum2(orientation_cost(stage_q))
             + s.omega_weight * ca.sumsqr(states[4:, :n])
             + s.control_weight * ca.sumsqr(controls)
             + s.terminal_orientation_weight * orientation_cost(terminal_q)
             + s.terminal_omega_weight * ca.sumsqr(states[4:, n])
         )
+        # Least-squares terms: their Gauss–Newton Hessian is 2·JᵀJ (first derivatives only).
+        residuals = ca.MX(0, 1)
+        if s.terminal_energy_weight > 0:
+            energy = self.model.energy_function
+            goal_energy = energy(ca.vertcat(goal, ca.DM.zeros(3)))
+            energy_span = ca.fabs(goal_energy - float(energy(np.concatenate([self.rest, np.zeros(3)]))))
+            residuals = np.sqrt(s.terminal_energy_weight) * (energy(states[:, n]) - goal_energy) / energy_span
+        objective = quadratic + ca.sumsqr(residuals)
         # --- dynamics
         defects = next_state.map(n)(states[:, :n], controls) - states[:, 1:]
         decision = ca.vertcat(ca.vec(states), ca.vec(controls))
@@ -256,7 +285,10 @@ class MPC:
         options: dict[str, Any] = {}
         if s.hessian == "gauss-newton":
             lam_f, lam_g = ca.MX.sym("lam_f"), ca.MX.sym("lam_g", self._num_constraints)
-            cost_hessian = ca.hessian(objective, decision)[0]
+            cost_hessian = ca.hessian(quadratic, decision)[0]
+            if residuals.numel() > 0:
+                residual_jacobian = ca.jacobian(residuals, decision)
+                cost_hessian = cost_hessian + 2.0 * ca.mtimes(residual_jacobian.T, residual_jacobian)
             # IPOPT reads the upper triangle, sqpmethod the whole symmetric matrix.
             hessian, label = (ca.triu(lam_f * cost_hessian), "triu_hess_gamma_x_x") if s.solver == "ipopt" \
                 else (lam_f * cost_hessian, "hess_gamma_x_x")

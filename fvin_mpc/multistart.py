@@ -40,7 +40,7 @@ class MultiStartMPC(MPC):
 
     def __init__(self, model: Any, settings: MPCSettings = MPCSettings(), goal: Any = (0.0, 0.0, 1.0, 0.0),
                  torque_low: Any = (-2.0,), torque_high: Any = (2.0,), guesses: tuple[str, ...] = GUESSES,
-                 restart_every: int | None = None) -> None:
+                 restart_every: int | None = None, rest: Any = (1.0, 0.0, 0.0, 0.0)) -> None:
         unknown = [g for g in guesses if g not in GUESSES]
         if unknown or not guesses:
             raise ValueError(f"unknown guesses {unknown}; choose from {GUESSES}")
@@ -50,7 +50,7 @@ class MultiStartMPC(MPC):
         self.restart_every = restart_every
         self._guess = self.guesses[0]
         self._calls = 0
-        super().__init__(model, settings, goal, torque_low, torque_high)
+        super().__init__(model, settings, goal, torque_low, torque_high, rest)
 
     def reset(self) -> None:
         super().reset()

@@ -47,13 +47,19 @@ EPISODE_STEPS = 200
 ZOO_BEST = {"algorithm": "TQC", "mean": -151.3, "std": 87.9, "episodes": 750}
 
 
-def benchmark_settings(horizon: int = 30) -> MPCSettings:
+def benchmark_settings(horizon: int = 30, terminal_energy_weight: float | None = None) -> MPCSettings:
     """MPC settings whose stage cost is Pendulum-v1's: ``4 sin²(a/2) ≈ a²``, ``0.1ω²``, ``0.001u²``.
 
-    The predicted ``|ω|`` is bounded by Pendulum-v1's speed clip (8 rad/s = 0.4/h).
+    The predicted ``|ω|`` is bounded by Pendulum-v1's speed clip (8 rad/s = 0.4/h). The terminal
+    energy-deficit weight is the ``pendulum`` scene's (:data:`fvin_mpc.swingup.SCENE_SETTINGS`)
+    unless given.
     """
+    from .swingup import scene_settings
+
+    energy_weight = scene_settings("pendulum").terminal_energy_weight if terminal_energy_weight is None \
+        else terminal_energy_weight
     return replace(MPCSettings(), horizon=horizon, orientation_weight=4.0, omega_weight=0.1, control_weight=0.001,
-                   omega_bound_fraction=MAX_SPEED * DT)
+                   omega_bound_fraction=MAX_SPEED * DT, terminal_energy_weight=energy_weight)
 
 
 # ---------------------------------------------------------------------- exact dynamics
@@ -176,6 +182,7 @@ class BenchmarkConfig:
     reference: bool = True
     newton_iters: int | None = None
     multistart: bool = True
+    terminal_energy_weight: float | None = None
 
     def __post_init__(self) -> None:
         if self.episodes < 1:
@@ -204,7 +211,8 @@ def build_mpc(config: BenchmarkConfig) -> Any:
             raise ValueError(f"{config.checkpoint}: needs h = {DT} s and one control, got h = {model.step_size}, "
                              f"m = {model.control_dim}")
     cls = MultiStartMPC if config.multistart else MPC
-    return cls(model, benchmark_settings(config.horizon), (0.0, 0.0, 1.0, 0.0), [-MAX_TORQUE], [MAX_TORQUE])
+    return cls(model, benchmark_settings(config.horizon, config.terminal_energy_weight), (0.0, 0.0, 1.0, 0.0),
+               [-MAX_TORQUE], [MAX_TORQUE])
 
 
 def run_v1_episode(env: Any, controller: Any, seed: int) -> dict[str, Any]:
@@ -353,7 +361,9 @@ def write_markdown(summary: dict[str, Any], records: list[dict[str, Any]], confi
               "clipped to ±8 rad/s after every step — while the model predicts the continuous motion. The MPC "
               "bounds its predicted |ω| by 8 rad/s.",
               "* MPC cost = the benchmark's reward: 4 sin²(angle/2) (≈ angle²) + 0.1 ω² + 0.001 u² per stage "
-              f"(`benchmark_settings`), terminal weights 40 and 1, horizon {config.horizon} "
+              f"(`benchmark_settings`), terminal weights 40 and 1, terminal energy-deficit weight "
+              f"{benchmark_settings(config.horizon, config.terminal_energy_weight).terminal_energy_weight:g}, "
+              f"horizon {config.horizon} "
               f"({config.horizon * DT:.2f} s)" + (", cold solves from several first guesses "
                                                     "(`fvin_mpc.multistart`)." if config.multistart else "."),
               "* Reference: the whole episode optimized open loop on the exact discrete dynamics (direct multiple "
@@ -381,6 +391,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--horizon", type=int, default=30, help="MPC steps (default: %(default)s)")
     parser.add_argument("--episodes", type=int, default=100, help="episodes, seeds seed … seed+episodes−1 (default: %(default)s)")
     parser.add_argument("--seed", type=int, default=0, help="first env.reset seed (default: %(default)s)")
+    parser.add_argument("--energy-weight", type=float, default=None,
+                        help="terminal energy-deficit weight W_E (default: the pendulum scene's, SCENE_SETTINGS)")
     parser.add_argument("--single-start", action="store_true",
                         help="plain MPC: one first guess per episode instead of the multi-start")
     parser.add_argument("--no-reference", action="store_true", help="skip the per-seed episode optimization")
@@ -399,7 +411,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise ValueError(f"--workers must be >= 1, got {args.workers}")
         config = BenchmarkConfig(checkpoint=args.checkpoint, true_model=args.true_model, horizon=args.horizon,
                                  episodes=args.episodes, seed=args.seed, reference=not args.no_reference,
-                                 multistart=not args.single_start)
+                                 multistart=not args.single_start, terminal_energy_weight=args.energy_weight)
         if not config.true_model:
             from .checkpoint import load_checkpoint
 

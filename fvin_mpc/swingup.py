@@ -29,7 +29,12 @@ from .mpc import MPC, MPCSettings
 #: so the default limit of 100 would leave the body hanging (the zero fallback at rest).
 #: ``pendulum_damped``: at horizons 30 and 40 the plan settles on a local optimum that never
 #: swings up, with the learned and the closed-form model alike; 2.5 s escapes it (docs/scenes.md).
+#: ``pendulum``: the 1.5 s horizon is shorter than a swing-up from near hanging; without the
+#: terminal energy cost 1 of 50 evaluation episodes (learned and closed-form alike) never pumps
+#: (docs/evaluation.md). The weight makes a full energy deficit cost 1000, against ≤ 40 for the
+#: terminal orientation: near upright its gradient vanishes (the deficit is quadratic there).
 SCENE_SETTINGS: dict[str, dict[str, Any]] = {
+    "pendulum": {"terminal_energy_weight": 1000.0},
     "pendulum_damped": {"horizon": 50},
     "spherical_pendulum": {"horizon": 50, "max_iter": 300},
 }
@@ -98,6 +103,8 @@ def build_parser() -> argparse.ArgumentParser:
                         help="initial state: rest | random | comma-separated qpos,qvel (hinge: θ,θ̇)")
     parser.add_argument("--horizon", type=int, default=None,
                         help=f"MPC steps (default: {MPCSettings.horizon}, or the scene's in SCENE_SETTINGS)")
+    parser.add_argument("--energy-weight", type=float, default=None,
+                        help="terminal energy-deficit weight W_E (default: the scene's in SCENE_SETTINGS, else 0)")
     parser.add_argument("--newton-iters", type=int, default=None, help="K (default: the model's)")
     parser.add_argument("--hessian", choices=["gauss-newton", "exact", "limited-memory"], default=None,
                         help=f"Lagrangian Hessian (default: {MPCSettings.hessian})")
@@ -119,7 +126,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                        render_mode="rgb_array" if args.video else None)
     checkpoint = args.checkpoint or default_checkpoint(args.scene)
     model = scene_model(env, checkpoint, args.true_model, args.newton_iters)
-    settings = scene_settings(args.scene, horizon=args.horizon, hessian=args.hessian)
+    settings = scene_settings(args.scene, horizon=args.horizon, hessian=args.hessian,
+                              terminal_energy_weight=args.energy_weight)
     controller = scene_mpc(env, model, settings)
     report = controller.compile_report
     print(f"model {model.name} (K = {model.newton_iters}, h = {model.step_size} s), horizon {settings.horizon} "
@@ -135,7 +143,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         "hold_error_rad": metrics["hold_error_rad"], "solve_time_ms": metrics["solve_time_ms"],
         "control_period_s": metrics["control_period_s"], "ipopt_failures": metrics["controller_failures"],
         "newton_iters": model.newton_iters, "horizon": settings.horizon, "horizon_s": settings.horizon * model.step_size,
-        "hessian": settings.hessian, "max_abs_torque": metrics["max_abs_torque"],
+        "hessian": settings.hessian, "terminal_energy_weight": settings.terminal_energy_weight,
+        "max_abs_torque": metrics["max_abs_torque"],
         "accumulated_cost": metrics["accumulated_cost"], "model": model.name, "true_model": args.true_model,
         "scene": str(args.scene), "init": args.init, "seed": args.seed, "duration_s": metrics["duration_s"],
         "build_s": controller.build_s, "compiled_from_cache": report.cached if report else None,

@@ -198,3 +198,30 @@ def test_compiled_mpc_accepts_a_model_name_with_dots():
     assert controller.compile_report is not None
     u, info = controller(np.array([1.0, 0.0, 0.0, 0.0]), np.zeros(3))
     assert np.all(np.isfinite(u)) and -2.0 <= u[0] <= 2.0
+
+
+# ---------------------------------------------------------------------- held-out data
+def test_heldout_data_never_overwrites_a_different_set(tmp_path):
+    """A file at the held-out path that holds other data is refused, not silently replaced
+    (the spherical set, speed-bounded, was once overwritten by an unbounded collection)."""
+    from fvin_mpc.bench.common import heldout_data
+    from fvin_mpc.collect import collect
+    from fvin_mpc.data import save_data
+
+    path = tmp_path / "data" / "pendulum_heldout.npz"
+    save_data(path, collect("pendulum", 2, 3, 7, progress=False))  # seed 7, not the held-out seed 1
+    before = path.read_bytes()
+    with pytest.raises(ValueError, match="delete it"):
+        heldout_data("pendulum", seed=1, trajectories=2, steps=3, path=path)
+    assert path.read_bytes() == before
+
+
+def test_spherical_heldout_data_is_speed_bounded(tmp_path):
+    from fvin_mpc.bench.common import BOUNDED_HELDOUT, heldout_data
+
+    path = tmp_path / "spherical.npz"
+    data = heldout_data("spherical_pendulum", seed=1, trajectories=3, steps=5, path=path)
+    assert data.metadata["collector"] == "fvin_mpc.spherical_report.collect_bounded"
+    assert np.abs(data.omega).max() <= BOUNDED_HELDOUT["spherical_pendulum"]["max_speed"]
+    again = heldout_data("spherical_pendulum", seed=1, trajectories=3, steps=5, path=path)  # loaded, not redrawn
+    np.testing.assert_array_equal(again.q, data.q)

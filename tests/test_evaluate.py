@@ -32,7 +32,8 @@ def test_signed_angle_from_goal_on_the_hinge():
 
 
 @pytest.mark.parametrize("kwargs", [{"episodes": 0}, {"duration_s": 0.0}, {"controllers": ("mpc-magic",)},
-                                    {"controllers": ()}, {"max_omega": -1.0}, {"horizon": 0}])
+                                    {"controllers": ()}, {"max_omega": -1.0}, {"horizon": 0},
+                                    {"terminal_energy_weight": -1.0}])
 def test_config_is_validated(kwargs):
     with pytest.raises(ValueError):
         ev.EvaluationConfig(**kwargs)
@@ -163,6 +164,21 @@ def test_benchmark_settings_cost_matches_the_reward_near_upright():
         assert settings.orientation_weight * np.sin(angle / 2) ** 2 == pytest.approx(angle**2, rel=0.01)
     assert (settings.omega_weight, settings.control_weight) == (0.1, 0.001)
     assert settings.omega_bound_fraction / v1.DT == pytest.approx(v1.MAX_SPEED)
+    # The terminal energy weight is the pendulum scene's unless given: one place to tune it.
+    from fvin_mpc.swingup import scene_settings
+
+    assert settings.terminal_energy_weight == scene_settings("pendulum").terminal_energy_weight > 0
+    assert v1.benchmark_settings(terminal_energy_weight=0.0).terminal_energy_weight == 0.0
+
+
+def test_evaluation_mpc_settings_follow_the_scene_and_the_overrides():
+    from fvin_mpc.swingup import scene_settings
+
+    default = ev.mpc_settings(ev.EvaluationConfig())
+    assert default == scene_settings("pendulum")
+    assert ev.EvaluationConfig().multistart  # multi-start is the evaluated MPC unless --single-start
+    override = ev.mpc_settings(ev.EvaluationConfig(horizon=40, terminal_energy_weight=0.0))
+    assert (override.horizon, override.terminal_energy_weight) == (40, 0.0)
 
 
 def test_episode_optimizer_beats_its_guess_and_its_return_is_replayable():

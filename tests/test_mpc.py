@@ -160,3 +160,85 @@ def test_settings_are_validated():
         MPCSettings(initial_torque_fraction=0.0)
     with pytest.raises(ValueError, match="omega_bound_fraction"):
         MPCSettings(omega_bound_fraction=1.5)
+
+
+# ---------------------------------------------------------------------- terminal energy cost
+def _stage_cost(settings, states, controls, goal):
+    """The quadratic part of the objective, recomputed from the plan with NumPy."""
+    def orientation(q):
+        return float(q @ q - (goal @ q) ** 2)
+
+    n = len(controls)
+    cost = sum(settings.orientation_weight * orientation(states[k, :4]) + settings.omega_weight * states[k, 4:] @ states[k, 4:]
+               for k in range(n))
+    cost += settings.control_weight * float(np.sum(controls ** 2))
+    return cost + settings.terminal_orientation_weight * orientation(states[n, :4]) \
+        + settings.terminal_omega_weight * states[n, 4:] @ states[n, 4:]
+
+
+def test_energy_cost_is_the_weighted_squared_normalized_deficit(true_model):
+    """IPOPT's reported cost = the quadratic terms + W_E·((E(x_N) − E_goal)/|E_goal − E_rest|)², recomputed."""
+    settings = replace(MPCSettings(), terminal_energy_weight=50.0, compile="none")
+    controller = MPC(true_model, settings, UPRIGHT, [-2.0], [2.0])
+    _, info = controller(*hinge(0.4, 0.0))
+    assert info["success"]
+    states, controls = info["states"], info["controls"]
+    zero = np.zeros(3)
+    goal_energy, rest_energy = true_model.energy(UPRIGHT, zero), true_model.energy(HANGING, zero)
+    deficit = (true_model.energy(states[-1, :4], states[-1, 4:]) - goal_energy) / abs(goal_energy - rest_energy)
+    assert abs(deficit) > 1e-3  # the term is active in this plan
+    expected = _stage_cost(settings, states, controls, UPRIGHT) + 50.0 * deficit ** 2
+    assert info["cost"] == pytest.approx(expected, rel=1e-9)
+
+
+def test_energy_cost_gauss_newton_and_exact_hessian_reach_the_same_plan(true_model):
+    """The Gauss–Newton Hessian adds 2·W_E∇e∇eᵀ; a wrong one would stall IPOPT or change the optimum."""
+    plans = {}
+    for hessian in ("gauss-newton", "exact"):
+        settings = replace(MPCSettings(), terminal_energy_weight=100.0, hessian=hessian, tol=1e-10, compile="none")
+        _, plans[hessian] = MPC(true_model, settings, UPRIGHT, [-2.0], [2.0])(*hinge(np.pi - 0.6, 1.0))
+    assert plans["gauss-newton"]["success"] and plans["exact"]["success"]
+    np.testing.assert_allclose(plans["gauss-newton"]["controls"], plans["exact"]["controls"], atol=1e-5)
+
+
+def test_energy_cost_pumps_where_the_short_horizon_stalls(true_model):
+    """0.35 rad from hanging, 0.27 rad/s (evaluation episode 33): the 1.5 s plan without the
+    energy term keeps deferring the swing-up; with it the controller pumps and ends upright."""
+    from envs import RigidBodyEnv
+    from fvin_mpc.closed_loop import episode_metrics, run_episode
+
+    env = RigidBodyEnv(scene="pendulum")
+    start = {"random": True, "max_omega": 2.0}  # with seed 33: the evaluation's episode 33
+    outcome = {}
+    for weight in (0.0, 1000.0):
+        controller = MPC(true_model, replace(MPCSettings(), terminal_energy_weight=weight), UPRIGHT, [-2.0], [2.0])
+        episode, _ = run_episode(env, controller, 8.0, start, seed=33)
+        outcome[weight] = episode_metrics(episode)
+    assert not outcome[0.0]["success"]
+    assert outcome[1000.0]["success"] and outcome[1000.0]["time_to_upright_s"] < 4.0
+
+
+def test_energy_cost_needs_distinct_goal_and_rest_energies(true_model):
+    with pytest.raises(ValueError, match="different goal and rest energies"):
+        MPC(true_model, replace(MPCSettings(), terminal_energy_weight=1.0, compile="none"), HANGING, [-2.0], [2.0])
+    with pytest.raises(ValueError, match="terminal_energy_weight"):
+        MPCSettings(terminal_energy_weight=-1.0)
+
+
+def test_swingup_cli_runs_with_the_scene_settings_and_overrides(tmp_path, capsys):
+    import json
+
+    from fvin_mpc import swingup
+
+    with pytest.raises(SystemExit) as exit_info:
+        swingup.main(["--help"])
+    assert exit_info.value.code == 0 and "--energy-weight" in capsys.readouterr().out
+    out = tmp_path / "run.json"
+    assert swingup.main(["--true-model", "--duration", "0.5", "--plot", "", "--quiet", "--json", str(out)]) == 0
+    summary = json.loads(out.read_text())
+    assert summary["terminal_energy_weight"] == swingup.scene_settings("pendulum").terminal_energy_weight > 0
+    assert summary["horizon"] == 30 and summary["ipopt_failures"] == 0
+    assert swingup.main(["--true-model", "--duration", "0.5", "--plot", "", "--quiet", "--json", str(out),
+                         "--energy-weight", "0", "--horizon", "20"]) == 0
+    summary = json.loads(out.read_text())
+    assert (summary["terminal_energy_weight"], summary["horizon"]) == (0.0, 20)

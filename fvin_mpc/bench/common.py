@@ -16,30 +16,62 @@ NOISE_NOTE = ("Timings were taken on a 2-core machine shared with other jobs (tr
               "times are noisy; compare configurations by the ratios within this one run.")
 
 
+#: Scenes whose held-out data must stay inside the speeds the model can represent: collected
+#: with :func:`fvin_mpc.spherical_report.collect_bounded` (``|ω_i| ≤ 15`` rad/s throughout; the
+#: unfiltered collector spins the light z axis past the step's solvability limit) and with the
+#: size of ``docs/spherical.md``'s held-out set.
+BOUNDED_HELDOUT: dict[str, dict[str, Any]] = {"spherical_pendulum": {"trajectories": 100, "max_speed": 15.0}}
+_BOUNDED_COLLECTOR = "fvin_mpc.spherical_report.collect_bounded"
+
+
 def heldout_data(scene: str = "pendulum", control_period: float | None = None, seed: int = 1,
-                 trajectories: int = 64, steps: int = 40, path: Path | None = None, progress: bool = False) -> Any:
+                 trajectories: int | None = None, steps: int = 40, path: Path | None = None,
+                 progress: bool = False) -> Any:
     """Held-out MuJoCo trajectories, collected (seeded) and saved under ``data/`` if missing.
 
     The default is the data of ``python -m fvin_mpc.collect --seed 1 --trajectories 64 --steps 40
-    --out data/<scene>_heldout.npz``; ``control_period`` other than the scene's adds ``-h<period>``
+    --out data/<scene>_heldout.npz``, for the scenes in :data:`BOUNDED_HELDOUT` that of
+    ``python -m fvin_mpc.spherical_report collect --trajectories 100 --steps 40 --seed 1 --out
+    data/<scene>_heldout.npz``. ``control_period`` other than the scene's adds ``-h<period>``
     to the file name.
+
+    Raises:
+        ValueError: the file exists but holds other data (different size, seed, period or
+            collector): it is never overwritten; delete it or pass another ``path``.
     """
     from ..collect import collect
     from ..data import load_data, save_data
 
     stem = Path(scene).stem + (f"-h{control_period:g}" if control_period is not None else "")
+    bounded = BOUNDED_HELDOUT.get(Path(scene).stem)
+    default_trajectories = bounded["trajectories"] if bounded else 64
+    trajectories = default_trajectories if trajectories is None else trajectories
     if path is None:
         path = Path("data") / f"{stem}_heldout.npz"
-        if (trajectories, steps, seed) != (64, 40, 1):
+        if (trajectories, steps, seed) != (default_trajectories, 40, 1):
             path = Path("data") / f"{stem}_heldout_{trajectories}x{steps}_s{seed}.npz"
+    expected_collector = _BOUNDED_COLLECTOR if bounded else None
     if path.is_file():
         data = load_data(path)
         meta = data.metadata
-        if (meta.get("trajectories"), meta.get("steps"), meta.get("seed")) == (trajectories, steps, seed) and (
+        found = (meta.get("trajectories"), meta.get("steps"), meta.get("seed"), meta.get("collector"))
+        if found == (trajectories, steps, seed, expected_collector) and (
                 control_period is None or abs(data.control_period - control_period) < 1e-12):
             return data
+        raise ValueError(f"{path} holds other data than the held-out set asked for (trajectories, steps, seed, "
+                         f"collector = {found}, wanted {(trajectories, steps, seed, expected_collector)}); "
+                         "delete it to have it collected again")
     print(f"collecting held-out data {path} (seed {seed}, {trajectories}×{steps})", file=sys.stderr)
-    data = collect(scene, trajectories, steps, seed, progress=progress, control_period=control_period)
+    if bounded:
+        from ..spherical_report import collect_bounded
+
+        if control_period is not None:
+            raise ValueError(f"{scene}: the speed-bounded held-out data are collected at the scene's own period only")
+        data = collect_bounded(trajectories, steps, seed, max_speed=bounded["max_speed"], scene=scene,
+                               progress=progress)
+    else:
+        data = collect(scene, trajectories, steps, seed, progress=progress, control_period=control_period)
+    path.parent.mkdir(parents=True, exist_ok=True)
     save_data(path, data)
     return data
 
@@ -181,5 +213,5 @@ def timed(function: Any) -> tuple[Any, float]:
     return value, time.perf_counter() - start
 
 
-__all__ = ["NOISE_NOTE", "heldout_data", "checkpoint_or_none", "make_env", "swingup", "solve_stats", "pareto_mask",
+__all__ = ["NOISE_NOTE", "BOUNDED_HELDOUT", "heldout_data", "checkpoint_or_none", "make_env", "swingup", "solve_stats", "pareto_mask",
            "plot_pareto", "timed", "replace"]

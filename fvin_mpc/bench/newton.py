@@ -3,10 +3,13 @@
 For ``K = 1 … 6`` and CasADi's ``rootfinder`` (converged reference, ``--rootfinder newton``
 or ``kinsol``): the Newton residual and the one-step and 40-step (2 s at h = 0.05) rollout
 errors against held-out MuJoCo trajectories (``data/<scene>_heldout.npz``, collected with
-``python -m fvin_mpc.collect --seed 1 --trajectories 64 --steps 40`` if missing), the
+``python -m fvin_mpc.collect --seed 1 --trajectories 64 --steps 40`` if missing; for
+``spherical_pendulum`` the speed-bounded set of ``docs/spherical.md``, see
+:func:`~fvin_mpc.bench.common.heldout_data`), the
 difference from the converged step, the time of one step (torch batched, CasADi single
 call, CasADi ``map`` over the batch), and MPC solve time and closed-loop swing-up from rest
-on MuJoCo (:func:`fvin_mpc.closed_loop.run_episode`).
+on MuJoCo (:func:`fvin_mpc.closed_loop.run_episode`) with the scene's MPC settings
+(:func:`fvin_mpc.swingup.scene_settings`; ``--horizon`` overrides the horizon).
 
 ``--model learned`` (default) uses the shipped ``<scene>_sign-invariant`` checkpoint (or
 ``--checkpoint``), ``--model true`` the closed-form body read off the scene's MJCF.
@@ -165,9 +168,9 @@ def _casadi_terms(source: dict[str, Any]) -> Any:
 
 
 def run(quick: bool = False, seed: int = 0, repeats: int = 5, scene: str = "pendulum", model: str = "learned",
-        checkpoint: str | None = None, rootfinder: str = "newton", horizon: int = 30, duration: float = 8.0,
+        checkpoint: str | None = None, rootfinder: str = "newton", horizon: int | None = None, duration: float = 8.0,
         iters: str = "1,2,3,4,5,6", **_: Any) -> StudyResult:
-    from ..mpc import MPCSettings
+    from ..swingup import scene_settings
 
     source = _source(scene, "true" if quick else model, checkpoint, None)
     h = source["step_size"]
@@ -189,13 +192,17 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 5, scene: str = "pend
     xb = np.tile(np.concatenate([q_in, w_in], 1), (reps, 1))[:BATCH]
     ub = np.tile(u_in[:, 0], (reps, 1))[:BATCH]
 
+    mpc_settings = scene_settings(scene, horizon=horizon)
     reference = rootfinder_step(_casadi_terms(source), h, rootfinder)
     ref_one, ref_residual = _casadi_rollout(reference, q_in, w_in, u_in)
     converged = ref_residual[:, 0] < 1e-8
     configs: list[tuple[str, Any, int | None]] = [(f"K={k}", None, k) for k in ks] + [(f"rootfinder ({rootfinder})", reference, None)]
     rows: list[dict[str, Any]] = []
     env = source["env"]
-    for label, function, k in configs:
+    from tqdm.auto import tqdm
+
+    # Each K costs a closed-loop swing-up (minutes on the 3-D scene): show where the study is.
+    for label, function, k in tqdm(configs, desc=f"newton study ({scene})", disable=quick):
         exported = _exported(source, k) if k is not None else None
         step = exported.step if exported is not None else function
         one, one_residual = _casadi_rollout(step, q_in, w_in, u_in)
@@ -217,7 +224,7 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 5, scene: str = "pend
             "casadi_map_ms": 1e3 * _casadi_map_time(step, xb, ub, repeats),
         }
         if exported is not None:
-            settings = replace(MPCSettings(), horizon=horizon, compile="none" if quick else "cached")
+            settings = replace(mpc_settings, compile="none" if quick else "cached")
             metrics = solve_stats(env, exported, settings, duration, seed=seed)
             row.update(mpc_ms_median=metrics["solver_ms_median"], mpc_ms_p95=metrics["solver_ms_p95"],
                        iterations_mean=metrics["iterations_mean"], success=metrics["success"],
@@ -236,8 +243,9 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 5, scene: str = "pend
         "there, e.g. past the solvability limit).",
         f"Step time: torch (`fvin_step`, no grad, one thread) on a batch of {BATCH}; CasADi `Function` called once per state "
         f"(µs per call, Python overhead included) and `map`ped over the {BATCH} states (ms per batch). "
-        f"MPC: IPOPT, Gauss–Newton Hessian, {'interpreted' if quick else 'compiled (cached)'}, primal–dual warm "
-        f"start, N = {horizon}, swing-up "
+        f"MPC: the scene's settings (`swingup.scene_settings`), IPOPT, Gauss–Newton Hessian, "
+        f"{'interpreted' if quick else 'compiled (cached)'}, primal–dual warm start, N = {mpc_settings.horizon}, "
+        f"max_iter {mpc_settings.max_iter}, terminal energy weight {mpc_settings.terminal_energy_weight:g}, swing-up "
         f"from rest for {duration:g} s on MuJoCo; solve-time columns are IPOPT's own time per control step. "
         "The root finder is not used inside the MPC (it cannot be expanded into the SX step the MPC compiles); "
         "the last K row with residual ≈ 0 stands for it.",
@@ -274,6 +282,6 @@ def add_arguments(parser: Any) -> None:
     parser.add_argument("--checkpoint", default=None, help="checkpoint name or path (default: <scene>_sign-invariant)")
     parser.add_argument("--rootfinder", choices=["newton", "kinsol"], default="newton",
                         help="CasADi rootfinder plugin of the converged reference (default: %(default)s)")
-    parser.add_argument("--horizon", type=int, default=30, help="MPC horizon N (default: %(default)s)")
+    parser.add_argument("--horizon", type=int, default=None, help="MPC horizon N (default: the scene's, swingup.scene_settings)")
     parser.add_argument("--duration", type=float, default=8.0, help="closed-loop seconds (default: %(default)s)")
     parser.add_argument("--iters", default="1,2,3,4,5,6", help="comma-separated K values (default: %(default)s)")
