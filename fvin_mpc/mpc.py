@@ -153,6 +153,14 @@ class _Plan:
     lam_x: np.ndarray | None
 
 
+def _normalized_quaternion(value: Any, name: str) -> np.ndarray:
+    """``value`` as a unit quaternion ``(4,)``; ``ValueError`` if it is not a finite non-zero 4-vector."""
+    quaternion = np.asarray(value, dtype=float)
+    if quaternion.shape != (4,) or not np.all(np.isfinite(quaternion)) or np.linalg.norm(quaternion) == 0:
+        raise ValueError(f"{name} must be a finite non-zero quaternion of shape (4,), got {value!r}")
+    return quaternion / np.linalg.norm(quaternion)
+
+
 def check_state(q: Any, omega: Any) -> tuple[np.ndarray, np.ndarray]:
     """Validate a measured state; returns ``(unit q (4,), ω (3,))`` as float64.
 
@@ -194,23 +202,18 @@ class MPC:
                  torque_low: Any = (-2.0,), torque_high: Any = (2.0,), rest: Any = (1.0, 0.0, 0.0, 0.0)) -> None:
         self.model = model
         self.settings = settings
-        self.goal = np.asarray(goal, dtype=float)
-        if self.goal.shape != (4,) or not np.all(np.isfinite(self.goal)) or np.linalg.norm(self.goal) == 0:
-            raise ValueError(f"goal must be a finite non-zero quaternion of shape (4,), got {goal!r}")
-        self.goal = self.goal / np.linalg.norm(self.goal)
+        self.goal = _normalized_quaternion(goal, "goal")
         m = model.control_dim
         self.torque_low = np.broadcast_to(np.asarray(torque_low, dtype=float), (m,)).copy()
         self.torque_high = np.broadcast_to(np.asarray(torque_high, dtype=float), (m,)).copy()
         if not np.all(self.torque_low < self.torque_high):
             raise ValueError(f"need torque_low < torque_high, got {self.torque_low} and {self.torque_high}")
         self.omega_bound = settings.omega_bound_fraction / model.step_size
-        self.rest = np.asarray(rest, dtype=float)
-        if self.rest.shape != (4,) or not np.all(np.isfinite(self.rest)) or np.linalg.norm(self.rest) == 0:
-            raise ValueError(f"rest must be a finite non-zero quaternion of shape (4,), got {rest!r}")
-        self.rest = self.rest / np.linalg.norm(self.rest)
+        self.rest = _normalized_quaternion(rest, "rest")
         if settings.terminal_energy_weight > 0:
-            span = abs(model.energy(self.goal, np.zeros(3)) - model.energy(self.rest, np.zeros(3)))
-            if not span > 1e-9 * (1.0 + abs(model.energy(self.rest, np.zeros(3)))):
+            rest_energy = model.energy(self.rest, np.zeros(3))
+            span = abs(model.energy(self.goal, np.zeros(3)) - rest_energy)
+            if not span > 1e-9 * (1.0 + abs(rest_energy)):
                 raise ValueError("terminal_energy_weight > 0 needs different goal and rest energies; "
                                  f"the model gives {span:.3g} between {self.goal} and {self.rest}")
         start = time.perf_counter()

@@ -170,6 +170,8 @@ def _casadi_terms(source: dict[str, Any]) -> Any:
 def run(quick: bool = False, seed: int = 0, repeats: int = 5, scene: str = "pendulum", model: str = "learned",
         checkpoint: str | None = None, rootfinder: str = "newton", horizon: int | None = None, duration: float = 8.0,
         iters: str = "1,2,3,4,5,6", **_: Any) -> StudyResult:
+    from tqdm.auto import tqdm
+
     from ..swingup import scene_settings
 
     source = _source(scene, "true" if quick else model, checkpoint, None)
@@ -199,8 +201,6 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 5, scene: str = "pend
     configs: list[tuple[str, Any, int | None]] = [(f"K={k}", None, k) for k in ks] + [(f"rootfinder ({rootfinder})", reference, None)]
     rows: list[dict[str, Any]] = []
     env = source["env"]
-    from tqdm.auto import tqdm
-
     # Each K costs a closed-loop swing-up (minutes on the 3-D scene): show where the study is.
     for label, function, k in tqdm(configs, desc=f"newton study ({scene})", disable=quick):
         exported = _exported(source, k) if k is not None else None
