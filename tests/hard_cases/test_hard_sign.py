@@ -35,6 +35,11 @@ def models(tmp_path_factory):
     return built
 
 
+def as_batch(array):
+    """One state as a float64 batch of size 1, the torch model's input layout."""
+    return torch.as_tensor(array, dtype=torch.float64)[None]
+
+
 states = st.tuples(S.unit_quaternions(), S.vectors(3, -8.0, 8.0), S.vectors(3, -2.0, 2.0), st.sampled_from(WEIGHT_SEEDS))
 
 
@@ -44,7 +49,6 @@ states = st.tuples(S.unit_quaternions(), S.vectors(3, -8.0, 8.0), S.vectors(3, -
 def test_torch_sign_invariant_step_is_the_same_motion_for_q_and_minus_q(models, state):
     q, omega, u, seed = state
     model, _, m = models[seed]
-    as_batch = lambda a: torch.as_tensor(a, dtype=torch.float64)[None]  # noqa: E731
     with torch.no_grad():
         plus = model.step(as_batch(q), as_batch(omega), as_batch(u[:m]), with_residual=True)
         minus = model.step(as_batch(-q), as_batch(omega), as_batch(u[:m]), with_residual=True)
@@ -72,7 +76,6 @@ def test_casadi_sign_invariant_export_is_the_same_motion_for_q_and_minus_q(model
 def test_torch_and_casadi_agree_on_random_states(models, state):
     q, omega, u, seed = state
     model, exported, m = models[seed]
-    as_batch = lambda a: torch.as_tensor(a, dtype=torch.float64)[None]  # noqa: E731
     with torch.no_grad():
         out = model.step(as_batch(q), as_batch(omega), as_batch(u[:m]))
     x_next, _ = exported(np.concatenate([q, omega]), u[:m])
