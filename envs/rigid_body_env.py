@@ -460,7 +460,7 @@ def register_envs() -> None:
             continue
         gymnasium.register(
             id=env_id,
-            entry_point="envs.rigid_body_env:RigidBodyEnv",
+            entry_point="fvin_mpc.envs.rigid_body_env:RigidBodyEnv",
             kwargs={"scene": scene},
             max_episode_steps=MAX_EPISODE_STEPS,
         )

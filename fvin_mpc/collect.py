@@ -8,79 +8,11 @@ of the trajectories use each mode. Everything is seeded.
 """
 
 from __future__ import annotations
-
 import argparse
 import json
 from pathlib import Path
-from typing import Any
-
-import numpy as np
-
-from .data import TrajectoryData, save_data
-
-
-def random_joint_state(env: Any, rng: np.random.Generator, max_omega: float) -> tuple[np.ndarray, np.ndarray]:
-    """A uniformly random ``(qpos, qvel)`` for the env's single hinge or ball joint."""
-    model = env.unwrapped.model
-    if model.nq == 1 and model.nv == 1:
-        return rng.uniform(-np.pi, np.pi, size=1), rng.uniform(-max_omega, max_omega, size=1)
-    if model.nq == 4 and model.nv == 3:
-        quaternion = rng.normal(size=4)
-        quaternion /= np.linalg.norm(quaternion)
-        direction = rng.normal(size=3)
-        direction /= np.linalg.norm(direction)
-        return quaternion, direction * max_omega * rng.uniform() ** (1 / 3)
-    raise ValueError(f"expected one hinge (nq=nv=1) or ball joint (nq=4, nv=3), got nq={model.nq}, nv={model.nv}")
-
-
-def control_sequence(rng: np.random.Generator, low: np.ndarray, high: np.ndarray, steps: int,
-                     mode: str, hold_steps: int) -> np.ndarray:
-    """``(steps, m)`` controls: one constant level, or a new level every ``hold_steps``."""
-    if mode == "constant":
-        return np.repeat(rng.uniform(low, high)[None], steps, axis=0)
-    if mode == "piecewise":
-        levels = rng.uniform(low, high, size=(-(-steps // hold_steps), low.size))
-        return np.repeat(levels, hold_steps, axis=0)[:steps]
-    raise ValueError(f"unknown control mode {mode!r}")
-
-
-def collect(scene: str = "pendulum", trajectories: int = 320, steps: int = 20, seed: int = 0,
-            max_omega: float = 6.0, hold_steps: int = 4, body: str | None = None,
-            progress: bool = True, control_period: float | None = None) -> TrajectoryData:
-    """Roll out ``trajectories`` seeded episodes of ``steps`` control periods in the scene.
-
-    ``control_period`` (s) overrides the scene's (a whole multiple of the MJCF timestep),
-    e.g. ``0.02`` for data of a model with step ``h = 0.02``."""
-    from tqdm.auto import tqdm
-
-    from envs import RigidBodyEnv
-
-    env = RigidBodyEnv(scene=scene, body=body, control_period=control_period)
-    rng = np.random.default_rng(seed)
-    low, high = env.action_space.low.astype(np.float64), env.action_space.high.astype(np.float64)
-    qs = np.empty((trajectories, steps + 1, 4))
-    omegas = np.empty((trajectories, steps + 1, 3))
-    us = np.empty((trajectories, steps, low.size))
-    modes = []
-    for i in tqdm(range(trajectories), desc=f"collect {scene}", disable=not progress):
-        qpos, qvel = random_joint_state(env, rng, max_omega)
-        observation, _ = env.reset(seed=int(rng.integers(2**31)), options={"qpos": qpos, "qvel": qvel})
-        mode = "constant" if i % 2 == 0 else "piecewise"
-        modes.append(mode)
-        controls = control_sequence(rng, low, high, steps, mode, hold_steps)
-        qs[i, 0], omegas[i, 0] = observation[:4], observation[4:]
-        for k in range(steps):
-            observation, *_ = env.step(controls[k])
-            qs[i, k + 1], omegas[i, k + 1] = observation[:4], observation[4:]
-        us[i] = controls
-    metadata = {
-        "scene": scene, "body": env.unwrapped.body_name, "control_period": float(env.unwrapped.dt),
-        "seed": seed, "trajectories": trajectories, "steps": steps, "transitions": trajectories * steps,
-        "max_omega": max_omega, "hold_steps": hold_steps,
-        "control_modes": {"constant": modes.count("constant"), "piecewise": modes.count("piecewise")},
-    }
-    env.close()
-    return TrajectoryData(qs, omegas, us, metadata)
+from fvin_mpc.core.data import save_data
+from fvin_mpc.learning.collection import collect
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -139,11 +139,11 @@ def as_tuple_matrix(matrix: np.ndarray) -> tuple[tuple[float, ...], ...]:
 
 def make_body(seed: int, scale: float, log_condition: float, gravity: bool, control_dim: int,
               damping: bool = False, physical: bool = True) -> Any:
-    """A :class:`~fvin_mpc.rigid_body.PivotedRigidBody` from a seed and the drawn key parameters:
+    """A :class:`~fvin_mpc.core.rigid_body.PivotedRigidBody` from a seed and the drawn key parameters:
     inertia ``random_inertia(scale, log_condition)`` (isotropic when ``log_condition = 0``),
     centre of mass ``|c_i| ≤ 1`` m, ``m g ∈ [0.1, 20]`` N (or 0), actuator axes in ``[−2, 2]``,
     damping in ``[0, 0.5]`` N·m·s (or 0)."""
-    from fvin_mpc.rigid_body import PivotedRigidBody
+    from fvin_mpc.core.rigid_body import PivotedRigidBody
 
     rng = np.random.default_rng(seed)
     inertia = scale * np.eye(3) if log_condition == 0.0 else random_inertia(rng, scale, log_condition, physical)
@@ -174,7 +174,7 @@ def rigid_bodies(max_condition: float = 1e3, isotropic: bool = False, gravity: b
 
 # --------------------------------------------------------------------------- components
 def components(*arrays: np.ndarray) -> tuple[tuple[np.ndarray, ...], ...]:
-    """``(4,)``/``(3,)`` vectors → tuples of ``(1,)`` NumPy components for :func:`fvin_mpc.fvin.fvin_step`."""
+    """``(4,)``/``(3,)`` vectors → tuples of ``(1,)`` NumPy components for :func:`fvin_mpc.core.fvin.fvin_step`."""
     return tuple(tuple(np.array([float(c)]) for c in np.atleast_1d(a)) for a in arrays)
 
 

@@ -2,9 +2,9 @@
 
 import numpy as np
 
-from fvin_mpc import fvin
-from fvin_mpc.backend import get_ops
-from fvin_mpc.data import TrajectoryData
+from fvin_mpc.core import fvin
+from fvin_mpc.core.backend import get_ops
+from fvin_mpc.core.data import TrajectoryData
 
 NP = get_ops("numpy")
 

@@ -10,9 +10,9 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from fvin_mpc.bench import StudyResult, write_study
+from fvin_mpc.studies.report import StudyResult, write_study
 from fvin_mpc.bench.__main__ import STUDIES, build_parser, main
-from fvin_mpc.bench.common import pareto_mask
+from fvin_mpc.studies.bench.common import pareto_mask
 
 
 @pytest.fixture(autouse=True)
@@ -73,10 +73,10 @@ def test_sim_quick_via_cli(tmp_path, capsys):
 
 
 def test_rootfinder_step_matches_converged_newton():
-    from fvin_mpc.backend import get_ops
-    from fvin_mpc.bench.newton import rootfinder_step
-    from fvin_mpc.export import from_rigid_body
-    from fvin_mpc.rigid_body import PENDULUM
+    from fvin_mpc.core.backend import get_ops
+    from fvin_mpc.studies.bench.newton import rootfinder_step
+    from fvin_mpc.control.export import from_rigid_body
+    from fvin_mpc.core.rigid_body import PENDULUM
 
     reference = rootfinder_step(PENDULUM.terms(get_ops("casadi")), 0.05, "newton")
     newton6 = from_rigid_body(PENDULUM, 0.05, 6)
@@ -92,7 +92,7 @@ def test_rootfinder_step_matches_converged_newton():
 
 
 def test_newton_quick_residual_falls_with_k(tmp_path):
-    from fvin_mpc.bench import newton
+    from fvin_mpc.studies.bench import newton
 
     result = newton.run(quick=True)
     rows = {r["config"]: r for r in result.rows}
@@ -113,7 +113,7 @@ def test_newton_skips_with_a_message_when_the_checkpoint_is_absent(tmp_path, cap
 
 
 def test_horizon_quick(tmp_path):
-    from fvin_mpc.bench import horizon
+    from fvin_mpc.studies.bench import horizon
 
     result = horizon.run(quick=True)
     for row in result.rows:
@@ -124,7 +124,7 @@ def test_horizon_quick(tmp_path):
 
 
 def test_solver_quick(tmp_path):
-    from fvin_mpc.bench import solver
+    from fvin_mpc.studies.bench import solver
 
     result = solver.run(quick=True)
     assert {r["solver"] for r in result.rows} == {"ipopt", "sqpmethod", "fatrop"}
@@ -137,9 +137,9 @@ def test_solver_quick(tmp_path):
 @pytest.mark.parametrize("overrides", [{"solver": "sqpmethod"}, {"solver": "sqpmethod", "hessian": "exact"},
                                        {"solver": "fatrop", "hessian": "exact", "compile": "none"}])
 def test_other_nlp_solvers_find_ipopts_plan(overrides):
-    from fvin_mpc.export import from_rigid_body
-    from fvin_mpc.mpc import MPC, MPCSettings
-    from fvin_mpc.rigid_body import PENDULUM
+    from fvin_mpc.control.export import from_rigid_body
+    from fvin_mpc.control.mpc import MPC, MPCSettings
+    from fvin_mpc.core.rigid_body import PENDULUM
 
     model = from_rigid_body(PENDULUM, 0.05, 2, name="bench_test")
     base = replace(MPCSettings(), horizon=12, compile="none", tol=1e-9)
@@ -158,7 +158,7 @@ def test_other_nlp_solvers_find_ipopts_plan(overrides):
 
 
 def test_fatrop_setting_is_validated():
-    from fvin_mpc.mpc import MPCSettings
+    from fvin_mpc.control.mpc import MPCSettings
 
     with pytest.raises(ValueError, match="fatrop"):
         MPCSettings(solver="fatrop")
@@ -167,7 +167,7 @@ def test_fatrop_setting_is_validated():
 
 
 def test_width_quick_caches_the_trained_model(tmp_path):
-    from fvin_mpc.bench import width
+    from fvin_mpc.studies.bench import width
 
     first = width.run(quick=True)
     second = width.run(quick=True)
@@ -180,7 +180,7 @@ def test_width_quick_caches_the_trained_model(tmp_path):
 
 
 def test_train_speed_quick(tmp_path):
-    from fvin_mpc.bench import train_speed
+    from fvin_mpc.studies.bench import train_speed
 
     result = train_speed.run(quick=True)
     _positive_times(result.rows, "s_per_iter_median")
@@ -189,9 +189,9 @@ def test_train_speed_quick(tmp_path):
 
 def test_compiled_mpc_accepts_a_model_name_with_dots():
     # Regression: checkpoint stems like "pendulum-h0.02_sign-invariant" once made an invalid C file prefix.
-    from fvin_mpc.export import from_rigid_body
-    from fvin_mpc.mpc import MPC, MPCSettings
-    from fvin_mpc.rigid_body import PENDULUM
+    from fvin_mpc.control.export import from_rigid_body
+    from fvin_mpc.control.mpc import MPC, MPCSettings
+    from fvin_mpc.core.rigid_body import PENDULUM
 
     model = from_rigid_body(PENDULUM, 0.02, 2, name="pendulum-h0.02_test")
     controller = MPC(model, replace(MPCSettings(), horizon=3), (0, 0, 1, 0), [-2.0], [2.0])
@@ -204,9 +204,9 @@ def test_compiled_mpc_accepts_a_model_name_with_dots():
 def test_heldout_data_never_overwrites_a_different_set(tmp_path):
     """A file at the held-out path that holds other data is refused, not silently replaced
     (the spherical set, speed-bounded, was once overwritten by an unbounded collection)."""
-    from fvin_mpc.bench.common import heldout_data
-    from fvin_mpc.collect import collect
-    from fvin_mpc.data import save_data
+    from fvin_mpc.studies.bench.common import heldout_data
+    from fvin_mpc.learning.collection import collect
+    from fvin_mpc.core.data import save_data
 
     path = tmp_path / "data" / "pendulum_heldout.npz"
     save_data(path, collect("pendulum", 2, 3, 7, progress=False))  # seed 7, not the held-out seed 1
@@ -217,11 +217,11 @@ def test_heldout_data_never_overwrites_a_different_set(tmp_path):
 
 
 def test_spherical_heldout_data_is_speed_bounded(tmp_path):
-    from fvin_mpc.bench.common import BOUNDED_HELDOUT, heldout_data
+    from fvin_mpc.studies.bench.common import BOUNDED_HELDOUT, heldout_data
 
     path = tmp_path / "spherical.npz"
     data = heldout_data("spherical_pendulum", seed=1, trajectories=3, steps=5, path=path)
-    assert data.metadata["collector"] == "fvin_mpc.spherical_report.collect_bounded"
+    assert data.metadata["collector"] == "fvin_mpc.studies.spherical.collect_bounded"
     assert np.abs(data.omega).max() <= BOUNDED_HELDOUT["spherical_pendulum"]["max_speed"]
     again = heldout_data("spherical_pendulum", seed=1, trajectories=3, steps=5, path=path)  # loaded, not redrawn
     np.testing.assert_array_equal(again.q, data.q)

@@ -5,11 +5,11 @@ import json
 import numpy as np
 import pytest
 
-from fvin_mpc.backend import get_ops
-from fvin_mpc.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
-from fvin_mpc.data import load_data, save_data
-from fvin_mpc.networks import ModelConfig, init_weights
-from fvin_mpc.rigid_body import PENDULUM
+from fvin_mpc.core.backend import get_ops
+from fvin_mpc.core.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from fvin_mpc.core.data import load_data, save_data
+from fvin_mpc.core.networks import ModelConfig, init_weights
+from fvin_mpc.core.rigid_body import PENDULUM
 from synthetic import synthetic_hinge_data
 
 NP = get_ops("numpy")
@@ -88,7 +88,7 @@ def test_data_round_trip(tmp_path):
 
 def test_training_is_seeded_and_reduces_the_rollout_loss():
     pytest.importorskip("torch")
-    from fvin_mpc.train import TrainSettings, train
+    from fvin_mpc.learning.training import TrainSettings, train
 
     data = synthetic_pendulum_data()
     settings = TrainSettings(iterations=100, window=4, seed=3, eval_every=20, learning_rate=2e-2)
@@ -121,7 +121,7 @@ def test_a_flipped_bit_inside_the_weights_is_caught_by_the_checksum(saved):
 
 
 def test_shipped_checkpoints_carry_a_matching_checksum():
-    from fvin_mpc.checkpoint import CHECKPOINT_DIR
+    from fvin_mpc.core.checkpoint import CHECKPOINT_DIR
 
     sidecars = sorted(CHECKPOINT_DIR.glob("*.json"))
     assert sidecars, "no shipped checkpoints"

@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 import scipy.linalg
 
-from fvin_mpc import fvin, s3
-from fvin_mpc.backend import get_ops
-from fvin_mpc.energy_shaping import EnergyShapingController
-from fvin_mpc.rigid_body import PENDULUM, PivotedRigidBody
+from fvin_mpc.core import fvin, s3
+from fvin_mpc.core.backend import get_ops
+from fvin_mpc.control.energy_shaping import EnergyShapingController
+from fvin_mpc.core.rigid_body import PENDULUM, PivotedRigidBody
 
 NP = get_ops("numpy")
 GOAL = np.array([0.0, 0.0, 1.0, 0.0])
@@ -132,7 +132,7 @@ def hinge(theta, theta_dot):
 
 # ---------------------------------------------------------------------- constructors and scenes
 def test_constructors_agree_with_the_direct_one():
-    from fvin_mpc import export
+    from fvin_mpc.control import export
 
     direct = EnergyShapingController(PENDULUM.terms(NP), 0.05, 2, GOAL, np.array([-2.0]), np.array([2.0]))
     via_body = EnergyShapingController.from_rigid_body(PENDULUM, 0.05, GOAL, [-2.0], [2.0], newton_iters=2)
@@ -145,19 +145,19 @@ def test_constructors_agree_with_the_direct_one():
 
 
 def test_scene_controller_rejects_a_ball_joint_with_a_reason():
-    from envs import RigidBodyEnv
+    from fvin_mpc.envs import RigidBodyEnv
 
-    from fvin_mpc.energy_shaping import EnergyShapingNotApplicable, scene_controller
+    from fvin_mpc.control.energy_shaping import EnergyShapingNotApplicable, scene_controller
 
     with pytest.raises(EnergyShapingNotApplicable, match="hinge"):
         scene_controller(RigidBodyEnv("spherical_pendulum"), true_model=True)
 
 
 def test_true_model_swings_up_the_mujoco_pendulum_from_rest():
-    from envs import RigidBodyEnv
+    from fvin_mpc.envs import RigidBodyEnv
 
-    from fvin_mpc.closed_loop import episode_metrics, run_episode
-    from fvin_mpc.energy_shaping import scene_controller
+    from fvin_mpc.control.closed_loop import episode_metrics, run_episode
+    from fvin_mpc.control.energy_shaping import scene_controller
 
     env = RigidBodyEnv("pendulum")
     metrics = episode_metrics(run_episode(env, scene_controller(env, true_model=True), 8.0)[0])
@@ -167,11 +167,11 @@ def test_true_model_swings_up_the_mujoco_pendulum_from_rest():
 
 def test_learned_model_swings_up_the_mujoco_pendulum_from_rest():
     """Energy shaping from the shipped learned J, U, g alone (its own E*, its own LQR) on MuJoCo."""
-    from envs import RigidBodyEnv
+    from fvin_mpc.envs import RigidBodyEnv
 
-    from fvin_mpc.checkpoint import CHECKPOINT_DIR
-    from fvin_mpc.closed_loop import episode_metrics, run_episode
-    from fvin_mpc.energy_shaping import scene_controller
+    from fvin_mpc.core.checkpoint import CHECKPOINT_DIR
+    from fvin_mpc.control.closed_loop import episode_metrics, run_episode
+    from fvin_mpc.control.energy_shaping import scene_controller
 
     name = "pendulum_sign-invariant"
     if not (CHECKPOINT_DIR / f"{name}.json").exists():

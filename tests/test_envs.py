@@ -13,9 +13,9 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 from scipy.integrate import solve_ivp
 
-import envs
-from envs import SCENES, RigidBodyEnv, ScenePhysics
-from envs.pendulum_v1 import (
+from fvin_mpc import envs
+from fvin_mpc.envs import SCENES, RigidBodyEnv, ScenePhysics
+from fvin_mpc.envs.pendulum_v1 import (
     scene_angle_from_v1,
     state_from_v1_observation,
     v1_angle_from_scene,

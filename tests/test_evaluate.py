@@ -6,8 +6,9 @@ import gymnasium
 import numpy as np
 import pytest
 
-from fvin_mpc import evaluate as ev
-from fvin_mpc import pendulum_v1 as v1
+from fvin_mpc import evaluate as evaluate_cli
+from fvin_mpc.studies import evaluation as ev
+from fvin_mpc.studies import pendulum_v1 as v1
 
 
 def hinge(theta, theta_dot=0.0):
@@ -56,9 +57,9 @@ def test_evaluate_energy_and_zero_serial_equals_parallel():
 
 
 def test_missing_default_checkpoint_skips_learned_controllers(monkeypatch, tmp_path):
-    import fvin_mpc.checkpoint
+    import fvin_mpc.core.checkpoint
 
-    monkeypatch.setattr(fvin_mpc.checkpoint, "CHECKPOINT_DIR", tmp_path)
+    monkeypatch.setattr(fvin_mpc.core.checkpoint, "CHECKPOINT_DIR", tmp_path)
     config = ev.EvaluationConfig(episodes=1, duration_s=0.5, controllers=("energy-learned", "zero"))
     messages = []
     result = ev.evaluate(config, progress=False, log=messages.append)
@@ -73,7 +74,7 @@ def test_missing_explicit_checkpoint_is_an_error():
 
 
 def test_cli_writes_report_and_skips_energy_shaping_on_a_ball_joint(tmp_path, capsys):
-    code = ev.main(["--scene", "spherical_pendulum", "--episodes", "2", "--duration", "0.5", "--controllers",
+    code = evaluate_cli.main(["--scene", "spherical_pendulum", "--episodes", "2", "--duration", "0.5", "--controllers",
                     "energy-true,zero", "--out-dir", str(tmp_path), "--quiet", "--json", str(tmp_path / "copy.json")])
     assert code == 0
     captured = capsys.readouterr()
@@ -89,14 +90,14 @@ def test_cli_writes_report_and_skips_energy_shaping_on_a_ball_joint(tmp_path, ca
                                            (["--episodes", "0"], "episodes"), (["--workers", "0"], "workers"),
                                            (["--scene", "no_such_scene"], "unknown scene")])
 def test_cli_bad_input_is_a_one_line_error(argv, message, capsys, tmp_path):
-    assert ev.main([*argv, "--out-dir", str(tmp_path), "--quiet"]) == 2
+    assert evaluate_cli.main([*argv, "--out-dir", str(tmp_path), "--quiet"]) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("error:") and message in err and "\n" not in err
 
 
 def test_cli_help(capsys):
     with pytest.raises(SystemExit) as exit_info:
-        ev.main(["--help"])
+        evaluate_cli.main(["--help"])
     assert exit_info.value.code == 0 and "--workers" in capsys.readouterr().out
 
 
@@ -104,10 +105,10 @@ def test_cli_help(capsys):
 def test_multistart_catches_a_nearly_upright_pendulum_that_the_single_guess_lets_fall():
     """Near upright every constant-torque first guess falls; IPOPT then returns a full-turn plan.
     The "goal" guess lies in the basin of catching it; the multi-start keeps the cheaper plan."""
-    from fvin_mpc import export
-    from fvin_mpc.mpc import MPC, MPCSettings
-    from fvin_mpc.multistart import MultiStartMPC
-    from fvin_mpc.rigid_body import PENDULUM
+    from fvin_mpc.control import export
+    from fvin_mpc.control.mpc import MPC, MPCSettings
+    from fvin_mpc.control.multistart import MultiStartMPC
+    from fvin_mpc.core.rigid_body import PENDULUM
 
     model = export.from_rigid_body(PENDULUM, 0.05, 2, name="test_multistart")
     settings = MPCSettings(compile="none", max_iter=300)
@@ -130,9 +131,9 @@ def test_multistart_catches_a_nearly_upright_pendulum_that_the_single_guess_lets
 
 
 def test_multistart_rejects_unknown_guesses():
-    from fvin_mpc import export
-    from fvin_mpc.multistart import MultiStartMPC
-    from fvin_mpc.rigid_body import PENDULUM
+    from fvin_mpc.control import export
+    from fvin_mpc.control.multistart import MultiStartMPC
+    from fvin_mpc.core.rigid_body import PENDULUM
 
     with pytest.raises(ValueError, match="unknown guesses"):
         MultiStartMPC(export.from_rigid_body(PENDULUM, 0.05, 2), guesses=("magic",))
@@ -165,14 +166,14 @@ def test_benchmark_settings_cost_matches_the_reward_near_upright():
     assert (settings.omega_weight, settings.control_weight) == (0.1, 0.001)
     assert settings.omega_bound_fraction / v1.DT == pytest.approx(v1.MAX_SPEED)
     # The terminal energy weight is the pendulum scene's unless given: one place to tune it.
-    from fvin_mpc.swingup import scene_settings
+    from fvin_mpc.control.scene import scene_settings
 
     assert settings.terminal_energy_weight == scene_settings("pendulum").terminal_energy_weight > 0
     assert v1.benchmark_settings(terminal_energy_weight=0.0).terminal_energy_weight == 0.0
 
 
 def test_evaluation_mpc_settings_follow_the_scene_and_the_overrides():
-    from fvin_mpc.swingup import scene_settings
+    from fvin_mpc.control.scene import scene_settings
 
     default = ev.mpc_settings(ev.EvaluationConfig())
     assert default == scene_settings("pendulum")

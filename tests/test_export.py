@@ -4,10 +4,10 @@ import casadi as ca
 import numpy as np
 import pytest
 
-from fvin_mpc import export
-from fvin_mpc.checkpoint import save_checkpoint
-from fvin_mpc.networks import ModelConfig, init_weights
-from fvin_mpc.rigid_body import PENDULUM
+from fvin_mpc.control import export
+from fvin_mpc.core.checkpoint import save_checkpoint
+from fvin_mpc.core.networks import ModelConfig, init_weights
+from fvin_mpc.core.rigid_body import PENDULUM
 
 
 def random_states(n, seed, omega_scale=3.0):
@@ -22,7 +22,7 @@ def random_states(n, seed, omega_scale=3.0):
 def model_pair(request, tmp_path):
     """A random-weight checkpoint as a torch model and as its CasADi export."""
     torch = pytest.importorskip("torch")
-    from fvin_mpc.model import S3FVIN
+    from fvin_mpc.learning.model import S3FVIN
 
     variant, control_dim, dissipation = request.param
     config = ModelConfig(variant=variant, control_dim=control_dim, dissipation=dissipation, newton_iters=3)

@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
 
-from fvin_mpc import fvin, s3
-from fvin_mpc.backend import get_ops
-from fvin_mpc.networks import LearnedTerms, ModelConfig, init_weights
-from fvin_mpc.rigid_body import PENDULUM
+from fvin_mpc.core import fvin, s3
+from fvin_mpc.core.backend import get_ops
+from fvin_mpc.core.networks import LearnedTerms, ModelConfig, init_weights
+from fvin_mpc.core.rigid_body import PENDULUM
 
 NP = get_ops("numpy")
 TRUE = PENDULUM.terms(NP)
@@ -129,7 +129,7 @@ def test_sign_invariant_variant_predicts_the_same_rotation_for_q_and_minus_q():
 @pytest.mark.parametrize("control_dim", [1, 3])
 def test_torch_and_numpy_backends_agree(variant, control_dim):
     torch = pytest.importorskip("torch")
-    from fvin_mpc.model import S3FVIN
+    from fvin_mpc.learning.model import S3FVIN
 
     config = ModelConfig(variant=variant, control_dim=control_dim, dissipation=control_dim == 3, newton_iters=3)
     weights = init_weights(config, seed=1)

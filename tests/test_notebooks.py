@@ -28,7 +28,7 @@ def test_notebook_is_stored_without_outputs(path):
 def test_notebook_executes(path, monkeypatch):
     from nbclient import NotebookClient
 
-    from fvin_mpc.checkpoint import CHECKPOINT_DIR
+    from fvin_mpc.core.checkpoint import CHECKPOINT_DIR
 
     missing = [name for name in REQUIRED_CHECKPOINTS if not (CHECKPOINT_DIR / f"{name}.json").exists()]
     if missing:

@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from fvin_mpc import s3
-from fvin_mpc.backend import get_ops
+from fvin_mpc.core import s3
+from fvin_mpc.core.backend import get_ops
 
 NP = get_ops("numpy")
 

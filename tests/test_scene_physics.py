@@ -16,12 +16,12 @@ import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
 
-from envs import SCENES, RigidBodyEnv, ScenePhysics
-from envs.scenes import ALWAYS_DISABLED, build_model, infer_physics
-from fvin_mpc.backend import get_ops
-from fvin_mpc.data import TrajectoryData
-from fvin_mpc.networks import ModelConfig
-from fvin_mpc.rigid_body import PENDULUM_DAMPED, from_mujoco
+from fvin_mpc.envs import SCENES, RigidBodyEnv, ScenePhysics
+from fvin_mpc.envs.scenes import ALWAYS_DISABLED, build_model, infer_physics
+from fvin_mpc.core.backend import get_ops
+from fvin_mpc.core.data import TrajectoryData
+from fvin_mpc.core.networks import ModelConfig
+from fvin_mpc.core.rigid_body import PENDULUM_DAMPED, from_mujoco
 from synthetic import synthetic_hinge_data
 
 NP = get_ops("numpy")
@@ -281,9 +281,9 @@ def test_training_with_dissipation_recovers_the_damping():
     """On damped data the model with ``−Dω`` fits better than the conservative one, and its D
     along the hinge, after fixing the scale λ on g, is the true 2·0.1 (factor of two: DESIGN.md)."""
     pytest.importorskip("torch")
-    from fvin_mpc.checkpoint import Checkpoint
-    from fvin_mpc.quality import compare_components
-    from fvin_mpc.train import TrainSettings, train
+    from fvin_mpc.core.checkpoint import Checkpoint
+    from fvin_mpc.studies.quality import compare_components
+    from fvin_mpc.learning.training import TrainSettings, train
 
     data = synthetic_damped_data(trajectories=24, steps=10, seed=0)
     settings = TrainSettings(iterations=80, window=2, learning_rate=3e-2, seed=3, eval_every=80)

@@ -1,6 +1,6 @@
 """The 3-D scene ``spherical_pendulum``: env state, closed form vs MuJoCo, data, inertia recovery, checkpoint.
 
-The closed-form body (:func:`fvin_mpc.rigid_body.from_mujoco`) is checked against MuJoCo three ways:
+The closed-form body (:func:`fvin_mpc.core.rigid_body.from_mujoco`) is checked against MuJoCo three ways:
 exact energy bookkeeping (inertia about the pivot and potential), the FVIN step's local error
 against MuJoCo's RK4 (third order in ``h``: the integrator is second order), and 1 s rollouts.
 """
@@ -10,11 +10,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from envs import RigidBodyEnv
-from fvin_mpc import fvin
-from fvin_mpc.backend import get_ops
-from fvin_mpc.export import from_rigid_body
-from fvin_mpc.rigid_body import from_mujoco
+from fvin_mpc.envs import RigidBodyEnv
+from fvin_mpc.core import fvin
+from fvin_mpc.core.backend import get_ops
+from fvin_mpc.control.export import from_rigid_body
+from fvin_mpc.core.rigid_body import from_mujoco
 
 NP = get_ops("numpy")
 SCENE = "spherical_pendulum"
@@ -132,7 +132,7 @@ def test_closed_form_rollouts_follow_mujoco(env, body):
 
 
 def test_bounded_collection_respects_speed_limit():
-    from fvin_mpc.spherical_report import collect_bounded
+    from fvin_mpc.studies.spherical import collect_bounded
 
     data = collect_bounded(trajectories=6, steps=5, seed=0, max_omega=6.0, max_speed=10.0, progress=False)
     assert data.q.shape == (6, 6, 4) and data.u.shape == (6, 5, 3)
@@ -146,9 +146,9 @@ def test_bounded_collection_respects_speed_limit():
 
 def test_inertia_recovery_of_an_exact_scaled_model(body):
     """A fixed-inertia model holding λ·J_true and λ·g_true: λ, principal moments and axes come back."""
-    from fvin_mpc.checkpoint import Checkpoint
-    from fvin_mpc.inertia import recover_inertia, uniform_quaternions
-    from fvin_mpc.networks import ModelConfig, init_weights
+    from fvin_mpc.core.checkpoint import Checkpoint
+    from fvin_mpc.studies.inertia import recover_inertia, uniform_quaternions
+    from fvin_mpc.core.networks import ModelConfig, init_weights
 
     scale = 3.0
     config = ModelConfig(variant="fixed-inertia", control_dim=3, inertia_epsilon=1e-3)
@@ -156,7 +156,7 @@ def test_inertia_recovery_of_an_exact_scaled_model(body):
     inertia = scale * np.array(body.inertia) - config.inertia_epsilon * np.eye(3)
     lower = np.linalg.cholesky(inertia)
     weights["inertia_cholesky"] = np.array([lower[0, 0], lower[1, 1], lower[2, 2], lower[1, 0], lower[2, 0], lower[2, 1]])
-    from fvin_mpc import s3
+    from fvin_mpc.core import s3
 
     rebuilt = np.array(s3.symmetric_from_cholesky(tuple(weights["inertia_cholesky"]), config.inertia_epsilon))
     if not np.allclose(rebuilt, scale * np.array(body.inertia)):
@@ -175,9 +175,9 @@ def test_inertia_recovery_of_an_exact_scaled_model(body):
 def test_actuator_referenced_inertia_is_blind_to_a_per_axis_scale(body):
     """Scaling the z row of J and of g by μ (what the data barely constrain: gravity has no torque about
     body z) moves the global-λ comparison but not J_act = sym(2 ḡ⁻¹ J̄) nor the x/y per-axis λ."""
-    from fvin_mpc.checkpoint import Checkpoint
-    from fvin_mpc.inertia import recover_inertia, uniform_quaternions
-    from fvin_mpc.networks import ModelConfig, init_weights
+    from fvin_mpc.core.checkpoint import Checkpoint
+    from fvin_mpc.studies.inertia import recover_inertia, uniform_quaternions
+    from fvin_mpc.core.networks import ModelConfig, init_weights
 
     mu = np.array([1.0, 1.0, 2.5])
     config = ModelConfig(variant="fixed-inertia", control_dim=3, inertia_epsilon=1e-3)
@@ -194,8 +194,8 @@ def test_actuator_referenced_inertia_is_blind_to_a_per_axis_scale(body):
 
 
 def test_shipped_checkpoint_loads_and_exports():
-    from fvin_mpc.checkpoint import load_checkpoint
-    from fvin_mpc.export import from_checkpoint
+    from fvin_mpc.core.checkpoint import load_checkpoint
+    from fvin_mpc.control.export import from_checkpoint
 
     checkpoint = load_checkpoint("spherical_pendulum_sign-invariant")
     assert checkpoint.config.control_dim == 3 and checkpoint.scene == SCENE
@@ -212,7 +212,7 @@ def test_shipped_checkpoint_loads_and_exports():
 @pytest.mark.slow
 def test_true_model_mpc_leaves_rest():
     """From hanging at rest the MPC (the scene's settings) applies torque and the body moves away."""
-    from fvin_mpc.swingup import scene_model, scene_mpc, scene_settings
+    from fvin_mpc.control.scene import scene_model, scene_mpc, scene_settings
 
     environment = RigidBodyEnv(SCENE)
     controller = scene_mpc(environment, scene_model(environment, None, true_model=True), scene_settings(SCENE))

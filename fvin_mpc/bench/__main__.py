@@ -14,12 +14,12 @@ from pathlib import Path
 #: study name → module (each has ``run(quick, seed, repeats, **options) -> StudyResult`` and
 #: optionally ``add_arguments(parser)`` for its own options).
 STUDIES = {
-    "train-speed": "fvin_mpc.bench.train_speed",
-    "newton": "fvin_mpc.bench.newton",
-    "horizon": "fvin_mpc.bench.horizon",
-    "width": "fvin_mpc.bench.width",
-    "solver": "fvin_mpc.bench.solver",
-    "sim": "fvin_mpc.bench.sim",
+    "train-speed": "fvin_mpc.studies.bench.train_speed",
+    "newton": "fvin_mpc.studies.bench.newton",
+    "horizon": "fvin_mpc.studies.bench.horizon",
+    "width": "fvin_mpc.studies.bench.width",
+    "solver": "fvin_mpc.studies.bench.solver",
+    "sim": "fvin_mpc.studies.bench.sim",
 }
 
 
@@ -48,7 +48,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.repeats < 1:
         print(f"error: --repeats must be >= 1, got {args.repeats}", file=sys.stderr)
         return 2
-    from . import StudySkipped, write_study
+    from fvin_mpc.studies.report import StudySkipped, write_study
 
     module = importlib.import_module(STUDIES[args.study])
     options = {k: v for k, v in vars(args).items() if k not in ("study", "quick", "out_dir", "repeats", "seed")}

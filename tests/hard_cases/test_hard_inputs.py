@@ -16,12 +16,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import strategies as S
-from fvin_mpc.backend import get_ops
-from fvin_mpc.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
-from fvin_mpc.energy_shaping import EnergyShapingController
-from fvin_mpc.mpc import UNIT_NORM_TOLERANCE
-from fvin_mpc.networks import ModelConfig, init_weights
-from fvin_mpc.rigid_body import PENDULUM
+from fvin_mpc.core.backend import get_ops
+from fvin_mpc.core.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from fvin_mpc.control.energy_shaping import EnergyShapingController
+from fvin_mpc.control.mpc import UNIT_NORM_TOLERANCE
+from fvin_mpc.core.networks import ModelConfig, init_weights
+from fvin_mpc.core.rigid_body import PENDULUM
 
 NP = get_ops("numpy")
 
@@ -38,7 +38,7 @@ def bad_arrays(shape, low, high):
 # ----------------------------------------------------------------------------- env
 @pytest.fixture(scope="module")
 def envs_by_scene():
-    from envs import RigidBodyEnv
+    from fvin_mpc.envs import RigidBodyEnv
 
     built = {}
     for scene in ("pendulum", "spherical_pendulum"):
@@ -104,7 +104,7 @@ def test_energy_shaping_rejects_bad_observations(energy_shaping, which, data):
        norm=st.one_of(st.just(0.0), S.log_uniform(1e-8, 1e8), S.floats(1 - 3e-3, 1 + 3e-3)))
 @S.counted
 def test_energy_shaping_follows_the_unit_norm_policy(energy_shaping, q, omega, norm):
-    """Same policy as the MPC (``fvin_mpc.mpc.check_state``): normalize within 1e-3 of unit
+    """Same policy as the MPC (``fvin_mpc.control.mpc.check_state``): normalize within 1e-3 of unit
     norm, else ``ValueError`` — never a NaN torque (``q = 0``) or a torque for a non-rotation."""
     measured = norm * q
     off = abs(np.linalg.norm(measured) - 1.0)

@@ -14,9 +14,9 @@ from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 import strategies as S
-from fvin_mpc import export
-from fvin_mpc.mpc import MPC, SUCCESS_STATUSES, UNIT_NORM_TOLERANCE, MPCSettings
-from fvin_mpc.rigid_body import PENDULUM
+from fvin_mpc.control import export
+from fvin_mpc.control.mpc import MPC, SUCCESS_STATUSES, UNIT_NORM_TOLERANCE, MPCSettings
+from fvin_mpc.core.rigid_body import PENDULUM
 
 UPRIGHT = np.array([0.0, 0.0, 1.0, 0.0])
 HANGING = np.array([1.0, 0.0, 0.0, 0.0])
@@ -136,14 +136,14 @@ def test_leaves_exact_rest_from_either_sign_and_goal(controllers, sign, goal, ti
 def test_learned_checkpoint_swings_up_from_exact_rest():
     """Closed loop on MuJoCo from exact rest with the MPC planning on the shipped learned
     ``pendulum_sign-invariant`` model (slow: builds and compiles the learned-model NLP once)."""
-    from fvin_mpc.checkpoint import CHECKPOINT_DIR
+    from fvin_mpc.core.checkpoint import CHECKPOINT_DIR
 
     if not (CHECKPOINT_DIR / "pendulum_sign-invariant.json").exists():
         pytest.skip("checkpoints/pendulum_sign-invariant is not present (trained by the lead; see README)")
-    from envs import RigidBodyEnv
+    from fvin_mpc.envs import RigidBodyEnv
 
-    from fvin_mpc.closed_loop import episode_metrics, run_episode
-    from fvin_mpc.swingup import scene_model, scene_mpc
+    from fvin_mpc.control.closed_loop import episode_metrics, run_episode
+    from fvin_mpc.control.scene import scene_model, scene_mpc
 
     env = RigidBodyEnv("pendulum")
     controller = scene_mpc(env, scene_model(env, "pendulum_sign-invariant"))

@@ -1,8 +1,8 @@
 """Non-unit quaternions and a 10⁶-step unforced rollout.
 
-Policy (``fvin_mpc.mpc.check_state``, the controller boundary): a measured ``q`` with
+Policy (``fvin_mpc.control.mpc.check_state``, the controller boundary): a measured ``q`` with
 ``|‖q‖ − 1| ≤ 1e-3`` is normalized, anything further from unit norm raises ``ValueError``. The
-pure step :func:`fvin_mpc.fvin.fvin_step` is homogeneous math: ``q_{k+1} = q_k ⊗ exp(ξ)`` with a
+pure step :func:`fvin_mpc.core.fvin.fvin_step` is homogeneous math: ``q_{k+1} = q_k ⊗ exp(ξ)`` with a
 unit ``exp(ξ)``, so it preserves ``‖q‖`` exactly (to rounding) whatever ``‖q_k‖`` is.
 """
 
@@ -13,10 +13,11 @@ from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 import strategies as S
-from fvin_mpc import export, fvin
-from fvin_mpc.backend import get_ops
-from fvin_mpc.mpc import UNIT_NORM_TOLERANCE, check_state
-from fvin_mpc.rigid_body import PENDULUM
+from fvin_mpc.control import export
+from fvin_mpc.core import fvin
+from fvin_mpc.core.backend import get_ops
+from fvin_mpc.control.mpc import UNIT_NORM_TOLERANCE, check_state
+from fvin_mpc.core.rigid_body import PENDULUM
 
 H = 0.05
 NP = get_ops("numpy")

@@ -1,7 +1,7 @@
 """Anisotropic inertia (condition number up to 1e3) and arbitrary 3-D axes against Euler's
 equations.
 
-Random :class:`~fvin_mpc.rigid_body.PivotedRigidBody`: a physical inertia (principal moments obey
+Random :class:`~fvin_mpc.core.rigid_body.PivotedRigidBody`: a physical inertia (principal moments obey
 the triangle inequality; a thin rod ``(ε, 1, 1)`` reaches condition 1e3) rotated arbitrarily, a
 random centre of mass and actuator axes, optional damping. The reference is written here from
 the physics, not from the package: ``q̇ = ½ q ⊗ (0, ω)``, ``J ω̇ = −ω × Jω + c × Rᵀ(−m g e_z) + B u
@@ -16,8 +16,8 @@ from hypothesis import strategies as st
 from scipy.integrate import solve_ivp
 
 import strategies as S
-from fvin_mpc import fvin
-from fvin_mpc.backend import get_ops
+from fvin_mpc.core import fvin
+from fvin_mpc.core.backend import get_ops
 
 NP = get_ops("numpy")
 K = 4  # converged: at h·Ω ≤ 0.25 the Newton error after 4 iterations is below 1e-12

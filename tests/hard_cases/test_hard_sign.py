@@ -8,9 +8,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import strategies as S
-from fvin_mpc import export
-from fvin_mpc.checkpoint import save_checkpoint
-from fvin_mpc.networks import ModelConfig, init_weights
+from fvin_mpc.control import export
+from fvin_mpc.core.checkpoint import save_checkpoint
+from fvin_mpc.core.networks import ModelConfig, init_weights
 
 torch = pytest.importorskip("torch")
 WEIGHT_SEEDS = (0, 1, 2)
@@ -19,7 +19,7 @@ WEIGHT_SEEDS = (0, 1, 2)
 @pytest.fixture(scope="module")
 def models(tmp_path_factory):
     """Random-weight sign-invariant models (m = 1 and m = 3 with damping) in torch and CasADi."""
-    from fvin_mpc.model import S3FVIN
+    from fvin_mpc.learning.model import S3FVIN
 
     built = {}
     for seed in WEIGHT_SEEDS:

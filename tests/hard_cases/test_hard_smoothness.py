@@ -14,10 +14,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import strategies as S
-from fvin_mpc import export, fvin, s3
-from fvin_mpc.backend import get_ops
-from fvin_mpc.networks import LearnedTerms, ModelConfig, init_weights
-from fvin_mpc.rigid_body import PENDULUM
+from fvin_mpc.control import export
+from fvin_mpc.core import fvin, s3
+from fvin_mpc.core.backend import get_ops
+from fvin_mpc.core.networks import LearnedTerms, ModelConfig, init_weights
+from fvin_mpc.core.rigid_body import PENDULUM
 
 torch = pytest.importorskip("torch")
 H = 0.05

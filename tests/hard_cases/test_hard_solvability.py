@@ -4,7 +4,7 @@ breaks down"), in the NumPy, torch and CasADi backends.
 For an isotropic ``J = jI`` the implicit equation has a closed form: ``Φ(ξ) = −(j/2) sin(2|ξ|) n``,
 so with ``s = 2|C|/j`` the principal solution is ``ξ* = −(C/|C|) asin(s)/2`` when ``s ≤ 1`` and
 there is none when ``s > 1``; then every ``ξ`` leaves ``|Φ(ξ) − C| ≥ |C| − j/2``, i.e. a residual
-(rad/s, :attr:`fvin_mpc.fvin.StepResult.residual`) of at least ``(s − 1)/h``. Without forces
+(rad/s, :attr:`fvin_mpc.core.fvin.StepResult.residual`) of at least ``(s − 1)/h``. Without forces
 ``s = h|ω|``. For any SPD ``J``, ``|Φ(ξ)| ≤ λ_max(J)`` (``|Φ|² = c²|Jv|² + |v×Jv|² ≤ |Jv|²``), so
 ``|C| > λ_max`` is unsolvable too. The reference step below is written from these formulas and
 the physical torques (``tests/strategies.py``), not from the package's step.
@@ -18,10 +18,11 @@ from hypothesis import strategies as st
 from scipy.optimize import root
 
 import strategies as S
-from fvin_mpc import export, fvin, s3
-from fvin_mpc.backend import get_ops
-from fvin_mpc.networks import LearnedTerms, ModelConfig, init_weights
-from fvin_mpc.rigid_body import PENDULUM
+from fvin_mpc.control import export
+from fvin_mpc.core import fvin, s3
+from fvin_mpc.core.backend import get_ops
+from fvin_mpc.core.networks import LearnedTerms, ModelConfig, init_weights
+from fvin_mpc.core.rigid_body import PENDULUM
 
 H = 0.05
 
@@ -281,7 +282,7 @@ def test_casadi_export_reports_the_limit(exported_pendulum, case, k):
 @pytest.fixture(scope="module")
 def exported_learned(tmp_path_factory):
     """A random-weight learned model (configuration-dependent, anisotropic J) as a CasADi export."""
-    from fvin_mpc.checkpoint import save_checkpoint
+    from fvin_mpc.core.checkpoint import save_checkpoint
 
     config = ModelConfig(variant="sign-invariant", newton_iters=4)
     weights = init_weights(config, seed=11)

@@ -1,7 +1,7 @@
 """Closed-loop episodes of a controller on a scene's Gymnasium environment, and their metrics.
 
-Every controller in the package (:class:`~fvin_mpc.mpc.MPC`,
-:class:`~fvin_mpc.energy_shaping.EnergyShapingController`, :class:`ZeroController`) is a
+Every controller in the package (:class:`~fvin_mpc.control.mpc.MPC`,
+:class:`~fvin_mpc.control.energy_shaping.EnergyShapingController`, :class:`ZeroController`) is a
 callable ``u, info = controller(q, omega)`` with a ``reset()``; :func:`run_episode` drives
 one on an :class:`envs.RigidBodyEnv` (MuJoCo is the plant) and records an :class:`Episode`;
 :func:`episode_metrics` turns it into the numbers the CLIs report.

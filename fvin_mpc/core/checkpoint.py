@@ -21,12 +21,12 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from .networks import ModelConfig, check_weights
+from fvin_mpc.core.networks import ModelConfig, check_weights
 
 FORMAT = "fvin_mpc.checkpoint/1"
 #: Where the shipped checkpoints live (next to the package in a source checkout or
 #: installed as package data).
-CHECKPOINT_DIR = Path(__file__).resolve().parent.parent / "checkpoints"
+CHECKPOINT_DIR = Path(__file__).resolve().parents[2] / "checkpoints"
 DEFAULT_CHECKPOINT = "pendulum_sign-invariant"
 
 

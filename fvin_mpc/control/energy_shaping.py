@@ -16,7 +16,7 @@ nor learned, so a full 6-state LQR would not be stabilizable).
 
 Constructors: :meth:`EnergyShapingController.from_checkpoint` (the learned ``J``, ``U``,
 ``g`` of a trained model), :meth:`EnergyShapingController.from_model` (any
-:class:`~fvin_mpc.export.ExportedModel`), :meth:`EnergyShapingController.from_rigid_body`
+:class:`~fvin_mpc.control.export.ExportedModel`), :meth:`EnergyShapingController.from_rigid_body`
 (the closed-form "true model") and :func:`scene_controller` (goal and torque bounds of a
 scene's env). The LQR design is kept in :attr:`EnergyShapingController.lqr`
 (:class:`LQRDesign`: ``A``, ``B``, the weights, the Riccati solution ``P`` and gain ``K``).
@@ -30,8 +30,8 @@ from typing import Any
 import numpy as np
 import scipy.linalg
 
-from . import fvin, s3
-from .backend import get_ops
+from fvin_mpc.core import fvin, s3
+from fvin_mpc.core.backend import get_ops
 
 NP = get_ops("numpy")
 HANGING = np.array([1.0, 0.0, 0.0, 0.0])
@@ -86,7 +86,7 @@ class EnergyShapingSettings:
 
 
 class EnergyShapingController:
-    """``u, info = controller(q, omega)`` for any :class:`~fvin_mpc.fvin.RigidBodyTerms` on NumPy."""
+    """``u, info = controller(q, omega)`` for any :class:`~fvin_mpc.core.fvin.RigidBodyTerms` on NumPy."""
 
     def __init__(self, terms: Any, step_size: float, newton_iters: int, goal: np.ndarray, torque_low: np.ndarray,
                  torque_high: np.ndarray, settings: EnergyShapingSettings = EnergyShapingSettings(),
@@ -116,7 +116,7 @@ class EnergyShapingController:
     def from_model(cls, model: Any, goal: Any, torque_low: Any, torque_high: Any,
                    settings: EnergyShapingSettings = EnergyShapingSettings(),
                    hanging: np.ndarray = HANGING) -> "EnergyShapingController":
-        """From an :class:`~fvin_mpc.export.ExportedModel` (its NumPy ``J``, ``U``, ``g``, ``h``, ``K``)."""
+        """From an :class:`~fvin_mpc.control.export.ExportedModel` (its NumPy ``J``, ``U``, ``g``, ``h``, ``K``)."""
         return cls(model.numpy_terms, model.step_size, model.newton_iters, goal, torque_low, torque_high, settings,
                    hanging)
 
@@ -124,12 +124,12 @@ class EnergyShapingController:
     def from_checkpoint(cls, checkpoint: Any, goal: Any, torque_low: Any, torque_high: Any,
                         settings: EnergyShapingSettings = EnergyShapingSettings(), newton_iters: int | None = None,
                         hanging: np.ndarray = HANGING) -> "EnergyShapingController":
-        """From a trained model only: a :class:`~fvin_mpc.checkpoint.Checkpoint`, shipped name or path.
+        """From a trained model only: a :class:`~fvin_mpc.core.checkpoint.Checkpoint`, shipped name or path.
 
         Uses the checkpoint's ``h`` and (unless ``newton_iters`` is given) its ``K``; no torch.
         """
-        from .checkpoint import Checkpoint, load_checkpoint
-        from .networks import LearnedTerms
+        from fvin_mpc.core.checkpoint import Checkpoint, load_checkpoint
+        from fvin_mpc.core.networks import LearnedTerms
 
         if not isinstance(checkpoint, Checkpoint):
             checkpoint = load_checkpoint(checkpoint)
@@ -142,7 +142,7 @@ class EnergyShapingController:
     def from_rigid_body(cls, body: Any, step_size: float, goal: Any, torque_low: Any, torque_high: Any,
                         newton_iters: int = 2, settings: EnergyShapingSettings = EnergyShapingSettings(),
                         hanging: np.ndarray = HANGING) -> "EnergyShapingController":
-        """The true-model counterpart: a closed-form :class:`~fvin_mpc.rigid_body.PivotedRigidBody`."""
+        """The true-model counterpart: a closed-form :class:`~fvin_mpc.core.rigid_body.PivotedRigidBody`."""
         return cls(body.terms(NP), step_size, newton_iters, goal, torque_low, torque_high, settings, hanging)
 
     # ------------------------------------------------------------------ model
@@ -191,7 +191,7 @@ class EnergyShapingController:
 
     # ------------------------------------------------------------------ control
     def __call__(self, q: np.ndarray, omega: np.ndarray) -> tuple[np.ndarray, dict[str, Any]]:
-        from .mpc import check_state  # the controllers' shared input policy (shapes, NaN/inf, unit norm)
+        from fvin_mpc.control.mpc import check_state  # the controllers' shared input policy (shapes, NaN/inf, unit norm)
 
         q, omega = check_state(q, omega)
         angle = float(s3.geodesic_angle(tuple(self.goal), tuple(q), NP))
@@ -223,7 +223,7 @@ def scene_controller(env: Any, checkpoint: Any = None, true_model: bool = False,
     """Energy shaping on a scene's env: its goal, torque bounds and hanging orientation.
 
     ``true_model=True`` uses the closed-form body read off the scene's MJCF
-    (:func:`fvin_mpc.rigid_body.from_mujoco`) at the env's control period; otherwise the
+    (:func:`fvin_mpc.core.rigid_body.from_mujoco`) at the env's control period; otherwise the
     learned ``J``, ``U``, ``g`` of ``checkpoint`` (whose step must equal the control period).
 
     Raises:
@@ -240,12 +240,12 @@ def scene_controller(env: Any, checkpoint: Any = None, true_model: bool = False,
             "reaching the upright energy does not mean reaching upright (conical swings, spin)")
     hanging = HANGING  # from_mujoco's convention: the world frame is the body's rest orientation
     if true_model:
-        from .rigid_body import from_mujoco
+        from fvin_mpc.core.rigid_body import from_mujoco
 
         body = from_mujoco(base.model, base.body_name)
         return EnergyShapingController.from_rigid_body(body, base.dt, base.goal, base.torque_low, base.torque_high,
                                                        newton_iters or 2, settings, hanging)
-    from .checkpoint import Checkpoint, load_checkpoint
+    from fvin_mpc.core.checkpoint import Checkpoint, load_checkpoint
 
     if not isinstance(checkpoint, Checkpoint):
         checkpoint = load_checkpoint(checkpoint)

@@ -19,8 +19,8 @@ from typing import Any, Literal, Mapping
 
 import numpy as np
 
-from . import s3
-from .backend import Ops
+from fvin_mpc.core import s3
+from fvin_mpc.core.backend import Ops
 
 Variant = Literal["sign-invariant", "fixed-inertia", "plain"]
 VARIANTS: tuple[str, ...] = ("sign-invariant", "fixed-inertia", "plain")
@@ -170,7 +170,7 @@ def scalar_mlp_value_and_gradient(
 
 
 class LearnedTerms:
-    """:class:`~fvin_mpc.fvin.RigidBodyTerms` of a learned model on one backend."""
+    """:class:`~fvin_mpc.core.fvin.RigidBodyTerms` of a learned model on one backend."""
 
     def __init__(self, weights: Mapping[str, Any], config: ModelConfig, ops: Ops) -> None:
         self.weights = weights

@@ -17,11 +17,11 @@ NOISE_NOTE = ("Timings were taken on a 2-core machine shared with other jobs (tr
 
 
 #: Scenes whose held-out data must stay inside the speeds the model can represent: collected
-#: with :func:`fvin_mpc.spherical_report.collect_bounded` (``|ω_i| ≤ 15`` rad/s throughout; the
+#: with :func:`fvin_mpc.studies.spherical.collect_bounded` (``|ω_i| ≤ 15`` rad/s throughout; the
 #: unfiltered collector spins the light z axis past the step's solvability limit) and with the
 #: size of ``docs/spherical.md``'s held-out set.
 BOUNDED_HELDOUT: dict[str, dict[str, Any]] = {"spherical_pendulum": {"trajectories": 100, "max_speed": 15.0}}
-_BOUNDED_COLLECTOR = "fvin_mpc.spherical_report.collect_bounded"
+_BOUNDED_COLLECTOR = "fvin_mpc.studies.spherical.collect_bounded"
 
 
 def heldout_data(scene: str = "pendulum", control_period: float | None = None, seed: int = 1,
@@ -39,8 +39,8 @@ def heldout_data(scene: str = "pendulum", control_period: float | None = None, s
         ValueError: the file exists but holds other data (different size, seed, period or
             collector): it is never overwritten; delete it or pass another ``path``.
     """
-    from ..collect import collect
-    from ..data import load_data, save_data
+    from fvin_mpc.learning.collection import collect
+    from fvin_mpc.core.data import load_data, save_data
 
     stem = Path(scene).stem + (f"-h{control_period:g}" if control_period is not None else "")
     bounded = BOUNDED_HELDOUT.get(Path(scene).stem)
@@ -63,7 +63,7 @@ def heldout_data(scene: str = "pendulum", control_period: float | None = None, s
                          "delete it to have it collected again")
     print(f"collecting held-out data {path} (seed {seed}, {trajectories}×{steps})", file=sys.stderr)
     if bounded:
-        from ..spherical_report import collect_bounded
+        from fvin_mpc.studies.spherical import collect_bounded
 
         if control_period is not None:
             raise ValueError(f"{scene}: the speed-bounded held-out data are collected at the scene's own period only")
@@ -78,7 +78,7 @@ def heldout_data(scene: str = "pendulum", control_period: float | None = None, s
 
 def checkpoint_or_none(name: str) -> Any:
     """The checkpoint called ``name`` or ``None`` if it is not there (studies skip it and say so)."""
-    from ..checkpoint import CheckpointError, load_checkpoint
+    from fvin_mpc.core.checkpoint import CheckpointError, load_checkpoint
 
     try:
         return load_checkpoint(name)
@@ -87,7 +87,7 @@ def checkpoint_or_none(name: str) -> Any:
 
 
 def make_env(scene: str, control_period: float | None = None) -> Any:
-    from envs import RigidBodyEnv
+    from fvin_mpc.envs import RigidBodyEnv
 
     return RigidBodyEnv(scene=scene, control_period=control_period)
 
@@ -95,8 +95,8 @@ def make_env(scene: str, control_period: float | None = None) -> Any:
 def swingup(env: Any, model: Any, settings: Any, duration_s: float, reset_options: dict | None = None,
             seed: int = 0) -> dict[str, Any]:
     """Build an MPC on ``model`` for ``env``'s goal and bounds and run one episode; metrics + build info."""
-    from ..closed_loop import episode_metrics, run_episode
-    from ..mpc import MPC
+    from fvin_mpc.control.closed_loop import episode_metrics, run_episode
+    from fvin_mpc.control.mpc import MPC
 
     base = env.unwrapped
     controller = MPC(model, settings, base.goal, base.torque_low, base.torque_high)
@@ -111,8 +111,8 @@ def swingup(env: Any, model: Any, settings: Any, duration_s: float, reset_option
 def solve_stats(env: Any, model: Any, settings: Any, duration_s: float, reset_options: dict | None = None,
                 seed: int = 0) -> dict[str, Any]:
     """Like :func:`swingup` but also the IPOPT iterations and solve times of every call (not the wrapper's)."""
-    from ..closed_loop import episode_metrics, run_episode
-    from ..mpc import MPC
+    from fvin_mpc.control.closed_loop import episode_metrics, run_episode
+    from fvin_mpc.control.mpc import MPC
 
     base = env.unwrapped
     controller = MPC(model, settings, base.goal, base.torque_low, base.torque_high)

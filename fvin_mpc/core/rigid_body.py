@@ -1,7 +1,7 @@
 """Closed-form rigid bodies hanging from a fixed pivot — the ground truth the learned
 model is compared with, and the ``--true-model`` the MPC can run on.
 
-Same :class:`~fvin_mpc.fvin.RigidBodyTerms` interface as the learned model, written on
+Same :class:`~fvin_mpc.core.fvin.RigidBodyTerms` interface as the learned model, written on
 components, so every backend (NumPy, torch, CasADi) evaluates it.
 """
 
@@ -10,8 +10,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
-from . import s3
-from .backend import Ops
+from fvin_mpc.core import s3
+from fvin_mpc.core.backend import Ops
 
 Matrix = tuple[tuple[float, ...], ...]
 
@@ -45,7 +45,7 @@ class PivotedRigidBody:
 
 
 class PivotedRigidBodyTerms:
-    """:class:`PivotedRigidBody` evaluated with a backend's :class:`~fvin_mpc.backend.Ops`."""
+    """:class:`PivotedRigidBody` evaluated with a backend's :class:`~fvin_mpc.core.backend.Ops`."""
 
     constant_inertia = True
 

@@ -28,8 +28,8 @@ import math
 from dataclasses import dataclass
 from typing import Any, Protocol
 
-from . import s3
-from .backend import Ops
+from fvin_mpc.core import s3
+from fvin_mpc.core.backend import Ops
 
 
 class RigidBodyTerms(Protocol):

@@ -18,8 +18,8 @@ from typing import Any
 
 import numpy as np
 
-from . import StudyResult
-from .common import NOISE_NOTE
+from fvin_mpc.studies.report import StudyResult
+from fvin_mpc.studies.bench.common import NOISE_NOTE
 
 THETA0, TORQUE = 2.5, 0.5
 SAMPLE_PERIOD = 0.01
@@ -58,7 +58,7 @@ def _all_effects_model(xml_path: Any) -> Any:
     """The scene with everything MuJoCo can compute: no disable flag, every enable flag, collidable geoms."""
     import mujoco
 
-    from envs.scenes import load_model
+    from fvin_mpc.envs.scenes import load_model
 
     model = load_model(xml_path)
     model.opt.disableflags = 0
@@ -76,7 +76,7 @@ def _all_effects_model(xml_path: Any) -> Any:
 def run(quick: bool = False, seed: int = 0, repeats: int = 5, duration: float = 5.0, **_: Any) -> StudyResult:
     import mujoco
 
-    from envs.scenes import SCENES, build_model
+    from fvin_mpc.envs.scenes import SCENES, build_model
 
     spec = SCENES["pendulum"]
     duration = 1.0 if quick else duration
@@ -156,7 +156,7 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 5, duration: float = 
 
     def plot(figure: Any, rows_: list[dict[str, Any]]) -> None:
         axis = figure.add_subplot()
-        from .common import plot_pareto
+        from fvin_mpc.studies.bench.common import plot_pareto
 
         integ = [r for r in rows_ if r["part"] == "integrator"]
         for name in sorted({r["integrator"] for r in integ}):
@@ -176,7 +176,7 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 5, duration: float = 
 
 
 def _median(function: Any, repeats: int) -> tuple[float, float]:
-    from . import median_time
+    from fvin_mpc.studies.report import median_time
 
     return median_time(function, repeats)
 

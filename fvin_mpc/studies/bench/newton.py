@@ -5,11 +5,11 @@ or ``kinsol``): the Newton residual and the one-step and 40-step (2 s at h = 0.0
 errors against held-out MuJoCo trajectories (``data/<scene>_heldout.npz``, collected with
 ``python -m fvin_mpc.collect --seed 1 --trajectories 64 --steps 40`` if missing; for
 ``spherical_pendulum`` the speed-bounded set of ``docs/spherical.md``, see
-:func:`~fvin_mpc.bench.common.heldout_data`), the
+:func:`~fvin_mpc.studies.bench.common.heldout_data`), the
 difference from the converged step, the time of one step (torch batched, CasADi single
 call, CasADi ``map`` over the batch), and MPC solve time and closed-loop swing-up from rest
-on MuJoCo (:func:`fvin_mpc.closed_loop.run_episode`) with the scene's MPC settings
-(:func:`fvin_mpc.swingup.scene_settings`; ``--horizon`` overrides the horizon).
+on MuJoCo (:func:`fvin_mpc.control.closed_loop.run_episode`) with the scene's MPC settings
+(:func:`fvin_mpc.control.scene.scene_settings`; ``--horizon`` overrides the horizon).
 
 ``--model learned`` (default) uses the shipped ``<scene>_sign-invariant`` checkpoint (or
 ``--checkpoint``), ``--model true`` the closed-form body read off the scene's MJCF.
@@ -22,8 +22,8 @@ from typing import Any
 
 import numpy as np
 
-from . import StudyResult, StudySkipped, median_time
-from .common import NOISE_NOTE, checkpoint_or_none, heldout_data, make_env, plot_pareto, solve_stats, torch_threads
+from fvin_mpc.studies.report import StudyResult, StudySkipped, median_time
+from fvin_mpc.studies.bench.common import NOISE_NOTE, checkpoint_or_none, heldout_data, make_env, plot_pareto, solve_stats, torch_threads
 
 BATCH = 1024
 
@@ -32,13 +32,13 @@ BATCH = 1024
 def rootfinder_step(terms_ca: Any, step_size: float, plugin: str = "newton") -> Any:
     """``F(x[7], u[m]) -> (x_next[7], residual)`` with the implicit equation solved by CasADi's ``rootfinder``.
 
-    Steps 1–2 and 4–5 are :func:`fvin_mpc.fvin.fvin_step`'s own (:func:`~fvin_mpc.fvin.implicit_problem`,
-    :func:`~fvin_mpc.fvin.finish_step`); step 3, ``Φ(ξ) = C``, is solved to convergence (abstol 1e-14) from the first Newton iterate.
+    Steps 1–2 and 4–5 are :func:`fvin_mpc.core.fvin.fvin_step`'s own (:func:`~fvin_mpc.core.fvin.implicit_problem`,
+    :func:`~fvin_mpc.core.fvin.finish_step`); step 3, ``Φ(ξ) = C``, is solved to convergence (abstol 1e-14) from the first Newton iterate.
     """
     import casadi as ca
 
-    from .. import fvin, s3
-    from ..backend import get_ops
+    from fvin_mpc.core import fvin, s3
+    from fvin_mpc.core.backend import get_ops
 
     ops = get_ops("casadi")
     m, h = terms_ca.control_dim, step_size
@@ -91,12 +91,12 @@ def _torch_step_time(source: Any, newton_iters: int, q: np.ndarray, omega: np.nd
                      repeats: int) -> float:
     import torch
 
-    from .. import fvin
-    from ..backend import get_ops
+    from fvin_mpc.core import fvin
+    from fvin_mpc.core.backend import get_ops
 
     ops = get_ops("torch")
     if source["kind"] == "learned":
-        from ..networks import LearnedTerms
+        from fvin_mpc.core.networks import LearnedTerms
 
         terms = LearnedTerms({k: torch.as_tensor(v, dtype=torch.float64) for k, v in source["checkpoint"].weights.items()},
                              source["checkpoint"].config, ops)
@@ -130,8 +130,8 @@ def _casadi_map_time(step: Any, x: np.ndarray, u: np.ndarray, repeats: int) -> f
 
 # ----------------------------------------------------------------------------- study
 def _source(scene: str, model: str, checkpoint: str | None, control_period: float | None) -> dict[str, Any]:
-    from ..export import from_checkpoint, from_rigid_body  # noqa: F401  (used by callers)
-    from ..rigid_body import from_mujoco
+    from fvin_mpc.control.export import from_checkpoint, from_rigid_body  # noqa: F401  (used by callers)
+    from fvin_mpc.core.rigid_body import from_mujoco
 
     env = make_env(scene, control_period)
     base = env.unwrapped
@@ -150,7 +150,7 @@ def _source(scene: str, model: str, checkpoint: str | None, control_period: floa
 
 
 def _exported(source: dict[str, Any], newton_iters: int) -> Any:
-    from ..export import from_checkpoint, from_rigid_body
+    from fvin_mpc.control.export import from_checkpoint, from_rigid_body
 
     if source["kind"] == "learned":
         return from_checkpoint(source["checkpoint"], newton_iters)
@@ -158,8 +158,8 @@ def _exported(source: dict[str, Any], newton_iters: int) -> Any:
 
 
 def _casadi_terms(source: dict[str, Any]) -> Any:
-    from ..backend import get_ops
-    from ..networks import LearnedTerms
+    from fvin_mpc.core.backend import get_ops
+    from fvin_mpc.core.networks import LearnedTerms
 
     ops = get_ops("casadi")
     if source["kind"] == "learned":
@@ -172,14 +172,14 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 5, scene: str = "pend
         iters: str = "1,2,3,4,5,6", **_: Any) -> StudyResult:
     from tqdm.auto import tqdm
 
-    from ..swingup import scene_settings
+    from fvin_mpc.control.scene import scene_settings
 
     source = _source(scene, "true" if quick else model, checkpoint, None)
     h = source["step_size"]
     ks = [1, 2] if quick else [int(k) for k in iters.split(",")]
     repeats = 2 if quick else repeats
     if quick:
-        from ..collect import collect
+        from fvin_mpc.learning.collection import collect
 
         data = collect(scene, 8, 10, 1, progress=False)
         horizon, duration = 10, 1.0

@@ -2,7 +2,7 @@
 
 A swing-up NLP has many local optima (swing left or right first, pump now or one swing
 later, catch the pendulum near upright or let it fall through a full turn). The plain
-:class:`~fvin_mpc.mpc.MPC` starts every cold solve from one guess (the model rolled out under
+:class:`~fvin_mpc.control.mpc.MPC` starts every cold solve from one guess (the model rolled out under
 a constant torque), and IPOPT, a local method, converges to the optimum nearest to it.
 Warm starts then follow that choice for the rest of the episode. Measured in
 ``docs/evaluation.md`` and ``docs/pendulum-v1.md``: started near upright, every constant
@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from .mpc import MPC, MPCSettings, _Plan
+from fvin_mpc.control.mpc import MPC, MPCSettings, _Plan
 
 #: The first guesses: the model under ``+f·u_max`` and ``−f·u_max`` (``f`` the settings'
 #: ``initial_torque_fraction``), and ``"goal"``: the orientation slerped from the measured
@@ -32,7 +32,7 @@ GUESSES: tuple[str, ...] = ("rollout+", "rollout-", "goal")
 
 
 class MultiStartMPC(MPC):
-    """:class:`~fvin_mpc.mpc.MPC` whose cold solves try every guess in ``guesses``.
+    """:class:`~fvin_mpc.control.mpc.MPC` whose cold solves try every guess in ``guesses``.
 
     ``info`` gains ``cold_start`` (the guess that won, on cold calls) and ``cold_costs``
     (guess → cost, ``nan`` if that solve failed); ``solve_time_s`` is the sum over guesses.

@@ -22,8 +22,8 @@ from typing import Any
 
 import numpy as np
 
-from . import StudyResult
-from .common import NOISE_NOTE, heldout_data, make_env, plot_pareto, solve_stats, torch_threads
+from fvin_mpc.studies.report import StudyResult
+from fvin_mpc.studies.bench.common import NOISE_NOTE, heldout_data, make_env, plot_pareto, solve_stats, torch_threads
 
 WIDTHS = (8, 16, 32, 64)
 VARIANTS = ("sign-invariant", "fixed-inertia")
@@ -32,8 +32,8 @@ VARIANTS = ("sign-invariant", "fixed-inertia")
 def _training_data(seed: int) -> Any:
     from pathlib import Path
 
-    from ..collect import collect
-    from ..data import load_data, save_data
+    from fvin_mpc.learning.collection import collect
+    from fvin_mpc.core.data import load_data, save_data
 
     path = Path("data/pendulum.npz")
     if path.is_file():
@@ -46,10 +46,10 @@ def _training_data(seed: int) -> Any:
 
 def _trained(data: Any, variant: str, width: int, iterations: int, seed: int, progress: bool) -> tuple[Any, bool]:
     """A checkpoint trained with these settings: from the cache, or trained now and cached."""
-    from ..checkpoint import load_checkpoint, save_checkpoint
-    from ..export import cache_dir
-    from ..networks import ModelConfig
-    from ..train import TrainSettings, train
+    from fvin_mpc.core.checkpoint import load_checkpoint, save_checkpoint
+    from fvin_mpc.control.export import cache_dir
+    from fvin_mpc.core.networks import ModelConfig
+    from fvin_mpc.learning.training import TrainSettings, train
 
     config = ModelConfig(variant=variant, control_dim=data.u.shape[2], hidden_width=width,
                          step_size=data.control_period)
@@ -67,25 +67,25 @@ def _trained(data: Any, variant: str, width: int, iterations: int, seed: int, pr
 
 def run(quick: bool = False, seed: int = 0, repeats: int = 5, iterations: int = 200, train_trajectories: int = 32,
         horizon: int = 30, duration: float = 4.0, widths: str = ",".join(map(str, WIDTHS)), **_: Any) -> StudyResult:
-    from ..export import from_checkpoint
-    from ..mpc import MPCSettings
-    from ..networks import LearnedTerms
-    from ..backend import get_ops
-    from ..quality import rollout
+    from fvin_mpc.control.export import from_checkpoint
+    from fvin_mpc.control.mpc import MPCSettings
+    from fvin_mpc.core.networks import LearnedTerms
+    from fvin_mpc.core.backend import get_ops
+    from fvin_mpc.studies.quality import rollout
 
     width_list = [4] if quick else [int(w) for w in widths.split(",")]
     variants = ("fixed-inertia",) if quick else VARIANTS
     if quick:
         iterations, train_trajectories, horizon, duration = 3, 8, 10, 1.0
     if quick:
-        from ..collect import collect
+        from fvin_mpc.learning.collection import collect
 
         full = collect("pendulum", train_trajectories, 20, seed, progress=False)
     else:
         full = _training_data(seed)
     data = full.subset(np.sort(np.random.default_rng(seed).permutation(full.num_trajectories)[:train_trajectories]))
     if quick:
-        from ..collect import collect
+        from fvin_mpc.learning.collection import collect
 
         heldout = collect("pendulum", 8, 10, 1, progress=False)
     else:

@@ -1,6 +1,6 @@
 """``solver``: Hessian, compiled code, warm start and NLP solver of the MPC — solve time vs result.
 
-Configurations of :class:`fvin_mpc.mpc.MPCSettings` on the same swing-up from rest (MuJoCo
+Configurations of :class:`fvin_mpc.control.mpc.MPCSettings` on the same swing-up from rest (MuJoCo
 pendulum, the shipped learned model or ``--model true``): IPOPT with the Gauss–Newton,
 exact and limited-memory Hessians, with the NLP's functions compiled to C (cached) or
 interpreted; warm start none / primal / primal–dual; and CasADi's ``sqpmethod`` (qrqp) and
@@ -16,8 +16,8 @@ import tempfile
 from dataclasses import replace
 from typing import Any
 
-from . import StudyResult, StudySkipped
-from .common import NOISE_NOTE, checkpoint_or_none, make_env, plot_pareto, solve_stats
+from fvin_mpc.studies.report import StudyResult, StudySkipped
+from fvin_mpc.studies.bench.common import NOISE_NOTE, checkpoint_or_none, make_env, plot_pareto, solve_stats
 
 #: (label, settings overrides) — IPOPT (the default solver) first.
 CONFIGS: tuple[tuple[str, dict[str, Any]], ...] = (
@@ -37,8 +37,8 @@ QUICK = ("ipopt GN cached pd (default)", "sqpmethod GN cached pd", "fatrop exact
 
 
 def _model(model: str) -> tuple[Any, Any, str]:
-    from ..export import from_checkpoint, from_rigid_body
-    from ..rigid_body import from_mujoco
+    from fvin_mpc.control.export import from_checkpoint, from_rigid_body
+    from fvin_mpc.core.rigid_body import from_mujoco
 
     env = make_env("pendulum")
     base = env.unwrapped
@@ -57,8 +57,8 @@ def _cold_build_s(exported: Any, settings: Any) -> float:
     import shutil
     from pathlib import Path
 
-    from ..export import cache_dir
-    from ..mpc import MPC
+    from fvin_mpc.control.export import cache_dir
+    from fvin_mpc.control.mpc import MPC
 
     previous = os.environ.get("FVIN_MPC_CACHE")
     with tempfile.TemporaryDirectory(prefix="fvin_mpc_cold_") as empty:
@@ -79,7 +79,7 @@ def _cold_build_s(exported: Any, settings: Any) -> float:
 
 def run(quick: bool = False, seed: int = 0, repeats: int = 5, model: str = "learned", horizon: int = 30,
         duration: float = 8.0, cold: bool = True, **_: Any) -> StudyResult:
-    from ..mpc import MPCSettings
+    from fvin_mpc.control.mpc import MPCSettings
 
     model = "true" if quick else model
     env, exported, label = _model(model)

@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from . import StudyResult, median_time
+from fvin_mpc.studies.report import StudyResult, median_time
 
 REFERENCE_SECONDS_PER_ITERATION = 1.5
 
@@ -27,13 +27,13 @@ def _equal_loss(seed: int, iterations: int, eval_every: int) -> list[dict[str, A
     """Train on ``data/pendulum.npz`` eagerly and compiled from the same seed, recording the wall
     clock at every validation; returns one row per mode with the time to reach a common loss.
 
-    The loop is :func:`fvin_mpc.train.train`'s (same split, windows, Adam, cosine schedule)."""
+    The loop is :func:`fvin_mpc.learning.training.train`'s (same split, windows, Adam, cosine schedule)."""
     import torch
 
-    from ..model import DTYPE, S3FVIN
-    from ..networks import ModelConfig
-    from ..train import TrainSettings, rollout_loss, split_data
-    from .width import _training_data
+    from fvin_mpc.learning.model import DTYPE, S3FVIN
+    from fvin_mpc.core.networks import ModelConfig
+    from fvin_mpc.learning.training import TrainSettings, rollout_loss, split_data
+    from fvin_mpc.studies.bench.width import _training_data
 
     data = _training_data(seed)
     settings = TrainSettings(iterations=iterations, seed=seed)
@@ -78,7 +78,7 @@ def _equal_loss(seed: int, iterations: int, eval_every: int) -> list[dict[str, A
 
 def run(quick: bool = False, seed: int = 0, repeats: int = 5, threads: int = 1, equal_loss: bool = True,
         equal_loss_iterations: int = 100, **_: Any) -> StudyResult:
-    from .common import NOISE_NOTE, torch_threads
+    from fvin_mpc.studies.bench.common import NOISE_NOTE, torch_threads
 
     with torch_threads(threads):
         result = _run(quick, seed, repeats)
@@ -96,7 +96,7 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 5, threads: int = 1, 
                     "above; a cold compile adds about `compile_s`, so from a cold start compiling pays off only once "
                     "the run is longer than that).")
             result.columns = list(result.columns) + ["target_validation_loss", "iterations_to_target", "s_to_target"]
-    from .common import checkpoint_or_none
+    from fvin_mpc.studies.bench.common import checkpoint_or_none
 
     shipped = checkpoint_or_none("pendulum_sign-invariant")
     if shipped is not None and "training" in shipped.metadata:
@@ -112,9 +112,9 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 5, threads: int = 1, 
 def _run(quick: bool, seed: int, repeats: int) -> StudyResult:
     import torch
 
-    from ..model import DTYPE, S3FVIN
-    from ..networks import ModelConfig
-    from ..train import rollout_loss
+    from fvin_mpc.learning.model import DTYPE, S3FVIN
+    from fvin_mpc.core.networks import ModelConfig
+    from fvin_mpc.learning.training import rollout_loss
 
     torch.manual_seed(seed)
     windows, steps = (352, 9) if quick else (3520, 9)

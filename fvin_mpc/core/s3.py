@@ -6,7 +6,7 @@ are the same rotation; ``exp`` of a pure quaternion ``(0, v)`` is
 
 Values are tuples of *components* (see :mod:`fvin_mpc.backend`): a quaternion is a
 4-tuple, a vector a 3-tuple, a matrix a tuple of row tuples. Components may be
-torch tensors, NumPy arrays, CasADi symbols or floats. Only :class:`~fvin_mpc.backend.Ops`
+torch tensors, NumPy arrays, CasADi symbols or floats. Only :class:`~fvin_mpc.core.backend.Ops`
 leaf functions (``sin``, ``cos``, ``sqrt``, ``where``, ``atan2``) are backend specific.
 
 Smoothness at zero: ``sin|v|/|v|`` and friends are functions of ``t = |v|²`` with a
@@ -18,7 +18,7 @@ from __future__ import annotations
 
 from typing import Any, Sequence
 
-from .backend import Ops
+from fvin_mpc.core.backend import Ops
 
 Quat = tuple[Any, Any, Any, Any]
 Vec3 = tuple[Any, Any, Any]

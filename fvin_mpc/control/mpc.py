@@ -17,7 +17,7 @@ The problem (multiple shooting, ``N = settings.horizon`` steps of the model's ``
   than a swing-up cannot see the goal from near hanging, and without ``W_E`` the plan
   that defers pumping is as cheap as the one that pumps; the energy term makes pumping
   pay inside the horizon. Off by default (``W_E = 0``); the scenes that need it set it
-  (:data:`fvin_mpc.swingup.SCENE_SETTINGS`).
+  (:data:`fvin_mpc.control.scene.SCENE_SETTINGS`).
 * **dynamics** — ``x_{k+1} = F(x_k, u_k)``, ``F`` mapped over the horizon (one copy of
   the step's code however long the horizon).
 * **bounds** — ``u`` within the actuators' range; every ``ω`` component of ``x_1 … x_N``
@@ -28,7 +28,7 @@ Speed comes from three choices, measured in ``docs/bench/solver.md``: the Gauss�
 Lagrangian Hessian (the constant quadratic cost Hessian plus ``2W_E ∇e∇eᵀ``; no second
 derivatives of the networks),
 the NLP's functions compiled to C once and cached on disk
-(:func:`fvin_mpc.export.compile_functions`), and a primal–dual warm start from the
+(:func:`fvin_mpc.control.export.compile_functions`), and a primal–dual warm start from the
 previous plan shifted by one step.
 
 The NLP solver is IPOPT by default; ``solver="sqpmethod"`` (CasADi's SQP with the qrqp
@@ -53,7 +53,7 @@ from typing import Any, Literal
 import casadi as ca
 import numpy as np
 
-from .export import STATE_DIM, CompileReport, ExportedModel, compile_functions
+from fvin_mpc.control.export import STATE_DIM, CompileReport, ExportedModel, compile_functions
 
 #: IPOPT return statuses accepted as a solution.
 SUCCESS_STATUSES = frozenset({"Solve_Succeeded", "Solved_To_Acceptable_Level"})
@@ -183,7 +183,7 @@ def check_state(q: Any, omega: Any) -> tuple[np.ndarray, np.ndarray]:
 
 
 class MPC:
-    """Receding-horizon controller over an :class:`~fvin_mpc.export.ExportedModel`.
+    """Receding-horizon controller over an :class:`~fvin_mpc.control.export.ExportedModel`.
 
     Args:
         model: the discrete-time model (``from_checkpoint`` or ``from_rigid_body``).

@@ -13,9 +13,9 @@ import numpy as np
 import torch
 from torch import nn
 
-from . import fvin, s3
-from .backend import get_ops
-from .networks import LearnedTerms, ModelConfig, check_weights, init_weights
+from fvin_mpc.core import fvin, s3
+from fvin_mpc.core.backend import get_ops
+from fvin_mpc.core.networks import LearnedTerms, ModelConfig, check_weights, init_weights
 
 DTYPE = torch.float64
 

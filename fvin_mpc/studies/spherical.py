@@ -1,0 +1,232 @@
+"""The 3-D rigid body on a ball joint (scene ``spherical_pendulum``): ``python -m fvin_mpc.spherical_report``.
+
+Sub-commands:
+
+* ``collect`` — trajectories as :func:`fvin_mpc.learning.collection.collect` draws them (orientation uniform on
+  S³, ω uniform in a ball, constant or piecewise-constant torques uniform in the actuators' box),
+  but a trajectory whose angular velocity leaves ``|ω_i| ≤ --max-speed`` at any step is redrawn.
+  Why: the z axis has a tiny inertia (0.017 kg·m² against ≈ 0.5 about x, y), so 1.5 N·m spins it up
+  by ≈ 4.4 rad/s per control period; unfiltered, 30 % of the states have ``|ω_z| > 20`` rad/s, past
+  the point where the FVIN step has a solution at ``h = 0.05`` (``h|ω| ≲ 1`` about a principal axis,
+  ``DESIGN.md``). The MPC bounds ``|ω_i| ≤ 0.6/h = 12`` rad/s; 15 rad/s leaves a margin above it.
+* ``closed-loop`` — swing-up and hold from hanging at rest and from seeded random (spinning) states,
+  learned model and true model side by side: success, time to upright, hold error, MPC solve times,
+  the step residual along the plan; writes JSON + a Markdown table.
+
+The model-quality part (held-out rollouts, recovered inertia) is :mod:`fvin_mpc.inertia`.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from fvin_mpc.learning.collection import control_sequence, random_joint_state
+from fvin_mpc.core.data import TrajectoryData
+
+SCENE = "spherical_pendulum"
+
+
+# ---------------------------------------------------------------------------------------------- data
+def collect_bounded(trajectories: int = 800, steps: int = 20, seed: int = 0, max_omega: float = 6.0,
+                    hold_steps: int = 2, max_speed: float = 15.0, scene: str = SCENE,
+                    progress: bool = True, max_attempts_factor: int = 50) -> TrajectoryData:
+    """``trajectories`` seeded rollouts of ``steps`` periods with ``max_i |ω_i| ≤ max_speed`` throughout.
+
+    Draws as :func:`fvin_mpc.learning.collection.collect` does (even index: one constant control, odd:
+    a new uniform level every ``hold_steps``); a rollout that exceeds ``max_speed`` is discarded
+    and a new one drawn for the same index. The metadata records the acceptance rate.
+    """
+    from tqdm.auto import tqdm
+
+    from fvin_mpc.envs import RigidBodyEnv
+
+    if not (math.isfinite(max_speed) and max_speed > 0):
+        raise ValueError(f"max_speed must be finite and > 0, got {max_speed!r}")
+    env = RigidBodyEnv(scene=scene)
+    rng = np.random.default_rng(seed)
+    low, high = env.action_space.low.astype(np.float64), env.action_space.high.astype(np.float64)
+    qs = np.empty((trajectories, steps + 1, 4))
+    omegas = np.empty((trajectories, steps + 1, 3))
+    us = np.empty((trajectories, steps, low.size))
+    attempts = 0
+    for i in tqdm(range(trajectories), desc=f"collect {scene} (|ω_i| ≤ {max_speed:g})", disable=not progress):
+        mode = "constant" if i % 2 == 0 else "piecewise"
+        while True:
+            attempts += 1
+            if attempts > max_attempts_factor * trajectories:
+                raise RuntimeError(f"acceptance too low: {i} of {trajectories} trajectories after {attempts} attempts")
+            qpos, qvel = random_joint_state(env, rng, max_omega)
+            observation, _ = env.reset(seed=int(rng.integers(2**31)), options={"qpos": qpos, "qvel": qvel})
+            controls = control_sequence(rng, low, high, steps, mode, hold_steps)
+            q_traj, w_traj = [observation[:4]], [observation[4:]]
+            ok = bool(np.abs(observation[4:]).max() <= max_speed)
+            for k in range(steps if ok else 0):
+                observation, *_ = env.step(controls[k])
+                q_traj.append(observation[:4])
+                w_traj.append(observation[4:])
+                if np.abs(observation[4:]).max() > max_speed:
+                    ok = False
+                    break
+            if ok:
+                break
+        qs[i], omegas[i], us[i] = np.array(q_traj), np.array(w_traj), controls
+    metadata = {
+        "scene": scene, "body": env.body_name, "control_period": float(env.dt), "seed": seed,
+        "trajectories": trajectories, "steps": steps, "transitions": trajectories * steps,
+        "max_omega": max_omega, "hold_steps": hold_steps, "max_speed": max_speed,
+        "attempts": attempts, "acceptance_rate": trajectories / attempts,
+        "control_modes": {"constant": (trajectories + 1) // 2, "piecewise": trajectories // 2},
+        "collector": "fvin_mpc.studies.spherical.collect_bounded",
+    }
+    env.close()
+    return TrajectoryData(qs, omegas, us, metadata)
+
+
+# ---------------------------------------------------------------------------------------------- closed loop
+class RecordingController:
+    """Wraps a controller and keeps, per call, the model's step residual, IPOPT iterations and fallback."""
+
+    def __init__(self, controller: Any) -> None:
+        self.controller = controller
+        self.records: list[dict[str, Any]] = []
+
+    def __call__(self, q: np.ndarray, omega: np.ndarray) -> tuple[np.ndarray, dict[str, Any]]:
+        u, info = self.controller(q, omega)
+        self.records.append({"step_residual": float(info.get("step_residual", float("nan"))),
+                             "iterations": int(info.get("iterations", -1)), "fallback": info.get("fallback"),
+                             "plan_max_abs_omega": float(np.abs(np.asarray(info["states"])[:, 4:]).max())
+                             if "states" in info else float("nan")})
+        return u, info
+
+    def reset(self) -> None:
+        self.records = []
+        self.controller.reset()
+
+
+def episode_starts(count: int, seed: int, max_omegas: tuple[float, ...]) -> list[dict[str, Any]]:
+    """Start 0 hanging at rest, then env-seeded random states (seed ``seed + i``), cycling through
+    ``max_omegas`` for the bound on |ω₀| (e.g. calm and spinning starts)."""
+    starts = [{"index": 0, "seed": seed, "options": None, "max_omega": 0.0}]
+    for i in range(1, count):
+        w = max_omegas[(i - 1) % len(max_omegas)]
+        starts.append({"index": i, "seed": seed + i, "options": {"random": True, "max_omega": w}, "max_omega": w})
+    return starts
+
+
+def closed_loop_study(checkpoint: str | None, episodes: int = 21, duration_s: float = 10.0, seed: int = 0,
+                      max_omegas: tuple[float, ...] = (2.0, 5.0), models: tuple[str, ...] = ("learned", "true"),
+                      horizon: int | None = None, progress: bool = True, indices: tuple[int, int] | None = None,
+                      partial_path: Path | None = None) -> dict[str, Any]:
+    """Swing-up and hold with the MPC on each model from the same seeded starts (see :func:`episode_starts`).
+
+    ``indices = (first, last)`` runs only those starts (inclusive; for splitting the work over
+    processes, merged again by :func:`merge_results`); ``partial_path`` gets the results so far
+    after every episode."""
+    from tqdm.auto import tqdm
+
+    from fvin_mpc.envs import RigidBodyEnv
+
+    from fvin_mpc.control.closed_loop import episode_metrics, run_episode
+    from fvin_mpc.control.scene import default_checkpoint, scene_model, scene_mpc, scene_settings
+
+    env = RigidBodyEnv(scene=SCENE)
+    settings = scene_settings(SCENE, horizon=horizon)
+    starts = episode_starts(episodes, seed, max_omegas)
+    if indices is not None:
+        starts = [st for st in starts if indices[0] <= st["index"] <= indices[1]]
+    checkpoint = checkpoint or default_checkpoint(SCENE)
+    results: dict[str, Any] = {"settings": {k: v for k, v in settings.__dict__.items() if k != "ipopt_options"},
+                               "checkpoint": checkpoint, "duration_s": duration_s, "models": {}}
+    for name in models:
+        model = scene_model(env, checkpoint if name == "learned" else None, true_model=name == "true")
+        mpc = scene_mpc(env, model, settings)
+        controller = RecordingController(mpc)
+        rows = []
+        for start in tqdm(starts, desc=f"closed loop {name}", disable=not progress):
+            episode, _ = run_episode(env, controller, duration_s, start["options"], seed=start["seed"])
+            metrics = episode_metrics(episode)
+            records = controller.records
+            rows.append({
+                "index": start["index"], "seed": start["seed"], "max_omega0": start["max_omega"],
+                "q0": episode.q[0].tolist(), "omega0": episode.omega[0].tolist(), **metrics,
+                "max_step_residual": float(np.nanmax([r["step_residual"] for r in records])),
+                "median_ipopt_iterations": float(np.median([r["iterations"] for r in records])),
+                "fallbacks": sum(r["fallback"] is not None for r in records),
+                "max_abs_omega": float(np.abs(episode.omega).max()),
+                "solve_times_ms": (1e3 * episode.controller_time_s).tolist(),
+            })
+            if partial_path is not None:
+                partial = {**results, "models": {**results["models"], name: {"model": model.name, "episodes": rows}}}
+                partial_path.parent.mkdir(parents=True, exist_ok=True)
+                partial_path.write_text(json.dumps(partial, indent=1) + "\n")
+        results["models"][name] = {"model": model.name, "build_s": mpc.build_s, "episodes": rows,
+                                   "summary": summarize(rows)}
+    env.close()
+    return results
+
+
+def summarize(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """Aggregate the per-episode rows of one model."""
+    times = np.concatenate([r["solve_times_ms"] for r in rows])
+    reached = [r["time_to_upright_s"] for r in rows if r["success"]]
+    return {
+        "episodes": len(rows), "swung_up_and_held": sum(r["swung_up"] for r in rows),
+        "success": sum(r["success"] for r in rows),
+        "time_to_upright_median_s": float(np.median(reached)) if reached else None,
+        "solve_time_median_ms": float(np.median(times)), "solve_time_p95_ms": float(np.percentile(times, 95)),
+        "solve_time_max_ms": float(times.max()),
+        "controller_failures": int(sum(r["controller_failures"] for r in rows)),
+        "max_step_residual": float(max(r["max_step_residual"] for r in rows)),
+        "max_abs_omega": float(max(r["max_abs_omega"] for r in rows)),
+        "solve_time_per_episode_median_ms": [float(np.median(r["solve_times_ms"])) for r in rows],
+    }
+
+
+def merge_results(parts: list[dict[str, Any]]) -> dict[str, Any]:
+    """Combine results of :func:`closed_loop_study` runs over disjoint starts (and/or models)."""
+    merged: dict[str, Any] = {k: v for k, v in parts[0].items() if k != "models"}
+    merged["models"] = {}
+    for part in parts:
+        for name, entry in part["models"].items():
+            target = merged["models"].setdefault(name, {"model": entry["model"], "episodes": []})
+            target["episodes"] += entry["episodes"]
+    for entry in merged["models"].values():
+        entry["episodes"].sort(key=lambda r: r["index"])
+        entry["summary"] = summarize(entry["episodes"])
+    return merged
+
+
+def markdown_tables(results: dict[str, Any]) -> str:
+    """A summary table (one row per model) and a per-start table, learned and true side by side."""
+    models = list(results["models"])
+    lines = ["| model | swung up and held | upright at end | time to upright, median (s) | solve ms median | p95 "
+             "| max | failed solves | max step residual (rad/s) | max \\|ω_i\\| (rad/s) |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for name in models:
+        s = results["models"][name]["summary"]
+        t = "—" if s["time_to_upright_median_s"] is None else f"{s['time_to_upright_median_s']:.2f}"
+        lines.append(f"| {name} (`{results['models'][name]['model']}`) | {s['swung_up_and_held']}/{s['episodes']} "
+                     f"| {s['success']}/{s['episodes']} | {t} | {s['solve_time_median_ms']:.0f} "
+                     f"| {s['solve_time_p95_ms']:.0f} | {s['solve_time_max_ms']:.0f} | {s['controller_failures']} "
+                     f"| {s['max_step_residual']:.1e} | {s['max_abs_omega']:.1f} |")
+    lines += ["", "| # | seed | start | \\|ω₀\\| (rad/s) | " + " | ".join(f"{n}: t↑ (s) / hold err (rad)" for n in models) + " |",
+              "|" + "---|" * (4 + len(models))]
+    first = results["models"][models[0]]["episodes"]
+    for i, row in enumerate(first):
+        start = "rest" if row["index"] == 0 else f"random (≤ {row['max_omega0']:g})"
+        cells = []
+        for name in models:
+            r = results["models"][name]["episodes"][i]
+            t = f"{r['time_to_upright_s']:.2f}" if r["success"] else "**fail**"
+            cells.append(f"{t} / {r['hold_error_rad']:.3f}")
+        lines.append(f"| {row['index']} | {row['seed']} | {start} | {np.linalg.norm(row['omega0']):.2f} | "
+                     + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+# ---------------------------------------------------------------------------------------------- CLI
