@@ -9,7 +9,7 @@ about +y, ``q = (cos θ/2, 0, sin θ/2, 0)`` and ``ω = (0, θ̇, 0)``. Both int
     θ_scene = θ_v1 + π  (mod 2π),   θ̇_scene = θ̇_v1,   τ_scene = τ_v1.
 
 Upright (θ_v1 = 0) is ``q = (0, 0, 1, 0)``, the scene's goal. Functions accept a trailing axis
-(``(..., 3)`` observations, ``(..., 4)``/``(..., 3)`` states) and return float64.
+(``(..., 3)`` observations, ``(..., 7)`` states ``x = (q, ω)``) and return float64.
 """
 
 from __future__ import annotations
@@ -27,8 +27,8 @@ def v1_angle_from_scene(theta_scene):
     return np.mod(np.asarray(theta_scene, dtype=np.float64), 2.0 * np.pi) - np.pi
 
 
-def state_from_v1_observation(observation) -> tuple[np.ndarray, np.ndarray]:
-    """``[cos θ, sin θ, θ̇]`` of Pendulum-v1 → ``(q, ω)`` of the scene: shapes ``(..., 4)``, ``(..., 3)``."""
+def state_from_v1_observation(observation) -> np.ndarray:
+    """``[cos θ, sin θ, θ̇]`` of Pendulum-v1 → the scene's state ``x = (q, ω)``, shape ``(..., 7)``."""
     observation = np.asarray(observation, dtype=np.float64)
     if observation.shape[-1:] != (3,):
         raise ValueError(f"a Pendulum-v1 observation has shape (..., 3), got {observation.shape}")
@@ -37,19 +37,19 @@ def state_from_v1_observation(observation) -> tuple[np.ndarray, np.ndarray]:
     zero = np.zeros_like(half)
     q = np.stack([np.cos(half), zero, np.sin(half), zero], axis=-1)
     omega = np.stack([zero, theta_dot, zero], axis=-1)
-    return q, omega
+    return np.concatenate([q, omega], axis=-1)
 
 
-def v1_observation_from_state(q, omega) -> np.ndarray:
-    """The scene's ``(q, ω)`` → Pendulum-v1's ``[cos θ, sin θ, θ̇]``, shape ``(..., 3)``.
+def v1_observation_from_state(x) -> np.ndarray:
+    """The scene's state ``x = (q, ω)`` ``(..., 7)`` → Pendulum-v1's ``[cos θ, sin θ, θ̇]``, shape ``(..., 3)``.
 
     Sign invariant in ``q``. Only the rotation about y and ``ω_y`` are used: ``q`` is assumed
     to be a rotation about the hinge axis, ``(cos θ/2, 0, sin θ/2, 0)``.
     """
-    q = np.asarray(q, dtype=np.float64)
-    omega = np.asarray(omega, dtype=np.float64)
-    if q.shape[-1:] != (4,) or omega.shape[-1:] != (3,):
-        raise ValueError(f"expected q (..., 4) and omega (..., 3), got {q.shape} and {omega.shape}")
+    x = np.asarray(x, dtype=np.float64)
+    if x.shape[-1:] != (7,):
+        raise ValueError(f"expected states x = (q, ω) of shape (..., 7), got {x.shape}")
+    q, omega = x[..., :4], x[..., 4:]
     w, y = q[..., 0], q[..., 2]
     norm2 = w * w + y * y
     cos_scene, sin_scene = (w * w - y * y) / norm2, 2.0 * w * y / norm2

@@ -16,10 +16,10 @@ import mujoco
 import numpy as np
 from gymnasium import spaces
 
-from .scenes import SCENES, SceneSpec, ScenePhysics, build_model, get_scene
+from fvin_mpc.core.state import as_float_array, split_state, unit_quaternion
 
-#: Control period a user MJCF gets by default: the whole number of its timesteps closest to this.
-DEFAULT_CONTROL_PERIOD = 0.05
+from .scenes import MIN_CONTROL_PERIOD, SceneSpec, ScenePhysics, build_model, resolve_scene
+
 #: Largest initial |ω| (rad/s) of ``reset(options={"random": True})`` unless ``"max_omega"`` is given
 #: (Pendulum-v1 draws θ̇ from [−1, 1]).
 DEFAULT_RANDOM_MAX_OMEGA = 1.0
@@ -146,7 +146,7 @@ class RigidBodyEnv(gymnasium.Env):
       ``fvin_mpc/SphericalPendulum-v0``).
     """
 
-    metadata = {"render_modes": ["rgb_array"], "render_fps": round(1 / DEFAULT_CONTROL_PERIOD)}
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 20}
 
     def __init__(
         self,
@@ -159,33 +159,31 @@ class RigidBodyEnv(gymnasium.Env):
         width: int = 480,
         height: int = 480,
     ) -> None:
-        scene_spec, xml_path = _resolve_scene(scene)
-        self.scene_spec: SceneSpec | None = scene_spec
-        if scene_spec is not None and physics is None:
-            physics = scene_spec.physics
-        self._model, self._physics = build_model(xml_path, physics)
+        spec = resolve_scene(scene)
+        self.scene_spec: SceneSpec = spec
+        self._model, self._physics = build_model(spec.xml_path, physics if physics is not None else spec.physics)
         self._data = mujoco.MjData(self._model)
         model = self._model
 
-        if body is None:
-            body = scene_spec.body if scene_spec is not None else _only_jointed_body(model)
+        body = body or spec.body or _only_jointed_body(model)
         self._body_id, self._joint_id = _validate_body_and_joint(model, body)
         self._body_name = body
         self._joint_type = _JOINT_TYPES[int(model.jnt_type[self._joint_id])]
 
         timestep = float(model.opt.timestep)
         if control_period is None:
-            control_period = (
-                scene_spec.control_period if scene_spec is not None
-                else timestep * max(1, round(DEFAULT_CONTROL_PERIOD / timestep))
-            )
+            control_period = spec.control_period or timestep * math.ceil(MIN_CONTROL_PERIOD / timestep - 1e-9)
         self._frame_skip = _frame_skip(float(control_period), timestep)
         self._dt = self._frame_skip * timestep
 
-        mujoco.mj_forward(model, self._data)
-        if goal is None:
-            goal = scene_spec.goal if scene_spec is not None else self._data.xquat[self._body_id].copy()
-        self._goal = _unit_quaternion(goal, "goal")
+        derived_goal, self._rest_qpos = self._task_from_potential()
+        derived_goal = _canonical_sign(derived_goal)
+        self._goal = unit_quaternion(goal if goal is not None else spec.goal if spec.goal is not None else derived_goal,
+                                     "goal")
+        if spec.rest is not None:
+            self._rest_qpos = self._qpos_of_orientation(unit_quaternion(spec.rest, "rest"))
+        self._set_joint_state(self._rest_qpos, np.zeros(model.nv))
+        self._rest = self._data.xquat[self._body_id].copy()
 
         limited = self._physics.actuator_limits & model.actuator_ctrllimited.astype(bool)
         low = np.where(limited, model.actuator_ctrlrange[:, 0], -np.inf)
@@ -240,6 +238,17 @@ class RigidBodyEnv(gymnasium.Env):
         return self._goal.copy()
 
     @property
+    def rest(self) -> np.ndarray:
+        """The potential's minimum (hanging), unit quaternion (w, x, y, z), shape ``(4,)``: where
+        episodes start by default, and the energy reference of the controllers."""
+        return self._rest.copy()
+
+    @property
+    def rest_qpos(self) -> np.ndarray:
+        """The joint position of :attr:`rest`."""
+        return self._rest_qpos.copy()
+
+    @property
     def torque_low(self) -> np.ndarray:
         return self.action_space.low.copy()
 
@@ -247,11 +256,11 @@ class RigidBodyEnv(gymnasium.Env):
     def torque_high(self) -> np.ndarray:
         return self.action_space.high.copy()
 
-    def state(self) -> tuple[np.ndarray, np.ndarray]:
-        """The noise-free ``(q, ω)``: body orientation (w, x, y, z) ``(4,)``, body-frame ω ``(3,)``."""
+    def state(self) -> np.ndarray:
+        """The noise-free state ``x = (q, ω)`` ``(7,)``: body orientation (w, x, y, z), body-frame ω."""
         velocity = np.zeros(6)
         mujoco.mj_objectVelocity(self._model, self._data, mujoco.mjtObj.mjOBJ_BODY, self._body_id, velocity, 1)
-        return self._data.xquat[self._body_id].copy(), velocity[:3].copy()
+        return np.concatenate([self._data.xquat[self._body_id], velocity[:3]])
 
     def set_state(self, qpos: Any, qvel: Any) -> None:
         """Set the joint state exactly (see the class docstring for shapes) and run ``mj_forward``.
@@ -259,13 +268,66 @@ class RigidBodyEnv(gymnasium.Env):
         A ball joint's quaternion is normalized. ``ValueError`` on a wrong shape or a non-finite
         entry (the state is then left unchanged).
         """
-        qpos = _finite_array(qpos, (self._model.nq,), "qpos")
-        qvel = _finite_array(qvel, (self._model.nv,), "qvel")
+        qpos = as_float_array(qpos, (self._model.nq,), "qpos")
+        qvel = as_float_array(qvel, (self._model.nv,), "qvel")
+        self._set_joint_state(qpos, qvel)
+
+    def _set_joint_state(self, qpos: np.ndarray, qvel: np.ndarray) -> None:
         if self._joint_type == "ball":
-            qpos = _unit_quaternion(qpos, "ball-joint qpos")
+            qpos = unit_quaternion(qpos, "ball-joint qpos")
         self._data.qpos[:] = qpos
         self._data.qvel[:] = qvel
         mujoco.mj_forward(self._model, self._data)
+
+    # ------------------------------------------------------------------ task
+    def _task_from_potential(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(goal orientation, rest qpos)``: the maximum and the minimum of the body's potential.
+
+        A single rigid body under uniform gravity has ``U = −m g·c_world``, so on a hinge
+        ``U(θ) = A cos θ + B sin θ + C`` exactly (four samples give ``A``, ``B``), and on a ball
+        joint the extrema put the centre of mass straight above / below the pivot (the smallest
+        rotation from the MJCF's ``qpos0`` that does so; about the axis nearest to world y when the
+        centre of mass starts exactly below or above). Without gravity, or with the centre of mass
+        on the pivot, there is no task to read off: the scene must declare ``goal`` and ``rest``.
+        """
+        model, data = self._model, self._data
+        gravity = np.asarray(model.opt.gravity, dtype=float)
+        if self._joint_type == "hinge":
+            samples = []
+            for angle in (0.0, 0.5 * math.pi, math.pi, 1.5 * math.pi):
+                self._set_joint_state(np.array([angle]), np.zeros(1))
+                samples.append(-float(self._model.body_mass[self._body_id]) * float(gravity @ data.xipos[self._body_id]))
+            a, b = 0.5 * (samples[0] - samples[2]), 0.5 * (samples[1] - samples[3])
+            if math.hypot(a, b) < 1e-12:
+                self._no_task()
+            top = math.atan2(b, a)
+            self._set_joint_state(np.array([top]), np.zeros(1))
+            goal = data.xquat[self._body_id].copy()
+            return goal, np.array([math.remainder(top + math.pi, 2 * math.pi)])
+        self._set_joint_state(np.asarray(model.qpos0, dtype=float), np.zeros(3))
+        reach = data.xipos[self._body_id] - data.xanchor[self._joint_id]
+        if np.linalg.norm(gravity) == 0.0 or np.linalg.norm(reach) < 1e-12:
+            self._no_task()
+        down = gravity / np.linalg.norm(gravity)
+        start = data.xquat[self._body_id].copy()
+        goal = _rotate_towards(start, reach, -down)
+        rest = _rotate_towards(start, reach, down)
+        return goal, self._qpos_of_orientation(rest)
+
+    def _no_task(self) -> None:
+        raise ValueError(f"scene {self.scene_spec.name!r}: the potential has no maximum to read the task off "
+                         "(no gravity, or the centre of mass on the pivot); declare goal and rest")
+
+    def _qpos_of_orientation(self, orientation: np.ndarray) -> np.ndarray:
+        """The joint position at which the body has ``orientation`` (a ball joint: exactly; a hinge:
+        the angle about its axis nearest to it)."""
+        parent = self._data.xquat[self._model.body_parentid[self._body_id]]
+        local = _quaternion_product(_quaternion_conjugate(_quaternion_product(parent, self._model.body_quat[self._body_id])),
+                                    orientation)
+        if self._joint_type == "ball":
+            return local / np.linalg.norm(local)
+        axis = self._model.jnt_axis[self._joint_id]
+        return np.array([2.0 * math.atan2(float(local[1:] @ axis), float(local[0]))])
 
     # ------------------------------------------------------------------ gymnasium API
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
@@ -281,17 +343,17 @@ class RigidBodyEnv(gymnasium.Env):
         else:
             if "max_omega" in options:
                 raise ValueError("reset option 'max_omega' only applies with 'random': True")
-            qpos = options.get("qpos", self._model.qpos0)
+            qpos = options.get("qpos", self._rest_qpos)
             qvel = options.get("qvel", np.zeros(self._model.nv))
         # Validate before touching the simulation, so a bad option leaves it as it was.
-        qpos = _finite_array(qpos, (self._model.nq,), "qpos")
-        qvel = _finite_array(qvel, (self._model.nv,), "qvel")
+        qpos = as_float_array(qpos, (self._model.nq,), "qpos")
+        qvel = as_float_array(qvel, (self._model.nv,), "qvel")
         mujoco.mj_resetData(self._model, self._data)
         self.set_state(qpos, qvel)
         return self._observation(), self._info()
 
     def step(self, action: Any):
-        u = _finite_array(action, (self._model.nu,), "action")
+        u = as_float_array(action, (self._model.nu,), "action")
         u = np.clip(u, self.action_space.low, self.action_space.high)
         self._data.ctrl[:] = u
         for _ in range(self._frame_skip):
@@ -299,7 +361,7 @@ class RigidBodyEnv(gymnasium.Env):
         # mj_step leaves positions/velocities-derived quantities (xquat, cvel, energy) at the
         # state *before* the last substep; bring them up to date.
         mujoco.mj_forward(self._model, self._data)
-        q, omega = self.state()
+        q, omega = split_state(self.state())
         angle = geodesic_angle(q, self._goal)
         w_angle, w_omega, w_u = COST_WEIGHTS
         reward = -(w_angle * angle**2 + w_omega * float(omega @ omega) + w_u * float(u @ u))
@@ -328,8 +390,7 @@ class RigidBodyEnv(gymnasium.Env):
 
     # ------------------------------------------------------------------ internals
     def _observation(self) -> np.ndarray:
-        q, omega = self.state()
-        observation = np.concatenate([q, omega])
+        observation = self.state()
         noise_std = self._physics.sensor_noise_std
         if noise_std > 0.0:
             observation = observation + self.np_random.normal(0.0, noise_std, size=7)
@@ -360,17 +421,6 @@ class RigidBodyEnv(gymnasium.Env):
 
 
 # ---------------------------------------------------------------------- helpers
-def _resolve_scene(scene: str | Path) -> tuple[SceneSpec | None, Path]:
-    if isinstance(scene, str) and scene in SCENES:
-        spec = SCENES[scene]
-        return spec, spec.xml_path
-    path = Path(scene)
-    if isinstance(scene, Path) or path.suffix.lower() == ".xml" or path.exists():
-        return None, path  # build_model reports a missing or invalid file
-    get_scene(str(scene))  # raises ValueError listing the built-in scenes
-    raise AssertionError("unreachable")
-
-
 def _only_jointed_body(model: mujoco.MjModel) -> str:
     jointed = [b for b in range(model.nbody) if model.body_jntnum[b] > 0]
     names = [mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, b) for b in jointed]
@@ -423,24 +473,38 @@ def _frame_skip(control_period: float, timestep: float) -> int:
     return int(frame_skip)
 
 
-def _finite_array(value: Any, shape: tuple[int, ...], what: str) -> np.ndarray:
-    try:
-        array = np.array(value, dtype=np.float64)
-    except (TypeError, ValueError) as error:
-        raise ValueError(f"{what} must be a float array of shape {shape}: {error}") from error
-    if array.shape != shape:
-        raise ValueError(f"{what} must have shape {shape}, got {array.shape}")
-    if not np.all(np.isfinite(array)):
-        raise ValueError(f"{what} must be finite, got {array}")
-    return array
+def _quaternion_product(p: np.ndarray, q: np.ndarray) -> np.ndarray:
+    result = np.zeros(4)
+    mujoco.mju_mulQuat(result, np.asarray(p, dtype=float), np.asarray(q, dtype=float))
+    return result
 
 
-def _unit_quaternion(value: Any, what: str) -> np.ndarray:
-    q = _finite_array(value, (4,), what)
-    norm = float(np.linalg.norm(q))
-    if norm < 1e-12:
-        raise ValueError(f"{what} must be a nonzero quaternion (w, x, y, z), got {q}")
-    return q / norm
+def _canonical_sign(q: np.ndarray) -> np.ndarray:
+    """``q`` or ``−q`` (the same rotation), whichever has its first non-negligible component positive."""
+    first = q[int(np.argmax(np.abs(q) > 1e-12))]
+    return q if first > 0 else -q
+
+
+def _quaternion_conjugate(q: np.ndarray) -> np.ndarray:
+    return np.array([q[0], -q[1], -q[2], -q[3]])
+
+
+def _rotate_towards(orientation: np.ndarray, vector: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """``orientation`` premultiplied by the smallest world rotation taking ``vector``'s direction to ``target``."""
+    v, target = vector / np.linalg.norm(vector), target / np.linalg.norm(target)
+    axis = np.cross(v, target)
+    cos_angle = float(np.clip(v @ target, -1.0, 1.0))
+    if np.linalg.norm(axis) < 1e-9:
+        if cos_angle > 0:
+            return orientation.copy()
+        # Opposite directions: turn half a revolution about the axis ⟂ v nearest to world y.
+        axis = np.array([0.0, 1.0, 0.0]) - v[1] * v
+        if np.linalg.norm(axis) < 1e-9:
+            axis = np.array([1.0, 0.0, 0.0]) - v[0] * v
+    axis = axis / np.linalg.norm(axis)
+    angle = math.atan2(float(np.linalg.norm(np.cross(v, target))), cos_angle)
+    turn = np.concatenate([[math.cos(angle / 2)], math.sin(angle / 2) * axis])
+    return _quaternion_product(turn, orientation)
 
 
 # ---------------------------------------------------------------------- registration

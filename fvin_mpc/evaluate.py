@@ -32,14 +32,14 @@ import shlex
 import sys
 from pathlib import Path
 from typing import Sequence
+from fvin_mpc._cli import add_mpc_arguments, add_scene_arguments, mpc_overrides
 from fvin_mpc.studies.evaluation import CONTROLLERS, DEFAULT_MAX_OMEGA, EvaluationConfig, evaluate, make_env, summary_table, write_report
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m fvin_mpc.evaluate", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--scene", default="pendulum", help="built-in scene or MJCF path (default: %(default)s)")
-    parser.add_argument("--checkpoint", default=None, help="learned model, shipped name or path (default: <scene>_sign-invariant)")
+    add_scene_arguments(parser, newton_iters=False)
     parser.add_argument("--episodes", type=int, default=50, help="episodes per controller (default: %(default)s)")
     parser.add_argument("--duration", type=float, default=10.0, help="seconds per episode (default: %(default)s)")
     parser.add_argument("--controllers", default=",".join(CONTROLLERS),
@@ -47,16 +47,12 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--seed", type=int, default=0, help="base seed of the initial states (default: %(default)s)")
     parser.add_argument("--max-omega", type=float, default=DEFAULT_MAX_OMEGA,
                         help="largest |ω| of the random initial states, rad/s (default: %(default)s)")
-    parser.add_argument("--horizon", type=int, default=None, help="MPC horizon in steps (default: MPCSettings')")
-    parser.add_argument("--energy-weight", type=float, default=None,
-                        help="MPC terminal energy-deficit weight W_E (default: the scene's, swingup.SCENE_SETTINGS)")
-    parser.add_argument("--single-start", action="store_true",
-                        help="plain MPC with one first guess, instead of cold solves from several (fvin_mpc.multistart)")
     parser.add_argument("--workers", type=int, default=1, help="parallel processes (default: %(default)s)")
     parser.add_argument("--out-dir", type=Path, default=Path("docs/evaluation"),
                         help="where evaluation.{json,md} and the plots go (default: %(default)s)")
     parser.add_argument("--json", type=Path, default=None, help="also write the JSON result here")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_mpc_arguments(parser)
     return parser
 
 
@@ -68,8 +64,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         config = EvaluationConfig(
             scene=args.scene, checkpoint=args.checkpoint, episodes=args.episodes, duration_s=args.duration,
             controllers=tuple(n.strip() for n in args.controllers.split(",") if n.strip()), seed=args.seed,
-            max_omega=args.max_omega, horizon=args.horizon, multistart=not args.single_start,
-            terminal_energy_weight=args.energy_weight)
+            max_omega=args.max_omega, control_period=args.control_period,
+            mpc=tuple((name, value) for name, value in mpc_overrides(args).items() if value is not None))
         if args.workers < 1:
             raise ValueError(f"--workers must be >= 1, got {args.workers}")
         make_env(config).close()  # fails early on an unknown scene

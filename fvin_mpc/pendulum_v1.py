@@ -42,7 +42,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--episodes", type=int, default=100, help="episodes, seeds seed … seed+episodes−1 (default: %(default)s)")
     parser.add_argument("--seed", type=int, default=0, help="first env.reset seed (default: %(default)s)")
     parser.add_argument("--energy-weight", type=float, default=None,
-                        help="terminal energy-deficit weight W_E (default: the pendulum scene's, SCENE_SETTINGS)")
+                        help="terminal energy-deficit weight W_E (default: the scenes' default, DEFAULT_TERMINAL_ENERGY_WEIGHT)")
     parser.add_argument("--single-start", action="store_true",
                         help="plain MPC: one first guess per episode instead of the multi-start")
     parser.add_argument("--no-reference", action="store_true", help="skip the per-seed episode optimization")

@@ -44,7 +44,7 @@ def main(argv: list[str] | None = None) -> int:
     e.add_argument("--duration", type=float, default=10.0, help="seconds per episode")
     e.add_argument("--max-omegas", default="2,5", help="comma-separated |ω₀| bounds cycled over the random starts")
     e.add_argument("--models", default="learned,true", help="comma-separated subset of learned,true")
-    e.add_argument("--horizon", type=int, default=None, help="MPC steps (default: the scene's, swingup.SCENE_SETTINGS)")
+    e.add_argument("--horizon", type=int, default=None, help="MPC steps (default: the scene's, scene_mpc_settings)")
     e.add_argument("--seed", type=int, default=0)
     e.add_argument("--json", type=Path, default=Path("docs/spherical/closed_loop.json"))
     e.add_argument("--markdown", type=Path, default=Path("docs/spherical/closed_loop.md"))

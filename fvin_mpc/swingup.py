@@ -1,12 +1,14 @@
-"""Swing a MuJoCo pendulum up with IPOPT MPC on the learned S3FVIN: ``python -m fvin_mpc.swingup``.
+"""Swing a MuJoCo pendulum up with MPC on the learned S3FVIN: ``python -m fvin_mpc.swingup``.
 
 With no arguments: the shipped sign-invariant model of the ``pendulum`` scene, starting
 hanging at rest, 10 s of closed loop in MuJoCo, a summary on stdout and a plot in
 ``swingup.png``. ``--true-model`` runs the same MPC on the closed-form rigid body read
-off the scene's MJCF, for comparison.
+off the scene's MJCF, for comparison. The controller is the one the evaluation reports
+(``python -m fvin_mpc.evaluate``): the scene's MPC settings, multi-start cold solves.
 """
 
 from __future__ import annotations
+
 import argparse
 import json
 import sys
@@ -14,8 +16,8 @@ from pathlib import Path
 from typing import Any, Sequence
 import numpy as np
 from fvin_mpc.control.closed_loop import episode_metrics, plot_episode, run_episode, write_video
-from fvin_mpc.control.mpc import MPCSettings
-from fvin_mpc.control.scene import default_checkpoint, scene_model, scene_mpc, scene_settings
+from fvin_mpc._cli import add_mpc_arguments, add_scene_arguments, mpc_overrides
+from fvin_mpc.control.scene import scene_env, scene_model, scene_mpc, scene_mpc_settings
 
 
 def parse_init(text: str, joint_type: str) -> dict[str, Any] | None:
@@ -34,21 +36,12 @@ def parse_init(text: str, joint_type: str) -> dict[str, Any] | None:
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m fvin_mpc.swingup", description=__doc__,
                                      formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    parser.add_argument("--checkpoint", default=None,
-                        help="shipped name or path (default: <scene>_sign-invariant)")
-    parser.add_argument("--scene", default="pendulum", help="built-in scene or MJCF path")
+    add_scene_arguments(parser)
     parser.add_argument("--body", default=None, help="observed body (default: the scene's)")
     parser.add_argument("--goal", type=float, nargs=4, default=None, metavar=("W", "X", "Y", "Z"),
-                        help="goal quaternion (default: the scene's, upright)")
+                        help="goal quaternion (default: the scene's, the potential's maximum)")
     parser.add_argument("--init", default="rest",
-                        help="initial state: rest | random | comma-separated qpos,qvel (hinge: θ,θ̇)")
-    parser.add_argument("--horizon", type=int, default=None,
-                        help=f"MPC steps (default: {MPCSettings.horizon}, or the scene's in SCENE_SETTINGS)")
-    parser.add_argument("--energy-weight", type=float, default=None,
-                        help="terminal energy-deficit weight W_E (default: the scene's in SCENE_SETTINGS, else 0)")
-    parser.add_argument("--newton-iters", type=int, default=None, help="K (default: the model's)")
-    parser.add_argument("--hessian", choices=["gauss-newton", "exact", "limited-memory"], default=None,
-                        help=f"Lagrangian Hessian (default: {MPCSettings.hessian})")
+                        help="initial state: rest (the potential's minimum) | random | comma-separated qpos,qvel")
     parser.add_argument("--duration", type=float, default=10.0, help="seconds of closed loop")
     parser.add_argument("--seed", type=int, default=0, help="seeds the env (random init, sensor noise)")
     parser.add_argument("--true-model", action="store_true", help="plan with the closed-form rigid body instead")
@@ -56,23 +49,21 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--plot", type=Path, default=Path("swingup.png"), help="plot path ('' for none)")
     parser.add_argument("--video", type=Path, default=None, help="render an MP4 (headless: MUJOCO_GL=egl)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_mpc_arguments(parser)
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    from fvin_mpc.envs import RigidBodyEnv
-
-    env = RigidBodyEnv(scene=args.scene, body=args.body, goal=args.goal,
-                       render_mode="rgb_array" if args.video else None)
-    checkpoint = args.checkpoint or default_checkpoint(args.scene)
-    model = scene_model(env, checkpoint, args.true_model, args.newton_iters)
-    settings = scene_settings(args.scene, horizon=args.horizon, hessian=args.hessian,
-                              terminal_energy_weight=args.energy_weight)
+    env = scene_env(args.scene, args.checkpoint, args.true_model, args.control_period, body=args.body, goal=args.goal,
+                    render_mode="rgb_array" if args.video else None)
+    model = scene_model(env, args.checkpoint, args.true_model, args.newton_iters)
+    settings = scene_mpc_settings(env, **mpc_overrides(args))
     controller = scene_mpc(env, model, settings)
     report = controller.compile_report
     print(f"model {model.name} (K = {model.newton_iters}, h = {model.step_size} s), horizon {settings.horizon} "
-          f"({settings.horizon * model.step_size:.2f} s); solver built in {controller.build_s:.1f} s"
+          f"({settings.horizon * model.step_size:.2f} s), cold starts {', '.join(settings.cold_starts)}; "
+          f"solver built in {controller.build_s:.1f} s"
           + (f" ({'cached library' if report.cached else f'compiled in {report.compile_s:.1f} s'})" if report else ""),
           file=sys.stderr)
     episode, frames = run_episode(env, controller, args.duration, parse_init(args.init, env.joint_type),
@@ -82,10 +73,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     summary = {
         "swung_up": metrics["swung_up"], "time_to_upright_s": metrics["time_to_upright_s"],
         "hold_error_rad": metrics["hold_error_rad"], "solve_time_ms": metrics["solve_time_ms"],
-        "control_period_s": metrics["control_period_s"], "ipopt_failures": metrics["controller_failures"],
+        "control_period_s": metrics["control_period_s"], "solver_failures": metrics["controller_failures"],
         "newton_iters": model.newton_iters, "horizon": settings.horizon, "horizon_s": settings.horizon * model.step_size,
         "hessian": settings.hessian, "terminal_energy_weight": settings.terminal_energy_weight,
-        "max_abs_torque": metrics["max_abs_torque"],
+        "cold_starts": list(settings.cold_starts), "max_abs_torque": metrics["max_abs_torque"],
         "accumulated_cost": metrics["accumulated_cost"], "model": model.name, "true_model": args.true_model,
         "scene": str(args.scene), "init": args.init, "seed": args.seed, "duration_s": metrics["duration_s"],
         "build_s": controller.build_s, "compiled_from_cache": report.cached if report else None,
@@ -96,7 +87,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(text + "\n")
     if str(args.plot) not in ("", "."):
-        plot_episode(episode, args.plot, title=f"{model.name} on {args.scene}: swung up = {summary['swung_up']}",
+        plot_episode(episode, args.plot, title=f"{model.name} on {env.scene_spec.name}: swung up = {summary['swung_up']}",
                      torque_bound=float(np.max(np.abs(env.torque_high))))
         print(f"plot: {args.plot}", file=sys.stderr)
     if args.video:

@@ -147,13 +147,13 @@ def test_other_nlp_solvers_find_ipopts_plan(overrides):
     ipopt = MPC(model, base, (0, 0, 1, 0), [-2.0], [2.0])
     other = MPC(model, replace(base, compile="none", **{k: v for k, v in overrides.items() if k != "compile"}),
                 (0, 0, 1, 0), [-2.0], [2.0])
-    u_ref, info_ref = ipopt(q, omega)
-    u, info = other(q, omega)
+    u_ref, info_ref = ipopt(np.r_[q, omega])
+    u, info = other(np.r_[q, omega])
     assert info["success"] and info_ref["success"]
     assert info["cost"] == pytest.approx(info_ref["cost"], rel=1e-6)
     np.testing.assert_allclose(info["controls"], info_ref["controls"], atol=1e-4)
     # Warm-started second call (shifted plan, and multipliers where the solver takes them).
-    _, again = other(q, omega)
+    _, again = other(np.r_[q, omega])
     assert again["success"]
 
 
@@ -196,7 +196,7 @@ def test_compiled_mpc_accepts_a_model_name_with_dots():
     model = from_rigid_body(PENDULUM, 0.02, 2, name="pendulum-h0.02_test")
     controller = MPC(model, replace(MPCSettings(), horizon=3), (0, 0, 1, 0), [-2.0], [2.0])
     assert controller.compile_report is not None
-    u, info = controller(np.array([1.0, 0.0, 0.0, 0.0]), np.zeros(3))
+    u, info = controller(np.r_[np.array([1.0, 0.0, 0.0, 0.0]), np.zeros(3)])
     assert np.all(np.isfinite(u)) and -2.0 <= u[0] <= 2.0
 
 

@@ -11,13 +11,14 @@ from fvin_mpc.core.rigid_body import PENDULUM, PivotedRigidBody
 
 NP = get_ops("numpy")
 GOAL = np.array([0.0, 0.0, 1.0, 0.0])
+REST = np.array([1.0, 0.0, 0.0, 0.0])  # hanging
 
 
 def simulate(controller, terms, q, omega, periods, substeps=10, h=0.05):
     """Closed loop with the true model integrated at h/substeps (a finer plant than the model)."""
     log = []
     for _ in range(periods):
-        u, info = controller(q, omega)
+        u, info = controller(np.r_[q, omega])
         log.append((info["mode"], info["energy"], info["angle_from_goal"], u.copy()))
         for _ in range(substeps):
             out = fvin.fvin_step(tuple(q), tuple(omega), tuple(u), terms, h / substeps, 4, NP)
@@ -26,7 +27,7 @@ def simulate(controller, terms, q, omega, periods, substeps=10, h=0.05):
 
 
 def make(body=PENDULUM):
-    return EnergyShapingController(body.terms(NP), 0.05, 3, GOAL, np.array([-2.0]), np.array([2.0]))
+    return EnergyShapingController(body.terms(NP), 0.05, 3, GOAL, np.array([-2.0]), np.array([2.0]), REST)
 
 
 def test_swings_up_from_exact_rest_and_holds_upright():
@@ -61,14 +62,14 @@ def test_scale_of_the_model_cancels():
     # The actuator gain λ·b means one unit of u is λ times the torque; compare with u scaled back.
     a, b = make(), make(scaled)
     for q, omega in [(np.array([0.9, 0, 0.43589, 0]), np.array([0, 1.2, 0])), (np.array([0.1, 0, 0.99499, 0]), np.array([0, -0.3, 0]))]:
-        ua, _ = a(q / np.linalg.norm(q), omega)
-        ub, _ = b(q / np.linalg.norm(q), omega)
+        ua, _ = a(np.r_[q / np.linalg.norm(q), omega])
+        ub, _ = b(np.r_[q / np.linalg.norm(q), omega])
         np.testing.assert_allclose(ua, ub, rtol=1e-6, atol=1e-9)
 
 
 def test_rejects_non_finite_state():
     with pytest.raises(ValueError):
-        make()(np.array([np.nan, 0, 0, 1.0]), np.zeros(3))
+        make()(np.array([np.nan, 0, 0, 1.0, 0, 0, 0]))
 
 
 # ---------------------------------------------------------------------- LQR oracle
@@ -110,11 +111,11 @@ def test_controller_applies_the_lqr_gain_near_upright_and_its_closed_loop_cost_a
     for scale in (0.2, 0.05, 0.0125):
         q, omega = hinge(np.pi - scale, 0.5 * scale)
         controller.reset()
-        x0 = controller.reduced_state(q, omega)
+        x0 = controller.reduced_state(np.r_[q, omega])
         cost = 0.0
         for _ in range(400):
-            x = controller.reduced_state(q, omega)
-            u, info = controller(q, omega)
+            x = controller.reduced_state(np.r_[q, omega])
+            u, info = controller(np.r_[q, omega])
             assert info["mode"] == "lqr"
             np.testing.assert_allclose(u, np.clip(-design.k @ x, -2, 2), atol=1e-12)
             cost += x @ design.q_cost @ x + u @ design.r_cost @ u
@@ -134,33 +135,31 @@ def hinge(theta, theta_dot):
 def test_constructors_agree_with_the_direct_one():
     from fvin_mpc.control import export
 
-    direct = EnergyShapingController(PENDULUM.terms(NP), 0.05, 2, GOAL, np.array([-2.0]), np.array([2.0]))
-    via_body = EnergyShapingController.from_rigid_body(PENDULUM, 0.05, GOAL, [-2.0], [2.0], newton_iters=2)
-    via_model = EnergyShapingController.from_model(export.from_rigid_body(PENDULUM, 0.05, 2), GOAL, [-2.0], [2.0])
-    for q, omega in [hinge(0.3, 1.0), hinge(2.9, -0.4), hinge(np.pi - 0.1, 0.2)]:
-        expected, _ = direct(q, omega)
-        for other in (via_body, via_model):
-            np.testing.assert_allclose(other(q, omega)[0], expected, atol=1e-12)
+    direct = EnergyShapingController(PENDULUM.terms(NP), 0.05, 2, GOAL, np.array([-2.0]), np.array([2.0]), REST)
+    via_model = EnergyShapingController.from_model(export.from_rigid_body(PENDULUM, 0.05, 2), GOAL, [-2.0], [2.0], REST)
+    for x in [np.r_[hinge(0.3, 1.0)], np.r_[hinge(2.9, -0.4)], np.r_[hinge(np.pi - 0.1, 0.2)]]:
+        np.testing.assert_allclose(via_model(x)[0], direct(x)[0], atol=1e-12)
     np.testing.assert_allclose(via_model.lqr.p, direct.lqr.p, rtol=1e-9)
 
 
-def test_scene_controller_rejects_a_ball_joint_with_a_reason():
-    from fvin_mpc.envs import RigidBodyEnv
+def test_scene_energy_shaping_rejects_a_ball_joint_with_a_reason():
+    from fvin_mpc.control.energy_shaping import EnergyShapingNotApplicable
+    from fvin_mpc.control.scene import scene_energy_shaping, scene_env, scene_model
 
-    from fvin_mpc.control.energy_shaping import EnergyShapingNotApplicable, scene_controller
-
+    env = scene_env("spherical_pendulum", true_model=True)
     with pytest.raises(EnergyShapingNotApplicable, match="hinge"):
-        scene_controller(RigidBodyEnv("spherical_pendulum"), true_model=True)
+        scene_energy_shaping(env, scene_model(env, true_model=True))
 
 
 def test_true_model_swings_up_the_mujoco_pendulum_from_rest():
     from fvin_mpc.envs import RigidBodyEnv
 
     from fvin_mpc.control.closed_loop import episode_metrics, run_episode
-    from fvin_mpc.control.energy_shaping import scene_controller
+    from fvin_mpc.control.scene import scene_energy_shaping, scene_model
 
     env = RigidBodyEnv("pendulum")
-    metrics = episode_metrics(run_episode(env, scene_controller(env, true_model=True), 8.0)[0])
+    controller = scene_energy_shaping(env, scene_model(env, true_model=True))
+    metrics = episode_metrics(run_episode(env, controller, 8.0)[0])
     assert metrics["swung_up"], metrics
     assert metrics["max_abs_torque"] <= 2.0
 
@@ -169,15 +168,11 @@ def test_learned_model_swings_up_the_mujoco_pendulum_from_rest():
     """Energy shaping from the shipped learned J, U, g alone (its own E*, its own LQR) on MuJoCo."""
     from fvin_mpc.envs import RigidBodyEnv
 
-    from fvin_mpc.core.checkpoint import CHECKPOINT_DIR
     from fvin_mpc.control.closed_loop import episode_metrics, run_episode
-    from fvin_mpc.control.energy_shaping import scene_controller
+    from fvin_mpc.control.scene import scene_energy_shaping, scene_model
 
-    name = "pendulum_sign-invariant"
-    if not (CHECKPOINT_DIR / f"{name}.json").exists():
-        pytest.skip(f"shipped checkpoint {name} not found in {CHECKPOINT_DIR} (train it with python -m fvin_mpc.train)")
     env = RigidBodyEnv("pendulum")
-    controller = scene_controller(env, name)
+    controller = scene_energy_shaping(env, scene_model(env))  # the scene's shipped checkpoint; missing = failure
     episode, _ = run_episode(env, controller, 10.0)
     metrics = episode_metrics(episode)
     assert metrics["success"], metrics

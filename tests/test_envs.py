@@ -109,7 +109,7 @@ def test_accessors_and_metadata():
     assert env.body_name == "pendulum" and env.joint_type == "ball"
     assert env.dt == pytest.approx(0.05) and env.frame_skip == 10
     assert env.physics == spec.physics
-    np.testing.assert_array_equal(env.goal, spec.goal)
+    np.testing.assert_allclose(env.goal, [0.0, 0.0, 1.0, 0.0], atol=1e-15)  # read off the potential: upright
     np.testing.assert_array_equal(env.torque_low, [-1.5] * 3)
     np.testing.assert_array_equal(env.torque_high, [1.5] * 3)
     assert env.action_space.dtype == np.float64 and env.observation_space.shape == (7,)
@@ -145,7 +145,7 @@ def test_reward_and_info_at_rest():
     assert not terminated and not truncated
     env.reset()
     _, reward, *_ , info = env.step(np.array([2.0]))
-    q, omega = env.state()
+    omega = env.state()[4:]
     assert reward == pytest.approx(-(info["angle_from_goal"] ** 2 + 0.1 * omega @ omega + 0.001 * 4.0))
 
 
@@ -187,7 +187,7 @@ def test_reset_with_qpos_qvel_sets_them_exactly():
     ball.step(np.zeros(3))
     ball.set_state([1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0])
     assert ball.data.time == pytest.approx(0.05)
-    np.testing.assert_array_equal(ball.state()[1], [0.0, 0.0, 1.0])
+    np.testing.assert_array_equal(ball.state()[4:], [0.0, 0.0, 1.0])
 
 
 @pytest.mark.parametrize(
@@ -391,7 +391,7 @@ def test_sensor_noise():
     assert info_a == info_b  # info (and reward) use the true state
     observations = np.concatenate([[obs_a], rollout(a, np.ones((50, 1)))])
     np.testing.assert_allclose(np.linalg.norm(observations[:, :4], axis=1), 1.0, rtol=0, atol=1e-14)
-    q_true, omega_true = a.state()
+    omega_true = a.state()[4:]
     assert np.all(observations[:, [4, 6]] != 0.0)  # noise on all entries, not only the moving ones
     assert np.abs(observations[-1, 4:] - omega_true).max() < 0.1  # ~ 0.01 standard deviation
     # Same seed, same noise.
@@ -404,8 +404,12 @@ def test_user_mjcf_defaults(tmp_path):
     xml = write_mjcf(tmp_path / "p.xml", HINGE_BODY, option='timestep="0.002" gravity="0 0 -9.81"')
     env = RigidBodyEnv(str(xml))
     assert env.body_name == "link" and env.joint_type == "hinge"
-    assert env.frame_skip == 25 and env.dt == pytest.approx(0.05)  # the multiple of 2 ms closest to 50 ms
-    np.testing.assert_array_equal(env.goal, [1, 0, 0, 0])  # orientation at qpos0
+    assert env.frame_skip == 10 and env.dt == pytest.approx(0.02)  # the first multiple of 2 ms from 20 ms on
+    # The task read off the potential: the centre of mass hangs below the pivot at qpos0, so the
+    # goal is half a turn about the hinge, and episodes start at rest at qpos0.
+    np.testing.assert_allclose(env.goal, [0, 0, 1, 0], atol=1e-15)
+    np.testing.assert_allclose(env.rest, [1, 0, 0, 0], atol=1e-15)
+    np.testing.assert_allclose(env.reset()[0], [1, 0, 0, 0, 0, 0, 0], atol=1e-15)
     assert env.physics == ScenePhysics(gravity=True, joint_damping=False, dry_friction=False,
                                        actuator_limits=True, contact=False)  # inferred: one geom, nothing to hit
     np.testing.assert_array_equal(env.torque_high, [2.0])
@@ -450,13 +454,16 @@ def test_pendulum_v1_conversion_round_trip():
     theta_v1 = rng.uniform(-np.pi, np.pi, 100)
     theta_dot = rng.uniform(-8, 8, 100)
     observation = np.stack([np.cos(theta_v1), np.sin(theta_v1), theta_dot], axis=-1)
-    q, omega = state_from_v1_observation(observation)
+    states = state_from_v1_observation(observation)
+    q, omega = states[:, :4], states[:, 4:]
     np.testing.assert_allclose(np.linalg.norm(q, axis=-1), 1.0)
-    np.testing.assert_allclose(v1_observation_from_state(q, omega), observation, atol=1e-14)
-    np.testing.assert_allclose(v1_observation_from_state(-q, omega), observation, atol=1e-14)  # sign invariant
-    # Upright in Pendulum-v1 is the scene's goal; hanging is the identity.
-    assert_same_rotation(state_from_v1_observation([1.0, 0.0, 0.0])[0], np.array(SCENES["pendulum"].goal), 1e-15)
-    assert_same_rotation(state_from_v1_observation([-1.0, 0.0, 0.0])[0], np.array([1.0, 0, 0, 0]), 1e-15)
+    np.testing.assert_allclose(v1_observation_from_state(states), observation, atol=1e-14)
+    flipped = np.concatenate([-q, omega], axis=-1)
+    np.testing.assert_allclose(v1_observation_from_state(flipped), observation, atol=1e-14)  # sign invariant
+    # Upright in Pendulum-v1 is the scene's goal; hanging is its rest.
+    scene = RigidBodyEnv("pendulum")
+    assert_same_rotation(state_from_v1_observation([1.0, 0.0, 0.0])[:4], scene.goal, 1e-15)
+    assert_same_rotation(state_from_v1_observation([-1.0, 0.0, 0.0])[:4], scene.rest, 1e-15)
     np.testing.assert_allclose(v1_angle_from_scene(scene_angle_from_v1(theta_v1)), theta_v1, atol=1e-14)
     # Each q is the scene's orientation at the converted hinge angle.
     for k in range(5):
@@ -472,7 +479,8 @@ def test_pendulum_v1_torque_direction_agrees():
         v1.reset(seed=0)
         v1.state = np.array([theta_v1, theta_dot])
         v1_obs = v1.step(np.array([torque], dtype=np.float32))[0]
-        q, omega = state_from_v1_observation([np.cos(theta_v1), np.sin(theta_v1), theta_dot])
+        x = state_from_v1_observation([np.cos(theta_v1), np.sin(theta_v1), theta_dot])
+        q, omega = x[:4], x[4:]
         assert_same_rotation(q, hinge_quaternion(scene_angle_from_v1(theta_v1)), 1e-14)
         ours.reset(options={"qpos": [scene_angle_from_v1(theta_v1)], "qvel": [omega[1]]})
         return float(v1_obs[2]), float(ours.step(np.array([torque]))[0][5])
@@ -496,7 +504,7 @@ def test_pendulum_v1_torque_direction_agrees():
         for _ in range(5):
             v1_obs = v1.step(np.array([torque], dtype=np.float32))[0].astype(np.float64)
             obs = ours.step(np.array([torque]))[0]
-            ours_as_v1 = v1_observation_from_state(obs[:4], obs[4:])
+            ours_as_v1 = v1_observation_from_state(obs)
             error = max(error, np.abs(ours_as_v1 - v1_obs)[:2].max())
             mirrored.step(np.array([torque]))
             mirrored_theta_v1 = np.pi - mirrored.data.qpos[0]

@@ -1,6 +1,7 @@
 """Closed-loop evaluation CLI/library, the multi-start MPC, and the Pendulum-v1 benchmark's exact dynamics."""
 
 import json
+from dataclasses import replace
 
 import gymnasium
 import numpy as np
@@ -33,8 +34,8 @@ def test_signed_angle_from_goal_on_the_hinge():
 
 
 @pytest.mark.parametrize("kwargs", [{"episodes": 0}, {"duration_s": 0.0}, {"controllers": ("mpc-magic",)},
-                                    {"controllers": ()}, {"max_omega": -1.0}, {"horizon": 0},
-                                    {"terminal_energy_weight": -1.0}])
+                                    {"controllers": ()}, {"max_omega": -1.0}, {"mpc": (("horizon", 0),)},
+                                    {"mpc": (("terminal_energy_weight", -1.0),)}, {"mpc": (("magic", 1),)}])
 def test_config_is_validated(kwargs):
     with pytest.raises(ValueError):
         ev.EvaluationConfig(**kwargs)
@@ -106,17 +107,16 @@ def test_multistart_catches_a_nearly_upright_pendulum_that_the_single_guess_lets
     """Near upright every constant-torque first guess falls; IPOPT then returns a full-turn plan.
     The "goal" guess lies in the basin of catching it; the multi-start keeps the cheaper plan."""
     from fvin_mpc.control import export
-    from fvin_mpc.control.mpc import MPC, MPCSettings
-    from fvin_mpc.control.multistart import MultiStartMPC
+    from fvin_mpc.control.mpc import COLD_STARTS, MPC, MPCSettings
     from fvin_mpc.core.rigid_body import PENDULUM
 
     model = export.from_rigid_body(PENDULUM, 0.05, 2, name="test_multistart")
     settings = MPCSettings(compile="none", max_iter=300)
     goal = (0.0, 0.0, 1.0, 0.0)
     q, omega = hinge(np.pi + 0.07, 0.9)
-    _, single = MPC(model, settings, goal, [-2.0], [2.0])(q, omega)
-    multi_controller = MultiStartMPC(model, settings, goal, [-2.0], [2.0])
-    _, multi = multi_controller(q, omega)
+    _, single = MPC(model, settings, goal, [-2.0], [2.0])(np.r_[q, omega])
+    multi_controller = MPC(model, replace(settings, cold_starts=COLD_STARTS), goal, [-2.0], [2.0])
+    _, multi = multi_controller(np.r_[q, omega])
     assert multi["success"] and set(multi["cold_costs"]) == {"rollout+", "rollout-", "goal"}
     assert multi["cost"] == pytest.approx(np.nanmin(list(multi["cold_costs"].values())))
     # The single guess's plan passes through hanging; the multi-start's never leaves the top.
@@ -126,17 +126,17 @@ def test_multistart_catches_a_nearly_upright_pendulum_that_the_single_guess_lets
     assert worst_angle(multi["states"]) < 0.5
     assert multi["cost"] < 0.1 * single["cost"]
     # Warm calls afterwards are single solves again.
-    _, warm = multi_controller(*hinge(np.pi + 0.1, 0.5))
+    _, warm = multi_controller(np.r_[hinge(np.pi + 0.1, 0.5)])
     assert "cold_costs" not in warm
 
 
 def test_multistart_rejects_unknown_guesses():
-    from fvin_mpc.control import export
-    from fvin_mpc.control.multistart import MultiStartMPC
-    from fvin_mpc.core.rigid_body import PENDULUM
+    from fvin_mpc.control.mpc import MPCSettings
 
-    with pytest.raises(ValueError, match="unknown guesses"):
-        MultiStartMPC(export.from_rigid_body(PENDULUM, 0.05, 2), guesses=("magic",))
+    with pytest.raises(ValueError, match="cold_starts"):
+        MPCSettings(cold_starts=("magic",))
+    with pytest.raises(ValueError, match="cold_starts"):
+        MPCSettings(cold_starts=())
 
 
 # ---------------------------------------------------------------------- Pendulum-v1
@@ -165,20 +165,21 @@ def test_benchmark_settings_cost_matches_the_reward_near_upright():
         assert settings.orientation_weight * np.sin(angle / 2) ** 2 == pytest.approx(angle**2, rel=0.01)
     assert (settings.omega_weight, settings.control_weight) == (0.1, 0.001)
     assert settings.omega_bound_fraction / v1.DT == pytest.approx(v1.MAX_SPEED)
-    # The terminal energy weight is the pendulum scene's unless given: one place to tune it.
-    from fvin_mpc.control.scene import scene_settings
+    # The terminal energy weight is the scenes' default unless given: one place to tune it.
+    from fvin_mpc.control.scene import DEFAULT_TERMINAL_ENERGY_WEIGHT
 
-    assert settings.terminal_energy_weight == scene_settings("pendulum").terminal_energy_weight > 0
+    assert settings.terminal_energy_weight == DEFAULT_TERMINAL_ENERGY_WEIGHT > 0
     assert v1.benchmark_settings(terminal_energy_weight=0.0).terminal_energy_weight == 0.0
 
 
 def test_evaluation_mpc_settings_follow_the_scene_and_the_overrides():
-    from fvin_mpc.control.scene import scene_settings
+    from fvin_mpc.control.mpc import COLD_STARTS
+    from fvin_mpc.control.scene import scene_env, scene_mpc_settings
 
     default = ev.mpc_settings(ev.EvaluationConfig())
-    assert default == scene_settings("pendulum")
-    assert ev.EvaluationConfig().multistart  # multi-start is the evaluated MPC unless --single-start
-    override = ev.mpc_settings(ev.EvaluationConfig(horizon=40, terminal_energy_weight=0.0))
+    assert default == scene_mpc_settings(scene_env("pendulum"))
+    assert default.cold_starts == COLD_STARTS  # multi-start is the evaluated MPC unless --single-start
+    override = ev.mpc_settings(ev.EvaluationConfig(mpc=(("horizon", 40), ("terminal_energy_weight", 0.0))))
     assert (override.horizon, override.terminal_energy_weight) == (40, 0.0)
 
 

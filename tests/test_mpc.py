@@ -52,10 +52,10 @@ def test_goal_sign_and_state_sign_do_not_change_the_torque(true_model):
         q, omega = hinge(theta, theta_dot)
         for controller in (plus, minus):
             controller.reset()
-        u_plus, info_plus = plus(q, omega)
-        u_minus, info_minus = minus(q, omega)
+        u_plus, info_plus = plus(np.r_[q, omega])
+        u_minus, info_minus = minus(np.r_[q, omega])
         plus.reset()
-        u_flipped, info_flipped = plus(-q, omega)
+        u_flipped, info_flipped = plus(np.r_[-q, omega])
         assert info_plus["success"] and info_minus["success"] and info_flipped["success"]
         np.testing.assert_allclose(u_minus, u_plus, atol=1e-6)
         np.testing.assert_allclose(u_flipped, u_plus, atol=1e-6)
@@ -66,7 +66,7 @@ def test_goal_sign_and_state_sign_do_not_change_the_torque(true_model):
 def test_leaves_exact_rest(controller):
     """Hanging at rest is a stationary point; the first guess must break the symmetry."""
     controller.reset()
-    u, info = controller(HANGING, np.zeros(3))
+    u, info = controller(np.r_[HANGING, np.zeros(3)])
     assert info["success"]
     assert abs(u[0]) > 1.0
 
@@ -76,13 +76,13 @@ def test_failed_solve_returns_previous_plan_then_zero(true_model):
     good = MPC(true_model, MPCSettings(), UPRIGHT, [-2.0], [2.0])
     failing = MPC(true_model, MPCSettings(max_iter=1, cold_max_iter=1), UPRIGHT, [-2.0], [2.0])
     q, omega = hinge(0.3, 0.0)
-    u, info = failing(q, omega)
+    u, info = failing(np.r_[q, omega])
     assert not info["success"] and info["status"] == "Maximum_Iterations_Exceeded"
     assert info["fallback"] == "zero" and np.array_equal(u, [0.0])
     # After a successful plan, a failure falls back to that plan advanced by one step.
-    u_good, good_info = good(q, omega)
+    u_good, good_info = good(np.r_[q, omega])
     failing._previous = good._previous
-    u_fallback, info = failing(q, omega)
+    u_fallback, info = failing(np.r_[q, omega])
     assert info["fallback"] == "previous-plan" and not info["success"]
     assert u_fallback[0] == pytest.approx(good_info["controls"][1, 0])
     assert np.all(np.abs(u_fallback) <= 2.0)
@@ -92,7 +92,7 @@ def test_infeasible_problem_falls_back_within_bounds(true_model):
     """An ω bound the measured state already violates makes the NLP infeasible."""
     controller = MPC(true_model, replace(MPCSettings(), omega_bound_fraction=0.05), UPRIGHT, [-2.0], [2.0])
     q, omega = hinge(0.0, 6.0)  # |ω| = 6 > 0.05/h = 1, and torque 2 cannot brake it in one step
-    u, info = controller(q, omega)
+    u, info = controller(np.r_[q, omega])
     assert not info["success"]
     assert np.all(np.isfinite(u)) and np.all(np.abs(u) <= 2.0)
 
@@ -106,15 +106,15 @@ def test_infeasible_problem_falls_back_within_bounds(true_model):
 ])
 def test_rejects_bad_states(controller, q, omega, message):
     with pytest.raises(ValueError, match=message):
-        controller(q, omega)
+        controller(np.r_[q, omega])
 
 
 def test_nearly_unit_quaternion_is_normalized(controller):
     q, omega = hinge(2.0, 0.5)
     controller.reset()
-    u_exact, _ = controller(q, omega)
+    u_exact, _ = controller(np.r_[q, omega])
     controller.reset()
-    u_scaled, _ = controller(q * (1 + 5e-4), omega)
+    u_scaled, _ = controller(np.r_[q * (1 + 5e-4), omega])
     np.testing.assert_allclose(u_scaled, u_exact, atol=1e-6)
 
 
@@ -124,8 +124,8 @@ def test_hessian_options_reach_the_same_plan(true_model, controller, hessian):
     other = MPC(true_model, replace(MPCSettings(), hessian=hessian, tol=1e-9), UPRIGHT, [-2.0], [2.0])
     reference = MPC(true_model, replace(MPCSettings(), tol=1e-9), UPRIGHT, [-2.0], [2.0])
     q, omega = hinge(np.pi - 0.3, 0.5)
-    u_ref, info_ref = reference(q, omega)
-    u_other, info_other = other(q, omega)
+    u_ref, info_ref = reference(np.r_[q, omega])
+    u_other, info_other = other(np.r_[q, omega])
     assert info_ref["success"] and info_other["success"]
     np.testing.assert_allclose(u_other, u_ref, atol=1e-4)
     assert info_other["cost"] == pytest.approx(info_ref["cost"], rel=1e-6)
@@ -136,8 +136,8 @@ def test_uncompiled_solver_matches_compiled(true_model):
     interpreted = MPC(true_model, replace(MPCSettings(), compile="none", tol=1e-9), UPRIGHT, [-2.0], [2.0])
     assert interpreted.compile_report is None and compiled.compile_report is not None
     q, omega = hinge(1.0, -2.0)
-    u_c, info_c = compiled(q, omega)
-    u_i, info_i = interpreted(q, omega)
+    u_c, info_c = compiled(np.r_[q, omega])
+    u_i, info_i = interpreted(np.r_[q, omega])
     np.testing.assert_allclose(u_i, u_c, atol=1e-7)
     np.testing.assert_allclose(info_i["states"], info_c["states"], atol=1e-6)
 
@@ -145,7 +145,7 @@ def test_uncompiled_solver_matches_compiled(true_model):
 def test_plan_obeys_bounds_and_dynamics(controller, true_model):
     controller.reset()
     q, omega = hinge(0.5, 4.0)
-    _, info = controller(q, omega)
+    _, info = controller(np.r_[q, omega])
     states, controls = info["states"], info["controls"]
     assert np.all(np.abs(controls) <= 2.0 + 1e-8)
     assert np.all(np.abs(states[1:, 4:]) <= controller.omega_bound + 1e-8)
@@ -179,13 +179,13 @@ def _stage_cost(settings, states, controls, goal):
 def test_energy_cost_is_the_weighted_squared_normalized_deficit(true_model):
     """IPOPT's reported cost = the quadratic terms + W_E·((E(x_N) − E_goal)/|E_goal − E_rest|)², recomputed."""
     settings = replace(MPCSettings(), terminal_energy_weight=50.0, compile="none")
-    controller = MPC(true_model, settings, UPRIGHT, [-2.0], [2.0])
-    _, info = controller(*hinge(0.4, 0.0))
+    controller = MPC(true_model, settings, UPRIGHT, [-2.0], [2.0], rest=HANGING)
+    _, info = controller(np.r_[hinge(0.4, 0.0)])
     assert info["success"]
     states, controls = info["states"], info["controls"]
     zero = np.zeros(3)
-    goal_energy, rest_energy = true_model.energy(UPRIGHT, zero), true_model.energy(HANGING, zero)
-    deficit = (true_model.energy(states[-1, :4], states[-1, 4:]) - goal_energy) / abs(goal_energy - rest_energy)
+    goal_energy, rest_energy = true_model.energy(np.r_[UPRIGHT, zero]), true_model.energy(np.r_[HANGING, zero])
+    deficit = (true_model.energy(states[-1]) - goal_energy) / abs(goal_energy - rest_energy)
     assert abs(deficit) > 1e-3  # the term is active in this plan
     expected = _stage_cost(settings, states, controls, UPRIGHT) + 50.0 * deficit ** 2
     assert info["cost"] == pytest.approx(expected, rel=1e-9)
@@ -196,7 +196,7 @@ def test_energy_cost_gauss_newton_and_exact_hessian_reach_the_same_plan(true_mod
     plans = {}
     for hessian in ("gauss-newton", "exact"):
         settings = replace(MPCSettings(), terminal_energy_weight=100.0, hessian=hessian, tol=1e-10, compile="none")
-        _, plans[hessian] = MPC(true_model, settings, UPRIGHT, [-2.0], [2.0])(*hinge(np.pi - 0.6, 1.0))
+        _, plans[hessian] = MPC(true_model, settings, UPRIGHT, [-2.0], [2.0], rest=HANGING)(np.r_[hinge(np.pi - 0.6, 1.0)])
     assert plans["gauss-newton"]["success"] and plans["exact"]["success"]
     np.testing.assert_allclose(plans["gauss-newton"]["controls"], plans["exact"]["controls"], atol=1e-5)
 
@@ -211,7 +211,8 @@ def test_energy_cost_pumps_where_the_short_horizon_stalls(true_model):
     start = {"random": True, "max_omega": 2.0}  # with seed 33: the evaluation's episode 33
     outcome = {}
     for weight in (0.0, 1000.0):
-        controller = MPC(true_model, replace(MPCSettings(), terminal_energy_weight=weight), UPRIGHT, [-2.0], [2.0])
+        controller = MPC(true_model, replace(MPCSettings(), terminal_energy_weight=weight), UPRIGHT, [-2.0], [2.0],
+                         rest=HANGING)
         episode, _ = run_episode(env, controller, 8.0, start, seed=33)
         outcome[weight] = episode_metrics(episode)
     assert not outcome[0.0]["success"]
@@ -220,7 +221,10 @@ def test_energy_cost_pumps_where_the_short_horizon_stalls(true_model):
 
 def test_energy_cost_needs_distinct_goal_and_rest_energies(true_model):
     with pytest.raises(ValueError, match="different goal and rest energies"):
-        MPC(true_model, replace(MPCSettings(), terminal_energy_weight=1.0, compile="none"), HANGING, [-2.0], [2.0])
+        MPC(true_model, replace(MPCSettings(), terminal_energy_weight=1.0, compile="none"), HANGING, [-2.0], [2.0],
+            rest=HANGING)
+    with pytest.raises(ValueError, match="needs the rest orientation"):
+        MPC(true_model, replace(MPCSettings(), terminal_energy_weight=1.0, compile="none"), UPRIGHT, [-2.0], [2.0])
     with pytest.raises(ValueError, match="terminal_energy_weight"):
         MPCSettings(terminal_energy_weight=-1.0)
 
@@ -236,8 +240,12 @@ def test_swingup_cli_runs_with_the_scene_settings_and_overrides(tmp_path, capsys
     out = tmp_path / "run.json"
     assert swingup.main(["--true-model", "--duration", "0.5", "--plot", "", "--quiet", "--json", str(out)]) == 0
     summary = json.loads(out.read_text())
-    assert summary["terminal_energy_weight"] == swingup.scene_settings("pendulum").terminal_energy_weight > 0
-    assert summary["horizon"] == 30 and summary["ipopt_failures"] == 0
+    from fvin_mpc.control.mpc import COLD_STARTS
+    from fvin_mpc.control.scene import DEFAULT_TERMINAL_ENERGY_WEIGHT
+
+    assert summary["terminal_energy_weight"] == DEFAULT_TERMINAL_ENERGY_WEIGHT > 0
+    assert summary["horizon"] == 30 and summary["solver_failures"] == 0
+    assert tuple(summary["cold_starts"]) == COLD_STARTS  # the controller the evaluation reports
     assert swingup.main(["--true-model", "--duration", "0.5", "--plot", "", "--quiet", "--json", str(out),
                          "--energy-weight", "0", "--horizon", "20"]) == 0
     summary = json.loads(out.read_text())

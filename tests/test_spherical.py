@@ -45,7 +45,7 @@ def test_observation_is_the_ball_joint_state(env):
     """obs = [qpos, qvel] of the ball joint: its quaternion and body-frame ω (the body hangs from the world)."""
     assert env.joint_type == "ball" and env.action_space.shape == (3,)
     np.testing.assert_allclose(env.torque_high, [1.5, 1.5, 1.5])
-    np.testing.assert_allclose(env.goal, [0.0, 0.0, 1.0, 0.0])
+    np.testing.assert_allclose(env.goal, [0.0, 0.0, 1.0, 0.0], atol=1e-15)
     rng = np.random.default_rng(3)
     q0, w0 = _random_state(rng, 4.0)
     observation, _ = env.reset(options={"qpos": q0, "qvel": w0})
@@ -212,13 +212,13 @@ def test_shipped_checkpoint_loads_and_exports():
 @pytest.mark.slow
 def test_true_model_mpc_leaves_rest():
     """From hanging at rest the MPC (the scene's settings) applies torque and the body moves away."""
-    from fvin_mpc.control.scene import scene_model, scene_mpc, scene_settings
+    from fvin_mpc.control.scene import scene_model, scene_mpc
 
     environment = RigidBodyEnv(SCENE)
-    controller = scene_mpc(environment, scene_model(environment, None, true_model=True), scene_settings(SCENE))
+    controller = scene_mpc(environment, scene_model(environment, true_model=True))
     observation, _ = environment.reset()
     for _ in range(3):
-        u, info = controller(observation[:4], observation[4:])
+        u, info = controller(observation)
         assert info["success"] and np.all(np.abs(u) <= 1.5 + 1e-9)
         observation, _, _, _, step_info = environment.step(u)
     assert np.abs(u).max() > 0.1

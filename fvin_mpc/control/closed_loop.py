@@ -2,7 +2,7 @@
 
 Every controller in the package (:class:`~fvin_mpc.control.mpc.MPC`,
 :class:`~fvin_mpc.control.energy_shaping.EnergyShapingController`, :class:`ZeroController`) is a
-callable ``u, info = controller(q, omega)`` with a ``reset()``; :func:`run_episode` drives
+callable ``u, info = controller(x)`` with a ``reset()``; :func:`run_episode` drives
 one on an :class:`envs.RigidBodyEnv` (MuJoCo is the plant) and records an :class:`Episode`;
 :func:`episode_metrics` turns it into the numbers the CLIs report.
 """
@@ -22,8 +22,15 @@ HOLD_TOLERANCE = 0.05
 HOLD_WINDOW_S = 3.0
 
 
+#: The scalar entries of a controller's ``info`` an :class:`Episode` keeps per period (the plan
+#: itself is left out: it would make episodes heavy).
+RECORDED_INFO = ("status", "iterations", "solve_time_s", "step_residual", "fallback", "cold_start")
+
+
 class Controller(Protocol):
-    def __call__(self, q: np.ndarray, omega: np.ndarray) -> tuple[np.ndarray, dict[str, Any]]: ...
+    """``u, info = controller(x)`` from the measured state ``x = (q, ω)`` ``(7,)``; ``reset()`` between episodes."""
+
+    def __call__(self, x: np.ndarray) -> tuple[np.ndarray, dict[str, Any]]: ...
     def reset(self) -> None: ...
 
 
@@ -33,7 +40,7 @@ class ZeroController:
     def __init__(self, control_dim: int) -> None:
         self.control_dim = control_dim
 
-    def __call__(self, q: np.ndarray, omega: np.ndarray) -> tuple[np.ndarray, dict[str, Any]]:
+    def __call__(self, x: np.ndarray) -> tuple[np.ndarray, dict[str, Any]]:
         return np.zeros(self.control_dim), {"success": True}
 
     def reset(self) -> None:
@@ -56,6 +63,7 @@ class Episode:
         controller_success: ``(T,)`` whether the controller solved (``info["success"]``).
         fallback: the controller's fallback per period (``None`` when it solved).
         control_period: seconds per period.
+        controller_info: per period, the entries of :data:`RECORDED_INFO` the controller reported.
     """
 
     time: np.ndarray
@@ -69,6 +77,7 @@ class Episode:
     controller_success: np.ndarray
     fallback: list[str | None]
     control_period: float
+    controller_info: list[dict[str, Any]]
 
 
 def run_episode(env: Any, controller: Controller, duration_s: float, reset_options: dict[str, Any] | None = None,
@@ -94,11 +103,11 @@ def run_episode(env: Any, controller: Controller, duration_s: float, reset_optio
     frames = [env.render()] if render else []
     q, omega = [observation[:4]], [observation[4:]]
     angle, energy, times = [info["angle_from_goal"]], [info["energy"]], [info["time"]]
-    controls, rewards, wall, success, fallback = [], [], [], [], []
+    controls, rewards, wall, success, fallback, recorded = [], [], [], [], [], []
     bar = tqdm(range(periods), desc=description, disable=not progress, leave=False)
     for _ in bar:
         start = time.perf_counter()
-        u, controller_info = controller(observation[:4], observation[4:])
+        u, controller_info = controller(observation)
         wall.append(time.perf_counter() - start)
         observation, reward, terminated, truncated, info = env.step(u)
         q.append(observation[:4])
@@ -110,6 +119,7 @@ def run_episode(env: Any, controller: Controller, duration_s: float, reset_optio
         times.append(info["time"])
         success.append(bool(controller_info.get("success", True)))
         fallback.append(controller_info.get("fallback"))
+        recorded.append({key: controller_info[key] for key in RECORDED_INFO if key in controller_info})
         if render:
             frames.append(env.render())
         bar.set_postfix(angle=f"{angle[-1]:.2f}", ms=f"{1e3 * wall[-1]:.1f}")
@@ -119,7 +129,7 @@ def run_episode(env: Any, controller: Controller, duration_s: float, reset_optio
         time=np.asarray(times) - times[0], q=np.array(q), omega=np.array(omega), u=np.array(controls),
         angle_from_goal=np.array(angle), energy=np.array(energy), reward=np.array(rewards),
         controller_time_s=np.array(wall), controller_success=np.array(success), fallback=fallback,
-        control_period=float(base.dt),
+        control_period=float(base.dt), controller_info=recorded,
     )
     return episode, frames
 

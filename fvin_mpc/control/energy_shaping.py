@@ -32,9 +32,9 @@ import scipy.linalg
 
 from fvin_mpc.core import fvin, s3
 from fvin_mpc.core.backend import get_ops
+from fvin_mpc.core.state import check_state, split_state, unit_quaternion
 
 NP = get_ops("numpy")
-HANGING = np.array([1.0, 0.0, 0.0, 0.0])
 
 
 class EnergyShapingNotApplicable(ValueError):
@@ -86,23 +86,24 @@ class EnergyShapingSettings:
 
 
 class EnergyShapingController:
-    """``u, info = controller(q, omega)`` for any :class:`~fvin_mpc.core.fvin.RigidBodyTerms` on NumPy."""
+    """``u, info = controller(x)`` for any :class:`~fvin_mpc.core.fvin.RigidBodyTerms` on NumPy."""
 
     def __init__(self, terms: Any, step_size: float, newton_iters: int, goal: np.ndarray, torque_low: np.ndarray,
-                 torque_high: np.ndarray, settings: EnergyShapingSettings = EnergyShapingSettings(),
-                 hanging: np.ndarray = HANGING) -> None:
+                 torque_high: np.ndarray, rest: np.ndarray,
+                 settings: EnergyShapingSettings = EnergyShapingSettings()) -> None:
         self.terms = terms
         self.h = step_size
         self.newton_iters = newton_iters
-        self.goal = np.asarray(goal, dtype=float) / np.linalg.norm(goal)
+        self.goal = unit_quaternion(goal, "goal")
+        self.rest = unit_quaternion(rest, "rest")
         self.low, self.high = np.asarray(torque_low, float), np.asarray(torque_high, float)
         self.settings = settings
         zero3 = np.zeros(3)
         self.goal_energy = float(fvin.total_energy(tuple(self.goal), tuple(zero3), terms))
-        self.rest_energy = float(fvin.total_energy(tuple(np.asarray(hanging, float)), tuple(zero3), terms))
+        self.rest_energy = float(fvin.total_energy(tuple(self.rest), tuple(zero3), terms))
         self.energy_scale = abs(self.goal_energy - self.rest_energy)
         if not self.energy_scale > 0:
-            raise ValueError("the model's upright and hanging energies coincide; nothing to pump")
+            raise ValueError("the model's goal and rest energies coincide; nothing to pump")
         gain_goal = np.array(terms.control_gain(tuple(self.goal)), dtype=float)  # 3×m
         # Orthonormal basis of the actuated axes: LQR lives in this subspace.
         u_svd, singular, _ = np.linalg.svd(gain_goal, full_matrices=False)
@@ -113,40 +114,17 @@ class EnergyShapingController:
 
     # ------------------------------------------------------------------ constructors
     @classmethod
-    def from_model(cls, model: Any, goal: Any, torque_low: Any, torque_high: Any,
-                   settings: EnergyShapingSettings = EnergyShapingSettings(),
-                   hanging: np.ndarray = HANGING) -> "EnergyShapingController":
-        """From an :class:`~fvin_mpc.control.export.ExportedModel` (its NumPy ``J``, ``U``, ``g``, ``h``, ``K``)."""
-        return cls(model.numpy_terms, model.step_size, model.newton_iters, goal, torque_low, torque_high, settings,
-                   hanging)
-
-    @classmethod
-    def from_checkpoint(cls, checkpoint: Any, goal: Any, torque_low: Any, torque_high: Any,
-                        settings: EnergyShapingSettings = EnergyShapingSettings(), newton_iters: int | None = None,
-                        hanging: np.ndarray = HANGING) -> "EnergyShapingController":
-        """From a trained model only: a :class:`~fvin_mpc.core.checkpoint.Checkpoint`, shipped name or path.
-
-        Uses the checkpoint's ``h`` and (unless ``newton_iters`` is given) its ``K``; no torch.
-        """
-        from fvin_mpc.core.checkpoint import Checkpoint, load_checkpoint
-        from fvin_mpc.core.networks import LearnedTerms
-
-        if not isinstance(checkpoint, Checkpoint):
-            checkpoint = load_checkpoint(checkpoint)
-        config = checkpoint.config
-        terms = LearnedTerms(checkpoint.weights, config, NP)
-        return cls(terms, config.step_size, newton_iters or config.newton_iters, goal, torque_low, torque_high,
-                   settings, hanging)
-
-    @classmethod
-    def from_rigid_body(cls, body: Any, step_size: float, goal: Any, torque_low: Any, torque_high: Any,
-                        newton_iters: int = 2, settings: EnergyShapingSettings = EnergyShapingSettings(),
-                        hanging: np.ndarray = HANGING) -> "EnergyShapingController":
-        """The true-model counterpart: a closed-form :class:`~fvin_mpc.core.rigid_body.PivotedRigidBody`."""
-        return cls(body.terms(NP), step_size, newton_iters, goal, torque_low, torque_high, settings, hanging)
+    def from_model(cls, model: Any, goal: Any, torque_low: Any, torque_high: Any, rest: Any,
+                   settings: EnergyShapingSettings = EnergyShapingSettings()) -> "EnergyShapingController":
+        """From an :class:`~fvin_mpc.control.export.ExportedModel` — learned or closed form — using
+        its NumPy ``J``, ``U``, ``g``, its ``h`` and ``K``; no torch."""
+        return cls(model.numpy_terms, model.step_size, model.newton_iters, goal, torque_low, torque_high, rest,
+                   settings)
 
     # ------------------------------------------------------------------ model
-    def energy(self, q: np.ndarray, omega: np.ndarray) -> float:
+    def energy(self, x: np.ndarray) -> float:
+        """The model's ``½ωᵀJω + U(q)`` of a state ``x = (q, ω)`` ``(7,)``."""
+        q, omega = split_state(np.asarray(x, dtype=float))
         return float(fvin.total_energy(tuple(q), tuple(omega), self.terms))
 
     def _step(self, q: np.ndarray, omega: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -160,9 +138,9 @@ class EnergyShapingController:
         error = 2.0 * np.array(s3.log(tuple(relative), NP), dtype=float)
         return np.concatenate([self.actuated_basis.T @ error, self.actuated_basis.T @ omega])
 
-    def reduced_state(self, q: np.ndarray, omega: np.ndarray) -> np.ndarray:
-        """The LQR's coordinates ``x`` of a state (see :class:`LQRDesign`)."""
-        return self._reduced_state(np.asarray(q, float) / np.linalg.norm(q), np.asarray(omega, float))
+    def reduced_state(self, x: np.ndarray) -> np.ndarray:
+        """The LQR's coordinates of a state ``x = (q, ω)`` ``(7,)`` (see :class:`LQRDesign`)."""
+        return self._reduced_state(*split_state(check_state(x)))
 
     def _lqr(self) -> LQRDesign:
         r = self.actuated_basis.shape[1]
@@ -190,14 +168,15 @@ class EnergyShapingController:
         return LQRDesign(a=a_matrix, b=b_matrix, q_cost=q_cost, r_cost=r_cost, p=p, k=gain)
 
     # ------------------------------------------------------------------ control
-    def __call__(self, q: np.ndarray, omega: np.ndarray) -> tuple[np.ndarray, dict[str, Any]]:
-        from fvin_mpc.control.mpc import check_state  # the controllers' shared input policy (shapes, NaN/inf, unit norm)
-
-        q, omega = check_state(q, omega)
+    def __call__(self, x: Any) -> tuple[np.ndarray, dict[str, Any]]:
+        """The control for the measured state ``x = (q, ω)`` ``(7,)`` (validated by
+        :func:`~fvin_mpc.core.state.check_state`, the controllers' shared input policy)."""
+        x = check_state(x)
+        q, omega = split_state(x)
         angle = float(s3.geodesic_angle(tuple(self.goal), tuple(q), NP))
         threshold = self.settings.release_angle if self.catching else self.settings.catch_angle
         self.catching = angle < threshold
-        energy = self.energy(q, omega)
+        energy = self.energy(x)
         if self.catching:
             u = -self.lqr_gain @ self._reduced_state(q, omega)
             mode = "lqr"
@@ -215,45 +194,3 @@ class EnergyShapingController:
 
     def reset(self) -> None:
         self.catching = False
-
-
-def scene_controller(env: Any, checkpoint: Any = None, true_model: bool = False,
-                     settings: EnergyShapingSettings = EnergyShapingSettings(),
-                     newton_iters: int | None = None) -> EnergyShapingController:
-    """Energy shaping on a scene's env: its goal, torque bounds and hanging orientation.
-
-    ``true_model=True`` uses the closed-form body read off the scene's MJCF
-    (:func:`fvin_mpc.core.rigid_body.from_mujoco`) at the env's control period; otherwise the
-    learned ``J``, ``U``, ``g`` of ``checkpoint`` (whose step must equal the control period).
-
-    Raises:
-        EnergyShapingNotApplicable: the scene's joint is not a hinge. On a ball joint,
-            reaching the upright energy does not bring the body upright (the energy can sit
-            in a conical swing or a spin about the vertical), so the swing-up law above does
-            not apply.
-        ValueError: the checkpoint's step or control dimension does not match the scene.
-    """
-    base = env.unwrapped
-    if base.joint_type != "hinge":
-        raise EnergyShapingNotApplicable(
-            f"energy shaping needs a single hinge; the scene's joint is a {base.joint_type} joint, on which "
-            "reaching the upright energy does not mean reaching upright (conical swings, spin)")
-    hanging = HANGING  # from_mujoco's convention: the world frame is the body's rest orientation
-    if true_model:
-        from fvin_mpc.core.rigid_body import from_mujoco
-
-        body = from_mujoco(base.model, base.body_name)
-        return EnergyShapingController.from_rigid_body(body, base.dt, base.goal, base.torque_low, base.torque_high,
-                                                       newton_iters or 2, settings, hanging)
-    from fvin_mpc.core.checkpoint import Checkpoint, load_checkpoint
-
-    if not isinstance(checkpoint, Checkpoint):
-        checkpoint = load_checkpoint(checkpoint)
-    if abs(checkpoint.config.step_size - base.dt) > 1e-9:
-        raise ValueError(f"the model's step {checkpoint.config.step_size} s differs from the scene's control period "
-                         f"{base.dt} s")
-    if checkpoint.config.control_dim != base.action_space.shape[0]:
-        raise ValueError(f"the model has {checkpoint.config.control_dim} controls, the scene "
-                         f"{base.action_space.shape[0]}")
-    return EnergyShapingController.from_checkpoint(checkpoint, base.goal, base.torque_low, base.torque_high, settings,
-                                                   newton_iters, hanging)

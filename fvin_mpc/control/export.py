@@ -38,11 +38,11 @@ from fvin_mpc.core import fvin
 from fvin_mpc.core.backend import get_ops
 from fvin_mpc.core.checkpoint import Checkpoint, load_checkpoint
 from fvin_mpc.core.networks import LearnedTerms, ModelConfig
+from fvin_mpc.core.state import STATE_DIM, split_state
 
 CA = get_ops("casadi")
 NP = get_ops("numpy")
 
-STATE_DIM = 7
 
 
 def step_function(terms: Any, step_size: float, newton_iters: int, name: str = "fvin_step") -> ca.Function:
@@ -109,9 +109,10 @@ class ExportedModel:
             states.append(self(states[-1], u)[0])
         return np.array(states)
 
-    def energy(self, q: np.ndarray, omega: np.ndarray) -> float:
-        """``½ωᵀJω + U(q)`` in the model's own scale."""
-        return float(fvin.total_energy(tuple(np.asarray(q, float)), tuple(np.asarray(omega, float)), self.numpy_terms))
+    def energy(self, x: np.ndarray) -> float:
+        """``½ωᵀJω + U(q)`` of the state ``x = (q, ω)`` ``(7,)``, in the model's own scale."""
+        q, omega = split_state(np.asarray(x, dtype=float))
+        return float(fvin.total_energy(tuple(q), tuple(omega), self.numpy_terms))
 
 
 def from_checkpoint(checkpoint: Checkpoint | str | Path, newton_iters: int | None = None) -> ExportedModel:

@@ -1,7 +1,8 @@
 """Nonlinear MPC over an exported S3FVIN step, solved by IPOPT.
 
-``controller = MPC(model, settings, goal, torque_low, torque_high)``, then
-``u, info = controller(q, omega)`` once per control period.
+``controller = MPC(model, settings, goal, torque_low, torque_high, rest)`` (or
+:func:`fvin_mpc.control.scene.scene_mpc` for a scene), then ``u, info = controller(x)`` once
+per control period, ``x = (q, ω)`` the measured state.
 
 The problem (multiple shooting, ``N = settings.horizon`` steps of the model's ``h``):
 
@@ -16,8 +17,9 @@ The problem (multiple shooting, ``N = settings.horizon`` steps of the model's ``
   energy deficit (``E = ½ωᵀJω + U``, so the learned scale λ cancels): a horizon shorter
   than a swing-up cannot see the goal from near hanging, and without ``W_E`` the plan
   that defers pumping is as cheap as the one that pumps; the energy term makes pumping
-  pay inside the horizon. Off by default (``W_E = 0``); the scenes that need it set it
-  (:data:`fvin_mpc.control.scene.SCENE_SETTINGS`).
+  pay inside the horizon. Off in a bare :class:`MPCSettings` (``W_E = 0``); on in the
+  settings a scene derives (:func:`fvin_mpc.control.scene.scene_mpc_settings`) unless the
+  scene declares otherwise.
 * **dynamics** — ``x_{k+1} = F(x_k, u_k)``, ``F`` mapped over the horizon (one copy of
   the step's code however long the horizon).
 * **bounds** — ``u`` within the actuators' range; every ``ω`` component of ``x_1 … x_N``
@@ -53,14 +55,17 @@ from typing import Any, Literal
 import casadi as ca
 import numpy as np
 
-from fvin_mpc.control.export import STATE_DIM, CompileReport, ExportedModel, compile_functions
+from fvin_mpc.control.export import CompileReport, ExportedModel, compile_functions
+from fvin_mpc.core.state import STATE_DIM, check_state, unit_quaternion
 
 #: IPOPT return statuses accepted as a solution.
 SUCCESS_STATUSES = frozenset({"Solve_Succeeded", "Solved_To_Acceptable_Level"})
 
-#: How far a quaternion's norm may be from 1 before the controller refuses it. Within it
-#: the quaternion is normalized (float32 observations, sensor rounding).
-UNIT_NORM_TOLERANCE = 1e-3
+#: First guesses a cold solve can start from: the model rolled out under ``+f·u_max`` or
+#: ``−f·u_max`` (``f`` = ``initial_torque_fraction``), or ``"goal"``: the orientation slerped from
+#: the measured one to the goal over the first third of the horizon, at rest, no torque (not a
+#: model trajectory — the solver closes the gaps — but in the basin of "catch it").
+COLD_STARTS: tuple[str, ...] = ("rollout+", "rollout-", "goal")
 
 
 @dataclass(frozen=True)
@@ -98,6 +103,11 @@ class MPCSettings:
             Hessians; the warm start passes the plan and, with ``"primal-dual"``, the
             multipliers) or ``"fatrop"`` (needs ``hessian="exact"`` and ``compile="none"``:
             it forms its own exact Hessian from the expanded functions).
+        cold_starts: first guesses of a cold solve (the first call after ``reset()``, or after a
+            zero fallback), from :data:`COLD_STARTS`; with several, each is solved and the
+            successful plan of lowest cost is kept (multi-start: a swing-up NLP has local optima —
+            swing left or right first, catch the body near upright or let it fall through a turn —
+            and a local solver converges to the one nearest its guess). Warm calls are unchanged.
     """
 
     horizon: int = 30
@@ -118,6 +128,7 @@ class MPCSettings:
     warm_mu_init: float = 1e-4
     ipopt_options: tuple[tuple[str, Any], ...] = field(default_factory=tuple)
     solver: Literal["ipopt", "sqpmethod", "fatrop"] = "ipopt"
+    cold_starts: tuple[str, ...] = ("rollout+",)
 
     def __post_init__(self) -> None:
         if self.horizon < 1:
@@ -139,6 +150,8 @@ class MPCSettings:
         if self.solver == "fatrop" and (self.hessian != "exact" or self.compile != "none"):
             raise ValueError("solver='fatrop' forms its own exact Hessian from expanded functions: "
                              "use hessian='exact' and compile='none'")
+        if not self.cold_starts or any(start not in COLD_STARTS for start in self.cold_starts):
+            raise ValueError(f"cold_starts must be a non-empty tuple from {COLD_STARTS}, got {self.cold_starts!r}")
         if self.initial_torque_fraction == 0.0:
             raise ValueError("initial_torque_fraction must be non-zero: rest is a stationary point")
 
@@ -153,35 +166,6 @@ class _Plan:
     lam_x: np.ndarray | None
 
 
-def _normalized_quaternion(value: Any, name: str) -> np.ndarray:
-    """``value`` as a unit quaternion ``(4,)``; ``ValueError`` if it is not a finite non-zero 4-vector."""
-    quaternion = np.asarray(value, dtype=float)
-    if quaternion.shape != (4,) or not np.all(np.isfinite(quaternion)) or np.linalg.norm(quaternion) == 0:
-        raise ValueError(f"{name} must be a finite non-zero quaternion of shape (4,), got {value!r}")
-    return quaternion / np.linalg.norm(quaternion)
-
-
-def check_state(q: Any, omega: Any) -> tuple[np.ndarray, np.ndarray]:
-    """Validate a measured state; returns ``(unit q (4,), ω (3,))`` as float64.
-
-    Policy for non-unit quaternions: within :data:`UNIT_NORM_TOLERANCE` of unit norm they
-    are normalized; otherwise ``ValueError`` (a non-unit ``q`` is not a rotation, and
-    silently normalizing a wrong one would hide a bug upstream).
-    """
-    try:
-        q, omega = np.asarray(q, dtype=float), np.asarray(omega, dtype=float)
-    except (TypeError, ValueError) as error:  # None-like, strings, dicts, ragged lists
-        raise ValueError(f"expected q (4,) and omega (3,) as float arrays: {error}") from None
-    if q.shape != (4,) or omega.shape != (3,):
-        raise ValueError(f"expected q of shape (4,) and omega of shape (3,), got {q.shape} and {omega.shape}")
-    if not (np.all(np.isfinite(q)) and np.all(np.isfinite(omega))):
-        raise ValueError(f"state contains NaN or inf: q={q}, omega={omega}")
-    norm = float(np.linalg.norm(q))
-    if abs(norm - 1.0) > UNIT_NORM_TOLERANCE:
-        raise ValueError(f"q is not a unit quaternion (|q| = {norm:.6g}; tolerance {UNIT_NORM_TOLERANCE})")
-    return q / norm, omega
-
-
 class MPC:
     """Receding-horizon controller over an :class:`~fvin_mpc.control.export.ExportedModel`.
 
@@ -191,28 +175,32 @@ class MPC:
         goal: goal orientation ``(4,)`` (either sign).
         torque_low, torque_high: control bounds ``(m,)``, e.g. the scene's ``ctrlrange``.
         rest: the orientation of the potential's minimum (hanging), which sets the energy
-            scale of the terminal energy cost; the built-in scenes hang at the identity.
+            scale of the terminal energy cost; needed only when ``terminal_energy_weight > 0``.
+            :func:`fvin_mpc.control.scene.scene_mpc` passes the scene's.
 
     Attributes:
         compile_report: how the compiled functions were obtained (``None`` if not compiled).
         build_s: seconds spent building (and compiling) the solver.
     """
 
-    def __init__(self, model: ExportedModel, settings: MPCSettings = MPCSettings(), goal: Any = (0.0, 0.0, 1.0, 0.0),
-                 torque_low: Any = (-2.0,), torque_high: Any = (2.0,), rest: Any = (1.0, 0.0, 0.0, 0.0)) -> None:
+    def __init__(self, model: ExportedModel, settings: MPCSettings, goal: Any, torque_low: Any, torque_high: Any,
+                 rest: Any = None) -> None:
         self.model = model
         self.settings = settings
-        self.goal = _normalized_quaternion(goal, "goal")
+        self.goal = unit_quaternion(goal, "goal")
         m = model.control_dim
         self.torque_low = np.broadcast_to(np.asarray(torque_low, dtype=float), (m,)).copy()
         self.torque_high = np.broadcast_to(np.asarray(torque_high, dtype=float), (m,)).copy()
         if not np.all(self.torque_low < self.torque_high):
             raise ValueError(f"need torque_low < torque_high, got {self.torque_low} and {self.torque_high}")
         self.omega_bound = settings.omega_bound_fraction / model.step_size
-        self.rest = _normalized_quaternion(rest, "rest")
+        self.rest = None if rest is None else unit_quaternion(rest, "rest")
         if settings.terminal_energy_weight > 0:
-            rest_energy = model.energy(self.rest, np.zeros(3))
-            span = abs(model.energy(self.goal, np.zeros(3)) - rest_energy)
+            if self.rest is None:
+                raise ValueError("terminal_energy_weight > 0 needs the rest orientation (the potential's minimum), "
+                                 "which sets the energy scale: pass rest=... (a scene's task has it)")
+            rest_energy = model.energy(np.concatenate([self.rest, np.zeros(3)]))
+            span = abs(model.energy(np.concatenate([self.goal, np.zeros(3)])) - rest_energy)
             if not span > 1e-9 * (1.0 + abs(rest_energy)):
                 raise ValueError("terminal_energy_weight > 0 needs different goal and rest energies; "
                                  f"the model gives {span:.3g} between {self.goal} and {self.rest}")
@@ -367,8 +355,24 @@ class MPC:
         return {"ipopt": ipopt, "print_time": False, "error_on_fail": False, "calc_lam_p": False}
 
     # ------------------------------------------------------------------ guesses
-    def _first_guess(self, x0: np.ndarray) -> _Plan:
-        return self._rollout_guess(x0, self.settings.initial_torque_fraction * self.torque_high)
+    def _first_guess(self, x0: np.ndarray, start: str) -> _Plan:
+        """The plan a cold solve starts from (see :data:`COLD_STARTS`)."""
+        if start == "goal":
+            n = self.horizon
+            q0 = x0[:4]
+            goal = self.goal * (1.0 if float(np.dot(q0, self.goal)) >= 0 else -1.0)
+            angle = float(np.arccos(np.clip(np.dot(q0, goal), -1.0, 1.0)))
+            weights = np.clip(np.arange(n + 1) / max(1, n // 3), 0.0, 1.0)
+            if angle < 1e-9:
+                quaternions = np.tile(q0, (n + 1, 1))
+            else:  # slerp
+                quaternions = (np.sin((1 - weights) * angle)[:, None] * q0
+                               + np.sin(weights * angle)[:, None] * goal) / np.sin(angle)
+            states = np.concatenate([quaternions, np.zeros((n + 1, 3))], axis=1)
+            states[0] = x0
+            return _Plan(states, np.zeros((n, self.model.control_dim)), None, None)
+        sign = 1.0 if start == "rollout+" else -1.0
+        return self._rollout_guess(x0, sign * self.settings.initial_torque_fraction * self.torque_high)
 
     def _rollout_guess(self, x0: np.ndarray, torque: np.ndarray) -> _Plan:
         """The model rolled out under the constant ``torque`` (clipped to the bounds), ω clipped to its bound."""
@@ -397,25 +401,40 @@ class MPC:
         """Forget the previous plan (the next call starts from the first guess)."""
         self._previous = None
 
-    def solve(self, q: Any, omega: Any) -> tuple[np.ndarray, dict[str, Any]]:
-        """Alias of :meth:`__call__`."""
-        return self(q, omega)
+    def __call__(self, x: Any) -> tuple[np.ndarray, dict[str, Any]]:
+        """Plan from the measured state ``x = (q, ω)`` ``(7,)``; returns ``(u (m,), info)``.
 
-    def __call__(self, q: Any, omega: Any) -> tuple[np.ndarray, dict[str, Any]]:
-        """Plan from the measured state; returns ``(u (m,), info)``.
-
-        ``info``: ``status`` (IPOPT's), ``success``, ``iterations``, ``solve_time_s``,
-        ``fallback`` (``None``, ``"previous-plan"`` or ``"zero"``), ``cost``,
-        ``step_residual`` (the model's Newton residual for the applied first step, rad/s),
-        ``states`` ``(N+1, 7)`` and ``controls`` ``(N, m)`` of the plan.
+        ``info``: ``status`` (the solver's), ``success``, ``iterations``, ``solve_time_s`` (summed
+        over the cold starts of a multi-start call), ``fallback`` (``None``, ``"previous-plan"`` or
+        ``"zero"``), ``cost``, ``step_residual`` (the model's Newton residual for the applied first
+        step, rad/s), ``states`` ``(N+1, 7)`` and ``controls`` ``(N, m)`` of the plan; on cold calls
+        also ``cold_start`` (the first guess that won) and ``cold_costs`` (guess → cost, ``nan`` if
+        that solve failed).
 
         Raises:
             ValueError: non-finite or wrongly shaped state, or ``q`` not of unit norm.
         """
-        q, omega = check_state(q, omega)
-        x0 = np.concatenate([q, omega])
-        warm = self._previous is not None and self.settings.warm_start != "none"
-        guess = self._shifted(self._previous, x0) if warm else self._first_guess(x0)
+        x0 = check_state(x)
+        if self._previous is not None and self.settings.warm_start != "none":
+            return self._solve(x0, self._shifted(self._previous, x0), warm=True)
+        best: tuple[np.ndarray, dict[str, Any], _Plan | None] | None = None
+        costs: dict[str, float] = {}
+        total_time = 0.0
+        earlier_plan = self._previous  # what a failed solve falls back to (kept with warm_start="none")
+        for start in self.settings.cold_starts:
+            self._previous = earlier_plan
+            u, info = self._solve(x0, self._first_guess(x0, start), warm=False)
+            total_time += info["solve_time_s"]
+            costs[start] = info["cost"] if info["success"] else float("nan")
+            if info["success"] and (best is None or info["cost"] < best[1]["cost"]):
+                best = (u, {**info, "cold_start": start}, self._previous)
+        if best is None:  # every cold start failed: the last one's fallback stands
+            return u, {**info, "solve_time_s": total_time, "cold_start": None, "cold_costs": costs}
+        u, info, self._previous = best
+        return u, {**info, "solve_time_s": total_time, "cold_costs": costs}
+
+    def _solve(self, x0: np.ndarray, guess: _Plan, warm: bool) -> tuple[np.ndarray, dict[str, Any]]:
+        """One NLP solve from ``guess``; keeps the plan (or falls back) and returns the control."""
         lower, upper = self._lower.copy(), self._upper.copy()
         lower[:STATE_DIM] = upper[:STATE_DIM] = x0
         arguments: dict[str, Any] = {"x0": self._pack(guess.states, guess.controls), "p": self.goal,

@@ -1,72 +1,197 @@
-"""Swing a MuJoCo pendulum up with IPOPT MPC on the learned S3FVIN: ``python -m fvin_mpc.swingup``.
+"""What a scene calls for: its plant, its planning model and its controllers, with settings
+derived from the scene's own scales.
 
-With no arguments: the shipped sign-invariant model of the ``pendulum`` scene, starting
-hanging at rest, 10 s of closed loop in MuJoCo, a summary on stdout and a plot in
-``swingup.png``. ``--true-model`` runs the same MPC on the closed-form rigid body read
-off the scene's MJCF, for comparison.
+Every command, study and notebook builds these through the functions here, so that "the model
+for a scene" and "the MPC for a scene" mean one thing:
+
+* :func:`scene_env` — the scene's :class:`~fvin_mpc.envs.RigidBodyEnv`, its control period taken
+  from ``control_period``, else the checkpoint's step, else the scene's;
+* :func:`scene_model` — a checkpoint's model or the closed-form body read off the MJCF, checked
+  against the env (step size, control dimension);
+* :func:`scene_mpc_settings` / :func:`scene_mpc` — :class:`~fvin_mpc.control.mpc.MPC` with the
+  scene's goal, rest and torque bounds, and settings derived from its scales;
+* :func:`scene_energy_shaping` — energy pumping + LQR catch on the same model.
+
+Defaults from scales (:func:`default_mpc_settings`). The MPC's cost weights were tuned on the
+``pendulum`` scene (Pendulum-v1's rod: energy span 10 J, ``J = 1/3``, ``|u| ≤ 2``, ``h = 0.05``). A
+new scene gets the same cost *in its own units*: angular velocities measured against the speed
+scale ``ω_s = √(2 ΔE / J_max)`` (the speed that carries the body over the whole energy span ``ΔE``
+between rest and goal), controls against the actuator bound, stage weights per second of horizon
+(``∝ h``), and a horizon of the same number of natural periods (``∝ 1/ω_s``). The terminal
+energy-deficit term is already relative to ``ΔE``. On the ``pendulum`` scene these are exactly
+:class:`~fvin_mpc.control.mpc.MPCSettings`' numbers. The scales are the scene's physics (read off
+its MJCF), so the learned and the closed-form model get the same settings on the same scene.
 """
 
 from __future__ import annotations
 
-from dataclasses import replace
+import math
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 
+from fvin_mpc.control.energy_shaping import EnergyShapingController, EnergyShapingNotApplicable, EnergyShapingSettings
 from fvin_mpc.control.export import ExportedModel, from_checkpoint, from_rigid_body
-from fvin_mpc.control.mpc import MPC, MPCSettings
+from fvin_mpc.control.mpc import COLD_STARTS, MPC, MPCSettings
+from fvin_mpc.core.checkpoint import Checkpoint, load_checkpoint
 
 
-#: MPCSettings fields a built-in scene changes from the defaults (the CLI's options override them).
-#: ``spherical_pendulum``: 1.5 N·m against 6 N·m of gravity torque about a slower axis (J ≈ 0.5)
-#: needs several pumps; with the default 1.5 s horizon the plan stalls near the bottom, with
-#: 2.5 s it swings up (docs/spherical.md). Cold solves from rest take ≈ 130 IPOPT iterations,
-#: so the default limit of 100 would leave the body hanging (the zero fallback at rest).
-#: ``pendulum_damped``: at horizons 30 and 40 the plan settles on a local optimum that never
-#: swings up, with the learned and the closed-form model alike; 2.5 s escapes it (docs/scenes.md).
-#: ``pendulum``: the 1.5 s horizon is shorter than a swing-up from near hanging; without the
-#: terminal energy cost 1 of 50 evaluation episodes (learned and closed-form alike) never pumps
-#: (docs/evaluation.md). The weight makes a full energy deficit cost 1000, against ≤ 40 for the
-#: terminal orientation: near upright its gradient vanishes (the deficit is quadratic there).
-SCENE_SETTINGS: dict[str, dict[str, Any]] = {
-    "pendulum": {"terminal_energy_weight": 1000.0},
-    "pendulum_damped": {"horizon": 50},
-    "spherical_pendulum": {"horizon": 50, "max_iter": 300},
-}
+@dataclass(frozen=True)
+class SceneScales:
+    """The scales a scene's default MPC settings are derived from.
+
+    Attributes:
+        energy_span: ``|U(goal) − U(rest)|`` (J).
+        speed: ``ω_s = √(2·energy_span / J_max)`` (rad/s), ``J_max`` the largest principal
+            inertia about the pivot.
+        torque: the largest actuator bound ``max |u|`` (the scene's units).
+        step_size: the control period ``h`` (s).
+    """
+
+    energy_span: float
+    speed: float
+    torque: float
+    step_size: float
 
 
-def scene_settings(scene: str, **overrides: Any) -> MPCSettings:
-    """:class:`MPCSettings` for ``scene``: the defaults, the scene's :data:`SCENE_SETTINGS`, then ``overrides``."""
-    fields = {**SCENE_SETTINGS.get(str(scene), {}), **{k: v for k, v in overrides.items() if v is not None}}
-    return replace(MPCSettings(), **fields)
+#: The scales of the ``pendulum`` scene, on which :class:`MPCSettings`' numbers were tuned.
+REFERENCE_SCALES = SceneScales(energy_span=10.0, speed=math.sqrt(60.0), torque=2.0, step_size=0.05)
+#: The terminal energy-deficit weight a scene gets unless it declares otherwise (docs/evaluation.md:
+#: with it a 1.5 s horizon swings the pendulum up from every start).
+DEFAULT_TERMINAL_ENERGY_WEIGHT = 1000.0
 
 
-def default_checkpoint(scene: str) -> str:
-    """The shipped sign-invariant checkpoint of a built-in scene."""
-    return f"{Path(scene).stem}_sign-invariant"
+def scene_scales(env: Any) -> SceneScales:
+    """The :class:`SceneScales` of a scene's physics: read off its MJCF (the closed-form body of
+    :func:`~fvin_mpc.core.rigid_body.from_mujoco`), not off a planning model, so that a learned and
+    the closed-form model get the same settings on the same scene.
+
+    Raises:
+        ValueError: the actuator bounds are not finite, goal and rest have the same potential, or
+            the body is one ``from_mujoco`` cannot read (pass the settings explicitly then).
+    """
+    from fvin_mpc.core.backend import get_ops
+    from fvin_mpc.core.rigid_body import from_mujoco
+
+    base = env.unwrapped
+    bounds = np.abs(np.concatenate([base.torque_low, base.torque_high]))
+    if not np.all(np.isfinite(bounds)):
+        raise ValueError("deriving MPC settings from the scene's scales needs finite actuator bounds "
+                         "(declare actuator limits, or pass the MPC settings explicitly)")
+    terms = from_mujoco(base.model, base.body_name).terms(get_ops("numpy"))
+    span = abs(float(terms.potential(tuple(base.goal))) - float(terms.potential(tuple(base.rest))))
+    if not span > 0.0:
+        raise ValueError("the scene's goal and rest have the same potential energy: nothing to swing up")
+    inertia = np.array(terms.inertia(tuple(base.rest)), dtype=float)
+    return SceneScales(energy_span=span, speed=math.sqrt(2.0 * span / float(np.linalg.eigvalsh(inertia).max())),
+                       torque=float(bounds.max()), step_size=float(base.dt))
 
 
-def scene_model(env: Any, checkpoint: str | None = None, true_model: bool = False,
+def default_mpc_settings(scales: SceneScales) -> MPCSettings:
+    """:class:`MPCSettings` whose costs mean on ``scales`` what the defaults mean on the pendulum.
+
+    Multi-start cold solves (every guess of :data:`~fvin_mpc.control.mpc.COLD_STARTS`) and the
+    terminal energy-deficit cost are on: the controller the evaluation reports.
+    """
+    reference, base = REFERENCE_SCALES, MPCSettings()
+    per_second = scales.step_size / reference.step_size  # stage weights are a rate × h
+    speed = (reference.speed / scales.speed) ** 2  # weights on |ω|² in units of ω_s
+    torque = (reference.torque / scales.torque) ** 2  # weights on |u|² in units of u_max
+    horizon_s = base.horizon * reference.step_size * reference.speed / scales.speed
+    tidy = lambda value: float(f"{value:.12g}")  # noqa: E731  (the reference's own numbers, not 0.0999…)
+    return replace(
+        base,
+        horizon=max(1, round(horizon_s / scales.step_size)),
+        orientation_weight=tidy(base.orientation_weight * per_second),
+        omega_weight=tidy(base.omega_weight * speed * per_second),
+        control_weight=tidy(base.control_weight * torque * per_second),
+        terminal_omega_weight=tidy(base.terminal_omega_weight * speed),
+        terminal_energy_weight=DEFAULT_TERMINAL_ENERGY_WEIGHT,
+        cold_starts=COLD_STARTS,
+    )
+
+
+#: MPCSettings fields a command line may set (``None`` leaves the scene's value).
+SETTING_NAMES = frozenset(f.name for f in fields(MPCSettings))
+
+
+def scene_mpc_settings(env: Any, **overrides: Any) -> MPCSettings:
+    """The settings :func:`scene_mpc` uses: derived from the scene's scales
+    (:func:`default_mpc_settings`), then the scene's declared ``mpc`` fields, then ``overrides``
+    (``None`` values ignored, so CLI options can be passed through as they are)."""
+    base = env.unwrapped
+    unknown = set(overrides) - SETTING_NAMES
+    if unknown:
+        raise ValueError(f"unknown MPC settings {sorted(unknown)}; expected some of {sorted(SETTING_NAMES)}")
+    settings = default_mpc_settings(scene_scales(env))
+    return replace(settings, **dict(base.scene_spec.mpc), **{k: v for k, v in overrides.items() if v is not None})
+
+
+def scene_env(scene: Any = "pendulum", checkpoint: Any = None, true_model: bool = False,
+              control_period: float | None = None, **env_options: Any) -> Any:
+    """The scene's env, stepping at ``control_period``, else at the step of the checkpoint that will
+    plan on it (unless ``true_model``), else at the scene's period. ``env_options`` go to
+    :class:`~fvin_mpc.envs.RigidBodyEnv` (``body``, ``goal``, ``render_mode``, …)."""
+    from fvin_mpc.envs import RigidBodyEnv
+    from fvin_mpc.envs.scenes import resolve_scene
+
+    spec = resolve_scene(scene)
+    if control_period is None and not true_model:
+        control_period = _checkpoint(checkpoint or spec.default_checkpoint).config.step_size
+    return RigidBodyEnv(scene=spec, control_period=control_period, **env_options)
+
+
+def scene_model(env: Any, checkpoint: Any = None, true_model: bool = False,
                 newton_iters: int | None = None) -> ExportedModel:
-    """The model the MPC plans with: a checkpoint's, or the scene's closed-form rigid body.
+    """The model a controller plans with on ``env``: ``checkpoint`` (object, shipped name or path;
+    default: the scene's), or with ``true_model`` the closed-form body read off the scene's MJCF at
+    the env's control period.
 
-    Raises ``ValueError`` if the model's step differs from the env's control period.
+    Raises:
+        ValueError: the model's step differs from the env's control period, or its number of
+            controls from the env's actuators.
     """
     from fvin_mpc.core.rigid_body import from_mujoco
 
     base = env.unwrapped
     if true_model:
         body = from_mujoco(base.model, base.body_name)
-        return from_rigid_body(body, base.dt, newton_iters or 2, name=f"true_{getattr(base.scene_spec, 'name', 'scene')}")
-    model = from_checkpoint(checkpoint, newton_iters)
+        return from_rigid_body(body, base.dt, newton_iters or 2, name=f"true_{base.scene_spec.name}")
+    model = from_checkpoint(_checkpoint(checkpoint or base.scene_spec.default_checkpoint), newton_iters)
     if abs(model.step_size - base.dt) > 1e-9:
-        raise ValueError(f"the model's step {model.step_size} s differs from the scene's control period {base.dt} s")
+        raise ValueError(f"the model's step {model.step_size} s differs from the scene's control period {base.dt} s; "
+                         "make the env with scene_env(..., checkpoint=...) or pass a matching control period")
     if model.control_dim != base.action_space.shape[0]:
         raise ValueError(f"the model has {model.control_dim} controls, the scene {base.action_space.shape[0]}")
     return model
 
 
-def scene_mpc(env: Any, model: ExportedModel, settings: MPCSettings = MPCSettings(), goal: Any = None) -> MPC:
-    """An :class:`MPC` with the scene's goal and torque bounds."""
+def scene_mpc(env: Any, model: ExportedModel, settings: MPCSettings | None = None) -> MPC:
+    """An :class:`MPC` on the scene's task: its goal, rest and torque bounds; ``settings`` default
+    to :func:`scene_mpc_settings`."""
     base = env.unwrapped
-    return MPC(model, settings, base.goal if goal is None else goal, base.torque_low, base.torque_high)
+    settings = scene_mpc_settings(env) if settings is None else settings
+    return MPC(model, settings, base.goal, base.torque_low, base.torque_high, rest=base.rest)
+
+
+def scene_energy_shaping(env: Any, model: ExportedModel,
+                         settings: EnergyShapingSettings = EnergyShapingSettings()) -> EnergyShapingController:
+    """Energy pumping + LQR catch on ``model`` (learned or closed form) for the scene's task.
+
+    Raises:
+        EnergyShapingNotApplicable: the scene's joint is not a hinge. On a ball joint, reaching
+            the upright energy does not bring the body upright (the energy can sit in a conical
+            swing or a spin about the vertical), so the swing-up law does not apply.
+    """
+    base = env.unwrapped
+    if base.joint_type != "hinge":
+        raise EnergyShapingNotApplicable(
+            f"energy shaping needs a single hinge; the scene's joint is a {base.joint_type} joint, on which "
+            "reaching the upright energy does not mean reaching upright (conical swings, spin)")
+    return EnergyShapingController.from_model(model, base.goal, base.torque_low, base.torque_high, base.rest, settings)
+
+
+def _checkpoint(checkpoint: Checkpoint | str | Path) -> Checkpoint:
+    return checkpoint if isinstance(checkpoint, Checkpoint) else load_checkpoint(checkpoint)

@@ -61,12 +61,9 @@ class EvaluationConfig:
         controllers: names from :data:`CONTROLLERS`.
         seed: base seed; episode ``i`` resets the env with seed ``seed + i``.
         max_omega: largest initial |ω| (rad/s) of the random starts.
-        horizon: MPC horizon (steps); ``None`` = the scene's default
-            (:func:`fvin_mpc.control.scene.scene_settings`).
-        multistart: build the MPCs as :class:`~fvin_mpc.control.multistart.MultiStartMPC` (cold solves
-            from several first guesses, the lowest-cost one kept; default) instead of
-            :class:`~fvin_mpc.control.mpc.MPC` (one first guess).
-        terminal_energy_weight: the MPC's ``W_E``; ``None`` = the scene's.
+        control_period: seconds per step; ``None`` = the checkpoint's step if it exists, else the scene's.
+        mpc: :class:`~fvin_mpc.control.mpc.MPCSettings` fields changed from the scene's
+            (:func:`fvin_mpc.control.scene.scene_mpc_settings`), as ``(name, value)`` pairs.
     """
 
     scene: str = "pendulum"
@@ -76,9 +73,8 @@ class EvaluationConfig:
     controllers: tuple[str, ...] = CONTROLLERS
     seed: int = 0
     max_omega: float = DEFAULT_MAX_OMEGA
-    horizon: int | None = None
-    multistart: bool = True
-    terminal_energy_weight: float | None = None
+    control_period: float | None = None
+    mpc: tuple[tuple[str, Any], ...] = ()
 
     def __post_init__(self) -> None:
         if self.episodes < 1:
@@ -90,16 +86,18 @@ class EvaluationConfig:
             raise ValueError(f"unknown controllers {unknown}; choose from {', '.join(CONTROLLERS)}")
         if not (math.isfinite(self.max_omega) and self.max_omega >= 0):
             raise ValueError(f"max_omega must be finite and >= 0, got {self.max_omega}")
-        if self.horizon is not None and self.horizon < 1:
-            raise ValueError(f"horizon must be >= 1, got {self.horizon}")
-        if self.terminal_energy_weight is not None and not self.terminal_energy_weight >= 0:
-            raise ValueError(f"terminal_energy_weight must be >= 0, got {self.terminal_energy_weight}")
+        from fvin_mpc.control.mpc import MPCSettings
+
+        try:  # validate the overrides (names and values) now, not in a worker
+            MPCSettings(**dict(self.mpc))
+        except TypeError as error:
+            raise ValueError(f"unknown MPC setting in {dict(self.mpc)}: {error}") from None
 
     @property
     def checkpoint_name(self) -> str:
-        from fvin_mpc.control.scene import default_checkpoint
+        from fvin_mpc.envs.scenes import resolve_scene
 
-        return self.checkpoint or default_checkpoint(self.scene)
+        return self.checkpoint or resolve_scene(self.scene).default_checkpoint
 
 
 @dataclass(frozen=True)
@@ -121,57 +119,62 @@ def episode_starts(config: EvaluationConfig) -> list[EpisodeStart]:
 
 # ---------------------------------------------------------------------- controllers
 def make_env(config: EvaluationConfig) -> Any:
-    from fvin_mpc.envs import RigidBodyEnv
+    """The scene's env at the configuration's control period (:func:`fvin_mpc.control.scene.scene_env`)."""
+    from fvin_mpc.control.scene import scene_env
 
-    return RigidBodyEnv(scene=config.scene)
+    learned = any(name.endswith("-learned") for name in config.controllers)
+    has_checkpoint = learned and _checkpoint_exists(config)
+    return scene_env(config.scene, config.checkpoint_name if has_checkpoint else None, true_model=not has_checkpoint,
+                     control_period=config.control_period)
 
 
 def build_controller(name: str, env: Any, config: EvaluationConfig) -> Any:
     """The controller called ``name`` for ``env``; :class:`ControllerSkipped` if it does not apply."""
     from fvin_mpc.control.closed_loop import ZeroController
-    from fvin_mpc.control.energy_shaping import EnergyShapingNotApplicable, scene_controller
-    from fvin_mpc.control.scene import scene_model, scene_mpc
+    from fvin_mpc.control.energy_shaping import EnergyShapingNotApplicable
+    from fvin_mpc.control.scene import scene_energy_shaping, scene_model, scene_mpc
 
     learned = name.endswith("-learned")
     if learned:
         _check_checkpoint(config)
     if name == "zero":
         return ZeroController(env.unwrapped.action_space.shape[0])
+    model = scene_model(env, config.checkpoint_name if learned else None, true_model=not learned)
     if name.startswith("mpc-"):
-        settings = mpc_settings(config)
-        model = scene_model(env, config.checkpoint_name if learned else None, true_model=not learned)
-        if config.multistart:
-            from fvin_mpc.control.multistart import MultiStartMPC
-
-            base = env.unwrapped
-            return MultiStartMPC(model, settings, base.goal, base.torque_low, base.torque_high)
-        return scene_mpc(env, model, settings)
+        return scene_mpc(env, model, mpc_settings(config, env))
     if name.startswith("energy-"):
         try:
-            return scene_controller(env, config.checkpoint_name if learned else None, true_model=not learned)
+            return scene_energy_shaping(env, model)
         except EnergyShapingNotApplicable as error:
             raise ControllerSkipped(str(error)) from None
     raise ValueError(f"unknown controller {name!r}")
 
 
-def mpc_settings(config: EvaluationConfig) -> Any:
-    """The MPC settings of the scene (:func:`fvin_mpc.control.scene.scene_settings`), ``horizon`` and ``W_E`` applied."""
-    from fvin_mpc.control.scene import scene_settings
+def mpc_settings(config: EvaluationConfig, env: Any = None) -> Any:
+    """The MPC settings of the scene (:func:`fvin_mpc.control.scene.scene_mpc_settings`), ``config.mpc`` applied."""
+    from fvin_mpc.control.scene import scene_mpc_settings
 
-    return scene_settings(config.scene, horizon=config.horizon, terminal_energy_weight=config.terminal_energy_weight)
+    return scene_mpc_settings(make_env(config) if env is None else env, **dict(config.mpc))
+
+
+def _checkpoint_exists(config: EvaluationConfig) -> bool:
+    from fvin_mpc.core.checkpoint import resolve_checkpoint_path
+
+    stem = resolve_checkpoint_path(config.checkpoint_name)
+    return stem.parent.joinpath(stem.name + ".json").exists()
 
 
 def _check_checkpoint(config: EvaluationConfig) -> None:
     """A missing *default* checkpoint skips the learned controllers; a missing explicit one is an error."""
     from fvin_mpc.core.checkpoint import resolve_checkpoint_path
 
-    stem = resolve_checkpoint_path(config.checkpoint_name)
-    if stem.with_suffix(".json").exists():
+    if _checkpoint_exists(config):
         return
+    stem = resolve_checkpoint_path(config.checkpoint_name)
     if config.checkpoint is None:
         raise ControllerSkipped(f"no learned model: the default checkpoint {config.checkpoint_name!r} is not shipped "
                                 f"(train one with python -m fvin_mpc.train and pass --checkpoint)")
-    raise FileNotFoundError(f"checkpoint not found: {config.checkpoint} (looked for {stem.with_suffix('.json')})")
+    raise FileNotFoundError(f"checkpoint not found: {config.checkpoint} (looked for {stem.name}.json in {stem.parent})")
 
 
 def hinge_axis(env: Any) -> np.ndarray | None:
@@ -449,9 +452,8 @@ def plot_phase_portraits(result: EvaluationResult, path: Path) -> None:
 
 def _settings_text(config: EvaluationConfig) -> str:
     settings = mpc_settings(config)
-    text = (f"horizon {settings.horizon}, Hessian {settings.hessian}, max_iter {settings.max_iter}, "
-            f"terminal energy weight {settings.terminal_energy_weight:g}")
-    return text + (", multi-start cold solves (default)" if config.multistart else ", single first guess")
+    return (f"horizon {settings.horizon}, Hessian {settings.hessian}, max_iter {settings.max_iter}, "
+            f"terminal energy weight {settings.terminal_energy_weight:g}, cold starts {', '.join(settings.cold_starts)}")
 
 
 def write_report(result: EvaluationResult, out_dir: Path, command: str) -> list[Path]:

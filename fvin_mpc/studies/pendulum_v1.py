@@ -43,19 +43,23 @@ EPISODE_STEPS = 200
 ZOO_BEST = {"algorithm": "TQC", "mean": -151.3, "std": 87.9, "episodes": 750}
 
 
-def benchmark_settings(horizon: int = 30, terminal_energy_weight: float | None = None) -> MPCSettings:
+def benchmark_settings(horizon: int = 30, terminal_energy_weight: float | None = None,
+                       multistart: bool = True) -> MPCSettings:
     """MPC settings whose stage cost is Pendulum-v1's: ``4 sin²(a/2) ≈ a²``, ``0.1ω²``, ``0.001u²``.
 
     The predicted ``|ω|`` is bounded by Pendulum-v1's speed clip (8 rad/s = 0.4/h). The terminal
-    energy-deficit weight is the ``pendulum`` scene's (:data:`fvin_mpc.control.scene.SCENE_SETTINGS`)
-    unless given.
+    energy-deficit weight is the scenes' default
+    (:data:`fvin_mpc.control.scene.DEFAULT_TERMINAL_ENERGY_WEIGHT`) unless given; cold solves try
+    every first guess unless ``multistart=False`` (a single constant-torque guess lets a pendulum
+    that starts near upright fall through a full turn: cost ≈ 128 instead of ≈ 0.4).
     """
-    from fvin_mpc.control.scene import scene_settings
+    from fvin_mpc.control.mpc import COLD_STARTS
+    from fvin_mpc.control.scene import DEFAULT_TERMINAL_ENERGY_WEIGHT
 
-    energy_weight = scene_settings("pendulum").terminal_energy_weight if terminal_energy_weight is None \
-        else terminal_energy_weight
+    energy_weight = DEFAULT_TERMINAL_ENERGY_WEIGHT if terminal_energy_weight is None else terminal_energy_weight
     return replace(MPCSettings(), horizon=horizon, orientation_weight=4.0, omega_weight=0.1, control_weight=0.001,
-                   omega_bound_fraction=MAX_SPEED * DT, terminal_energy_weight=energy_weight)
+                   omega_bound_fraction=MAX_SPEED * DT, terminal_energy_weight=energy_weight,
+                   cold_starts=COLD_STARTS if multistart else COLD_STARTS[:1])
 
 
 # ---------------------------------------------------------------------- exact dynamics
@@ -188,27 +192,15 @@ class BenchmarkConfig:
 
 
 def build_mpc(config: BenchmarkConfig) -> Any:
-    """The MPC on the learned model (or the closed-form pendulum) with :func:`benchmark_settings`.
+    """The MPC on the learned model (or the closed-form pendulum) with :func:`benchmark_settings`, on
+    the ``pendulum`` scene's task (Pendulum-v1's physics; its goal, rest and torque bounds)."""
+    from fvin_mpc.control.scene import scene_env, scene_model, scene_mpc
 
-    With ``config.multistart`` (default) a :class:`~fvin_mpc.control.multistart.MultiStartMPC`: the cold
-    solve at the start of each episode tries several first guesses (a single constant-torque guess
-    lets a pendulum that starts near upright fall through a full turn: cost ≈ 128 instead of ≈ 0.4).
-    """
-    from fvin_mpc.control import export
-    from fvin_mpc.control.mpc import MPC
-    from fvin_mpc.control.multistart import MultiStartMPC
-    from fvin_mpc.core.rigid_body import PENDULUM
-
-    if config.true_model:
-        model = export.from_rigid_body(PENDULUM, DT, config.newton_iters or 2, name="true_pendulum")
-    else:
-        model = export.from_checkpoint(config.checkpoint, config.newton_iters)
-        if abs(model.step_size - DT) > 1e-12 or model.control_dim != 1:
-            raise ValueError(f"{config.checkpoint}: needs h = {DT} s and one control, got h = {model.step_size}, "
-                             f"m = {model.control_dim}")
-    cls = MultiStartMPC if config.multistart else MPC
-    return cls(model, benchmark_settings(config.horizon, config.terminal_energy_weight), (0.0, 0.0, 1.0, 0.0),
-               [-MAX_TORQUE], [MAX_TORQUE])
+    env = scene_env("pendulum", config.checkpoint, config.true_model)
+    model = scene_model(env, config.checkpoint, config.true_model, config.newton_iters)
+    if abs(model.step_size - DT) > 1e-12:
+        raise ValueError(f"{config.checkpoint}: needs h = {DT} s, got h = {model.step_size}")
+    return scene_mpc(env, model, benchmark_settings(config.horizon, config.terminal_energy_weight, config.multistart))
 
 
 def run_v1_episode(env: Any, controller: Any, seed: int) -> dict[str, Any]:
@@ -220,9 +212,8 @@ def run_v1_episode(env: Any, controller: Any, seed: int) -> dict[str, Any]:
     theta0, theta_dot0 = (float(x) for x in env.unwrapped.state)
     total, controls, wall, failures = 0.0, [], [], 0
     for _ in range(EPISODE_STEPS):
-        q, omega = state_from_v1_observation(observation)
         start = time.perf_counter()
-        u, info = controller(q, omega)
+        u, info = controller(state_from_v1_observation(observation))
         wall.append(time.perf_counter() - start)
         failures += not info.get("success", True)
         observation, reward, terminated, truncated, _ = env.step(np.asarray(u, dtype=np.float32))
@@ -361,7 +352,7 @@ def write_markdown(summary: dict[str, Any], records: list[dict[str, Any]], confi
               f"{benchmark_settings(config.horizon, config.terminal_energy_weight).terminal_energy_weight:g}, "
               f"horizon {config.horizon} "
               f"({config.horizon * DT:.2f} s)" + (", cold solves from several first guesses "
-                                                    "(`fvin_mpc.multistart`)." if config.multistart else "."),
+                                                    "(`MPCSettings.cold_starts`)." if config.multistart else "."),
               "* Reference: the whole episode optimized open loop on the exact discrete dynamics (direct multiple "
               "shooting, IPOPT, the speed clip as the bound |θ̇| ≤ 8), started from the MPC's own controls and two "
               "energy-pumping guesses (closed-loop heuristics on the exact dynamics); the best of the guesses' "

@@ -88,26 +88,6 @@ def collect_bounded(trajectories: int = 800, steps: int = 20, seed: int = 0, max
 
 
 # ---------------------------------------------------------------------------------------------- closed loop
-class RecordingController:
-    """Wraps a controller and keeps, per call, the model's step residual, IPOPT iterations and fallback."""
-
-    def __init__(self, controller: Any) -> None:
-        self.controller = controller
-        self.records: list[dict[str, Any]] = []
-
-    def __call__(self, q: np.ndarray, omega: np.ndarray) -> tuple[np.ndarray, dict[str, Any]]:
-        u, info = self.controller(q, omega)
-        self.records.append({"step_residual": float(info.get("step_residual", float("nan"))),
-                             "iterations": int(info.get("iterations", -1)), "fallback": info.get("fallback"),
-                             "plan_max_abs_omega": float(np.abs(np.asarray(info["states"])[:, 4:]).max())
-                             if "states" in info else float("nan")})
-        return u, info
-
-    def reset(self) -> None:
-        self.records = []
-        self.controller.reset()
-
-
 def episode_starts(count: int, seed: int, max_omegas: tuple[float, ...]) -> list[dict[str, Any]]:
     """Start 0 hanging at rest, then env-seeded random states (seed ``seed + i``), cycling through
     ``max_omegas`` for the bound on |ω₀| (e.g. calm and spinning starts)."""
@@ -129,28 +109,25 @@ def closed_loop_study(checkpoint: str | None, episodes: int = 21, duration_s: fl
     after every episode."""
     from tqdm.auto import tqdm
 
-    from fvin_mpc.envs import RigidBodyEnv
-
     from fvin_mpc.control.closed_loop import episode_metrics, run_episode
-    from fvin_mpc.control.scene import default_checkpoint, scene_model, scene_mpc, scene_settings
+    from fvin_mpc.control.scene import scene_env, scene_model, scene_mpc, scene_mpc_settings
 
-    env = RigidBodyEnv(scene=SCENE)
-    settings = scene_settings(SCENE, horizon=horizon)
+    env = scene_env(SCENE, true_model=True)
+    settings = scene_mpc_settings(env, horizon=horizon)
     starts = episode_starts(episodes, seed, max_omegas)
     if indices is not None:
         starts = [st for st in starts if indices[0] <= st["index"] <= indices[1]]
-    checkpoint = checkpoint or default_checkpoint(SCENE)
+    checkpoint = checkpoint or env.scene_spec.default_checkpoint
     results: dict[str, Any] = {"settings": {k: v for k, v in settings.__dict__.items() if k != "ipopt_options"},
                                "checkpoint": checkpoint, "duration_s": duration_s, "models": {}}
     for name in models:
         model = scene_model(env, checkpoint if name == "learned" else None, true_model=name == "true")
         mpc = scene_mpc(env, model, settings)
-        controller = RecordingController(mpc)
         rows = []
         for start in tqdm(starts, desc=f"closed loop {name}", disable=not progress):
-            episode, _ = run_episode(env, controller, duration_s, start["options"], seed=start["seed"])
+            episode, _ = run_episode(env, mpc, duration_s, start["options"], seed=start["seed"])
             metrics = episode_metrics(episode)
-            records = controller.records
+            records = episode.controller_info
             rows.append({
                 "index": start["index"], "seed": start["seed"], "max_omega0": start["max_omega"],
                 "q0": episode.q[0].tolist(), "omega0": episode.omega[0].tolist(), **metrics,

@@ -15,11 +15,11 @@ from hypothesis import strategies as st
 
 import strategies as S
 from fvin_mpc.control import export
-from fvin_mpc.control.mpc import MPC, SUCCESS_STATUSES, UNIT_NORM_TOLERANCE, MPCSettings
+from fvin_mpc.control.mpc import MPC, SUCCESS_STATUSES, MPCSettings
+from fvin_mpc.core.state import UNIT_NORM_TOLERANCE
 from fvin_mpc.core.rigid_body import PENDULUM
 
 UPRIGHT = np.array([0.0, 0.0, 1.0, 0.0])
-HANGING = np.array([1.0, 0.0, 0.0, 0.0])
 LOW, HIGH = np.array([-2.0]), np.array([2.0])
 
 # IPOPT limited to one iteration on warm and cold solves.
@@ -56,9 +56,9 @@ def fresh(controller):
 @S.counted
 def test_state_sign_and_goal_sign_give_the_same_cost_and_torque(controllers, theta, theta_dot):
     q, omega = S.hinge(theta, theta_dot)
-    u_plus, info_plus = fresh(controllers["plus"])(q, omega)
-    u_goal, info_goal = fresh(controllers["minus"])(q, omega)
-    u_flip, info_flip = fresh(controllers["plus"])(-q, omega)
+    u_plus, info_plus = fresh(controllers["plus"])(np.r_[q, omega])
+    u_goal, info_goal = fresh(controllers["minus"])(np.r_[q, omega])
+    u_flip, info_flip = fresh(controllers["plus"])(np.r_[-q, omega])
     assert info_plus["status"] == info_goal["status"] == info_flip["status"]
     for u in (u_plus, u_goal, u_flip):
         assert np.all(np.isfinite(u)) and np.all((LOW <= u) & (u <= HIGH))
@@ -77,8 +77,8 @@ def test_state_sign_and_goal_sign_give_the_same_cost_and_torque(controllers, the
 @S.counted
 def test_nearly_unit_quaternion_gives_the_unit_quaternions_torque(controllers, theta, theta_dot, delta):
     q, omega = S.hinge(theta, theta_dot)
-    u_unit, _ = fresh(controllers["plus"])(q, omega)
-    u_scaled, _ = fresh(controllers["plus"])((1.0 + delta) * q, omega)
+    u_unit, _ = fresh(controllers["plus"])(np.r_[q, omega])
+    u_scaled, _ = fresh(controllers["plus"])(np.r_[(1.0 + delta) * q, omega])
     np.testing.assert_allclose(u_scaled, u_unit, atol=1e-6)
 
 
@@ -91,28 +91,24 @@ def test_far_from_unit_quaternion_is_refused_without_solving(controllers, q, ome
     controller = controllers["plus"]
     before = controller._previous
     with pytest.raises(ValueError, match="not a unit quaternion"):
-        controller(norm * q, omega)
+        controller(np.r_[norm * q, omega])
     assert controller._previous is before  # nothing planned, nothing sent
 
 
 # ----------------------------------------------------------------------------- NaN / inf / shapes
 not_numbers = st.sampled_from([None, "1.0", [1.0, "a"], {"q": 1.0}, [[1.0], [2.0, 3.0]], object()])
-bad_q = st.one_of(S.non_finite_arrays((4,), -1.0, 1.0),
-                  S.wrong_shapes((4,)).map(lambda shape: np.full(shape, 0.5)), not_numbers)
-bad_omega = st.one_of(S.non_finite_arrays((3,), -10.0, 10.0),
-                      S.wrong_shapes((3,)).map(lambda shape: np.zeros(shape)), not_numbers)
+bad_states = st.one_of(S.non_finite_arrays((7,), -10.0, 10.0),
+                       S.wrong_shapes((7,)).map(lambda shape: np.full(shape, 0.5)), not_numbers)
 
 
 @settings(max_examples=S.budget(400))
-@given(data=st.data(), which=st.sampled_from(["q", "omega", "both"]))
+@given(x=bad_states)
 @S.counted
-def test_non_finite_or_misshapen_state_raises_value_error_without_solving(controllers, data, which):
-    q = data.draw(bad_q) if which in ("q", "both") else HANGING
-    omega = data.draw(bad_omega) if which in ("omega", "both") else np.zeros(3)
+def test_non_finite_or_misshapen_state_raises_value_error_without_solving(controllers, x):
     controller = controllers["plus"]
     before = controller._previous
     with pytest.raises(ValueError):
-        controller(q, omega)
+        controller(x)
     assert controller._previous is before
 
 
@@ -127,7 +123,7 @@ def test_leaves_exact_rest_from_either_sign_and_goal(controllers, sign, goal, ti
     (The closed-loop swing-up from exact rest is ``tests/test_mpc.py::
     test_swings_up_the_mujoco_pendulum_from_rest_and_holds``; the learned model's is below.)"""
     q, omega = S.hinge(tilt, 0.0)
-    u, info = fresh(controllers[goal])(sign * q, omega)
+    u, info = fresh(controllers[goal])(np.r_[sign * q, omega])
     assert info["success"], info["status"]
     assert abs(u[0]) > 1.0, u
 
@@ -135,11 +131,8 @@ def test_leaves_exact_rest_from_either_sign_and_goal(controllers, sign, goal, ti
 @pytest.mark.slow
 def test_learned_checkpoint_swings_up_from_exact_rest():
     """Closed loop on MuJoCo from exact rest with the MPC planning on the shipped learned
-    ``pendulum_sign-invariant`` model (slow: builds and compiles the learned-model NLP once)."""
-    from fvin_mpc.core.checkpoint import CHECKPOINT_DIR
-
-    if not (CHECKPOINT_DIR / "pendulum_sign-invariant.json").exists():
-        pytest.skip("checkpoints/pendulum_sign-invariant is not present (trained by the lead; see README)")
+    ``pendulum_sign-invariant`` model (slow: builds and compiles the learned-model NLP once).
+    A missing shipped checkpoint is a failure, not a skip."""
     from fvin_mpc.envs import RigidBodyEnv
 
     from fvin_mpc.control.closed_loop import episode_metrics, run_episode
@@ -163,7 +156,7 @@ def test_one_iteration_limit_returns_a_bounded_finite_torque_and_reports_failure
     failure (iteration limit, or infeasibility detected at once) is reported as such with the
     zero fallback. A state whose first guess is already optimal (e.g. upright at rest) may
     legitimately succeed within the one iteration."""
-    u, info = fresh(controllers["max_iter_1"])(q, omega)
+    u, info = fresh(controllers["max_iter_1"])(np.r_[q, omega])
     assert np.all(np.isfinite(u)) and np.all((LOW <= u) & (u <= HIGH))
     if info["success"]:
         assert info["status"] in SUCCESS_STATUSES and info["iterations"] <= 1 and info["fallback"] is None
@@ -179,10 +172,10 @@ def test_one_iteration_limit_returns_a_bounded_finite_torque_and_reports_failure
 def test_failure_after_a_plan_falls_back_to_that_plan_within_bounds(controllers, theta, theta_dot):
     q, omega = S.hinge(theta, theta_dot)
     good, failing = fresh(controllers["plus"]), fresh(controllers["max_iter_1"])
-    _, good_info = good(q, omega)
+    _, good_info = good(np.r_[q, omega])
     assume(good_info["success"])
     failing._previous = good._previous  # the plan made one period ago
-    u, info = failing(q, omega)
+    u, info = failing(np.r_[q, omega])
     assert not info["success"] and info["fallback"] == "previous-plan"
     assert np.all(np.isfinite(u)) and np.all((LOW <= u) & (u <= HIGH))
     assert u[0] == pytest.approx(np.clip(good_info["controls"][1, 0], LOW[0], HIGH[0]))
@@ -194,7 +187,7 @@ def test_failure_after_a_plan_falls_back_to_that_plan_within_bounds(controllers,
 def test_infeasible_omega_bound_returns_a_bounded_finite_torque_and_reports_failure(controllers, theta, theta_dot):
     """|θ̇| ≥ 4 rad/s cannot be braked to |ω| ≤ 1 in one step with |τ| ≤ 2: the NLP is infeasible."""
     q, omega = S.hinge(theta, theta_dot)
-    u, info = fresh(controllers["infeasible"])(q, omega)
+    u, info = fresh(controllers["infeasible"])(np.r_[q, omega])
     assert not info["success"], info["status"]
     assert info["fallback"] in ("zero", "previous-plan")
     assert np.all(np.isfinite(u)) and np.all((LOW <= u) & (u <= HIGH))

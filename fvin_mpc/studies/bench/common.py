@@ -4,10 +4,9 @@ from __future__ import annotations
 
 import sys
 import time
-from contextlib import contextmanager
 from dataclasses import replace
 from pathlib import Path
-from typing import Any, Iterator, Sequence
+from typing import Any, Sequence
 
 import numpy as np
 
@@ -77,13 +76,17 @@ def heldout_data(scene: str = "pendulum", control_period: float | None = None, s
 
 
 def checkpoint_or_none(name: str) -> Any:
-    """The checkpoint called ``name`` or ``None`` if it is not there (studies skip it and say so)."""
-    from fvin_mpc.core.checkpoint import CheckpointError, load_checkpoint
+    """The checkpoint called ``name``, or ``None`` if it is not there (studies skip it and say so).
 
-    try:
-        return load_checkpoint(name)
-    except CheckpointError:
+    A checkpoint that is there but corrupted or inconsistent raises its
+    :class:`~fvin_mpc.core.checkpoint.CheckpointError`: it is not "missing".
+    """
+    from fvin_mpc.core.checkpoint import load_checkpoint, resolve_checkpoint_path
+
+    stem = resolve_checkpoint_path(name)
+    if not stem.parent.joinpath(stem.name + ".json").exists():
         return None
+    return load_checkpoint(name)
 
 
 def make_env(scene: str, control_period: float | None = None) -> Any:
@@ -92,44 +95,17 @@ def make_env(scene: str, control_period: float | None = None) -> Any:
     return RigidBodyEnv(scene=scene, control_period=control_period)
 
 
-def swingup(env: Any, model: Any, settings: Any, duration_s: float, reset_options: dict | None = None,
+def solve_stats(env: Any, model: Any, settings: Any, duration_s: float, reset_options: dict | None = None,
             seed: int = 0) -> dict[str, Any]:
-    """Build an MPC on ``model`` for ``env``'s goal and bounds and run one episode; metrics + build info."""
+    """Build the scene's MPC on ``model`` with ``settings``, run one episode; metrics, build info and
+    the solver's iterations and solve times of every call."""
     from fvin_mpc.control.closed_loop import episode_metrics, run_episode
-    from fvin_mpc.control.mpc import MPC
+    from fvin_mpc.control.scene import scene_mpc
 
-    base = env.unwrapped
-    controller = MPC(model, settings, base.goal, base.torque_low, base.torque_high)
+    controller = scene_mpc(env, model, settings)
     episode, _ = run_episode(env, controller, duration_s, reset_options, seed=seed)
     metrics = episode_metrics(episode)
-    report = controller.compile_report
-    metrics.update(build_s=controller.build_s, compile_cached=None if report is None else report.cached,
-                   compile_s=None if report is None else report.compile_s)
-    return metrics
-
-
-def solve_stats(env: Any, model: Any, settings: Any, duration_s: float, reset_options: dict | None = None,
-                seed: int = 0) -> dict[str, Any]:
-    """Like :func:`swingup` but also the IPOPT iterations and solve times of every call (not the wrapper's)."""
-    from fvin_mpc.control.closed_loop import episode_metrics, run_episode
-    from fvin_mpc.control.mpc import MPC
-
-    base = env.unwrapped
-    controller = MPC(model, settings, base.goal, base.torque_low, base.torque_high)
-    infos: list[dict[str, Any]] = []
-
-    class Recording:
-        def __call__(self, q: Any, omega: Any) -> Any:
-            u, info = controller(q, omega)
-            infos.append({"iterations": info["iterations"], "solve_time_s": info["solve_time_s"],
-                          "success": info["success"]})
-            return u, info
-
-        def reset(self) -> None:
-            controller.reset()
-
-    episode, _ = run_episode(env, Recording(), duration_s, reset_options, seed=seed)
-    metrics = episode_metrics(episode)
+    infos = episode.controller_info
     solve_ms = 1e3 * np.array([i["solve_time_s"] for i in infos])
     report = controller.compile_report
     metrics.update(
@@ -137,7 +113,7 @@ def solve_stats(env: Any, model: Any, settings: Any, duration_s: float, reset_op
         compile_s=None if report is None else report.compile_s,
         solver_ms_median=float(np.median(solve_ms)), solver_ms_p95=float(np.percentile(solve_ms, 95)),
         iterations_mean=float(np.mean([i["iterations"] for i in infos])),
-        solver_failures=int(sum(not i["success"] for i in infos)),
+        solver_failures=int((~episode.controller_success).sum()),
     )
     return metrics
 
@@ -191,27 +167,11 @@ def plot_pareto(axis: Any, rows: list[dict[str, Any]], x: str, y: str, label: st
     axis.grid(True, which="both", alpha=0.3)
 
 
-@contextmanager
-def torch_threads(threads: int) -> Iterator[None]:
-    """Run torch with ``threads`` intra-op threads, restoring the previous setting afterwards.
-
-    The studies use one thread: on a shared, oversubscribed 2-core machine two torch threads
-    were measured ≈ 20× slower than one (they spin waiting for each other)."""
-    import torch
-
-    previous = torch.get_num_threads()
-    torch.set_num_threads(threads)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(previous)
-
-
 def timed(function: Any) -> tuple[Any, float]:
     start = time.perf_counter()
     value = function()
     return value, time.perf_counter() - start
 
 
-__all__ = ["NOISE_NOTE", "BOUNDED_HELDOUT", "heldout_data", "checkpoint_or_none", "make_env", "swingup", "solve_stats", "pareto_mask",
+__all__ = ["NOISE_NOTE", "BOUNDED_HELDOUT", "heldout_data", "checkpoint_or_none", "make_env", "solve_stats", "pareto_mask",
            "plot_pareto", "timed", "replace"]

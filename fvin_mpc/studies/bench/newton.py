@@ -9,7 +9,7 @@ errors against held-out MuJoCo trajectories (``data/<scene>_heldout.npz``, colle
 difference from the converged step, the time of one step (torch batched, CasADi single
 call, CasADi ``map`` over the batch), and MPC solve time and closed-loop swing-up from rest
 on MuJoCo (:func:`fvin_mpc.control.closed_loop.run_episode`) with the scene's MPC settings
-(:func:`fvin_mpc.control.scene.scene_settings`; ``--horizon`` overrides the horizon).
+(:func:`fvin_mpc.control.scene.scene_mpc_settings`; ``--horizon`` overrides the horizon).
 
 ``--model learned`` (default) uses the shipped ``<scene>_sign-invariant`` checkpoint (or
 ``--checkpoint``), ``--model true`` the closed-form body read off the scene's MJCF.
@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from fvin_mpc.studies.report import StudyResult, StudySkipped, median_time
-from fvin_mpc.studies.bench.common import NOISE_NOTE, checkpoint_or_none, heldout_data, make_env, plot_pareto, solve_stats, torch_threads
+from fvin_mpc.studies.bench.common import NOISE_NOTE, checkpoint_or_none, heldout_data, make_env, plot_pareto, solve_stats
 
 BATCH = 1024
 
@@ -89,27 +89,18 @@ def _errors(states: np.ndarray, q_true: np.ndarray, omega_true: np.ndarray) -> t
 
 def _torch_step_time(source: Any, newton_iters: int, q: np.ndarray, omega: np.ndarray, u: np.ndarray,
                      repeats: int) -> float:
-    import torch
+    from fvin_mpc.learning.timing import batched_step_call, tensor_weights, torch_threads
 
-    from fvin_mpc.core import fvin
-    from fvin_mpc.core.backend import get_ops
-
-    ops = get_ops("torch")
     if source["kind"] == "learned":
         from fvin_mpc.core.networks import LearnedTerms
 
-        terms = LearnedTerms({k: torch.as_tensor(v, dtype=torch.float64) for k, v in source["checkpoint"].weights.items()},
-                             source["checkpoint"].config, ops)
+        checkpoint = source["checkpoint"]
+
+        def terms_of(ops: Any) -> Any:
+            return LearnedTerms(tensor_weights(checkpoint.weights), checkpoint.config, ops)
     else:
-        terms = source["body"].terms(ops)
-    tq = tuple(torch.as_tensor(q[:, i]) for i in range(4))
-    tw = tuple(torch.as_tensor(omega[:, i]) for i in range(3))
-    tu = tuple(torch.as_tensor(u[:, i]) for i in range(u.shape[1]))
-
-    def call() -> None:
-        with torch.no_grad():
-            fvin.fvin_step(tq, tw, tu, terms, source["step_size"], newton_iters, ops)
-
+        terms_of = source["body"].terms
+    call = batched_step_call(terms_of, source["step_size"], newton_iters, q, omega, u)
     with torch_threads(1):
         return median_time(call, repeats)[0]
 
@@ -172,7 +163,7 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 5, scene: str = "pend
         iters: str = "1,2,3,4,5,6", **_: Any) -> StudyResult:
     from tqdm.auto import tqdm
 
-    from fvin_mpc.control.scene import scene_settings
+    from fvin_mpc.control.scene import scene_mpc_settings
 
     source = _source(scene, "true" if quick else model, checkpoint, None)
     h = source["step_size"]
@@ -194,7 +185,7 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 5, scene: str = "pend
     xb = np.tile(np.concatenate([q_in, w_in], 1), (reps, 1))[:BATCH]
     ub = np.tile(u_in[:, 0], (reps, 1))[:BATCH]
 
-    mpc_settings = scene_settings(scene, horizon=horizon)
+    mpc_settings = scene_mpc_settings(source["env"], horizon=horizon)
     reference = rootfinder_step(_casadi_terms(source), h, rootfinder)
     ref_one, ref_residual = _casadi_rollout(reference, q_in, w_in, u_in)
     converged = ref_residual[:, 0] < 1e-8
@@ -243,7 +234,7 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 5, scene: str = "pend
         "there, e.g. past the solvability limit).",
         f"Step time: torch (`fvin_step`, no grad, one thread) on a batch of {BATCH}; CasADi `Function` called once per state "
         f"(µs per call, Python overhead included) and `map`ped over the {BATCH} states (ms per batch). "
-        f"MPC: the scene's settings (`swingup.scene_settings`), IPOPT, Gauss–Newton Hessian, "
+        f"MPC: the scene's settings (`fvin_mpc.control.scene.scene_mpc_settings`), IPOPT, Gauss–Newton Hessian, "
         f"{'interpreted' if quick else 'compiled (cached)'}, primal–dual warm start, N = {mpc_settings.horizon}, "
         f"max_iter {mpc_settings.max_iter}, terminal energy weight {mpc_settings.terminal_energy_weight:g}, swing-up "
         f"from rest for {duration:g} s on MuJoCo; solve-time columns are IPOPT's own time per control step. "
@@ -282,6 +273,6 @@ def add_arguments(parser: Any) -> None:
     parser.add_argument("--checkpoint", default=None, help="checkpoint name or path (default: <scene>_sign-invariant)")
     parser.add_argument("--rootfinder", choices=["newton", "kinsol"], default="newton",
                         help="CasADi rootfinder plugin of the converged reference (default: %(default)s)")
-    parser.add_argument("--horizon", type=int, default=None, help="MPC horizon N (default: the scene's, swingup.scene_settings)")
+    parser.add_argument("--horizon", type=int, default=None, help="MPC horizon N (default: the scene's, scene_mpc_settings)")
     parser.add_argument("--duration", type=float, default=8.0, help="closed-loop seconds (default: %(default)s)")
     parser.add_argument("--iters", default="1,2,3,4,5,6", help="comma-separated K values (default: %(default)s)")

@@ -78,7 +78,8 @@ def _equal_loss(seed: int, iterations: int, eval_every: int) -> list[dict[str, A
 
 def run(quick: bool = False, seed: int = 0, repeats: int = 5, threads: int = 1, equal_loss: bool = True,
         equal_loss_iterations: int = 100, **_: Any) -> StudyResult:
-    from fvin_mpc.studies.bench.common import NOISE_NOTE, torch_threads
+    from fvin_mpc.learning.timing import torch_threads
+    from fvin_mpc.studies.bench.common import NOISE_NOTE
 
     with torch_threads(threads):
         result = _run(quick, seed, repeats)

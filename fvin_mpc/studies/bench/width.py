@@ -23,7 +23,8 @@ from typing import Any
 import numpy as np
 
 from fvin_mpc.studies.report import StudyResult
-from fvin_mpc.studies.bench.common import NOISE_NOTE, heldout_data, make_env, plot_pareto, solve_stats, torch_threads
+from fvin_mpc.learning.timing import torch_threads
+from fvin_mpc.studies.bench.common import NOISE_NOTE, heldout_data, make_env, plot_pareto, solve_stats
 
 WIDTHS = (8, 16, 32, 64)
 VARIANTS = ("sign-invariant", "fixed-inertia")

@@ -1,0 +1,51 @@
+"""Command-line options the commands share: the scene, its model and the MPC's settings."""
+
+from __future__ import annotations
+
+import argparse
+from typing import Any
+
+#: ``--option`` → :class:`~fvin_mpc.control.mpc.MPCSettings` field, for the settings a user may need
+#: to change on a new scene (every one defaults to the scene's value).
+MPC_OPTIONS: dict[str, tuple[str, type, str]] = {
+    "--horizon": ("horizon", int, "MPC steps"),
+    "--energy-weight": ("terminal_energy_weight", float, "terminal energy-deficit weight W_E"),
+    "--orientation-weight": ("orientation_weight", float, "stage weight on sin²(angle/2)"),
+    "--omega-weight": ("omega_weight", float, "stage weight on |ω|²"),
+    "--control-weight": ("control_weight", float, "stage weight on |u|²"),
+    "--terminal-orientation-weight": ("terminal_orientation_weight", float, "terminal weight on sin²(angle/2)"),
+    "--terminal-omega-weight": ("terminal_omega_weight", float, "terminal weight on |ω|²"),
+    "--max-iter": ("max_iter", int, "solver iterations per warm-started solve"),
+    "--cold-max-iter": ("cold_max_iter", int, "solver iterations per cold solve"),
+}
+
+
+def add_scene_arguments(parser: argparse.ArgumentParser, newton_iters: bool = True) -> None:
+    """``--scene``, ``--checkpoint``, ``--control-period`` and (unless ``newton_iters=False``) ``--newton-iters``."""
+    parser.add_argument("--scene", default="pendulum", help="built-in scene name or MJCF path")
+    parser.add_argument("--checkpoint", default=None,
+                        help="shipped name or path (default: the scene's, <scene>_sign-invariant)")
+    parser.add_argument("--control-period", type=float, default=None,
+                        help="seconds per control step (default: the checkpoint's step, else the scene's)")
+    if newton_iters:
+        parser.add_argument("--newton-iters", type=int, default=None, help="K (default: the model's)")
+
+
+def add_mpc_arguments(parser: argparse.ArgumentParser) -> None:
+    """The MPC settings of :data:`MPC_OPTIONS`, plus ``--hessian`` and ``--single-start``."""
+    group = parser.add_argument_group("MPC settings (default: derived from the scene's scales and declaration)")
+    for option, (_, kind, text) in MPC_OPTIONS.items():
+        group.add_argument(option, type=kind, default=None, help=text)
+    group.add_argument("--hessian", choices=["gauss-newton", "exact", "limited-memory"], default=None,
+                       help="Lagrangian Hessian")
+    group.add_argument("--single-start", action="store_true",
+                       help="cold solves from one first guess instead of every guess (multi-start)")
+
+
+def mpc_overrides(args: argparse.Namespace) -> dict[str, Any]:
+    """The :func:`~fvin_mpc.control.scene.scene_mpc_settings` overrides the options ask for."""
+    overrides = {field: getattr(args, option[2:].replace("-", "_")) for option, (field, _, _) in MPC_OPTIONS.items()}
+    overrides["hessian"] = args.hessian
+    if args.single_start:
+        overrides["cold_starts"] = ("rollout+",)
+    return overrides

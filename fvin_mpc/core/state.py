@@ -1,0 +1,76 @@
+"""The state convention at every numeric boundary, and the one validator for measured states.
+
+A state is one float64 array ``x`` of shape ``(7,)``: ``x = (q_w, q_x, q_y, q_z, ω_x, ω_y, ω_z)``,
+the orientation quaternion (Hamilton, ``(w, x, y, z)``, MuJoCo's order) followed by the body-frame
+angular velocity (rad/s) — ``DESIGN.md``'s ``x = (q, ω)``. Environments observe it, models step it,
+controllers and energies take it. Inside the math core the two parts travel as tuples of
+components (``fvin_mpc.core.s3``); :func:`split_state` is the one place a state is cut in two.
+
+Policy for measured states (:func:`check_state`): a quaternion within
+:data:`UNIT_NORM_TOLERANCE` of unit norm is normalized (float32 observations, sensor rounding);
+anything further raises ``ValueError`` — a non-unit ``q`` is not a rotation, and silently
+normalizing a wrong one would hide a bug upstream. NaN/inf or a wrong shape raise too.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+#: Entries of a state ``x = (q, ω)``.
+STATE_DIM = 7
+#: How far a measured quaternion's norm may be from 1 before it is refused.
+UNIT_NORM_TOLERANCE = 1e-3
+#: The identity rotation ``(w, x, y, z)``.
+IDENTITY = (1.0, 0.0, 0.0, 0.0)
+
+
+def as_float_array(value: Any, shape: tuple[int, ...], name: str) -> np.ndarray:
+    """``value`` as a finite float64 array of ``shape``; ``ValueError`` naming ``name`` otherwise."""
+    try:
+        array = np.array(value, dtype=np.float64)
+    except (TypeError, ValueError) as error:  # None-like, strings, dicts, ragged lists
+        raise ValueError(f"{name} must be a float array of shape {shape}: {error}") from None
+    if array.shape != shape:
+        raise ValueError(f"{name} must have shape {shape}, got {array.shape}")
+    if not np.all(np.isfinite(array)):
+        raise ValueError(f"{name} contains NaN or inf: {array}")
+    return array
+
+
+def unit_quaternion(value: Any, name: str = "quaternion") -> np.ndarray:
+    """A given orientation (goal, rest, a joint's qpos) as a unit quaternion ``(4,)``.
+
+    Any finite non-zero 4-vector is accepted and normalized: this is for orientations a user
+    writes down, not for measurements (see :func:`check_state`).
+    """
+    q = as_float_array(value, (4,), name)
+    norm = float(np.linalg.norm(q))
+    if norm < 1e-12:
+        raise ValueError(f"{name} must be a non-zero quaternion (w, x, y, z), got {q}")
+    return q / norm
+
+
+def check_state(x: Any) -> np.ndarray:
+    """Validate a measured state ``x (7,)``; returns a float64 copy with ``q`` of unit norm.
+
+    Raises:
+        ValueError: wrong shape, NaN/inf, or ``|‖q‖ − 1| > UNIT_NORM_TOLERANCE``.
+    """
+    x = as_float_array(x, (STATE_DIM,), "state x = (q, ω)")
+    norm = float(np.linalg.norm(x[:4]))
+    if abs(norm - 1.0) > UNIT_NORM_TOLERANCE:
+        raise ValueError(f"q is not a unit quaternion (|q| = {norm:.6g}; tolerance {UNIT_NORM_TOLERANCE})")
+    x[:4] /= norm
+    return x
+
+
+def split_state(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(q (…, 4), ω (…, 3))`` views of states ``x (…, 7)``."""
+    return x[..., :4], x[..., 4:]
+
+
+def join_state(q: Any, omega: Any) -> np.ndarray:
+    """``x (…, 7)`` from ``q (…, 4)`` and ``ω (…, 3)``."""
+    return np.concatenate([np.asarray(q, dtype=np.float64), np.asarray(omega, dtype=np.float64)], axis=-1)
