@@ -5,13 +5,28 @@ Every controller in the package (:class:`~fvin_mpc.control.mpc.MPC`,
 callable ``u, info = controller(x)`` with a ``reset()``; :func:`run_episode` drives
 one on an :class:`envs.RigidBodyEnv` (MuJoCo is the plant) and records an :class:`Episode`;
 :func:`episode_metrics` turns it into the numbers the CLIs report.
+
+Latency (``run_episode(..., latency=...)``, see ``docs/realtime.md``). The env advances one
+control period ``h`` per :meth:`step`, as ``frame_skip`` MuJoCo sub-steps of ``δ`` (5 ms in the
+built-in scenes). With ``latency="none"`` (the *waiting* mode) the simulator waits for the
+controller: the torque computed from the observation at ``t`` acts from ``t`` on, whatever the
+compute time — right for studies that isolate model quality, not for claims of real time. With
+``latency="measured"`` (or a fixed number of seconds ``c``, deterministic, for tests) the plant does
+not wait: the torque computed from the observation at ``t`` with compute time ``c`` acts from the
+first sub-step boundary at or after ``t + c``; the previous torque holds until then (the first
+torque of an episode is preceded by zero). A controller with a ``prepare()`` method (the real-time
+iteration's preparation phase) has it called right after its torque is delivered; its time adds to
+the period's busy time but not to the latency of that torque. If the controller is still busy at the
+next control instant (feedback + preparation ``> h``: a *deadline miss*), that observation is skipped
+and the controller samples at the first control instant at which it is free.
 """
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import Any, Literal, Protocol, Union
 
 import numpy as np
 
@@ -24,7 +39,11 @@ HOLD_WINDOW_S = 3.0
 
 #: The scalar entries of a controller's ``info`` an :class:`Episode` keeps per period (the plan
 #: itself is left out: it would make episodes heavy).
-RECORDED_INFO = ("status", "iterations", "solve_time_s", "step_residual", "fallback", "cold_start")
+RECORDED_INFO = ("status", "iterations", "solve_time_s", "step_residual", "fallback", "cold_start", "disturbance")
+
+#: ``run_episode``'s ``latency``: ``"none"`` (the simulator waits for the controller), ``"measured"``
+#: (the controller's wall-clock compute time delays its torque) or a fixed delay in seconds.
+Latency = Union[Literal["none", "measured"], float]
 
 
 class Controller(Protocol):
@@ -64,6 +83,13 @@ class Episode:
         fallback: the controller's fallback per period (``None`` when it solved).
         control_period: seconds per period.
         controller_info: per period, the entries of :data:`RECORDED_INFO` the controller reported.
+        latency: the mode the episode ran in: ``"none"``, ``"measured"`` or the fixed delay (s).
+        compute_s: ``(T,)`` the delay charged to each period's torque (the controller's feedback
+            time when measured, the fixed delay, or 0 in waiting mode); ``nan`` where the period's
+            observation was skipped.
+        busy_s: ``(T,)`` feedback plus preparation time per sampled period (``nan`` where skipped).
+        deadline_misses: periods whose busy time exceeded the control period.
+        skipped: periods whose observation the controller could not take (still busy).
     """
 
     time: np.ndarray
@@ -78,48 +104,104 @@ class Episode:
     fallback: list[str | None]
     control_period: float
     controller_info: list[dict[str, Any]]
+    latency: Any = "none"
+    compute_s: np.ndarray | None = None
+    busy_s: np.ndarray | None = None
+    deadline_misses: int = 0
+    skipped: int = 0
 
 
 def run_episode(env: Any, controller: Controller, duration_s: float, reset_options: dict[str, Any] | None = None,
                 seed: int | None = None, render: bool = False, progress: bool = False,
-                description: str = "closed loop") -> tuple[Episode, list[np.ndarray]]:
+                description: str = "closed loop", latency: Latency = "none") -> tuple[Episode, list[np.ndarray]]:
     """Run ``controller`` on ``env`` for ``duration_s`` seconds; returns the episode and frames.
 
     Args:
         env: an :class:`envs.RigidBodyEnv` (or a wrapper of one).
-        controller: see :class:`Controller`; reset before the episode.
+        controller: see :class:`Controller`; reset before the episode. An optional ``prepare()``
+            is called after each delivered torque (module docstring).
         duration_s: rounded to whole control periods.
         reset_options: passed to ``env.reset`` (``{"qpos": …, "qvel": …}`` or ``{"random": True}``).
         seed: passed to ``env.reset``.
         render: collect ``env.render()`` frames (the env needs ``render_mode="rgb_array"``).
         progress: show a progress bar.
+        latency: ``"none"`` (waiting mode: the simulator waits for the controller), ``"measured"``
+            (the measured compute time delays the torque, to the next MuJoCo sub-step) or a fixed
+            delay in seconds ``≥ 0`` (deterministic; ``0.0`` is the waiting mode's dynamics).
     """
     from tqdm.auto import tqdm
 
+    fixed_delay = _check_latency(latency)
     base = env.unwrapped
     periods = int(round(duration_s / base.dt))
+    frame_skip = int(base.frame_skip)
+    substep = float(base.dt) / frame_skip
     observation, info = env.reset(seed=seed, options=reset_options)
     controller.reset()
+    prepare = getattr(controller, "prepare", None)
     frames = [env.render()] if render else []
     q, omega = [observation[:4]], [observation[4:]]
     angle, energy, times = [info["angle_from_goal"]], [info["energy"]], [info["time"]]
     controls, rewards, wall, success, fallback, recorded = [], [], [], [], [], []
+    compute, busy = [], []
+    applied = np.zeros(base.action_space.shape[0])  # the torque acting on the plant
+    pending: tuple[int, np.ndarray] | None = None  # (global sub-step from which it acts, torque)
+    free_at = 0  # global sub-step from which the controller can take an observation
+    misses = skipped = 0
     bar = tqdm(range(periods), desc=description, disable=not progress, leave=False)
-    for _ in bar:
-        start = time.perf_counter()
-        u, controller_info = controller(observation)
-        wall.append(time.perf_counter() - start)
-        observation, reward, terminated, truncated, info = env.step(u)
+    for k in bar:
+        first = k * frame_skip
+        if first >= free_at:
+            start = time.perf_counter()
+            u, controller_info = controller(observation)
+            feedback = time.perf_counter() - start
+            preparation = 0.0
+            if prepare is not None:
+                start = time.perf_counter()
+                prepare()
+                preparation = time.perf_counter() - start
+            u = np.asarray(u, dtype=float)
+            if latency == "none":
+                delay, busy_time = 0.0, 0.0
+            elif fixed_delay is None:  # measured
+                delay, busy_time = feedback, feedback + preparation
+            else:
+                delay = busy_time = fixed_delay
+            if busy_time > base.dt:
+                misses += 1
+            pending = (first + _substeps(delay, substep), u)
+            free_at = first + _substeps(busy_time, substep)
+            wall.append(feedback + preparation)
+            compute.append(delay)
+            busy.append(feedback + preparation if fixed_delay is None else busy_time)
+            success.append(bool(controller_info.get("success", True)))
+            fallback.append(controller_info.get("fallback"))
+            recorded.append({key: controller_info[key] for key in RECORDED_INFO if key in controller_info})
+        else:  # still busy with an earlier observation: this one is lost
+            skipped += 1
+            wall.append(np.nan)
+            compute.append(np.nan)
+            busy.append(np.nan)
+            success.append(True)
+            fallback.append(None)
+            recorded.append({"skipped": True})
+        segments: list[tuple[int, np.ndarray]] = []
+        if pending is not None and pending[0] < first + frame_skip:
+            held = max(pending[0] - first, 0)
+            if held > 0:
+                segments.append((held, applied))
+            applied, pending = pending[1], None
+            segments.append((frame_skip - held, applied))
+        else:
+            segments.append((frame_skip, applied))
+        observation, reward, terminated, info = _step_segments(env, segments, frame_skip)
         q.append(observation[:4])
         omega.append(observation[4:])
-        controls.append(np.asarray(u, dtype=float))
+        controls.append(applied.copy())
         rewards.append(reward)
         angle.append(info["angle_from_goal"])
         energy.append(info["energy"])
         times.append(info["time"])
-        success.append(bool(controller_info.get("success", True)))
-        fallback.append(controller_info.get("fallback"))
-        recorded.append({key: controller_info[key] for key in RECORDED_INFO if key in controller_info})
         if render:
             frames.append(env.render())
         bar.set_postfix(angle=f"{angle[-1]:.2f}", ms=f"{1e3 * wall[-1]:.1f}")
@@ -129,9 +211,52 @@ def run_episode(env: Any, controller: Controller, duration_s: float, reset_optio
         time=np.asarray(times) - times[0], q=np.array(q), omega=np.array(omega), u=np.array(controls),
         angle_from_goal=np.array(angle), energy=np.array(energy), reward=np.array(rewards),
         controller_time_s=np.array(wall), controller_success=np.array(success), fallback=fallback,
-        control_period=float(base.dt), controller_info=recorded,
+        control_period=float(base.dt), controller_info=recorded, latency=latency,
+        compute_s=np.array(compute), busy_s=np.array(busy), deadline_misses=misses, skipped=skipped,
     )
     return episode, frames
+
+
+def _check_latency(latency: Any) -> float | None:
+    """``None`` for ``"none"``/``"measured"``, else the fixed delay in seconds; ``ValueError`` if invalid."""
+    if isinstance(latency, str):
+        if latency not in ("none", "measured"):
+            raise ValueError(f"latency must be 'none', 'measured' or seconds >= 0, got {latency!r}")
+        return None
+    delay = float(latency)
+    if not (math.isfinite(delay) and delay >= 0.0):
+        raise ValueError(f"a fixed latency must be finite seconds >= 0, got {latency!r}")
+    return delay
+
+
+def _substeps(seconds: float, substep: float) -> int:
+    """Sub-steps of ``substep`` seconds until ``seconds`` have passed (the first boundary at or after)."""
+    return int(math.ceil(seconds / substep - 1e-9)) if seconds > 0.0 else 0
+
+
+def _step_segments(env: Any, segments: list[tuple[int, np.ndarray]], frame_skip: int) -> tuple[Any, float, bool, dict]:
+    """Advance the plant one control period under piecewise-constant torques ``[(sub-steps, u), …]``.
+
+    One segment is ``env.step(u)``. Several are ``env.step`` calls with the env's sub-step count set
+    to each segment's length (MuJoCo integrates the same sub-steps, the torque changes between them);
+    the reward is the sub-step-weighted mean of the segments' rewards, the observation the last one's.
+    """
+    if len(segments) == 1:
+        observation, reward, terminated, _, info = env.step(segments[0][1])
+        return observation, float(reward), terminated, info
+    base = env.unwrapped
+    if not hasattr(base, "_frame_skip"):
+        raise NotImplementedError(f"{type(base).__name__} cannot change the torque within a control period")
+    total, terminated = 0.0, False
+    try:
+        for count, u in segments:
+            base._frame_skip = count
+            observation, reward, done, _, info = env.step(u)
+            total += reward * count / frame_skip
+            terminated = terminated or done
+    finally:
+        base._frame_skip = frame_skip
+    return observation, total, terminated, info
 
 
 def time_to_upright(episode: Episode, tolerance: float = UPRIGHT_TOLERANCE) -> float | None:
@@ -151,19 +276,25 @@ def episode_metrics(episode: Episode, upright_tolerance: float = UPRIGHT_TOLERAN
 
     ``success``: upright (within ``upright_tolerance``) from some time on to the end.
     ``swung_up``: ``success`` and the largest angle over the last ``hold_window_s``
-    (``hold_error_rad``) within ``hold_tolerance``.
+    (``hold_error_rad``) within ``hold_tolerance``. ``solve_time_ms`` is the whole controller call
+    per sampled period (feedback plus any ``prepare()``); ``latency`` the mode the episode ran in,
+    ``deadline_misses`` the periods whose compute exceeded the control period.
     """
     reached = time_to_upright(episode, upright_tolerance)
     hold_mask = episode.time >= episode.time[-1] - hold_window_s
     hold_error = float(episode.angle_from_goal[hold_mask].max())
     times_ms = 1e3 * episode.controller_time_s
+    times_ms = times_ms[np.isfinite(times_ms)]
     return {
         "success": reached is not None,
         "swung_up": reached is not None and hold_error <= hold_tolerance,
         "time_to_upright_s": reached,
         "hold_error_rad": hold_error,
         "solve_time_ms": {"median": float(np.median(times_ms)), "p95": float(np.percentile(times_ms, 95)),
-                          "max": float(times_ms.max())},
+                          "p99": float(np.percentile(times_ms, 99)), "max": float(times_ms.max())},
+        "latency": episode.latency,
+        "deadline_misses": int(episode.deadline_misses),
+        "skipped_observations": int(episode.skipped),
         "controller_failures": int((~episode.controller_success).sum()),
         "max_abs_torque": float(np.abs(episode.u).max()),
         "accumulated_cost": float(-episode.reward.sum()),
@@ -197,7 +328,7 @@ def plot_episode(episode: Episode, path: Any, title: str = "", torque_bound: flo
     axes[2].set_ylabel("torque (N·m)")
     axes[3].plot(t, episode.energy)
     axes[3].set_ylabel("energy (J, MuJoCo)")
-    axes[4].plot(tc, 1e3 * episode.controller_time_s, ".", ms=3)
+    axes[4].plot(tc[:episode.controller_time_s.size], 1e3 * episode.controller_time_s, ".", ms=3)
     axes[4].axhline(1e3 * episode.control_period, color="tab:red", ls="--", label="control period")
     axes[4].set_yscale("log")
     axes[4].set_ylabel("controller time (ms)")

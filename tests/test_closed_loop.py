@@ -1,0 +1,104 @@
+"""The latency-aware closed loop: delayed torques act from the right MuJoCo sub-step, fixed-latency
+episodes are deterministic, deadline misses are counted (``fvin_mpc.control.closed_loop``)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from fvin_mpc.control.closed_loop import episode_metrics, run_episode
+from fvin_mpc.envs import RigidBodyEnv
+
+
+class ConstantController:
+    """Commands ``torque`` from the first call on; counts its calls."""
+
+    def __init__(self, torque: float) -> None:
+        self.torque, self.calls = torque, 0
+
+    def __call__(self, x):
+        self.calls += 1
+        return np.array([self.torque]), {"success": True}
+
+    def reset(self) -> None:
+        self.calls = 0
+
+
+class LinearController:
+    """A deterministic state feedback, so that torques differ from period to period."""
+
+    def __call__(self, x):
+        return np.array([np.clip(-3.0 * x[2] - 0.5 * x[5], -2.0, 2.0)]), {"success": True}
+
+    def reset(self) -> None:
+        pass
+
+
+START = {"qpos": np.array([0.4]), "qvel": np.array([0.0])}
+
+
+def test_zero_fixed_latency_is_the_waiting_mode():
+    env = RigidBodyEnv("pendulum")
+    waiting, _ = run_episode(env, LinearController(), 1.0, START, latency="none")
+    zero, _ = run_episode(env, LinearController(), 1.0, START, latency=0.0)
+    np.testing.assert_array_equal(waiting.q, zero.q)
+    np.testing.assert_array_equal(waiting.u, zero.u)
+    assert waiting.deadline_misses == zero.deadline_misses == 0
+
+
+def test_fixed_latency_is_deterministic():
+    env = RigidBodyEnv("pendulum")
+    first, _ = run_episode(env, LinearController(), 1.0, START, latency=0.012)
+    second, _ = run_episode(env, LinearController(), 1.0, START, latency=0.012)
+    np.testing.assert_array_equal(first.q, second.q)
+    np.testing.assert_array_equal(first.omega, second.omega)
+    assert not np.array_equal(first.q, run_episode(env, LinearController(), 1.0, START)[0].q)
+
+
+def test_delayed_torque_acts_from_the_first_substep_after_the_delay():
+    """Oracle: the same MJCF stepped one 5 ms sub-step at a time, zero torque for ⌈12/5⌉ = 3
+    sub-steps, then the commanded torque."""
+    env = RigidBodyEnv("pendulum")
+    episode, _ = run_episode(env, ConstantController(1.5), 0.1, START, latency=0.012)
+    fine = RigidBodyEnv("pendulum", control_period=0.005)
+    observation, _ = fine.reset(options=START)
+    trajectory = []
+    for i in range(20):
+        observation, *_ = fine.step(np.array([0.0 if i < 3 else 1.5]))
+        trajectory.append(observation)
+    np.testing.assert_allclose(episode.q[1], trajectory[9][:4], atol=1e-12)
+    np.testing.assert_allclose(episode.omega[2], trajectory[19][4:], atol=1e-12)
+    np.testing.assert_array_equal(episode.u[:, 0], [1.5, 1.5])
+    assert episode.deadline_misses == 0
+
+
+def test_deadline_misses_are_counted_and_observations_skipped():
+    env = RigidBodyEnv("pendulum")
+    controller = ConstantController(1.0)
+    episode, _ = run_episode(env, controller, 1.0, START, latency=0.07)  # 70 ms > the 50 ms period
+    periods = 20
+    assert controller.calls == periods // 2  # busy for two periods after each observation
+    assert episode.deadline_misses == periods // 2
+    assert episode.skipped == periods // 2
+    metrics = episode_metrics(episode)
+    assert metrics["deadline_misses"] == periods // 2 and metrics["latency"] == 0.07
+    assert np.isfinite(metrics["solve_time_ms"]["median"])
+
+
+def test_prepare_is_called_after_each_delivered_torque():
+    class Preparing(ConstantController):
+        prepared = 0
+
+        def prepare(self) -> None:
+            assert self.calls == self.prepared + 1  # after the call that delivered the torque
+            self.prepared += 1
+
+    controller = Preparing(0.0)
+    run_episode(RigidBodyEnv("pendulum"), controller, 0.5, START, latency="measured")
+    assert controller.prepared == controller.calls == 10
+
+
+@pytest.mark.parametrize("latency", ["soon", -0.01, float("nan")])
+def test_invalid_latency_raises(latency):
+    with pytest.raises(ValueError):
+        run_episode(RigidBodyEnv("pendulum"), ConstantController(0.0), 0.1, latency=latency)
