@@ -1,4 +1,8 @@
-"""Synthetic trajectories of a closed-form body, for training tests that must not need MuJoCo data."""
+"""The tests' shared helpers: planar states, random rotations, synthetic trajectories.
+
+One home for what the test modules used to copy: import from here (``tests/`` is on ``sys.path``
+through ``conftest.py``). Hypothesis strategies live beside it in ``strategies.py``.
+"""
 
 import numpy as np
 
@@ -7,6 +11,43 @@ from fvin_mpc.core.backend import get_ops
 from fvin_mpc.core.data import TrajectoryData
 
 NP = get_ops("numpy")
+
+
+# ---------------------------------------------------------------------- planar states (hinge about +y)
+def hinge_quaternion(theta: float) -> np.ndarray:
+    """Rotation by θ about +y, ``(cos θ/2, 0, sin θ/2, 0)``: the pendulum scenes' orientation at hinge
+    angle θ (θ = 0 hanging, θ = π upright)."""
+    return np.array([np.cos(theta / 2), 0.0, np.sin(theta / 2), 0.0])
+
+
+def hinge(theta: float, theta_dot: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """Planar pendulum orientation and angular velocity: ``q (4,)``, ``ω = (0, θ̇, 0)``."""
+    return hinge_quaternion(theta), np.array([0.0, theta_dot, 0.0])
+
+
+def hinge_state(theta: float, theta_dot: float = 0.0) -> np.ndarray:
+    """The planar pendulum's state ``x = (q, ω)`` ``(7,)`` (:mod:`fvin_mpc.core.state`)."""
+    return np.concatenate(hinge(theta, theta_dot))
+
+
+# ---------------------------------------------------------------------- random rotations
+def random_unit_quaternions(n: int, seed: int = 0) -> np.ndarray:
+    """``(n, 4)`` unit quaternions, uniform on S³ (normalized Gaussians), seeded."""
+    q = np.random.default_rng(seed).normal(size=(n, 4))
+    return q / np.linalg.norm(q, axis=1, keepdims=True)
+
+
+def random_states(n: int, seed: int, omega_scale: float = 3.0) -> tuple[np.ndarray, np.ndarray]:
+    """``(q (n, 4), ω (n, 3))``: uniform orientations and Gaussian angular velocities of scale ``omega_scale``."""
+    return random_unit_quaternions(n, seed), omega_scale * np.random.default_rng(seed + 1).normal(size=(n, 3))
+
+
+def assert_same_rotation(q: np.ndarray, p: np.ndarray, atol: float) -> None:
+    """``q = ±p`` (q and −q are the same rotation)."""
+    assert min(np.max(np.abs(q - p)), np.max(np.abs(q + p))) < atol, (q, p)
+
+
+# ---------------------------------------------------------------------- synthetic data
 
 
 def synthetic_hinge_data(body, trajectories=48, steps=10, seed=0):

@@ -18,6 +18,8 @@ from typing import Any, Callable
 import numpy as np
 from hypothesis import strategies as st
 
+from helpers import hinge  # noqa: F401  (one definition, also reached as S.hinge)
+
 # --------------------------------------------------------------------------- bookkeeping
 #: Examples run in this process (one xdist worker, or the whole session without xdist).
 CASES = {"count": 0}
@@ -184,9 +186,6 @@ def stacked(component_tuple: tuple[Any, ...]) -> np.ndarray:
                      for c in component_tuple])
 
 
-def hinge(theta: float, theta_dot: float) -> tuple[np.ndarray, np.ndarray]:
-    """Planar pendulum state (hinge about +y): ``q = (cos θ/2, 0, sin θ/2, 0)``, ``ω = (0, θ̇, 0)``."""
-    return np.array([np.cos(theta / 2), 0.0, np.sin(theta / 2), 0.0]), np.array([0.0, theta_dot, 0.0])
 
 
 def non_finite_arrays(shape: tuple[int, ...], low: float = -5.0, high: float = 5.0) -> st.SearchStrategy[np.ndarray]:

@@ -8,6 +8,7 @@ from fvin_mpc.core import fvin, s3
 from fvin_mpc.core.backend import get_ops
 from fvin_mpc.control.energy_shaping import EnergyShapingController
 from fvin_mpc.core.rigid_body import PENDULUM, PivotedRigidBody
+from helpers import hinge
 
 NP = get_ops("numpy")
 GOAL = np.array([0.0, 0.0, 1.0, 0.0])
@@ -127,8 +128,6 @@ def test_controller_applies_the_lqr_gain_near_upright_and_its_closed_loop_cost_a
     assert errors[2] < errors[1] < errors[0], ratios  # the linearization error shrinks with the deviation
 
 
-def hinge(theta, theta_dot):
-    return np.array([np.cos(theta / 2), 0.0, np.sin(theta / 2), 0.0]), np.array([0.0, theta_dot, 0.0])
 
 
 # ---------------------------------------------------------------------- constructors and scenes

@@ -21,19 +21,14 @@ from fvin_mpc.envs.pendulum_v1 import (
     v1_angle_from_scene,
     v1_observation_from_state,
 )
+from helpers import assert_same_rotation, hinge_quaternion
 
 BUILT_IN = sorted(SCENES)
 HINGE_AXIS_Y = np.array([0.0, 1.0, 0.0])
 
 
-def hinge_quaternion(theta: float) -> np.ndarray:
-    """Rotation by θ about +y: the pendulum scene's orientation at hinge angle θ."""
-    return np.array([np.cos(theta / 2), 0.0, np.sin(theta / 2), 0.0])
 
 
-def assert_same_rotation(q: np.ndarray, p: np.ndarray, atol: float) -> None:
-    """``q = ±p`` (the observation keeps MuJoCo's sign)."""
-    assert min(np.max(np.abs(q - p)), np.max(np.abs(q + p))) < atol, (q, p)
 
 
 def rollout(env: RigidBodyEnv, controls: np.ndarray) -> np.ndarray:

@@ -10,10 +10,9 @@ import pytest
 from fvin_mpc import evaluate as evaluate_cli
 from fvin_mpc.studies import evaluation as ev
 from fvin_mpc.studies import pendulum_v1 as v1
+from helpers import hinge
 
 
-def hinge(theta, theta_dot=0.0):
-    return np.array([np.cos(theta / 2), 0.0, np.sin(theta / 2), 0.0]), np.array([0.0, theta_dot, 0.0])
 
 
 # ---------------------------------------------------------------------- evaluate

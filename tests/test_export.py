@@ -8,13 +8,9 @@ from fvin_mpc.control import export
 from fvin_mpc.core.checkpoint import save_checkpoint
 from fvin_mpc.core.networks import ModelConfig, init_weights
 from fvin_mpc.core.rigid_body import PENDULUM
+from helpers import random_states
 
 
-def random_states(n, seed, omega_scale=3.0):
-    rng = np.random.default_rng(seed)
-    q = rng.normal(size=(n, 4))
-    q /= np.linalg.norm(q, axis=1, keepdims=True)
-    return q, omega_scale * rng.normal(size=(n, 3))
 
 
 @pytest.fixture(params=[("sign-invariant", 1, False), ("fixed-inertia", 1, False), ("plain", 3, True)],

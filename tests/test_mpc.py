@@ -8,6 +8,7 @@ import pytest
 from fvin_mpc.control import export
 from fvin_mpc.control.mpc import MPC, MPCSettings
 from fvin_mpc.core.rigid_body import PENDULUM
+from helpers import hinge
 
 UPRIGHT = np.array([0.0, 0.0, 1.0, 0.0])
 HANGING = np.array([1.0, 0.0, 0.0, 0.0])
@@ -23,8 +24,6 @@ def controller(true_model):
     return MPC(true_model, MPCSettings(), UPRIGHT, [-2.0], [2.0])
 
 
-def hinge(theta, theta_dot):
-    return np.array([np.cos(theta / 2), 0.0, np.sin(theta / 2), 0.0]), np.array([0.0, theta_dot, 0.0])
 
 
 def test_swings_up_the_mujoco_pendulum_from_rest_and_holds(true_model):

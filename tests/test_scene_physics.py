@@ -22,7 +22,7 @@ from fvin_mpc.core.backend import get_ops
 from fvin_mpc.core.data import TrajectoryData
 from fvin_mpc.core.networks import ModelConfig
 from fvin_mpc.core.rigid_body import PENDULUM_DAMPED, from_mujoco
-from synthetic import synthetic_hinge_data
+from helpers import synthetic_hinge_data
 
 NP = get_ops("numpy")
 DSBL = mujoco.mjtDisableBit
