@@ -12,6 +12,7 @@ import argparse
 import json
 from pathlib import Path
 from fvin_mpc.core.data import save_data
+from fvin_mpc.envs.scenes import resolve_scene
 from fvin_mpc.learning.collection import collect
 
 
@@ -26,13 +27,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--hold-steps", type=int, default=4, help="periods per level of piecewise-constant controls")
     parser.add_argument("--control-period", type=float, default=None,
                         help="seconds per step (default: the scene's; a whole multiple of its MJCF timestep)")
+    parser.add_argument("--max-speed", type=float, default=None,
+                        help="keep only trajectories with every |ω_i| ≤ this (rad/s) at every step (default: keep all)")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--out", type=Path, default=None, help="output .npz (default: data/<scene>.npz)")
+    parser.add_argument("--out", type=Path, default=None, help="output .npz (default: data/<scene name>.npz, the MJCF's stem for a path)")
     parser.add_argument("--quiet", action="store_true")
     args = parser.parse_args(argv)
     data = collect(args.scene, args.trajectories, args.steps, args.seed, args.max_omega, args.hold_steps,
-                   args.body, progress=not args.quiet, control_period=args.control_period)
-    out = args.out or Path("data") / f"{Path(args.scene).stem}.npz"
+                   args.body, progress=not args.quiet, control_period=args.control_period, max_speed=args.max_speed)
+    out = args.out or Path("data") / f"{resolve_scene(args.scene).name}.npz"
     save_data(out, data)
     print(json.dumps({"out": str(out), **{k: data.metadata[k] for k in ("scene", "trajectories", "transitions", "control_period")}}))
     return 0

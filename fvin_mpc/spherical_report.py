@@ -22,7 +22,8 @@ import json
 import time
 from pathlib import Path
 from fvin_mpc.core.data import save_data
-from fvin_mpc.studies.spherical import SCENE, closed_loop_study, collect_bounded, markdown_tables, merge_results
+from fvin_mpc.learning.collection import collect
+from fvin_mpc.studies.spherical import SCENE, closed_loop_study, markdown_tables, merge_results
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -86,8 +87,8 @@ def main(argv: list[str] | None = None) -> int:
         print(tables)
     if args.command == "collect":
         start = time.perf_counter()
-        data = collect_bounded(args.trajectories, args.steps, args.seed, args.max_omega, args.hold_steps,
-                               args.max_speed, progress=not args.quiet)
+        data = collect(SCENE, args.trajectories, args.steps, args.seed, args.max_omega, args.hold_steps,
+                       progress=not args.quiet, max_speed=args.max_speed)
         save_data(args.out, data)
         print(json.dumps({"out": str(args.out), "wall_clock_s": round(time.perf_counter() - start, 1),
                           **{k: data.metadata[k] for k in ("trajectories", "transitions", "attempts", "acceptance_rate")}}))

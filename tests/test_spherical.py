@@ -132,15 +132,17 @@ def test_closed_form_rollouts_follow_mujoco(env, body):
 
 
 def test_bounded_collection_respects_speed_limit():
-    from fvin_mpc.studies.spherical import collect_bounded
+    from fvin_mpc.learning.collection import collect
 
-    data = collect_bounded(trajectories=6, steps=5, seed=0, max_omega=6.0, max_speed=10.0, progress=False)
+    data = collect("spherical_pendulum", trajectories=6, steps=5, seed=0, max_omega=6.0, hold_steps=2, max_speed=10.0,
+                   progress=False)
     assert data.q.shape == (6, 6, 4) and data.u.shape == (6, 5, 3)
     assert np.abs(data.omega).max() <= 10.0
     np.testing.assert_allclose(np.linalg.norm(data.q, axis=-1), 1.0, atol=1e-12)
     assert np.abs(data.u).max() <= 1.5
     assert 0.0 < data.metadata["acceptance_rate"] <= 1.0
-    again = collect_bounded(trajectories=6, steps=5, seed=0, max_omega=6.0, max_speed=10.0, progress=False)
+    again = collect("spherical_pendulum", trajectories=6, steps=5, seed=0, max_omega=6.0, hold_steps=2, max_speed=10.0,
+                   progress=False)
     np.testing.assert_array_equal(data.omega, again.omega)
 
 

@@ -73,6 +73,11 @@ def resolve_checkpoint_path(name_or_path: str | Path) -> Path:
     return path
 
 
+def checkpoint_exists(name_or_path: str | Path) -> bool:
+    """Whether a checkpoint's sidecar is there (it may still be corrupted: :func:`load_checkpoint` says)."""
+    return _with(resolve_checkpoint_path(name_or_path), ".json").exists()
+
+
 def weights_digest(weights_path: Path) -> str:
     """SHA-256 of the weights file: a flipped bit inside the float data parses fine, this does not."""
     return hashlib.sha256(weights_path.read_bytes()).hexdigest()

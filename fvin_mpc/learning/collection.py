@@ -11,6 +11,8 @@ from __future__ import annotations
 
 from typing import Any
 
+import math
+
 import numpy as np
 
 from fvin_mpc.core.data import TrajectoryData
@@ -41,17 +43,37 @@ def control_sequence(rng: np.random.Generator, low: np.ndarray, high: np.ndarray
     raise ValueError(f"unknown control mode {mode!r}")
 
 
+#: ``metadata["collector"]`` of speed-bounded data: a name of the method, not of the function that
+#: implements it, so that moving code never invalidates a data file.
+SPEED_BOUNDED = "speed-bounded"
+
+
 def collect(scene: str = "pendulum", trajectories: int = 320, steps: int = 20, seed: int = 0,
             max_omega: float = 6.0, hold_steps: int = 4, body: str | None = None,
-            progress: bool = True, control_period: float | None = None) -> TrajectoryData:
+            progress: bool = True, control_period: float | None = None, max_speed: float | None = None,
+            max_attempts_factor: int = 50) -> TrajectoryData:
     """Roll out ``trajectories`` seeded episodes of ``steps`` control periods in the scene.
 
-    ``control_period`` (s) overrides the scene's (a whole multiple of the MJCF timestep),
-    e.g. ``0.02`` for data of a model with step ``h = 0.02``."""
+    Each trajectory starts from a uniformly random joint state (|ω| ≤ ``max_omega``) under one
+    constant control (even index) or a new uniform level every ``hold_steps`` periods (odd index).
+
+    Args:
+        control_period: seconds per step, overriding the scene's (a whole multiple of the MJCF
+            timestep), e.g. ``0.02`` for data of a model with step ``h = 0.02``.
+        max_speed: keep only trajectories with ``max_i |ω_i| ≤ max_speed`` at every step; a rollout
+            that exceeds it is discarded and a new one drawn for the same index (metadata: the
+            acceptance rate, ``collector = "speed-bounded"``). For bodies whose light axis spins up
+            past the step's solvability limit ``h|ω| ≈ 1`` (docs/spherical.md). ``None``: keep all.
+
+    Raises:
+        RuntimeError: fewer than one in ``max_attempts_factor`` rollouts is accepted.
+    """
     from tqdm.auto import tqdm
 
     from fvin_mpc.envs import RigidBodyEnv
 
+    if max_speed is not None and not (math.isfinite(max_speed) and max_speed > 0):
+        raise ValueError(f"max_speed must be finite and > 0, got {max_speed!r}")
     env = RigidBodyEnv(scene=scene, body=body, control_period=control_period)
     rng = np.random.default_rng(seed)
     low, high = env.action_space.low.astype(np.float64), env.action_space.high.astype(np.float64)
@@ -59,22 +81,38 @@ def collect(scene: str = "pendulum", trajectories: int = 320, steps: int = 20, s
     omegas = np.empty((trajectories, steps + 1, 3))
     us = np.empty((trajectories, steps, low.size))
     modes = []
-    for i in tqdm(range(trajectories), desc=f"collect {scene}", disable=not progress):
-        qpos, qvel = random_joint_state(env, rng, max_omega)
-        observation, _ = env.reset(seed=int(rng.integers(2**31)), options={"qpos": qpos, "qvel": qvel})
+    attempts = 0
+    limit = np.inf if max_speed is None else max_speed
+    description = f"collect {env.scene_spec.name}" + ("" if max_speed is None else f" (|ω_i| ≤ {max_speed:g})")
+    for i in tqdm(range(trajectories), desc=description, disable=not progress):
         mode = "constant" if i % 2 == 0 else "piecewise"
         modes.append(mode)
-        controls = control_sequence(rng, low, high, steps, mode, hold_steps)
-        qs[i, 0], omegas[i, 0] = observation[:4], observation[4:]
-        for k in range(steps):
-            observation, *_ = env.step(controls[k])
-            qs[i, k + 1], omegas[i, k + 1] = observation[:4], observation[4:]
+        while True:
+            attempts += 1
+            if attempts > max_attempts_factor * trajectories:
+                raise RuntimeError(f"acceptance too low: {i} of {trajectories} trajectories after {attempts} attempts")
+            qpos, qvel = random_joint_state(env, rng, max_omega)
+            observation, _ = env.reset(seed=int(rng.integers(2**31)), options={"qpos": qpos, "qvel": qvel})
+            controls = control_sequence(rng, low, high, steps, mode, hold_steps)
+            qs[i, 0], omegas[i, 0] = observation[:4], observation[4:]
+            accepted = bool(np.abs(observation[4:]).max() <= limit)
+            for k in range(steps if accepted else 0):
+                observation, *_ = env.step(controls[k])
+                qs[i, k + 1], omegas[i, k + 1] = observation[:4], observation[4:]
+                if np.abs(observation[4:]).max() > limit:
+                    accepted = False
+                    break
+            if accepted:
+                break
         us[i] = controls
     metadata = {
-        "scene": scene, "body": env.unwrapped.body_name, "control_period": float(env.unwrapped.dt),
+        "scene": str(scene), "body": env.unwrapped.body_name, "control_period": float(env.unwrapped.dt),
         "seed": seed, "trajectories": trajectories, "steps": steps, "transitions": trajectories * steps,
         "max_omega": max_omega, "hold_steps": hold_steps,
         "control_modes": {"constant": modes.count("constant"), "piecewise": modes.count("piecewise")},
     }
+    if max_speed is not None:
+        metadata.update(max_speed=max_speed, attempts=attempts, acceptance_rate=trajectories / attempts,
+                        collector=SPEED_BOUNDED)
     env.close()
     return TrajectoryData(qs, omegas, us, metadata)

@@ -158,10 +158,9 @@ def mpc_settings(config: EvaluationConfig, env: Any = None) -> Any:
 
 
 def _checkpoint_exists(config: EvaluationConfig) -> bool:
-    from fvin_mpc.core.checkpoint import resolve_checkpoint_path
+    from fvin_mpc.core.checkpoint import checkpoint_exists
 
-    stem = resolve_checkpoint_path(config.checkpoint_name)
-    return stem.parent.joinpath(stem.name + ".json").exists()
+    return checkpoint_exists(config.checkpoint_name)
 
 
 def _check_checkpoint(config: EvaluationConfig) -> None:

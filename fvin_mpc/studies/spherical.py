@@ -2,7 +2,7 @@
 
 Sub-commands:
 
-* ``collect`` — trajectories as :func:`fvin_mpc.learning.collection.collect` draws them (orientation uniform on
+* ``collect`` — trajectories as :func:`fvin_mpc.learning.collection.collect` draws them with ``max_speed`` (orientation uniform on
   S³, ω uniform in a ball, constant or piecewise-constant torques uniform in the actuators' box),
   but a trajectory whose angular velocity leaves ``|ω_i| ≤ --max-speed`` at any step is redrawn.
   Why: the z axis has a tiny inertia (0.017 kg·m² against ≈ 0.5 about x, y), so 1.5 N·m spins it up
@@ -19,72 +19,13 @@ The model-quality part (held-out rollouts, recovered inertia) is :mod:`fvin_mpc.
 from __future__ import annotations
 
 import json
-import math
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from fvin_mpc.learning.collection import control_sequence, random_joint_state
-from fvin_mpc.core.data import TrajectoryData
 
 SCENE = "spherical_pendulum"
-
-
-# ---------------------------------------------------------------------------------------------- data
-def collect_bounded(trajectories: int = 800, steps: int = 20, seed: int = 0, max_omega: float = 6.0,
-                    hold_steps: int = 2, max_speed: float = 15.0, scene: str = SCENE,
-                    progress: bool = True, max_attempts_factor: int = 50) -> TrajectoryData:
-    """``trajectories`` seeded rollouts of ``steps`` periods with ``max_i |ω_i| ≤ max_speed`` throughout.
-
-    Draws as :func:`fvin_mpc.learning.collection.collect` does (even index: one constant control, odd:
-    a new uniform level every ``hold_steps``); a rollout that exceeds ``max_speed`` is discarded
-    and a new one drawn for the same index. The metadata records the acceptance rate.
-    """
-    from tqdm.auto import tqdm
-
-    from fvin_mpc.envs import RigidBodyEnv
-
-    if not (math.isfinite(max_speed) and max_speed > 0):
-        raise ValueError(f"max_speed must be finite and > 0, got {max_speed!r}")
-    env = RigidBodyEnv(scene=scene)
-    rng = np.random.default_rng(seed)
-    low, high = env.action_space.low.astype(np.float64), env.action_space.high.astype(np.float64)
-    qs = np.empty((trajectories, steps + 1, 4))
-    omegas = np.empty((trajectories, steps + 1, 3))
-    us = np.empty((trajectories, steps, low.size))
-    attempts = 0
-    for i in tqdm(range(trajectories), desc=f"collect {scene} (|ω_i| ≤ {max_speed:g})", disable=not progress):
-        mode = "constant" if i % 2 == 0 else "piecewise"
-        while True:
-            attempts += 1
-            if attempts > max_attempts_factor * trajectories:
-                raise RuntimeError(f"acceptance too low: {i} of {trajectories} trajectories after {attempts} attempts")
-            qpos, qvel = random_joint_state(env, rng, max_omega)
-            observation, _ = env.reset(seed=int(rng.integers(2**31)), options={"qpos": qpos, "qvel": qvel})
-            controls = control_sequence(rng, low, high, steps, mode, hold_steps)
-            q_traj, w_traj = [observation[:4]], [observation[4:]]
-            ok = bool(np.abs(observation[4:]).max() <= max_speed)
-            for k in range(steps if ok else 0):
-                observation, *_ = env.step(controls[k])
-                q_traj.append(observation[:4])
-                w_traj.append(observation[4:])
-                if np.abs(observation[4:]).max() > max_speed:
-                    ok = False
-                    break
-            if ok:
-                break
-        qs[i], omegas[i], us[i] = np.array(q_traj), np.array(w_traj), controls
-    metadata = {
-        "scene": scene, "body": env.body_name, "control_period": float(env.dt), "seed": seed,
-        "trajectories": trajectories, "steps": steps, "transitions": trajectories * steps,
-        "max_omega": max_omega, "hold_steps": hold_steps, "max_speed": max_speed,
-        "attempts": attempts, "acceptance_rate": trajectories / attempts,
-        "control_modes": {"constant": (trajectories + 1) // 2, "piecewise": trajectories // 2},
-        "collector": "fvin_mpc.studies.spherical.collect_bounded",
-    }
-    env.close()
-    return TrajectoryData(qs, omegas, us, metadata)
 
 
 # ---------------------------------------------------------------------------------------------- closed loop

@@ -16,11 +16,10 @@ NOISE_NOTE = ("Timings were taken on a 2-core machine shared with other jobs (tr
 
 
 #: Scenes whose held-out data must stay inside the speeds the model can represent: collected
-#: with :func:`fvin_mpc.studies.spherical.collect_bounded` (``|ω_i| ≤ 15`` rad/s throughout; the
+#: with :func:`fvin_mpc.learning.collection.collect`'s ``max_speed`` (``|ω_i| ≤ 15`` rad/s throughout; the
 #: unfiltered collector spins the light z axis past the step's solvability limit) and with the
 #: size of ``docs/spherical.md``'s held-out set.
 BOUNDED_HELDOUT: dict[str, dict[str, Any]] = {"spherical_pendulum": {"trajectories": 100, "max_speed": 15.0}}
-_BOUNDED_COLLECTOR = "fvin_mpc.studies.spherical.collect_bounded"
 
 
 def heldout_data(scene: str = "pendulum", control_period: float | None = None, seed: int = 1,
@@ -38,7 +37,7 @@ def heldout_data(scene: str = "pendulum", control_period: float | None = None, s
         ValueError: the file exists but holds other data (different size, seed, period or
             collector): it is never overwritten; delete it or pass another ``path``.
     """
-    from fvin_mpc.learning.collection import collect
+    from fvin_mpc.learning.collection import SPEED_BOUNDED, collect
     from fvin_mpc.core.data import load_data, save_data
 
     stem = Path(scene).stem + (f"-h{control_period:g}" if control_period is not None else "")
@@ -49,7 +48,7 @@ def heldout_data(scene: str = "pendulum", control_period: float | None = None, s
         path = Path("data") / f"{stem}_heldout.npz"
         if (trajectories, steps, seed) != (default_trajectories, 40, 1):
             path = Path("data") / f"{stem}_heldout_{trajectories}x{steps}_s{seed}.npz"
-    expected_collector = _BOUNDED_COLLECTOR if bounded else None
+    expected_collector = SPEED_BOUNDED if bounded else None
     if path.is_file():
         data = load_data(path)
         meta = data.metadata
@@ -62,12 +61,10 @@ def heldout_data(scene: str = "pendulum", control_period: float | None = None, s
                          "delete it to have it collected again")
     print(f"collecting held-out data {path} (seed {seed}, {trajectories}×{steps})", file=sys.stderr)
     if bounded:
-        from fvin_mpc.studies.spherical import collect_bounded
-
         if control_period is not None:
             raise ValueError(f"{scene}: the speed-bounded held-out data are collected at the scene's own period only")
-        data = collect_bounded(trajectories, steps, seed, max_speed=bounded["max_speed"], scene=scene,
-                               progress=progress)
+        data = collect(scene, trajectories, steps, seed, hold_steps=2, max_speed=bounded["max_speed"],
+                       progress=progress)
     else:
         data = collect(scene, trajectories, steps, seed, progress=progress, control_period=control_period)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -81,12 +78,9 @@ def checkpoint_or_none(name: str) -> Any:
     A checkpoint that is there but corrupted or inconsistent raises its
     :class:`~fvin_mpc.core.checkpoint.CheckpointError`: it is not "missing".
     """
-    from fvin_mpc.core.checkpoint import load_checkpoint, resolve_checkpoint_path
+    from fvin_mpc.core.checkpoint import checkpoint_exists, load_checkpoint
 
-    stem = resolve_checkpoint_path(name)
-    if not stem.parent.joinpath(stem.name + ".json").exists():
-        return None
-    return load_checkpoint(name)
+    return load_checkpoint(name) if checkpoint_exists(name) else None
 
 
 def make_env(scene: str, control_period: float | None = None) -> Any:
