@@ -238,6 +238,14 @@ class RigidBodyEnv(gymnasium.Env):
         return self._goal.copy()
 
     @property
+    def joint_axis(self) -> np.ndarray | None:
+        """A hinge's axis in the body frame (unit, ``(3,)``); ``None`` for a ball joint."""
+        if self._joint_type != "hinge":
+            return None
+        axis = np.asarray(self._model.jnt_axis[self._joint_id], dtype=float)
+        return axis / np.linalg.norm(axis)
+
+    @property
     def rest(self) -> np.ndarray:
         """The potential's minimum (hanging), unit quaternion (w, x, y, z), shape ``(4,)``: where
         episodes start by default, and the energy reference of the controllers."""

@@ -16,14 +16,14 @@ import argparse
 import json
 from pathlib import Path
 import numpy as np
+from fvin_mpc.control.scene import scene_env
 from fvin_mpc.core.checkpoint import load_checkpoint
+from fvin_mpc.core.rigid_body import from_mujoco
 from fvin_mpc.core.data import load_data
 from fvin_mpc.studies.quality import NP, compare_components, energy_behaviour, rollout_error
 
 
 def main(argv: list[str] | None = None) -> int:
-    from fvin_mpc.core.rigid_body import PENDULUM, PENDULUM_DAMPED
-
     parser = argparse.ArgumentParser(prog="python -m fvin_mpc.quality", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--checkpoint", default="pendulum_sign-invariant")
@@ -36,11 +36,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args(argv)
     checkpoint = load_checkpoint(args.checkpoint)
-    body = PENDULUM_DAMPED if checkpoint.scene == "pendulum_damped" else PENDULUM
-    axis = np.array([0.0, 1.0, 0.0])
+    env = scene_env(checkpoint.scene, checkpoint)
+    if env.joint_axis is None:
+        parser.error(f"{args.checkpoint} models {checkpoint.scene!r}, a ball joint: this is the planar report; "
+                     "use python -m fvin_mpc.inertia for 3-D model quality")
+    # The scene's own closed-form body (read off its MJCF), not a planar rod assumed for every checkpoint.
+    body, axis = from_mujoco(env.model, env.body_name), env.joint_axis
     angles = np.random.default_rng(args.seed).uniform(-np.pi, np.pi, 256)
     quaternions = np.concatenate([np.cos(angles / 2)[:, None], np.sin(angles / 2)[:, None] * axis], 1)
-    data_path = args.data or Path("data") / f"{checkpoint.scene}_heldout.npz"
+    data_path = args.data or Path("data") / f"{env.scene_spec.name}_heldout.npz"
     if not data_path.exists() and args.data is None:
         from fvin_mpc.learning.collection import collect
         from fvin_mpc.core.data import save_data
@@ -53,9 +57,10 @@ def main(argv: list[str] | None = None) -> int:
         # The closed-form body through the same integrator: the error the step size alone causes.
         "rollout_true_model": rollout_error(checkpoint, held_out, args.horizon, terms=body.terms(NP)),
         "components": compare_components(checkpoint, body, quaternions, axis),
-        "energy": energy_behaviour(checkpoint, body, np.array([0.5, 1.5, 2.5, 3.0]), args.energy_steps, axis),
+        "energy": energy_behaviour(checkpoint, body, np.array([0.5, 1.5, 2.5, 3.0]), args.energy_steps, axis,
+                                   env.rest, env.goal),
         "energy_on_hinge": energy_behaviour(checkpoint, body, np.array([0.5, 1.5, 2.5, 3.0]), args.energy_steps, axis,
-                                            on_axis=True),
+                                            env.rest, env.goal, on_axis=True),
     }
     report["rollout"].pop("angle_error_per_step_mean")
     report["rollout_true_model"].pop("angle_error_per_step_mean")

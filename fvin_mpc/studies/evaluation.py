@@ -176,17 +176,6 @@ def _check_checkpoint(config: EvaluationConfig) -> None:
     raise FileNotFoundError(f"checkpoint not found: {config.checkpoint} (looked for {stem.name}.json in {stem.parent})")
 
 
-def hinge_axis(env: Any) -> np.ndarray | None:
-    """The hinge axis in the body frame, or ``None`` for a ball joint."""
-    import mujoco
-
-    base = env.unwrapped
-    if base.joint_type != "hinge":
-        return None
-    body_id = mujoco.mj_name2id(base.model, mujoco.mjtObj.mjOBJ_BODY, base.body_name)
-    return np.asarray(base.model.jnt_axis[base.model.body_jntadr[body_id]], dtype=float)
-
-
 def signed_angle_from_goal(q: np.ndarray, goal: np.ndarray, axis: np.ndarray) -> np.ndarray:
     """Planar case: the signed rotation (rad, in (−π, π]) about ``axis`` from ``goal`` to ``q`` (..., 4)."""
     def angle(quaternion: np.ndarray) -> np.ndarray:
@@ -220,7 +209,7 @@ def run_task(name: str, start: EpisodeStart) -> dict[str, Any]:
     controller = _worker_controller(name)
     episode, _ = run_episode(env, controller, config.duration_s, start.reset_options, seed=start.seed)
     metrics = episode_metrics(episode)
-    axis = hinge_axis(env)
+    axis = env.unwrapped.joint_axis
     goal = env.unwrapped.goal
     trajectory = None
     if axis is not None:
@@ -459,7 +448,7 @@ def write_report(result: EvaluationResult, out_dir: Path, command: str) -> list[
     """``evaluation.json``, ``evaluation.md`` and the plots in ``out_dir``; returns the paths."""
     out_dir.mkdir(parents=True, exist_ok=True)
     env = make_env(result.config)
-    axis, goal = hinge_axis(env), env.unwrapped.goal
+    axis, goal = env.unwrapped.joint_axis, env.unwrapped.goal
     written = [out_dir / "evaluation.json", out_dir / "evaluation.md", out_dir / "time_to_upright.png"]
     written[0].write_text(json.dumps(result.to_json(), indent=1) + "\n")
     plot_time_to_upright(result, written[2])

@@ -122,10 +122,10 @@ def _onto_axis(q: np.ndarray, omega: np.ndarray, axis: np.ndarray) -> tuple[np.n
 
 
 def energy_behaviour(checkpoint: Checkpoint, true_body: Any, initial_angles: np.ndarray, steps: int,
-                     axis: np.ndarray, on_axis: bool = False) -> dict[str, Any]:
+                     axis: np.ndarray, rest: np.ndarray, goal: np.ndarray, on_axis: bool = False) -> dict[str, Any]:
     """Unforced rollouts of the model from rest at ``initial_angles`` about ``axis``.
 
-    Energy deviations are relative to the potential's range ``U(upright) − U(hanging)`` of the
+    Energy deviations are relative to the potential's range ``U(goal) − U(rest)`` of the
     same energy (learned or true), since ``U`` has an arbitrary offset. ``max_off_axis_omega``
     is the largest angular velocity off ``axis``: a planar scene's data never leaves the plane,
     so nothing in training keeps the model's unforced motion in it. ``on_axis`` puts every
@@ -149,7 +149,7 @@ def energy_behaviour(checkpoint: Checkpoint, true_body: Any, initial_angles: np.
         q, omega, residual = rollout(terms, h, k, q0, np.zeros((n, 3)), controls)
     learned_energy = np.asarray(fvin.total_energy(_components(q), _components(omega), terms))
     true_energy = np.asarray(fvin.total_energy(_components(q), _components(omega), true))
-    ends = _components(np.array([[1.0, 0.0, 0.0, 0.0], [0.0, *axis]]))
+    ends = _components(np.array([rest, goal], dtype=float))
 
     def deviation(energy: np.ndarray, model: Any) -> np.ndarray:
         hanging, upright = np.asarray(model.potential(ends), dtype=float).ravel()
