@@ -31,13 +31,15 @@ import json
 import math
 import sys
 import time
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import asdict, dataclass, field
-from multiprocessing import get_context
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from fvin_mpc.studies import starts
+from fvin_mpc.studies.pool import run_tasks
+from fvin_mpc.studies.starts import EpisodeStart
 
 #: Every controller the evaluation knows, in report order.
 CONTROLLERS: tuple[str, ...] = ("mpc-learned", "mpc-true", "energy-learned", "energy-true", "zero")
@@ -100,21 +102,9 @@ class EvaluationConfig:
         return self.checkpoint or resolve_scene(self.scene).default_checkpoint
 
 
-@dataclass(frozen=True)
-class EpisodeStart:
-    """Initial condition of one episode: ``reset_options`` (``None`` = hanging at rest) and env seed."""
-
-    index: int
-    seed: int
-    reset_options: dict[str, Any] | None
-
-
 def episode_starts(config: EvaluationConfig) -> list[EpisodeStart]:
-    """Episode 0 hanging at rest, then seeded random states."""
-    starts = [EpisodeStart(0, config.seed, None)]
-    for i in range(1, config.episodes):
-        starts.append(EpisodeStart(i, config.seed + i, {"random": True, "max_omega": config.max_omega}))
-    return starts
+    """Episode 0 hanging at rest, then seeded random states (:func:`fvin_mpc.studies.starts.episode_starts`)."""
+    return starts.episode_starts(config.episodes, config.seed, (config.max_omega,))
 
 
 # ---------------------------------------------------------------------- controllers
@@ -276,8 +266,6 @@ def evaluate(config: EvaluationConfig, workers: int = 1, progress: bool = True,
     Controllers that do not apply (or whose default checkpoint is missing) are skipped with a
     message in :attr:`EvaluationResult.skipped` (and on ``log``).
     """
-    from tqdm.auto import tqdm
-
     if workers < 1:
         raise ValueError(f"workers must be >= 1, got {workers}")
     log = log or (lambda message: print(message, file=sys.stderr))
@@ -299,26 +287,12 @@ def evaluate(config: EvaluationConfig, workers: int = 1, progress: bool = True,
         build[name] = {"build_s": time.perf_counter() - start,
                        "compiled_from_cache": None if report is None else report.cached}
         names.append(name)
-    starts = episode_starts(config)
-    tasks = [(name, start) for start in starts for name in names]
-    records: list[dict[str, Any]] = []
-    bar = tqdm(total=len(tasks), desc=f"evaluate {config.scene}", disable=not progress)
-    if workers == 1 or len(tasks) <= 1:
-        for name, start in tasks:
-            records.append(run_task(name, start))
-            bar.update()
-    else:
-        with ProcessPoolExecutor(max_workers=workers, mp_context=get_context("spawn"),
-                                 initializer=_init_worker, initargs=(config,)) as pool:
-            futures = [pool.submit(run_task, name, start) for name, start in tasks]
-            for future in as_completed(futures):
-                records.append(future.result())
-                bar.update()
-    bar.close()
-    records.sort(key=lambda r: (r["index"], names.index(r["controller"])))
+    episode_list = episode_starts(config)
+    tasks = [(name, start) for start in episode_list for name in names]
+    records = run_tasks(run_task, tasks, _init_worker, (config,), workers, progress, f"evaluate {config.scene}")
     summary = {name: summarize([r for r in records if r["controller"] == name]) for name in names}
     episodes = []
-    for start in starts:
+    for start in episode_list:
         mine = [r for r in records if r["index"] == start.index]
         episodes.append({
             "index": start.index, "seed": start.seed,

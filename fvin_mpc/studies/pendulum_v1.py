@@ -26,9 +26,7 @@ Outputs ``--out`` (Markdown), ``<out>.json`` and ``<out>.png`` (returns per seed
 from __future__ import annotations
 
 import time
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, replace
-from multiprocessing import get_context
 from pathlib import Path
 from typing import Any
 
@@ -252,25 +250,12 @@ def run_seed(seed: int) -> dict[str, Any]:
 
 def run_benchmark(config: BenchmarkConfig, workers: int = 1, progress: bool = True) -> list[dict[str, Any]]:
     """Episodes ``seed … seed + episodes − 1``; ``workers > 1`` uses a process pool."""
-    from tqdm.auto import tqdm
+    from fvin_mpc.studies.pool import run_tasks
 
-    seeds = [config.seed + i for i in range(config.episodes)]
-    records = []
-    bar = tqdm(total=len(seeds), desc="Pendulum-v1", disable=not progress)
-    if workers <= 1:
-        _init_worker(config)
-        for seed in seeds:
-            records.append(run_seed(seed))
-            bar.update()
-    else:
+    if workers > 1:
         build_mpc(config)  # compiles the MPC's library into the disk cache once, before the workers load it
-        with ProcessPoolExecutor(max_workers=workers, mp_context=get_context("spawn"),
-                                 initializer=_init_worker, initargs=(config,)) as pool:
-            for future in as_completed([pool.submit(run_seed, seed) for seed in seeds]):
-                records.append(future.result())
-                bar.update()
-    bar.close()
-    return sorted(records, key=lambda r: r["seed"])
+    seeds = [(config.seed + i,) for i in range(config.episodes)]
+    return run_tasks(run_seed, seeds, _init_worker, (config,), workers, progress, "Pendulum-v1")
 
 
 def summarize(records: list[dict[str, Any]]) -> dict[str, Any]:

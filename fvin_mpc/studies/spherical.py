@@ -25,20 +25,12 @@ from typing import Any
 import numpy as np
 
 
+from fvin_mpc.studies.starts import episode_starts
+
 SCENE = "spherical_pendulum"
 
 
 # ---------------------------------------------------------------------------------------------- closed loop
-def episode_starts(count: int, seed: int, max_omegas: tuple[float, ...]) -> list[dict[str, Any]]:
-    """Start 0 hanging at rest, then env-seeded random states (seed ``seed + i``), cycling through
-    ``max_omegas`` for the bound on |ω₀| (e.g. calm and spinning starts)."""
-    starts = [{"index": 0, "seed": seed, "options": None, "max_omega": 0.0}]
-    for i in range(1, count):
-        w = max_omegas[(i - 1) % len(max_omegas)]
-        starts.append({"index": i, "seed": seed + i, "options": {"random": True, "max_omega": w}, "max_omega": w})
-    return starts
-
-
 def closed_loop_study(checkpoint: str | None, episodes: int = 21, duration_s: float = 10.0, seed: int = 0,
                       max_omegas: tuple[float, ...] = (2.0, 5.0), models: tuple[str, ...] = ("learned", "true"),
                       horizon: int | None = None, progress: bool = True, indices: tuple[int, int] | None = None,
@@ -57,7 +49,7 @@ def closed_loop_study(checkpoint: str | None, episodes: int = 21, duration_s: fl
     settings = scene_mpc_settings(env, horizon=horizon)
     starts = episode_starts(episodes, seed, max_omegas)
     if indices is not None:
-        starts = [st for st in starts if indices[0] <= st["index"] <= indices[1]]
+        starts = [start for start in starts if indices[0] <= start.index <= indices[1]]
     checkpoint = checkpoint or env.scene_spec.default_checkpoint
     results: dict[str, Any] = {"settings": {k: v for k, v in settings.__dict__.items() if k != "ipopt_options"},
                                "checkpoint": checkpoint, "duration_s": duration_s, "models": {}}
@@ -66,11 +58,11 @@ def closed_loop_study(checkpoint: str | None, episodes: int = 21, duration_s: fl
         mpc = scene_mpc(env, model, settings)
         rows = []
         for start in tqdm(starts, desc=f"closed loop {name}", disable=not progress):
-            episode, _ = run_episode(env, mpc, duration_s, start["options"], seed=start["seed"])
+            episode, _ = run_episode(env, mpc, duration_s, start.reset_options, seed=start.seed)
             metrics = episode_metrics(episode)
             records = episode.controller_info
             rows.append({
-                "index": start["index"], "seed": start["seed"], "max_omega0": start["max_omega"],
+                "index": start.index, "seed": start.seed, "max_omega0": start.max_omega,
                 "q0": episode.q[0].tolist(), "omega0": episode.omega[0].tolist(), **metrics,
                 "max_step_residual": float(np.nanmax([r["step_residual"] for r in records])),
                 "median_ipopt_iterations": float(np.median([r["iterations"] for r in records])),
