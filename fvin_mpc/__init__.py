@@ -1,14 +1,25 @@
 """fvin_mpc — learned forced variational integrators on S³ (S3FVIN) for model-based control.
 
-Layers (each imports only the ones above it):
+Layers, each importing only those above it in this list (``tests/test_layers.py`` reads the
+imports and holds the line):
 
-* :mod:`fvin_mpc.backend`, :mod:`fvin_mpc.s3`, :mod:`fvin_mpc.fvin` — the S³ algebra and
-  the FVIN step, written once for NumPy, torch and CasADi.
-* :mod:`fvin_mpc.networks`, :mod:`fvin_mpc.rigid_body` — learned and closed-form ``J``, ``U``, ``g``.
-* :mod:`fvin_mpc.checkpoint`, :mod:`fvin_mpc.data` — safetensors checkpoints, trajectory files.
-* :mod:`fvin_mpc.model`, :mod:`fvin_mpc.train`, :mod:`fvin_mpc.collect` — training (needs torch).
-* :mod:`fvin_mpc.export`, :mod:`fvin_mpc.mpc`, :mod:`fvin_mpc.energy_shaping` — control runtime
-  (CasADi + NumPy, no torch).
+* :mod:`fvin_mpc.core` — the math, written once for NumPy, torch and CasADi: ``backend`` (the only
+  backend-specific code), ``s3`` (quaternion algebra), ``fvin`` (the forced step), ``networks``
+  (learned ``J``, ``U``, ``g``, ``D``), ``rigid_body`` (closed-form bodies, read off an MJCF),
+  ``state`` (the state ``x = (q, ω)`` and its validator), ``checkpoint``, ``data``.
+* :mod:`fvin_mpc.envs` — Gymnasium environments over MuJoCo scenes and the scene declarations
+  (the repository's ``envs/`` folder, installed under this name).
+* :mod:`fvin_mpc.learning` — data collection, the torch model, training: the only torch importers.
+* :mod:`fvin_mpc.control` — ``export`` (CasADi function, compile cache), ``mpc`` (IPOPT MPC with
+  multi-start), ``energy_shaping``, ``closed_loop`` (episodes and metrics), ``scene`` (the model,
+  MPC and settings a scene calls for — the one path every command takes). No torch.
+* :mod:`fvin_mpc.studies` — evaluation, Pendulum-v1, model quality, inertia, the spherical study,
+  the accuracy-vs-time studies (``studies.bench``, written by ``studies.report``), one process pool
+  (``studies.pool``) and one episode-start generator (``studies.starts``).
+
+The top-level modules are the commands, thin over the library: ``python -m fvin_mpc.swingup``,
+``collect``, ``train``, ``export``, ``evaluate``, ``pendulum_v1``, ``quality``, ``inertia``,
+``spherical_report`` and ``bench``.
 """
 
 __version__ = "0.1.0"
