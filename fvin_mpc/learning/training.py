@@ -1,17 +1,35 @@
-"""Train an S3FVIN on trajectory data: ``python -m fvin_mpc.train``.
+"""Train an S3FVIN on trajectory data (the library behind ``python -m fvin_mpc.train``).
 
-Loss: multi-step rollout over windows of ``--window`` steps, the sign-invariant
+Loss: multi-step rollout over windows of ``window`` steps, the sign-invariant
 orientation error ``4(1 − ⟨q̂, q⟩²)`` (≈ squared angle error in rad²) plus
-``--omega-weight``·‖ω̂ − ω‖², averaged over windows and steps. Full-batch Adam;
-trajectories are split into train/validation sets before windowing.
+``omega_weight``·‖ω̂ − ω‖², averaged over windows and steps. Trajectories are split
+into train/validation sets before windowing; training stops early once the
+validation loss stops improving and returns the best weights seen.
+
+Optimizers (``docs/training.md`` has measurements):
+
+- ``"lm"`` (default): Levenberg–Marquardt on the stacked residuals. The loss is a
+  sum of squares ``Σ r²`` with ``r`` = the six components ``2(q̂ᵢqⱼ − q̂ⱼqᵢ)``
+  (Lagrange's identity: their squares sum to ``4(1 − ⟨q̂, q⟩²)`` for unit ``q̂, q``)
+  and ``√omega_weight·(ω̂ − ω)``, scaled by ``1/√(windows·steps)``. Each iteration
+  solves ``(JᵀJ + λ(diag JᵀJ + ε)) δ = −Jᵀr`` with the full-batch gradient ``Jᵀr``
+  and the Gauss–Newton matrix ``JᵀJ`` estimated from ``jacobian_windows`` random
+  windows (per-window Jacobians by ``torch.func``: ``vmap(jacrev(·))``). A step is
+  accepted when it lowers the full-batch loss; ``λ`` shrinks after a success and
+  grows after a failure. Tens of iterations where Adam needs a thousand.
+- ``"lbfgs"``: full-batch L-BFGS with a strong-Wolfe line search.
+- ``"adam"``: full-batch Adam, cosine-decayed learning rate (the former default).
 """
 
 from __future__ import annotations
 
+import contextlib
+import math
+import os
 import time
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator, Literal, Mapping
 
 import numpy as np
 
@@ -20,33 +38,153 @@ from fvin_mpc.core.networks import ModelConfig
 
 DEFAULT_DATA = Path("data/pendulum.npz")
 
+Optimizer = Literal["lm", "lbfgs", "adam"]
+OPTIMIZERS: tuple[str, ...] = ("lm", "lbfgs", "adam")
+#: Upper bound on the iterations of each optimizer when ``TrainSettings.iterations`` is ``None``
+#: (early stopping on the validation loss normally ends the run well before).
+DEFAULT_ITERATIONS: dict[str, int] = {"lm": 60, "lbfgs": 300, "adam": 1500}
+#: Iterations between validation evaluations when ``TrainSettings.eval_every`` is ``None``.
+DEFAULT_EVAL_EVERY: dict[str, int] = {"lm": 1, "lbfgs": 1, "adam": 25}
+
 
 @dataclass(frozen=True)
 class TrainSettings:
     """Optimization settings.
 
     Attributes:
-        iterations: full-batch Adam steps.
-        learning_rate: initial Adam learning rate (cosine-decayed to 5 % of it).
+        optimizer: ``"lm"`` (Levenberg–Marquardt, default), ``"lbfgs"`` or ``"adam"``.
+        iterations: most iterations (LM steps, L-BFGS steps or Adam steps); ``None``:
+            :data:`DEFAULT_ITERATIONS` of the optimizer. Early stopping usually ends sooner.
+        learning_rate: initial Adam learning rate (cosine-decayed to 5 % of it); Adam only.
         window: rollout length in steps of every training window.
         omega_weight: weight of ‖ω̂ − ω‖² against the orientation error.
         validation_fraction: share of trajectories held out.
-        seed: seeds the initialization and the split.
-        eval_every: iterations between validation evaluations.
-        compile: ``torch.compile`` the step (≈ 75 s of compilation once, then ≈ 3× faster
-            iterations; see ``docs/training.md``).
+        seed: seeds the initialization, the split and LM's Jacobian samples.
+        eval_every: iterations between validation evaluations; ``None``: :data:`DEFAULT_EVAL_EVERY`.
+        patience: stop after this many validation evaluations in a row without a relative
+            improvement of at least ``min_improvement`` over the best one; ``0`` never stops early.
+        min_improvement: relative decrease of the validation loss that counts as progress.
+        target_loss: stop as soon as the validation loss is at most this (``None``: no target).
+        jacobian_windows: windows sampled (anew each time) for LM's Gauss–Newton matrix.
+        curvature_reuse: LM iterations that share one Gauss–Newton matrix (the gradient is
+            always fresh); a stale matrix that yields no descent step is recomputed.
+        threads: torch intra-op threads; ``None``: :func:`safe_thread_count` (1 on a busy machine).
+        compile: ``torch.compile`` the step (Adam and L-BFGS only). Costs ≈ 75–200 s of
+            compilation once, then ≈ 3× faster iterations: worth it only for runs of many
+            minutes (``docs/training.md``).
+        time_limit_s: stop after this many seconds of training (``None``: no limit).
     """
 
-    iterations: int = 1500
+    optimizer: Optimizer = "lm"
+    iterations: int | None = None
     learning_rate: float = 1e-2
     window: int = 8
     omega_weight: float = 0.1
     validation_fraction: float = 0.1
     seed: int = 0
-    eval_every: int = 50
+    eval_every: int | None = None
+    patience: int = 3
+    min_improvement: float = 2e-3
+    target_loss: float | None = None
+    jacobian_windows: int = 256
+    curvature_reuse: int = 1
+    threads: int | None = None
     compile: bool = False
+    time_limit_s: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.optimizer not in OPTIMIZERS:
+            raise ValueError(f"unknown optimizer {self.optimizer!r}; expected one of {OPTIMIZERS}")
+        if self.iterations is not None and self.iterations < 1:
+            raise ValueError(f"iterations must be >= 1, got {self.iterations}")
+        if self.eval_every is not None and self.eval_every < 1:
+            raise ValueError(f"eval_every must be >= 1, got {self.eval_every}")
+        if self.patience < 0 or self.jacobian_windows < 1 or self.curvature_reuse < 1:
+            raise ValueError("patience must be >= 0, jacobian_windows and curvature_reuse >= 1")
+        if self.threads is not None and self.threads < 1:
+            raise ValueError(f"threads must be >= 1, got {self.threads}")
+        if self.compile and self.optimizer == "lm":
+            raise ValueError("compile applies to the adam and lbfgs optimizers only (LM differentiates with torch.func)")
+
+    @property
+    def max_iterations(self) -> int:
+        return self.iterations if self.iterations is not None else DEFAULT_ITERATIONS[self.optimizer]
+
+    @property
+    def evaluation_interval(self) -> int:
+        return self.eval_every if self.eval_every is not None else DEFAULT_EVAL_EVERY[self.optimizer]
 
 
+# ---------------------------------------------------------------------------- machine
+def available_cores() -> int:
+    """CPU cores this process may run on."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not Linux
+        return os.cpu_count() or 1
+
+
+def safe_thread_count(cores: int | None = None, load: float | None = None) -> int:
+    """Intra-op threads that cannot oversubscribe the machine: the cores not busy by the
+    1-minute load average, rounded down, at least 1.
+
+    Two threads on a 2-core machine already running one job collapse (40–170× slower than
+    idle, issue 16); one thread never does. At this model's sizes (tensors of a few thousand
+    elements) extra threads gain little anyway (``docs/training.md``)."""
+    cores = available_cores() if cores is None else cores
+    load = os.getloadavg()[0] if load is None else load
+    return max(1, min(cores, int(math.floor(cores - load))))
+
+
+@contextlib.contextmanager
+def torch_threads(threads: int) -> Iterator[None]:
+    """Run the block with ``threads`` torch intra-op threads, restoring the previous count."""
+    import torch
+
+    previous = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(previous)
+
+
+# ---------------------------------------------------------------------------- scene facts
+def scene_stem(scene: str) -> str:
+    """A checkpoint-name stem for a scene: the built-in name, or an MJCF path's file stem
+    (``/a/b/arm.xml`` → ``arm``)."""
+    name = Path(str(scene)).name
+    return name[:-4] if name.lower().endswith(".xml") else name
+
+
+def default_checkpoint_stem(data: TrajectoryData, variant: str, directory: Path = Path("checkpoints")) -> Path:
+    """``checkpoints/<scene stem>_<variant>`` for data collected in ``data.metadata['scene']``."""
+    return directory / f"{scene_stem(data.metadata.get('scene', 'unknown'))}_{variant}"
+
+
+def scene_has_joint_damping(metadata: Mapping[str, Any]) -> bool | None:
+    """Whether the data's scene declares joint damping: the collection metadata's
+    ``physics.joint_damping`` when recorded, else the scene's env (``physics.joint_damping``);
+    ``None`` when neither can tell (no scene, or its MJCF is gone)."""
+    physics = metadata.get("physics")
+    if isinstance(physics, Mapping) and "joint_damping" in physics:
+        return bool(physics["joint_damping"])
+    scene = metadata.get("scene")
+    if not scene:
+        return None
+    try:
+        from fvin_mpc.envs import RigidBodyEnv
+
+        env = RigidBodyEnv(scene=scene, body=metadata.get("body"))
+    except (ValueError, FileNotFoundError, OSError):
+        return None
+    try:
+        return bool(env.unwrapped.physics.joint_damping)
+    finally:
+        env.close()
+
+
+# ---------------------------------------------------------------------------- loss
 def rollout_loss(model: Any, q: Any, omega: Any, u: Any, omega_weight: float, step: Any = None) -> Any:
     """Mean multi-step loss of ``model`` on windows ``q (W, T+1, 4)``, ``ω (W, T+1, 3)``, ``u (W, T, m)``.
 
@@ -58,14 +196,196 @@ def rollout_loss(model: Any, q: Any, omega: Any, u: Any, omega_weight: float, st
     return orientation.mean() + omega_weight * velocity.mean()
 
 
+def rollout_residuals(q_hat: Any, omega_hat: Any, q: Any, omega: Any, omega_weight: float) -> Any:
+    """Residuals ``(W, T, 9)`` whose squares sum to ``W·T·rollout_loss`` (unit quaternions).
+
+    Orientation: ``2(q̂ᵢqⱼ − q̂ⱼqᵢ)`` for ``i < j`` (Lagrange: ``Σ = 4(|q̂|²|q|² − ⟨q̂, q⟩²)``,
+    smooth and the same for ``±q``); velocity: ``√omega_weight·(ω̂ − ω)``."""
+    import torch
+
+    i, j = torch.triu_indices(4, 4, 1, device=q.device)
+    a, b = q_hat[:, 1:], q[:, 1:]
+    orientation = 2.0 * (a[..., i] * b[..., j] - a[..., j] * b[..., i])
+    velocity = math.sqrt(omega_weight) * (omega_hat[:, 1:] - omega[:, 1:])
+    return torch.cat([orientation, velocity], dim=-1)
+
+
 def split_data(data: TrajectoryData, validation_fraction: float, seed: int) -> tuple[TrajectoryData, TrajectoryData]:
     order = np.random.default_rng(seed).permutation(data.num_trajectories)
     n_val = max(1, int(round(validation_fraction * data.num_trajectories)))
     return data.subset(np.sort(order[n_val:])), data.subset(np.sort(order[:n_val]))
 
 
+# ---------------------------------------------------------------------------- training
+class _EarlyStopping:
+    """Keeps the best validation loss and weights; says when to stop."""
+
+    def __init__(self, settings: TrainSettings) -> None:
+        self.settings = settings
+        self.best = math.inf
+        self.best_weights: dict[str, Any] | None = None
+        self.stale = 0
+        self.reason = "iteration limit"
+
+    def update(self, validation: float, model: Any) -> bool:
+        """Record a validation loss; ``True`` when training should stop."""
+        if validation < self.best * (1.0 - self.settings.min_improvement):
+            self.stale = 0
+        else:
+            self.stale += 1
+        if validation < self.best:
+            self.best = validation
+            self.best_weights = {name: p.detach().clone() for name, p in model.weights.items()}
+        target = self.settings.target_loss
+        if target is not None and validation <= target:
+            self.reason = f"validation loss reached the target {target:.3g}"
+            return True
+        if self.settings.patience and self.stale >= self.settings.patience:
+            self.reason = f"validation loss did not improve by {self.settings.min_improvement:.1%} in {self.stale} evaluations"
+            return True
+        return False
+
+    def restore(self, model: Any) -> None:
+        import torch
+
+        if self.best_weights is not None:
+            with torch.no_grad():
+                for name, p in model.weights.items():
+                    p.copy_(self.best_weights[name])
+
+
+class _LevenbergMarquardt:
+    """LM on the flattened parameters; see the module docstring."""
+
+    def __init__(self, model: Any, windows: tuple[Any, ...], settings: TrainSettings) -> None:
+        import torch
+
+        self.model, self.windows, self.settings = model, windows, settings
+        self.parameters = list(model.weights.values())
+        self.names = [f"model.weights.{name}" for name in model.weights]
+        self.shapes = [p.shape for p in self.parameters]
+        self.sizes = [p.numel() for p in self.parameters]
+        count, steps = windows[2].shape[:2]
+        self.scale = 1.0 / math.sqrt(count * steps)
+        self.sample = min(settings.jacobian_windows, count)
+        self.rng = np.random.default_rng(settings.seed)
+        self.damping = 10.0
+        self.gauss_newton: Any = None
+        self.age = 0
+        self.rollout = _rollout_module(model)
+        self._jacobian = torch.func.vmap(torch.func.jacrev(self._window_residuals), in_dims=(None, 0, 0, 0))
+
+    def _window_residuals(self, theta: Any, q: Any, omega: Any, u: Any) -> Any:
+        """Scaled residuals of one window (``q (T+1, 4)``…) as a flat vector, for ``torch.func``."""
+        import torch
+
+        params = {name: c.reshape(s) for name, c, s in zip(self.names, torch.split(theta, self.sizes), self.shapes)}
+        q, omega, u = q[None], omega[None], u[None]
+        q_hat, omega_hat = torch.func.functional_call(self.rollout, params, (q[:, 0], omega[:, 0], u))
+        return self.scale * rollout_residuals(q_hat, omega_hat, q, omega, self.settings.omega_weight).reshape(-1)
+
+    def _theta(self) -> Any:
+        import torch
+
+        return torch.cat([p.detach().reshape(-1) for p in self.parameters])
+
+    def _assign(self, theta: Any) -> None:
+        import torch
+
+        with torch.no_grad():
+            for p, c in zip(self.parameters, torch.split(theta, self.sizes)):
+                p.copy_(c.reshape(p.shape))
+
+    def _gauss_newton(self, theta: Any) -> Any:
+        """``JᵀJ`` of the full training set, estimated from ``jacobian_windows`` random windows."""
+        import torch
+
+        count = self.windows[0].shape[0]
+        index = torch.as_tensor(np.sort(self.rng.choice(count, self.sample, replace=False)))
+        jacobian = self._jacobian(theta, *(w[index] for w in self.windows)).reshape(-1, theta.numel())
+        return (count / self.sample) * (jacobian.T @ jacobian)
+
+    def step(self) -> float:
+        """One LM iteration; returns the full-batch training loss before it (``nan`` once no step helps)."""
+        import torch
+
+        model, settings = self.model, self.settings
+        for p in self.parameters:
+            p.grad = None
+        loss = rollout_loss(model, *self.windows, settings.omega_weight)
+        if not torch.isfinite(loss):
+            raise FloatingPointError(f"training loss became {loss.item()}")
+        loss.backward()
+        half_gradient = 0.5 * torch.cat([p.grad.reshape(-1) for p in self.parameters])
+        theta = self._theta()
+        fresh = self.gauss_newton is None or self.age >= self.settings.curvature_reuse
+        if fresh:
+            self.gauss_newton, self.age = self._gauss_newton(theta), 0
+        self.age += 1
+        current = loss.item()
+        while True:
+            if self._try_steps(theta, half_gradient, current):
+                return current
+            if fresh:
+                return math.nan
+            # A stale Gauss–Newton matrix may be what fails: retry with a fresh one.
+            self.gauss_newton, self.age, fresh = self._gauss_newton(theta), 1, True
+
+    def _try_steps(self, theta: Any, half_gradient: Any, current: float) -> bool:
+        """Damped steps until one lowers the full-batch loss (kept) or 12 tries fail (restored)."""
+        import torch
+
+        diagonal = self.gauss_newton.diagonal()
+        floor = 1e-6 * float(diagonal.max()) + 1e-12
+        for _ in range(12):
+            system = self.gauss_newton + torch.diag(self.damping * (diagonal + floor))
+            try:
+                delta = -torch.linalg.solve(system, half_gradient)
+            except RuntimeError:  # singular: more damping
+                self.damping *= 4.0
+                continue
+            self._assign(theta + delta)
+            with torch.no_grad():
+                trial = rollout_loss(self.model, *self.windows, self.settings.omega_weight).item()
+            if trial < current:
+                self.damping = max(self.damping / 3.0, 1e-9)
+                return True
+            self.damping *= 4.0
+        self._assign(theta)
+        return False
+
+
+def _rollout_module(model: Any) -> Any:
+    """An ``nn.Module`` whose call is ``model.rollout`` (a ``functional_call`` target; parameters
+    named ``model.weights.<name>``)."""
+    from torch import nn
+
+    class Rollout(nn.Module):
+        def __init__(self) -> None:
+            super().__init__()
+            self.model = model
+
+        def forward(self, q0: Any, omega0: Any, u: Any) -> Any:
+            return self.model.rollout(q0, omega0, u)
+
+    return Rollout()
+
+
 def train(data: TrajectoryData, config: ModelConfig, settings: TrainSettings, progress: bool = True) -> tuple[Any, dict[str, Any]]:
-    """Train a model; returns ``(model, report)`` with losses and timings."""
+    """Train a model; returns ``(model, report)`` with losses, timings, threads and machine load."""
+    threads = settings.threads if settings.threads is not None else safe_thread_count()
+    load_before = os.getloadavg()
+    with torch_threads(threads):
+        model, report = _train(data, config, settings, progress)
+    report["threads"] = threads
+    report["threads_chosen"] = "given" if settings.threads is not None else "safe_thread_count"
+    report["cpu_cores"] = available_cores()
+    report["load_average_start"] = list(load_before)
+    report["load_average_end"] = list(os.getloadavg())
+    return model, report
+
+
+def _train(data: TrajectoryData, config: ModelConfig, settings: TrainSettings, progress: bool) -> tuple[Any, dict[str, Any]]:
     import torch
     from tqdm.auto import tqdm
 
@@ -82,43 +402,117 @@ def train(data: TrajectoryData, config: ModelConfig, settings: TrainSettings, pr
     validation_windows = tensors(validation_set.windows(settings.window))
 
     model = S3FVIN(config, seed=settings.seed)
+    iterations, eval_every = settings.max_iterations, settings.evaluation_interval
     # One step is compiled (not the whole rollout): compile time grows steeply with graph size.
     step = torch.compile(model.step, dynamic=False) if settings.compile else None
-    optimizer = torch.optim.Adam(model.parameters(), lr=settings.learning_rate)
-    schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, settings.iterations, eta_min=0.05 * settings.learning_rate)
+
+    def train_loss() -> Any:
+        return rollout_loss(model, *train_windows, settings.omega_weight, step)
+
+    if settings.optimizer == "lm":
+        lm = _LevenbergMarquardt(model, train_windows, settings)
+        advance = lm.step
+    elif settings.optimizer == "lbfgs":
+        lbfgs = torch.optim.LBFGS(model.parameters(), lr=1.0, max_iter=4, history_size=50, line_search_fn="strong_wolfe")
+
+        def closure() -> Any:
+            lbfgs.zero_grad()
+            loss = train_loss()
+            loss.backward()
+            return loss
+
+        def advance() -> float:
+            return lbfgs.step(closure).detach().item()
+    else:
+        adam = torch.optim.Adam(model.parameters(), lr=settings.learning_rate)
+        schedule = torch.optim.lr_scheduler.CosineAnnealingLR(adam, iterations, eta_min=0.05 * settings.learning_rate)
+
+        def advance() -> float:
+            adam.zero_grad()
+            loss = train_loss()
+            loss.backward()
+            adam.step()
+            schedule.step()
+            return loss.item()
+
+    stopping = _EarlyStopping(settings)
     history: list[dict[str, float]] = []
     validation_loss = float("nan")
     start = time.perf_counter()
-    bar = tqdm(range(settings.iterations), desc=f"train {config.variant}", disable=not progress)
+    completed = 0
+    bar = tqdm(range(iterations), desc=f"train {config.variant} ({settings.optimizer})", disable=not progress)
     for iteration in bar:
-        optimizer.zero_grad()
-        loss = rollout_loss(model, *train_windows, settings.omega_weight, step)
-        if not torch.isfinite(loss):
-            raise FloatingPointError(f"training loss became {loss.item()} at iteration {iteration}")
-        loss.backward()
-        optimizer.step()
-        schedule.step()
-        if iteration % settings.eval_every == 0 or iteration == settings.iterations - 1:
+        loss = advance()
+        completed = iteration + 1
+        if math.isnan(loss):  # LM: no damping made a step that lowers the loss
+            stopping.reason = "no Levenberg–Marquardt step lowers the training loss (converged)"
+            break
+        if not math.isfinite(loss):
+            raise FloatingPointError(f"training loss became {loss} at iteration {iteration}")
+        if completed % eval_every == 0 or completed == iterations:
             with torch.no_grad():
                 validation_loss = rollout_loss(model, *validation_windows, settings.omega_weight).item()
-            history.append({"iteration": iteration, "train": loss.item(), "validation": validation_loss})
-        bar.set_postfix(train=f"{loss.item():.2e}", val=f"{validation_loss:.2e}")
+            history.append({"iteration": completed, "train": loss, "validation": validation_loss,
+                            "elapsed_s": time.perf_counter() - start})
+            bar.set_postfix(train=f"{loss:.2e}", val=f"{validation_loss:.2e}")
+            if stopping.update(validation_loss, model):
+                break
+        if settings.time_limit_s is not None and time.perf_counter() - start > settings.time_limit_s:
+            stopping.reason = f"time limit of {settings.time_limit_s:g} s"
+            break
+    stopping.restore(model)
     seconds = time.perf_counter() - start
+    bar.close()
     with torch.no_grad():
         final_train = rollout_loss(model, *train_windows, settings.omega_weight).item()
         final_validation = rollout_loss(model, *validation_windows, settings.omega_weight).item()
     report = {
-        "iterations": settings.iterations,
-        "settings": settings.__dict__,
+        "optimizer": settings.optimizer,
+        "iterations": completed,
+        "stopped": stopping.reason,
+        "settings": asdict(settings),
         "train_windows": int(train_windows[0].shape[0]),
         "validation_windows": int(validation_windows[0].shape[0]),
         "final_train_loss": final_train,
         "final_validation_loss": final_validation,
         "wall_clock_s": seconds,
-        "seconds_per_iteration": seconds / settings.iterations,
+        "seconds_per_iteration": seconds / max(completed, 1),
         "history": history,
     }
     return model, report
+
+
+def reference_iteration(variant: str, windows: int, steps: int, compile: bool, seed: int = 0) -> tuple[Any, float]:
+    """The reference workload of ``bench train-speed``: one full-batch Adam iteration (rollout,
+    loss, backward, step) on ``windows`` random windows of ``steps`` steps, hidden width 10.
+
+    Returns ``(iteration, compile_s)``: a no-argument callable running one iteration, and the
+    seconds the first (compiling) iteration took when ``compile`` (else 0)."""
+    import torch
+
+    from fvin_mpc.learning.model import DTYPE, S3FVIN
+
+    torch.manual_seed(seed)
+    rng = np.random.default_rng(seed)
+    q = rng.normal(size=(windows, steps + 1, 4))
+    q /= np.linalg.norm(q, axis=-1, keepdims=True)
+    batch = tuple(torch.as_tensor(a, dtype=DTYPE) for a in (q, rng.normal(size=(windows, steps + 1, 3)),
+                                                          rng.uniform(-2, 2, size=(windows, steps, 1))))
+    model = S3FVIN(ModelConfig(variant=variant, hidden_width=10), seed=seed)
+    optimizer = torch.optim.Adam(model.parameters(), lr=1e-3)
+    step = torch.compile(model.step, dynamic=False) if compile else None
+
+    def iteration() -> None:
+        optimizer.zero_grad()
+        rollout_loss(model, *batch, 0.1, step).backward()
+        optimizer.step()
+
+    compile_s = 0.0
+    if compile:
+        start = time.perf_counter()
+        iteration()  # compiles forward and backward
+        compile_s = time.perf_counter() - start
+    return iteration, compile_s
 
 
 def package_versions() -> dict[str, str]:

@@ -1,150 +1,126 @@
-"""``train-speed``: seconds per training iteration on the reference workload.
+"""``train-speed``: seconds per training iteration, and seconds to a shipped checkpoint's loss.
 
-The reference implementation (hanyang-hu/S3FVIN, sign-invariant variant) takes ≈ 1.5 s
-per full-batch iteration on 3,520 rollout windows of 9 steps with hidden width 10 in
-float64 on this kind of 2-core machine (``DESIGN.md``). We time the same workload —
-forward rollout, loss, backward and an Adam step — eagerly and with the step compiled.
+Two parts, one run:
 
-"At equal loss": both modes train on the real data (``data/pendulum.npz``) from the same
-seed, and the study reports the wall clock each needs to reach a common validation loss
-(``torch.compile``'s one-off cost included), plus the shipped checkpoint's own training
-wall clock (``training.wall_clock_s`` in its JSON sidecar).
+- **per iteration** — the reference workload: the reference implementation
+  (hanyang-hu/S3FVIN, sign-invariant) takes ≈ 1.5 s per full-batch iteration on 3,520 rollout
+  windows of 9 steps with hidden width 10 in float64 on this kind of 2-core machine
+  (``DESIGN.md``). We time the same workload (rollout, loss, backward, an Adam step), eagerly
+  and with the step compiled (``--modes``).
+- **to target** — time to a shipped validation loss from a fresh process: for each optimizer/
+  execution mode (``--optimizers``), ``python -m fvin_mpc.train`` runs with its defaults
+  (early stopping included) in a subprocess on (a) ``data/pendulum.npz``, target: the shipped
+  ``pendulum_sign-invariant`` checkpoint's validation loss, and (b) 10,000 transitions of the
+  ``pendulum_damped`` scene (``data/pendulum_damped_10k.npz``, collected here if absent) with
+  learned dissipation, target: the shipped ``pendulum_damped_sign-invariant`` checkpoint's
+  validation loss. ``s_to_target`` counts from the subprocess's launch (interpreter start,
+  imports, data, ``torch.compile`` included) to the first validation evaluation at or below
+  the target; ``launch_to_exit_s`` to the checkpoint written and the process gone.
+
+torch code lives in :mod:`fvin_mpc.learning.training`; this module only times it.
 """
 
 from __future__ import annotations
 
+import json
+import os
+import subprocess
+import sys
+import tempfile
 import time
+from pathlib import Path
 from typing import Any
-
-import numpy as np
 
 from fvin_mpc.studies.report import StudyResult, median_time
 
 REFERENCE_SECONDS_PER_ITERATION = 1.5
+DAMPED_DATA = Path("data/pendulum_damped_10k.npz")
+#: optimizer/execution modes of the "to target" part: name → extra ``fvin_mpc.train`` arguments.
+MODES: dict[str, list[str]] = {
+    "lm": ["--optimizer", "lm"],
+    "lbfgs": ["--optimizer", "lbfgs"],
+    "adam": ["--optimizer", "adam"],
+    "adam-compiled": ["--optimizer", "adam", "--compile"],
+}
 
 
-def _equal_loss(seed: int, iterations: int, eval_every: int) -> list[dict[str, Any]]:
-    """Train on ``data/pendulum.npz`` eagerly and compiled from the same seed, recording the wall
-    clock at every validation; returns one row per mode with the time to reach a common loss.
-
-    The loop is :func:`fvin_mpc.learning.training.train`'s (same split, windows, Adam, cosine schedule)."""
-    import torch
-
-    from fvin_mpc.learning.model import DTYPE, S3FVIN
-    from fvin_mpc.core.networks import ModelConfig
-    from fvin_mpc.learning.training import TrainSettings, rollout_loss, split_data
-    from fvin_mpc.studies.bench.width import _training_data
-
-    data = _training_data(seed)
-    settings = TrainSettings(iterations=iterations, seed=seed)
-    train_set, validation_set = split_data(data, settings.validation_fraction, seed)
-    tensors = lambda arrays: tuple(torch.as_tensor(a, dtype=DTYPE) for a in arrays)  # noqa: E731
-    train_windows = tensors(train_set.windows(settings.window))
-    validation_windows = tensors(validation_set.windows(settings.window))
-    curves = {}
-    for mode in ("eager", "compiled"):
-        torch.manual_seed(seed)
-        config = ModelConfig(variant="sign-invariant", control_dim=data.u.shape[2], step_size=data.control_period)
-        model = S3FVIN(config, seed=seed)
-        step = torch.compile(model.step, dynamic=False) if mode == "compiled" else None
-        optimizer = torch.optim.Adam(model.parameters(), lr=settings.learning_rate)
-        schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, iterations, eta_min=0.05 * settings.learning_rate)
-        curve, evaluation_s = [], 0.0
-        start = time.perf_counter()
-        for iteration in range(iterations):
-            optimizer.zero_grad()
-            rollout_loss(model, *train_windows, settings.omega_weight, step).backward()
-            optimizer.step()
-            schedule.step()
-            if (iteration + 1) % eval_every == 0:
-                pause = time.perf_counter()
-                with torch.no_grad():
-                    loss = rollout_loss(model, *validation_windows, settings.omega_weight).item()
-                evaluation_s += time.perf_counter() - pause
-                # Time spent training only (validation excluded), the same for both modes.
-                curve.append((iteration + 1, time.perf_counter() - start - evaluation_s, loss))
-        curves[mode] = curve
-    # The common target: the loss the eager run reaches at two thirds of the budget.
-    eager = curves["eager"]
-    target = eager[max(0, (2 * len(eager)) // 3 - 1)][2]
-    rows = []
-    for mode, curve in curves.items():
-        reached = next(((it, t) for it, t, loss in curve if loss <= target), (None, None))
-        rows.append({"mode": mode, "variant": "sign-invariant", "windows": int(train_windows[0].shape[0]),
-                     "steps": settings.window, "target_validation_loss": target, "iterations_to_target": reached[0],
-                     "s_to_target": reached[1], "final_validation_loss": curve[-1][2], "part": "equal loss"})
-    return rows
-
-
-def run(quick: bool = False, seed: int = 0, repeats: int = 5, threads: int = 1, equal_loss: bool = True,
-        equal_loss_iterations: int = 100, **_: Any) -> StudyResult:
-    from fvin_mpc.learning.timing import torch_threads
-    from fvin_mpc.studies.bench.common import NOISE_NOTE
-
-    with torch_threads(threads):
-        result = _run(quick, seed, repeats)
-        if equal_loss and not quick:
-            rows = _equal_loss(seed, equal_loss_iterations, 10)
-            result.rows.extend(rows)
-            eager, compiled = rows
-            if eager["s_to_target"] and compiled["s_to_target"]:
-                result.notes.append(
-                    f"**At equal loss** (real data `data/pendulum.npz`, {eager['windows']} windows, sign-invariant, "
-                    f"same seed): validation loss {eager['target_validation_loss']:.3g} is reached after "
-                    f"{eager['s_to_target']:.1f} s eager ({eager['iterations_to_target']} iterations) and "
-                    f"{compiled['s_to_target']:.1f} s compiled ({compiled['iterations_to_target']} iterations, "
-                    "`torch.compile` included — but with inductor's on-disk cache warm from the per-iteration rows "
-                    "above; a cold compile adds about `compile_s`, so from a cold start compiling pays off only once "
-                    "the run is longer than that).")
-            result.columns = list(result.columns) + ["target_validation_loss", "iterations_to_target", "s_to_target"]
+def _shipped_validation_loss(name: str) -> float | None:
     from fvin_mpc.studies.bench.common import checkpoint_or_none
 
-    shipped = checkpoint_or_none("pendulum_sign-invariant")
-    if shipped is not None and "training" in shipped.metadata:
-        training = shipped.metadata["training"]
+    checkpoint = checkpoint_or_none(name)
+    if checkpoint is None:
+        return None
+    return checkpoint.metadata.get("training", {}).get("final_validation_loss")
+
+
+def _damped_data(seed: int) -> Path:
+    """10,000 transitions (500 trajectories × 20 steps) of ``pendulum_damped``, collected once."""
+    if not DAMPED_DATA.exists():
+        subprocess.run([sys.executable, "-m", "fvin_mpc.collect", "--scene", "pendulum_damped", "--trajectories", "500",
+                        "--steps", "20", "--seed", str(seed + 1), "--out", str(DAMPED_DATA), "--quiet"], check=True)
+    return DAMPED_DATA
+
+
+def _fresh_process(data: Path, mode: str, target: float, threads: int, seed: int, time_limit_s: float,
+                   out_dir: Path) -> dict[str, Any]:
+    """Run ``python -m fvin_mpc.train`` in a new interpreter; time it and read its report."""
+    out = out_dir / f"{data.stem}_{mode}"
+    command = [sys.executable, "-m", "fvin_mpc.train", "--data", str(data), "--out", str(out), "--quiet",
+               "--threads", str(threads), "--seed", str(seed), "--time-limit", str(time_limit_s), *MODES[mode]]
+    environment = {**os.environ, "OMP_NUM_THREADS": str(threads)}
+    load = os.getloadavg()[0]
+    start = time.perf_counter()
+    subprocess.run(command, check=True, env=environment, stdout=subprocess.DEVNULL)
+    launch_to_exit = time.perf_counter() - start
+    training = json.loads(out.with_suffix(".json").read_text())["training"]
+    setup_s = launch_to_exit - training["wall_clock_s"]  # interpreter, imports, data, saving
+    reached = next((h for h in training["history"] if h["validation"] <= target), None)
+    return {"part": "to target", "data": data.name, "mode": mode, "windows": training["train_windows"],
+            "target_validation_loss": target, "final_validation_loss": training["final_validation_loss"],
+            "iterations": training["iterations"], "iterations_to_target": reached and reached["iteration"],
+            "s_to_target": reached and setup_s + reached["elapsed_s"], "launch_to_exit_s": launch_to_exit,
+            "stopped": training["stopped"], "threads": training["threads"], "load_1min": load}
+
+
+def run(quick: bool = False, seed: int = 0, repeats: int = 5, threads: int = 1, modes: str = "eager,compiled",
+        optimizers: str = ",".join(MODES), to_target: bool = True, time_limit: float = 600.0, **_: Any) -> StudyResult:
+    from fvin_mpc.learning.training import torch_threads
+
+    with torch_threads(threads):
+        result = _per_iteration(quick, seed, repeats, ["eager"] if quick else modes.split(","))
+    if to_target and not quick:
+        targets = [(Path("data/pendulum.npz"), _shipped_validation_loss("pendulum_sign-invariant")),
+                   (_damped_data(seed), _shipped_validation_loss("pendulum_damped_sign-invariant"))]
+        jobs = [(data, target, mode) for data, target in targets if target is not None for mode in optimizers.split(",")]
+        from tqdm.auto import tqdm
+
+        with tempfile.TemporaryDirectory() as scratch:
+            for data, target, mode in tqdm(jobs, desc="train-speed: fresh processes"):
+                result.rows.append(_fresh_process(data, mode, target, threads, seed, time_limit, Path(scratch)))
+        result.columns = list(result.columns) + ["data", "target_validation_loss", "final_validation_loss",
+                                                 "iterations_to_target", "s_to_target", "launch_to_exit_s", "load_1min"]
         result.notes.append(
-            f"The shipped `pendulum_sign-invariant` checkpoint trained in {training.get('wall_clock_s', float('nan')):.0f} s "
-            f"({training.get('iterations')} iterations, compile = {training.get('settings', {}).get('compile')}; "
-            "`training.wall_clock_s` of its JSON sidecar).")
-    result.notes.append(f"torch ran with {threads} intra-op thread(s). " + NOISE_NOTE)
+            "**To target**: each row is one `python -m fvin_mpc.train --data <data> --optimizer <mode> --threads "
+            f"{threads} --time-limit {time_limit:g}` in a fresh interpreter (defaults otherwise, early stopping on). "
+            "`s_to_target`: launch → first validation loss ≤ the target (the shipped checkpoint's: "
+            "`pendulum_sign-invariant` for `pendulum.npz`, `pendulum_damped_sign-invariant` for "
+            "`pendulum_damped_10k.npz`), `torch.compile` included; empty if never reached. "
+            "`launch_to_exit_s`: launch → checkpoint written. `load_1min`: the 1-minute load average at launch.")
+    result.notes.append(f"torch ran with {threads} intra-op thread(s); 1-minute load average at the end "
+                        f"{os.getloadavg()[0]:.2f} on {os.cpu_count()} cores. "
+                        "Timings are from a machine shared with other jobs: compare rows by ratios within this run.")
     return result
 
 
-def _run(quick: bool, seed: int, repeats: int) -> StudyResult:
-    import torch
+def _per_iteration(quick: bool, seed: int, repeats: int, modes: list[str]) -> StudyResult:
+    from fvin_mpc.learning.training import reference_iteration
 
-    from fvin_mpc.learning.model import DTYPE, S3FVIN
-    from fvin_mpc.core.networks import ModelConfig
-    from fvin_mpc.learning.training import rollout_loss
-
-    torch.manual_seed(seed)
     windows, steps = (352, 9) if quick else (3520, 9)
     repeats = 2 if quick else repeats
-    rng = np.random.default_rng(seed)
-    q = rng.normal(size=(windows, steps + 1, 4))
-    q /= np.linalg.norm(q, axis=-1, keepdims=True)
-    batch = tuple(torch.as_tensor(a, dtype=DTYPE) for a in (q, rng.normal(size=(windows, steps + 1, 3)),
-                                                          rng.uniform(-2, 2, size=(windows, steps, 1))))
     rows = []
-    modes = ["eager"] if quick else ["eager", "compiled"]
     for mode in modes:
         for variant in ("sign-invariant", "fixed-inertia"):
-            model = S3FVIN(ModelConfig(variant=variant, hidden_width=10), seed=seed)
-            optimizer = torch.optim.Adam(model.parameters(), lr=1e-3)
-            step = None
-            compile_s = 0.0
-            if mode == "compiled":
-                step = torch.compile(model.step, dynamic=False)
-
-            def iteration() -> None:
-                optimizer.zero_grad()
-                rollout_loss(model, *batch, 0.1, step).backward()
-                optimizer.step()
-
-            if mode == "compiled":
-                start = time.perf_counter()
-                iteration()  # triggers compilation of forward and backward
-                compile_s = time.perf_counter() - start
+            iteration, compile_s = reference_iteration(variant, windows, steps, compile=mode == "compiled", seed=seed)
             median, p95 = median_time(iteration, repeats)
             rows.append({"part": "per iteration", "mode": mode, "variant": variant, "windows": windows, "steps": steps,
                          "s_per_iter_median": median, "s_per_iter_p95": p95, "compile_s": compile_s,
@@ -152,26 +128,44 @@ def _run(quick: bool, seed: int, repeats: int) -> StudyResult:
                          "speedup_vs_reference": None if quick else REFERENCE_SECONDS_PER_ITERATION / median})
 
     def plot(figure: Any, rows: list[dict[str, Any]]) -> None:
-        axis = figure.add_subplot()
-        rows = [r for r in rows if r.get("part") == "per iteration"]
-        labels = [f"{r['mode']}\n{r['variant']}" for r in rows]
-        axis.bar(labels, [r["s_per_iter_median"] for r in rows], color="tab:blue")
-        axis.axhline(REFERENCE_SECONDS_PER_ITERATION, color="tab:red", ls="--", label="reference (DESIGN.md)")
-        axis.axhline(REFERENCE_SECONDS_PER_ITERATION / 10, color="tab:green", ls=":", label="10× target")
-        axis.set_yscale("log")
-        axis.set_ylabel("s / iteration (median)")
-        axis.legend()
+        per_iteration = [r for r in rows if r.get("part") == "per iteration"]
+        to_target = [r for r in rows if r.get("part") == "to target"]
+        left = figure.add_subplot(1, 2 if to_target else 1, 1)
+        left.bar([f"{r['mode']}\n{r['variant']}" for r in per_iteration], [r["s_per_iter_median"] for r in per_iteration],
+                 color="tab:blue")
+        left.axhline(REFERENCE_SECONDS_PER_ITERATION, color="tab:red", ls="--", label="reference (DESIGN.md)")
+        left.set_yscale("log")
+        left.set_ylabel("s / iteration (median)")
+        left.set_title("reference workload, per iteration")
+        left.legend()
+        if to_target:
+            right = figure.add_subplot(1, 2, 2)
+            labels = [f"{r['mode']}\n{r['data'].removesuffix('.npz')}" for r in to_target]
+            reached = [r["s_to_target"] if r["s_to_target"] is not None else r["launch_to_exit_s"] for r in to_target]
+            colors = ["tab:green" if r["s_to_target"] is not None else "tab:gray" for r in to_target]
+            right.barh(labels, reached, color=colors)
+            right.set_xscale("log")
+            right.set_xlabel("s from launch to the shipped validation loss (gray: not reached; bar = run length)")
+            right.set_title("fresh process, to target")
+        figure.set_size_inches(13, 5)
+        figure.tight_layout()
 
-    notes = [f"Workload: {windows} windows × {steps} steps, hidden width 10, float64, K = 2, full batch; "
-             f"reference ≈ {REFERENCE_SECONDS_PER_ITERATION} s/iteration (DESIGN.md, measured on this machine kind). "
-             "`compile_s` is the one-off cost of `torch.compile` on the first iteration."]
+    notes = [f"**Per iteration**: {windows} windows × {steps} steps, hidden width 10, float64, K = 2, full batch, one Adam "
+             f"iteration; reference ≈ {REFERENCE_SECONDS_PER_ITERATION} s/iteration (DESIGN.md, measured on this machine "
+             "kind). `compile_s` is the one-off cost of `torch.compile` on the first iteration."]
     return StudyResult("train-speed", rows, ["part", "mode", "variant", "windows", "s_per_iter_median", "s_per_iter_p95",
                                              "compile_s", "speedup_vs_reference"], plot, notes)
 
 
 def add_arguments(parser: Any) -> None:
-    parser.add_argument("--threads", type=int, default=1, help="torch intra-op threads (default: %(default)s)")
-    parser.add_argument("--no-equal-loss", dest="equal_loss", action="store_false",
-                        help="skip the time-to-equal-loss comparison on real data")
-    parser.add_argument("--equal-loss-iterations", type=int, default=100,
-                        help="training iterations per mode in the equal-loss comparison (default: %(default)s)")
+    parser.add_argument("--threads", type=int, default=1,
+                        help="torch intra-op threads, here and in every training subprocess (default: %(default)s)")
+    parser.add_argument("--modes", default="eager,compiled",
+                        help="execution modes of the per-iteration part, comma-separated (default: %(default)s)")
+    parser.add_argument("--optimizers", default=",".join(MODES),
+                        help="optimizer/execution modes of the to-target part, comma-separated, from "
+                             f"{', '.join(MODES)} (default: %(default)s)")
+    parser.add_argument("--no-to-target", dest="to_target", action="store_false",
+                        help="skip the time-to-target runs in fresh processes")
+    parser.add_argument("--time-limit", type=float, default=600.0,
+                        help="seconds of training per to-target run before it is stopped (default: %(default)s)")
