@@ -39,7 +39,7 @@ HOLD_WINDOW_S = 3.0
 
 #: The scalar entries of a controller's ``info`` an :class:`Episode` keeps per period (the plan
 #: itself is left out: it would make episodes heavy).
-RECORDED_INFO = ("status", "iterations", "solve_time_s", "step_residual", "fallback", "cold_start", "disturbance")
+RECORDED_INFO = ("status", "iterations", "solve_time_s", "step_residual", "fallback", "cold_start", "disturbance", "qp_iterations")
 
 #: ``run_episode``'s ``latency``: ``"none"`` (the simulator waits for the controller), ``"measured"``
 #: (the controller's wall-clock compute time delays its torque) or a fixed delay in seconds.

@@ -108,6 +108,23 @@ class MPCSettings:
             successful plan of lowest cost is kept (multi-start: a swing-up NLP has local optima —
             swing left or right first, catch the body near upright or let it fall through a turn —
             and a local solver converges to the one nearest its guess). Warm calls are unchanged.
+            With ``solver="rti"`` each guess gets ``rti_cold_iter`` iterations and the best is kept.
+        rti_max_iter: ``solver="rti"`` (:class:`fvin_mpc.control.rti.RealTimeMPC`): Gauss–Newton SQP
+            iterations per warm call at most; the first always runs, each further one only while the
+            call's time so far plus the last iteration's fits in ``rti_budget_s``.
+        rti_budget_s: wall-clock budget of one warm call (s) for iterations after the first.
+        rti_tol: no further iteration once the last step is this small (largest ``|Δu|`` over the
+            torque range, or state step over the trust region).
+        rti_cold_iter: iterations per cold-start guess on a cold call (after ``reset()``) …
+        rti_cold_budget_s: … within this wall-clock budget (s) over all guesses; when it runs out the
+            best plan so far is used (``info["status"] = "budget"``).
+        rti_regularization: Levenberg–Marquardt term added to the Gauss–Newton Hessian of the QP.
+        rti_omega_penalty: ``solver="rti"``: weight on the squared excess of each ``|ω_i|`` over its
+            bound (the real-time iteration's soft form of the ``ω`` bound).
+        rti_qp_solver: the QP solver of ``solver="rti"``: ``"hpipm"`` (Riccati-based interior point on
+            the stage-wise sparse QP), ``"qrqp"`` or ``"osqp"`` (CasADi's, same QP).
+        disturbance_gain: ``solver="rti"`` only: gain ``α`` of the offset-free estimator of a constant
+            input disturbance ``d`` (``x⁺ = F(x, u + d)``); ``0`` switches it off.
     """
 
     horizon: int = 30
@@ -127,8 +144,17 @@ class MPCSettings:
     tol: float = 1e-6
     warm_mu_init: float = 1e-4
     ipopt_options: tuple[tuple[str, Any], ...] = field(default_factory=tuple)
-    solver: Literal["ipopt", "sqpmethod", "fatrop"] = "ipopt"
+    solver: Literal["ipopt", "sqpmethod", "fatrop", "rti"] = "ipopt"
     cold_starts: tuple[str, ...] = ("rollout+",)
+    rti_max_iter: int = 1
+    rti_budget_s: float = 0.0
+    rti_tol: float = 1e-3
+    rti_cold_iter: int = 10
+    rti_cold_budget_s: float = 0.02
+    rti_regularization: float = 1e-6
+    rti_omega_penalty: float = 100.0
+    rti_qp_solver: Literal["hpipm", "qrqp", "osqp"] = "hpipm"
+    disturbance_gain: float = 0.5
 
     def __post_init__(self) -> None:
         if self.horizon < 1:
@@ -145,8 +171,17 @@ class MPCSettings:
             raise ValueError(f"unknown compile mode {self.compile!r}")
         if self.warm_start not in ("primal-dual", "primal", "none"):
             raise ValueError(f"unknown warm_start {self.warm_start!r}")
-        if self.solver not in ("ipopt", "sqpmethod", "fatrop"):
+        if self.solver not in ("ipopt", "sqpmethod", "fatrop", "rti"):
             raise ValueError(f"unknown solver {self.solver!r}")
+        if self.rti_max_iter < 1 or self.rti_cold_iter < 1:
+            raise ValueError(f"rti_max_iter and rti_cold_iter must be >= 1, got {self.rti_max_iter}, {self.rti_cold_iter}")
+        if not (self.rti_budget_s >= 0.0 and self.rti_cold_budget_s >= 0.0 and self.rti_regularization >= 0.0
+                and self.rti_omega_penalty >= 0.0):
+            raise ValueError("rti_budget_s, rti_cold_budget_s, rti_regularization and rti_omega_penalty must be >= 0")
+        if self.rti_qp_solver not in ("hpipm", "qrqp", "osqp"):
+            raise ValueError(f"unknown rti_qp_solver {self.rti_qp_solver!r}")
+        if not 0.0 <= self.disturbance_gain <= 1.0:
+            raise ValueError(f"disturbance_gain must be in [0, 1], got {self.disturbance_gain}")
         if self.solver == "fatrop" and (self.hessian != "exact" or self.compile != "none"):
             raise ValueError("solver='fatrop' forms its own exact Hessian from expanded functions: "
                              "use hessian='exact' and compile='none'")

@@ -1,0 +1,431 @@
+"""Real-time iteration MPC on S³: one Gauss–Newton SQP step per control period, bounded compute.
+
+``controller = RealTimeMPC(model, settings, goal, torque_low, torque_high, rest)`` — or
+:func:`fvin_mpc.control.scene.scene_mpc` with ``MPCSettings(solver="rti")`` — then
+``u, info = controller(x)`` once per period and, after the torque is sent, ``controller.prepare()``
+(:func:`fvin_mpc.control.closed_loop.run_episode` does both; a call finds the preparation done or
+does it itself). Same problem as :class:`fvin_mpc.control.mpc.MPC` (same cost, bounds and
+model), solved differently (Diehl's real-time iteration, as in acados' SQP-RTI):
+
+* **local coordinates on S³** — each stage's state is a linearization point ``x̄_k = (q̄_k, ω̄_k)``
+  plus a 6-vector ``δ_k = (θ_k, ν_k)``: ``q = q̄ ⊗ (1, θ)/√(1 + |θ|²)``, ``ω = ω̄ + ν`` (the
+  Gibbs/Cayley retraction: to first order ``q̄ ⊗ exp(θ)``, rational, and its inverse
+  ``θ = Im(p)/Re(p)`` of ``p = q̄* ⊗ q`` is the same for ``q`` and ``−q``). Iterates stay on S³
+  exactly; no norm constraint, no 7th direction.
+* **QP per iteration** — the dynamics linearized per stage,
+  ``δ_{k+1} = A_k δ_k + B_k Δu_k + c_k`` (``c_k`` the gap between ``F(x̄_k, ū_k + d)`` and
+  ``x̄_{k+1}``, measured in ``x̄_{k+1}``'s chart); the cost's Gauss–Newton model (every term of the
+  MPC's cost is a sum of squares: ``c(q) = |q|² − ⟨q, g⟩² = |(I − ggᵀ)q|²``, the energy deficit,
+  ``ω``, ``u − u_s``), so the Hessian needs first derivatives only; bounds on ``u`` as
+  boxes, the bound on ``ω`` as a stiff penalty on its excess (``rti_omega_penalty``: a hard bound
+  made the linearized QP infeasible from the spinning first guesses of the ball joint). ``δ_0`` is fixed to the measured state in ``x̄_0``'s chart. The QP is stage-wise sparse
+  and goes to HPIPM (Riccati recursion inside an interior-point method, ``O(N)``) through
+  ``casadi.conic``. All of ``A_k, B_k, c_k``, Hessian and gradient come from one CasADi function,
+  compiled once (:func:`fvin_mpc.control.export.compile_functions`).
+* **preparation / feedback** — after a torque is sent, :meth:`prepare` shifts the plan by one
+  step (the last stage predicted by the model) and linearizes it; the next call only fixes
+  ``δ_0`` and solves the QP (feedback), then iterates again only while ``rti_budget_s`` allows.
+* **cold start** — after :meth:`reset` the plan is each of ``cold_starts``' first guesses (the
+  model rolled out under ``±f·u_max``: not the symmetric rest, so the first torque is non-zero),
+  improved by up to ``rti_cold_iter`` iterations within ``rti_cold_budget_s``; the best is kept.
+* **offset-free** (``disturbance_gain = α > 0``) — the model is ``x⁺ = F(x, u + d)`` with a
+  constant input disturbance ``d``. After each step the prediction ``F(x_prev, u_prev + d̂)`` is
+  compared with the measured ``ω``: ``d̂ ← d̂ + α·B⁺(ω − ω̂)`` (``B = ∂ω⁺/∂u``, least squares),
+  within :data:`DISTURBANCE_REGION_RAD` of the goal only, ``|d̂|`` at most half the torque range. The
+  control cost is ``|u − u_s|²`` with ``u_s = u_goal − d̂`` the torque that holds the goal in the
+  model (``F(goal, 0, u_goal) = (goal, 0)``): at the goal the MPC has no reason to move, and the
+  plant's steady state is where the corrected model agrees with it — no steady error from a
+  persistent model bias (Pannocchia & Rawlings 2003; Maeder & Morari 2009).
+* **failure** — a failed or non-finite QP leaves the plan as it was (already shifted): its first
+  control, clipped, is applied and ``info["fallback"] = "previous-plan"``.
+"""
+
+from __future__ import annotations
+
+import re
+import time
+from typing import Any
+
+import casadi as ca
+import numpy as np
+
+from fvin_mpc.control.export import ExportedModel, compile_functions
+from fvin_mpc.control.mpc import MPC, MPCSettings, _Plan
+from fvin_mpc.core.state import STATE_DIM, check_state
+
+#: Dimension of a state's local coordinates ``δ = (θ, ν)``.
+TANGENT_DIM = 6
+#: Trust region of one iteration, per stage: largest ``|θ_i|`` (Gibbs vector, ≈ half the turn in rad) …
+STEP_LIMIT_ANGLE = 0.5
+#: … and largest ``|Δω_i|`` as a fraction of the ``ω`` bound; larger state steps are clipped.
+STEP_LIMIT_OMEGA = 0.5
+#: The order a cold call tries ``cold_starts`` in (within ``rti_cold_budget_s``): from the ``"goal"``
+#: guess the iteration reached IPOPT's optimum on the ball joint in ~10 iterations, from the
+#: rollouts (ω clipped to the bound: large gaps) it diverged (docs/realtime.md).
+RTI_COLD_ORDER = ("goal", "rollout+", "rollout-")
+#: The disturbance estimate is updated only within this angle of the goal (rad): during a swing-up the
+#: torque changes fast, and the delay between measurement and actuation (which the one-step
+#: prediction does not know) reads as a large, sign-changing "disturbance" that feeds back through
+#: the plan; near the goal the torque is nearly constant and the estimate is what it should be.
+DISTURBANCE_REGION_RAD = 0.5
+#: Planned ``|ω_i|`` are kept below this fraction of ``1/h`` (the step's solvability limit).
+OMEGA_VALID_FRACTION = 0.9
+
+
+# ----------------------------------------------------------------------------- S³ chart
+def _qmul(p: Any, q: Any) -> Any:
+    """Hamilton product of ``(w, x, y, z)`` quaternions (CasADi column vectors)."""
+    return ca.vertcat(p[0] * q[0] - p[1] * q[1] - p[2] * q[2] - p[3] * q[3],
+                      p[0] * q[1] + p[1] * q[0] + p[2] * q[3] - p[3] * q[2],
+                      p[0] * q[2] - p[1] * q[3] + p[2] * q[0] + p[3] * q[1],
+                      p[0] * q[3] + p[1] * q[2] - p[2] * q[1] + p[3] * q[0])
+
+
+def _conj(q: Any) -> Any:
+    return ca.vertcat(q[0], -q[1], -q[2], -q[3])
+
+
+def retract(q_bar: Any, theta: Any) -> Any:
+    """``q̄ ⊗ (1, θ)/√(1 + |θ|²)`` (CasADi)."""
+    return _qmul(q_bar, ca.vertcat(1, theta)) / ca.sqrt(1 + ca.sumsqr(theta))
+
+
+def local(q_bar: Any, q: Any) -> Any:
+    """``Im(p)/Re(p)`` with ``p = q̄* ⊗ q`` — the inverse of :func:`retract`, the same for ``±q`` (CasADi)."""
+    p = _qmul(_conj(q_bar), q)
+    return p[1:] / p[0]
+
+
+def retract_np(q_bar: np.ndarray, theta: np.ndarray) -> np.ndarray:
+    """:func:`retract` for arrays ``q̄ (…, 4)``, ``θ (…, 3)``."""
+    w1, v1 = q_bar[..., :1], q_bar[..., 1:]
+    w = w1[..., 0] - np.sum(v1 * theta, axis=-1)
+    v = w1 * theta + v1 + _cross(v1, theta)
+    return np.concatenate([w[..., None], v], axis=-1) / np.sqrt(1.0 + np.sum(theta * theta, axis=-1))[..., None]
+
+
+def local_np(q_bar: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """:func:`local` for arrays ``(…, 4)``."""
+    w1, v1 = q_bar[..., :1], -q_bar[..., 1:]
+    w2, v2 = q[..., :1], q[..., 1:]
+    w = w1[..., 0] * w2[..., 0] - np.sum(v1 * v2, axis=-1)
+    v = w1 * v2 + w2 * v1 + _cross(v1, v2)
+    return v / w[..., None]
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``a × b`` over the last axis (``np.cross`` costs more in call overhead than in arithmetic here)."""
+    return np.stack([a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1], a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
+                     a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]], axis=-1)
+
+
+class RealTimeMPC(MPC):
+    """Real-time iteration MPC (module docstring); same constructor and ``controller(x)`` contract as
+    :class:`~fvin_mpc.control.mpc.MPC`, plus :meth:`prepare` and :attr:`disturbance`.
+
+    ``info`` keys: ``success``, ``fallback`` (``None`` or ``"previous-plan"``), ``iterations``,
+    ``solve_time_s`` (the whole call), ``status`` (``"rti"``, ``"cold"``, ``"budget"`` or the QP
+    solver's failure), ``cost`` (the model cost of the plan's linearization point), ``step_residual``,
+    ``states``, ``controls``, ``disturbance`` (``d̂``, control units), ``gap`` (largest dynamics gap
+    of the plan, in the charts), and on cold calls ``cold_start`` and ``cold_costs``.
+    """
+
+    def __init__(self, model: ExportedModel, settings: MPCSettings, goal: Any, torque_low: Any, torque_high: Any,
+                 rest: Any = None) -> None:
+        if settings.solver != "rti":
+            settings = MPCSettings(**{**settings.__dict__, "solver": "rti"})
+        super().__init__(model, settings, goal, torque_low, torque_high, rest)
+        self.reset()
+
+    # ------------------------------------------------------------------ problem
+    def _build(self) -> None:
+        s, n, m = self.settings, self.horizon, self.model.control_dim
+        nd = TANGENT_DIM
+        stage_size = nd + m
+
+        x_bar, x_next_bar = ca.SX.sym("x_bar", STATE_DIM), ca.SX.sym("x_next_bar", STATE_DIM)
+        u_bar, d, u_s = ca.SX.sym("u_bar", m), ca.SX.sym("d", m), ca.SX.sym("u_s", m)
+        goal = ca.SX.sym("goal", 4)
+        delta, du = ca.SX.sym("delta", nd), ca.SX.sym("du", m)
+        x = ca.vertcat(retract(x_bar[:4], delta[:3]), x_bar[4:] + delta[3:])
+        u = u_bar + du
+        zero = [ca.DM.zeros(nd), ca.DM.zeros(m)]
+
+        def at_zero(expressions: list[Any]) -> list[Any]:
+            return ca.substitute(expressions, [delta, du], zero)
+
+        # --- dynamics: e(δ, Δu) = F(x, u + d) in x̄_{k+1}'s chart
+        y = self.model.step(x, u + d)[0]
+        gap = ca.vertcat(local(x_next_bar[:4], y[:4]), y[4:] - x_next_bar[4:])
+        c, jac = at_zero([gap, ca.jacobian(gap, ca.vertcat(delta, du))])
+        stage_dynamics = ca.Function("rti_dynamics", [x_bar, u_bar, x_next_bar, d], [c, jac])
+
+        # --- cost: sums of squares, Gauss–Newton
+        projector = ca.SX.eye(4) - ca.mtimes(goal, goal.T)
+        # |ω_i| ≤ bound as an exact-penalty-like soft constraint (zero inside the bound): the
+        # linearized QP then has only the torque boxes and is always feasible.
+        excess = np.sqrt(s.rti_omega_penalty) * (x[4:] - ca.fmin(ca.fmax(x[4:], -self.omega_bound), self.omega_bound))
+        stage_residual = ca.vertcat(np.sqrt(s.orientation_weight) * ca.mtimes(projector, x[:4]),
+                                    np.sqrt(s.omega_weight) * x[4:], np.sqrt(s.control_weight) * (u - u_s), excess)
+        terminal_parts = [np.sqrt(s.terminal_orientation_weight) * ca.mtimes(projector, x[:4]),
+                          np.sqrt(s.terminal_omega_weight) * x[4:], excess]
+        if s.terminal_energy_weight > 0:
+            energy = self.model.energy_function
+            rest_energy = self.model.energy(np.concatenate([self.rest, np.zeros(3)]))
+            goal_energy = energy(ca.vertcat(goal, ca.DM.zeros(3)))
+            terminal_parts.append(np.sqrt(s.terminal_energy_weight) * (energy(x) - goal_energy)
+                                  / ca.fabs(goal_energy - rest_energy))
+        terminal_residual = ca.vertcat(*terminal_parts)
+        regularization = s.rti_regularization
+
+        def gauss_newton(residual: Any, variables: Any, size: int) -> list[Any]:
+            jacobian = ca.jacobian(residual, variables)
+            hessian = 2.0 * ca.mtimes(jacobian.T, jacobian) + regularization * ca.SX.eye(size)
+            return at_zero([ca.densify(hessian), 2.0 * ca.mtimes(jacobian.T, residual), ca.sumsqr(residual)])
+
+        stage_cost = ca.Function("rti_stage_cost", [x_bar, u_bar, goal, u_s],
+                                 gauss_newton(stage_residual, ca.vertcat(delta, du), stage_size))
+        terminal_cost = ca.Function("rti_terminal_cost", [x_bar, goal], gauss_newton(terminal_residual, delta, nd))
+
+        # --- the whole QP over the horizon, stage-wise, δ_0 eliminated (it is fixed by the measurement):
+        # z = (Δu_0, δ_1, Δu_1, …, δ_N); the feedback adds A_0 δ_0 to the first gap and S_0 δ_0 to the
+        # gradient of Δu_0.
+        states, controls = ca.MX.sym("X", STATE_DIM, n + 1), ca.MX.sym("U", m, n)
+        goal_mx, d_mx, u_s_mx = ca.MX.sym("goal", 4), ca.MX.sym("d", m), ca.MX.sym("u_s", m)
+        gaps, jacobians = stage_dynamics.map(n)(states[:, :n], controls, states[:, 1:], ca.repmat(d_mx, 1, n))
+        hessians, gradients, costs = stage_cost.map(n)(states[:, :n], controls, ca.repmat(goal_mx, 1, n),
+                                                        ca.repmat(u_s_mx, 1, n))
+        terminal_hessian, terminal_gradient, terminal_value = terminal_cost(states[:, n], goal_mx)
+        size = stage_size * n
+        blocks = [hessians[:, k * stage_size:(k + 1) * stage_size] for k in range(n)]
+        hessian = ca.diagcat(blocks[0][nd:, nd:], *blocks[1:], terminal_hessian)
+        rows = [ca.horzcat(jacobians[:, nd:stage_size], -ca.MX.eye(nd), ca.MX(nd, size - m - nd))]
+        for k in range(1, n):
+            column = m + (k - 1) * stage_size
+            rows.append(ca.horzcat(ca.MX(nd, column), jacobians[:, k * stage_size:(k + 1) * stage_size],
+                                   -ca.MX.eye(nd), ca.MX(nd, size - column - stage_size - nd)))
+        constraints = ca.vertcat(*rows)
+        gradient = ca.vertcat(gradients[nd:, 0], ca.vec(gradients[:, 1:]), terminal_gradient)
+        linearize = ca.Function("rti_linearize", [states, controls, goal_mx, d_mx, u_s_mx],
+                                [hessian, gradient, constraints, ca.vec(gaps), ca.sum2(costs) + terminal_value,
+                                 jacobians[:, :nd], blocks[0][nd:, :nd]],
+                                ["X", "U", "goal", "d", "u_s"], ["H", "g", "A", "gaps", "cost", "A0", "S0"])
+        # one step and its ∂ω⁺/∂u, for the disturbance estimator and the target control
+        x_sym, u_sym = ca.SX.sym("x", STATE_DIM), ca.SX.sym("u", m)
+        stepped, residual = self.model.step(x_sym, u_sym)
+        predict = ca.Function("rti_predict", [x_sym, u_sym], [stepped, ca.jacobian(stepped[4:], u_sym), residual])
+
+        self.compile_report = None
+        if s.compile == "cached":
+            compiled, self.compile_report = compile_functions(
+                [linearize, predict], prefix=re.sub(r"[^0-9A-Za-z_]", "_", f"rti_{self.model.name}"))
+            self._linearize, self._predict = compiled["rti_linearize"], compiled["rti_predict"]
+        else:
+            self._linearize, self._predict = linearize, predict
+        self._hessian_sparsity = hessian.sparsity()
+        self._qp = self._make_qp(hessian.sparsity(), constraints.sparsity())
+        self._size = size
+        self._stage_size = stage_size
+        self._omega_valid = OMEGA_VALID_FRACTION / self.model.step_size
+        self._u_goal = self._goal_control()
+
+    def _make_qp(self, h: ca.Sparsity, a: ca.Sparsity) -> ca.Function:
+        s, n, m = self.settings, self.horizon, self.model.control_dim
+        if s.rti_qp_solver == "hpipm":
+            options = {"N": n, "nx": [0] + [TANGENT_DIM] * n, "nu": [m] * n + [0], "ng": [0] * (n + 1),
+                       "hpipm": {"iter_max": 50, "warm_start": 0, "mode": "speed_abs"},
+                       "error_on_fail": False}
+        elif s.rti_qp_solver == "qrqp":
+            options = {"print_iter": False, "print_header": False, "error_on_fail": False}
+        else:
+            options = {"osqp": {"verbose": False, "eps_abs": 1e-8, "eps_rel": 1e-8, "max_iter": 4000},
+                       "error_on_fail": False}
+        return ca.conic("rti_qp", s.rti_qp_solver, {"h": h, "a": a}, options)
+
+    def _goal_control(self) -> np.ndarray:
+        """``u_goal``: the control that holds the goal at rest in the model (least squares, Newton)."""
+        x_goal = np.concatenate([self.goal, np.zeros(3)])
+        u = np.zeros(self.model.control_dim)
+        for _ in range(5):
+            stepped, b, _ = self._predict(x_goal, u)
+            omega = np.asarray(stepped, dtype=float).ravel()[4:]
+            u = u - np.linalg.lstsq(np.asarray(b, dtype=float), omega, rcond=None)[0]
+        return u
+
+    # ------------------------------------------------------------------ state of the controller
+    def reset(self) -> None:
+        """Forget the plan and the disturbance estimate (the next call is a cold start)."""
+        self._previous = None
+        self._plan: _Plan | None = None
+        self._linearization: tuple[Any, ...] | None = None
+        self.disturbance = np.zeros(self.model.control_dim)
+        self._last: tuple[np.ndarray, np.ndarray] | None = None  # (predicted ω, ∂ω/∂u) after the last torque
+
+    @property
+    def target_control(self) -> np.ndarray:
+        """``u_s = u_goal − d̂``, clipped to the bounds."""
+        return np.clip(self._u_goal - self.disturbance, self.torque_low, self.torque_high)
+
+    def _linearize_at(self, plan: _Plan) -> tuple[Any, ...]:
+        return self._linearize(plan.states.T, plan.controls.T, self.goal, self.disturbance, self.target_control)
+
+    # ------------------------------------------------------------------ one SQP iteration
+    def _iterate(self, plan: _Plan, linearization: tuple[Any, ...], x0: np.ndarray) -> tuple[_Plan | None, str]:
+        """Solve the QP at ``plan`` with ``δ_0`` fixed by the measured ``x0``; the updated plan (or
+        ``None`` and the QP solver's status)."""
+        h, g, a, gaps, _, a0, s0 = linearization
+        n, m, nd, size = self.horizon, self.model.control_dim, TANGENT_DIM, self._stage_size
+        delta0 = np.concatenate([local_np(plan.states[0, :4], x0[:4]), x0[4:] - plan.states[0, 4:]])
+        gaps = -np.asarray(gaps, dtype=float).ravel()
+        gaps[:nd] -= np.asarray(a0, dtype=float) @ delta0
+        g = np.asarray(g, dtype=float).ravel()
+        g[:m] += np.asarray(s0, dtype=float) @ delta0
+        lower, upper = np.full(self._size, -np.inf), np.full(self._size, np.inf)
+        control_lower = lower[:size * n].reshape(n, size)[:, :m]  # Δu_k sits first in each stage
+        control_upper = upper[:size * n].reshape(n, size)[:, :m]
+        control_lower[:] = self.torque_low - plan.controls
+        control_upper[:] = self.torque_high - plan.controls
+        solution = self._qp(h=h, g=g, a=a, lba=gaps, uba=gaps, lbx=lower, ubx=upper)
+        stats = self._qp.stats()
+        self.qp_iterations = int(stats.get("iter_count", -1))
+        z = np.asarray(solution["x"], dtype=float).ravel()
+        if not (stats.get("success", False) and np.all(np.isfinite(z))):
+            return None, str(stats.get("return_status", "qp-failed"))
+        stages = z[:n * size].reshape(n, size)  # rows: (Δu_k, δ_{k+1})
+        # A crude trust region: each stage's state step is clipped to `STEP_LIMIT_ANGLE` and to a
+        # fraction of the ω bound (a Gauss–Newton step from a poor guess — with large gaps — can
+        # otherwise leap past h|ω| ≈ 1, where the model means nothing). Clipping per stage, not
+        # scaling the whole step, keeps the progress of the stages that are fine.
+        steps = stages[:, m:]
+        omega_limit = STEP_LIMIT_OMEGA * self.omega_bound
+        clipped = np.concatenate([np.clip(steps[:, :3], -STEP_LIMIT_ANGLE, STEP_LIMIT_ANGLE),
+                                  np.clip(steps[:, 3:], -omega_limit, omega_limit)], axis=1)
+        largest = 1.0
+        deltas = np.vstack([delta0[None, :], clipped])
+        states = np.empty_like(plan.states)
+        states[:, :4] = retract_np(plan.states[:, :4], deltas[:, :3])
+        states[:, 4:] = np.clip(plan.states[:, 4:] + deltas[:, 3:], -self._omega_valid, self._omega_valid)
+        states[0] = x0
+        controls = np.clip(plan.controls + stages[:, :m], self.torque_low, self.torque_high)
+        self.step_scale = float(np.mean(clipped == steps))
+        #: size of the last step: largest |Δu| over the torque range, or |δ| over the trust region
+        self.last_step = max(float(np.max(np.abs(stages[:, :m]) / (self.torque_high - self.torque_low))),
+                             float(np.max(np.abs(clipped[:, :3]))) / STEP_LIMIT_ANGLE,
+                             float(np.max(np.abs(clipped[:, 3:]))) / omega_limit)
+        return _Plan(states, controls, None, None), "rti"
+
+    def _improve(self, plan: _Plan, x0: np.ndarray, iterations: int, deadline: float,
+                 linearization: tuple[Any, ...] | None = None) -> tuple[_Plan | None, int, str, float]:
+        """Up to ``iterations`` SQP iterations from ``plan``: the first always, each further one only
+        while the last step was not negligible (``rti_tol``) and the last iteration's duration still
+        fits before ``deadline`` (perf_counter). Returns the plan (``None`` if the first QP failed), the
+        iterations done, the status (``"budget"`` if time, not convergence, stopped it) and the time of
+        the last iteration."""
+        done, status, last = 0, "rti", 0.0
+        current = plan
+        while done < iterations:
+            if done > 0:
+                if self.last_step < self.settings.rti_tol:
+                    break
+                if time.perf_counter() + last > deadline:
+                    status = "budget"
+                    break
+            start = time.perf_counter()
+            if linearization is None:
+                linearization = self._linearize_at(current)
+            updated, qp_status = self._iterate(current, linearization, x0)
+            linearization = None
+            last = time.perf_counter() - start
+            if updated is None:
+                return (None if done == 0 else current), done, qp_status, last
+            current, done = updated, done + 1
+        return current, done, status, last
+
+    # ------------------------------------------------------------------ control
+    def prepare(self) -> None:
+        """Shift the plan by one step and linearize it for the next call (the preparation phase)."""
+        if self._plan is None or self._linearization is not None:
+            return
+        plan = self._plan
+        last_state, _, _ = self._predict(plan.states[-1], plan.controls[-1] + self.disturbance)
+        states = np.vstack([plan.states[1:], np.asarray(last_state, dtype=float).reshape(1, STATE_DIM)])
+        states[-1, 4:] = np.clip(states[-1, 4:], -self.omega_bound, self.omega_bound)
+        controls = np.vstack([plan.controls[1:], plan.controls[-1:]])
+        self._plan = _Plan(states, controls, None, None)
+        self._linearization = self._linearize_at(self._plan)
+
+    def _estimate_disturbance(self, x0: np.ndarray) -> None:
+        """``d̂ ← d̂ + α B⁺(ω − ω̂)``, ``ω̂`` predicted from the last call's state and torque (module docstring)."""
+        alpha = self.settings.disturbance_gain
+        if alpha == 0.0 or self._last is None:
+            return
+        cosine = min(abs(float(np.dot(x0[:4], self.goal))), 1.0)
+        if 2.0 * np.arccos(cosine) > DISTURBANCE_REGION_RAD:
+            return
+        predicted, b = self._last
+        step = np.linalg.lstsq(b, x0[4:] - predicted, rcond=None)[0]
+        limit = 0.5 * (self.torque_high - self.torque_low)
+        self.disturbance = np.clip(self.disturbance + alpha * step, -limit, limit)
+
+    def __call__(self, x: Any) -> tuple[np.ndarray, dict[str, Any]]:
+        """The torque for the measured state ``x = (q, ω)`` ``(7,)``; see the class docstring for ``info``."""
+        start = time.perf_counter()
+        x0 = check_state(x)
+        s = self.settings
+        extra: dict[str, Any] = {}
+        self._estimate_disturbance(x0)
+        if self._plan is None:  # cold: each first guess, a few iterations, within the cold budget
+            deadline = start + s.rti_cold_budget_s
+            best: tuple[float, _Plan, str] | None = None
+            costs: dict[str, float] = {}
+            iterations, status = 0, "cold"
+            for number, guess_name in enumerate(sorted(s.cold_starts, key=RTI_COLD_ORDER.index)):
+                if number > 0 and time.perf_counter() > deadline:
+                    status = "budget"
+                    break
+                guess = self._first_guess(x0, guess_name)
+                guess = _Plan(guess.states, guess.controls, None, None)
+                plan, done, step_status, _ = self._improve(guess, x0, s.rti_cold_iter, deadline)
+                iterations += done
+                status = "budget" if step_status == "budget" else status
+                plan = guess if plan is None else plan
+                score = self._score(plan)
+                costs[guess_name] = score
+                if best is None or score < best[0]:
+                    best = (score, plan, guess_name)
+            assert best is not None
+            plan, fallback, success = best[1], None, True
+            extra = {"cold_start": best[2], "cold_costs": costs}
+        else:
+            if self._linearization is None:
+                self.prepare()
+            assert self._plan is not None
+            plan, iterations, status, _ = self._improve(self._plan, x0, s.rti_max_iter, start + s.rti_budget_s,
+                                                        self._linearization)
+            fallback, success = None, plan is not None
+            if plan is None:  # the shifted previous plan, clipped
+                plan, fallback = self._plan, "previous-plan"
+        self._plan, self._linearization = plan, None
+        u = np.clip(plan.controls[0], self.torque_low, self.torque_high)
+        predicted, b, residual = self._predict(x0, u + self.disturbance)
+        self._last = (np.asarray(predicted, dtype=float).ravel()[4:], np.asarray(b, dtype=float))
+        residual = float(residual)
+        info = {"status": status, "success": success, "fallback": fallback, "iterations": iterations,
+                "solve_time_s": time.perf_counter() - start, "cost": float("nan"), "step_residual": residual,
+                "states": plan.states, "controls": plan.controls, "disturbance": self.disturbance.copy(),
+                "qp_iterations": getattr(self, "qp_iterations", -1), **extra}
+        return u, info
+
+    def _score(self, plan: _Plan) -> float:
+        """A cold guess's merit: model cost plus a heavy penalty on its dynamics gaps."""
+        gaps, cost = self._linearize_at(plan)[3:5]
+        return float(cost) + 1e3 * float(np.sum(np.square(np.asarray(gaps, dtype=float))))
+
+    def plan_cost(self, plan: _Plan | None = None) -> tuple[float, float]:
+        """``(cost, largest gap)`` of ``plan`` (default: the current one) under the model — for tests
+        and studies; the cost is the MPC's objective when the gaps are zero."""
+        plan = self._plan if plan is None else plan
+        if plan is None:
+            raise ValueError("no plan yet: call the controller first")
+        gaps, cost = self._linearize_at(plan)[3:5]
+        return float(cost), float(np.max(np.abs(np.asarray(gaps, dtype=float))))
