@@ -1,28 +1,6 @@
 """Closed-loop evaluation of the controllers over seeded episodes: ``python -m fvin_mpc.evaluate``.
 
-Runs every requested controller from the same initial states on a scene's MuJoCo env and
-compares them:
-
-* ``mpc-learned`` — IPOPT MPC on the learned S3FVIN (the checkpoint);
-* ``mpc-true`` — the same MPC on the closed-form rigid body read off the scene's MJCF;
-* ``energy-learned`` — energy-shaping swing-up + LQR catch from the learned ``J``, ``U``, ``g``;
-* ``energy-true`` — the same law from the closed-form body;
-* ``zero`` — no torque (shows the task is not trivial).
-
-Episode 0 starts hanging at rest (the hard start); episodes ``i ≥ 1`` start from the env's
-seeded random reset (``{"random": True, "max_omega": …}``, seed ``seed + i``): orientation
-uniform over the joint's range, angular velocity uniform in ``|ω| ≤ max_omega``.
-
-Per controller: success rate (upright within 0.1 rad from some time on to the end of the
-episode, :func:`fvin_mpc.control.closed_loop.episode_metrics`), time to upright (median, p90 over
-the successful episodes), accumulated cost (the env's Pendulum-v1-style cost), largest
-torque, controller time per call (median, p95 over all calls) and controller failures
-(solves IPOPT did not accept). A per-seed table puts learned and true model side by side.
-
-Outputs in ``--out-dir``: ``evaluation.json``, ``evaluation.md`` (tables + command),
-``time_to_upright.png`` (distribution) and, for a hinge, ``phase_portraits.png``
-(angle from upright vs angular rate). ``--workers N`` runs episodes in N processes; each
-builds its controllers once (the MPC's compiled library comes from the on-disk cache).
+The command line of :mod:`fvin_mpc.studies.evaluation`, whose docstring (the method) is this command's ``--help``.
 """
 
 from __future__ import annotations
@@ -32,12 +10,13 @@ import shlex
 import sys
 from pathlib import Path
 from typing import Sequence
+import fvin_mpc.studies.evaluation as evaluation_module
 from fvin_mpc._cli import add_mpc_arguments, add_scene_arguments, mpc_overrides
 from fvin_mpc.studies.evaluation import CONTROLLERS, DEFAULT_MAX_OMEGA, EvaluationConfig, evaluate, make_env, summary_table, write_report
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="python -m fvin_mpc.evaluate", description=__doc__,
+    parser = argparse.ArgumentParser(prog="python -m fvin_mpc.evaluate", description=evaluation_module.__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     add_scene_arguments(parser, newton_iters=False)
     parser.add_argument("--episodes", type=int, default=50, help="episodes per controller (default: %(default)s)")

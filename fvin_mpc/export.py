@@ -1,38 +1,25 @@
-"""A trained S3FVIN as a symbolic CasADi function, and compiled code cached on disk.
+"""Write a checkpoint's step ``F(x, u)`` as a CasADi file: ``python -m fvin_mpc.export``.
 
-:func:`step_function` builds ``F(x, u) -> x_next`` (``x = [q (w,x,y,z), ω]``, 7 entries)
-with ``K`` Newton iterations unrolled, by calling the same :func:`fvin_mpc.core.fvin.fvin_step`
-and :class:`fvin_mpc.core.networks.LearnedTerms` code the torch model trains with — only the
-leaf operations (:class:`fvin_mpc.core.backend.CasadiOps`) differ. Tests prove the two agree
-to 1e-12 in value and 1e-8 in Jacobian.
-
-:class:`ExportedModel` bundles the function with what a controller needs (step size,
-control dimension, a NumPy evaluation of ``J``, ``U``, ``g`` for energies) and is made by
-:func:`from_checkpoint` or :func:`from_rigid_body` (the closed-form ``--true-model``).
-
-:func:`compile_functions` turns CasADi functions into one shared library with gcc and
-loads it back with ``casadi.external``; the library is cached under :func:`cache_dir`,
-named by the SHA-256 of the generated C source (which spells out the weights, ``K`` and
-every option baked into the functions), so a second run with the same model and
-settings does not compile again.
-
-No torch here: the control runtime reads weights with safetensors/NumPy.
+The export itself (and the compile cache) is :mod:`fvin_mpc.control.export`.
 """
 
 from __future__ import annotations
+
+import argparse
+import json
 from pathlib import Path
 from typing import Sequence
+
 from fvin_mpc.control.export import from_checkpoint, save_function
+from fvin_mpc.envs.scenes import resolve_scene
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     """``python -m fvin_mpc.export``: write a checkpoint's step ``F(x, u)`` as a CasADi file."""
-    import argparse
-    import json
-
     parser = argparse.ArgumentParser(prog="python -m fvin_mpc.export", description=main.__doc__,
                                      formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    parser.add_argument("--checkpoint", default="pendulum_sign-invariant", help="shipped name or path")
+    parser.add_argument("--checkpoint", default=resolve_scene("pendulum").default_checkpoint,
+                        help="shipped name or path")
     parser.add_argument("--newton-iters", type=int, default=None, help="K unrolled (default: the checkpoint's)")
     parser.add_argument("--out", type=Path, default=None, help="output file (default: <checkpoint>_K<K>.casadi)")
     parser.add_argument("--seed", type=int, default=0, help="unused (the export is deterministic); for CLI uniformity")

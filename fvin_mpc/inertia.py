@@ -1,34 +1,22 @@
 """3-D model quality: held-out rollouts and the recovered inertia, ``python -m fvin_mpc.inertia``.
 
-For a checkpoint of a body on a ball joint (scene ``spherical_pendulum``), against the closed-form
-body read off the scene's MJCF (:func:`fvin_mpc.core.rigid_body.from_mujoco`):
-
-* **Held-out rollouts** — open loop from unseen initial states under the recorded torques, geodesic
-  angle error and ‖Δω‖ (:func:`fvin_mpc.studies.quality.rollout_error`), with the closed-form model through
-  the same FVIN step as the floor (its error is the integrator's, not the learning's).
-* **Scale** — ``(J, U, g) → λ(J, U, g)`` leaves the dynamics unchanged, so λ is fixed first, by least
-  squares on the control gain over orientations uniform on S³: ``λ = Σ⟨g_learned, g_true⟩ / Σ‖g_true‖²``
-  with ``g_true = 2·B`` (``B`` the actuators' torque axes; ``2·I₃`` here, ``DESIGN.md`` factor of two).
-* **Inertia** — ``J(q)/λ`` at those orientations: its mean, the principal moments (eigenvalues) and
-  principal axes (eigenvectors, angle to the true axes, sign-free) of the mean against the MJCF's
-  inertia about the pivot, and how much the learned ``J`` varies with ``q`` (it is constant in truth).
-* **Potential and gain** — ``U/λ`` (relative to hanging) and ``g/λ`` against the true ones.
-* **Energy** — unforced rollouts from random states: relative drift of the learned energy
-  and of the true energy of the predicted states.
+The command line of :mod:`fvin_mpc.studies.inertia`, whose docstring (the method) is this command's ``--help``.
 """
 
 from __future__ import annotations
 import argparse
 import json
 from pathlib import Path
+import fvin_mpc.studies.inertia as inertia_module
+from fvin_mpc.envs.scenes import resolve_scene
 from fvin_mpc.core.data import load_data
 from fvin_mpc.studies.inertia import report
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m fvin_mpc.inertia", description=__doc__,
+    parser = argparse.ArgumentParser(prog="python -m fvin_mpc.inertia", description=inertia_module.__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--checkpoint", nargs="+", default=["spherical_pendulum_sign-invariant"],
+    parser.add_argument("--checkpoint", nargs="+", default=[resolve_scene("spherical_pendulum").default_checkpoint],
                         help="one or more shipped names or paths (default: %(default)s)")
     parser.add_argument("--data", type=Path, default=Path("data/spherical_pendulum_heldout.npz"),
                         help="held-out trajectories (default: %(default)s)")

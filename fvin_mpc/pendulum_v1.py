@@ -1,26 +1,6 @@
 """The learned model's MPC on Gymnasium's own ``Pendulum-v1``: ``python -m fvin_mpc.pendulum_v1``.
 
-The plant is the unmodified ``gymnasium.make("Pendulum-v1")``; its observation
-``[cos θ, sin θ, θ̇]`` is converted to the model's ``(q, ω)`` by :mod:`envs.pendulum_v1`.
-The model was trained on the MuJoCo ``pendulum`` scene, whose physics are Pendulum-v1's
-(``θ̈ = 15 sin θ + 3u`` with θ = 0 upright, ``|u| ≤ 2``) integrated accurately (RK4 at 5 ms).
-Pendulum-v1 itself is a *discrete* system, which the model does not know:
-
-    θ̇' = clip(θ̇ + (15 sin θ + 3u)·0.05, −8, 8),   θ' = θ + 0.05·θ̇'    (semi-implicit Euler)
-
-so the MPC runs with a model mismatch (discretization, and the speed clip, which the MPC
-respects as a bound ``|ω| ≤ 8`` on its predictions). The MPC's cost is the benchmark's
-reward: ``orientation_weight = 4`` on ``sin²(angle/2)`` (≈ angle²), ``0.1|ω|²``, ``0.001u²``.
-
-Reference per seed (``--reference``): the whole 200-step episode optimized open loop on the
-*exact* discrete dynamics above (direct multiple shooting, IPOPT, the speed clip as a bound
-on ``θ̇``, several initial guesses incl. the MPC's own episode), replayed through the same
-update (or the optimized trajectory's own cost: open-loop replay near upright amplifies rounding
-exponentially). The episode is deterministic given the seed, so this is the best
-return an omniscient controller found — an (approximate, local-optimum) upper bound for any
-policy on that seed; the gap to it is what the MPC leaves on the table.
-
-Outputs ``--out`` (Markdown), ``<out>.json`` and ``<out>.png`` (returns per seed).
+The command line of :mod:`fvin_mpc.studies.pendulum_v1`, whose docstring (the method) is this command's ``--help``.
 """
 
 from __future__ import annotations
@@ -30,13 +10,14 @@ import shlex
 import sys
 from pathlib import Path
 from typing import Sequence
+import fvin_mpc.studies.pendulum_v1 as pendulum_v1_module
 from fvin_mpc.studies.pendulum_v1 import BenchmarkConfig, ZOO_BEST, plot_returns, run_benchmark, summarize, write_markdown
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="python -m fvin_mpc.pendulum_v1", description=__doc__,
+    parser = argparse.ArgumentParser(prog="python -m fvin_mpc.pendulum_v1", description=pendulum_v1_module.__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--checkpoint", default="pendulum_sign-invariant", help="learned model (default: %(default)s)")
+    parser.add_argument("--checkpoint", default=BenchmarkConfig.checkpoint, help="learned model (default: %(default)s)")
     parser.add_argument("--true-model", action="store_true", help="plan with the closed-form pendulum instead")
     parser.add_argument("--horizon", type=int, default=30, help="MPC steps (default: %(default)s)")
     parser.add_argument("--episodes", type=int, default=100, help="episodes, seeds seed … seed+episodes−1 (default: %(default)s)")

@@ -1,14 +1,6 @@
 """Model quality of a checkpoint: ``python -m fvin_mpc.quality``.
 
-* Held-out rollout error: the model rolled out open loop from unseen initial states under
-  the recorded controls, against the recorded (MuJoCo) trajectory; geodesic angle error
-  and ‖Δω‖ at every step.
-* Energy without control: learned energy ``E = ½ωᵀJω + U`` along a long unforced rollout
-  of the model, and the true energy of the states it predicts.
-* Learned ``J``, ``U``, ``g`` against the true ones after fixing the common scale λ
-  (``(J, U, g) → λ(J, U, g)`` leaves the dynamics unchanged). λ is fixed by least squares
-  on the control gain ``g`` along the actuated axes (the one quantity tied to a known
-  actuator), i.e. ``λ = Σ⟨g_learned, g_true⟩ / Σ‖g_true‖²`` over sampled states.
+The command line of :mod:`fvin_mpc.studies.quality`, whose docstring (the method) is this command's ``--help``.
 """
 
 from __future__ import annotations
@@ -16,6 +8,8 @@ import argparse
 import json
 from pathlib import Path
 import numpy as np
+import fvin_mpc.studies.quality as quality_module
+from fvin_mpc.envs.scenes import resolve_scene
 from fvin_mpc.control.scene import scene_env
 from fvin_mpc.core.checkpoint import load_checkpoint
 from fvin_mpc.core.rigid_body import from_mujoco
@@ -24,9 +18,10 @@ from fvin_mpc.studies.quality import NP, compare_components, energy_behaviour, r
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m fvin_mpc.quality", description=__doc__,
+    parser = argparse.ArgumentParser(prog="python -m fvin_mpc.quality", description=quality_module.__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--checkpoint", default="pendulum_sign-invariant")
+    parser.add_argument("--checkpoint", default=resolve_scene("pendulum").default_checkpoint,
+                        help="shipped name or path of a hinge scene's model (default: %(default)s)")
     parser.add_argument("--data", type=Path, default=None,
                         help="held-out trajectories (default: data/<scene>_heldout.npz, collected with seed 1 "
                              "— unseen by training, which uses seed 0 — if missing)")

@@ -1,19 +1,6 @@
 """The 3-D rigid body on a ball joint (scene ``spherical_pendulum``): ``python -m fvin_mpc.spherical_report``.
 
-Sub-commands:
-
-* ``collect`` — trajectories as :func:`fvin_mpc.learning.collection.collect` draws them (orientation uniform on
-  S³, ω uniform in a ball, constant or piecewise-constant torques uniform in the actuators' box),
-  but a trajectory whose angular velocity leaves ``|ω_i| ≤ --max-speed`` at any step is redrawn.
-  Why: the z axis has a tiny inertia (0.017 kg·m² against ≈ 0.5 about x, y), so 1.5 N·m spins it up
-  by ≈ 4.4 rad/s per control period; unfiltered, 30 % of the states have ``|ω_z| > 20`` rad/s, past
-  the point where the FVIN step has a solution at ``h = 0.05`` (``h|ω| ≲ 1`` about a principal axis,
-  ``DESIGN.md``). The MPC bounds ``|ω_i| ≤ 0.6/h = 12`` rad/s; 15 rad/s leaves a margin above it.
-* ``closed-loop`` — swing-up and hold from hanging at rest and from seeded random (spinning) states,
-  learned model and true model side by side: success, time to upright, hold error, MPC solve times,
-  the step residual along the plan; writes JSON + a Markdown table.
-
-The model-quality part (held-out rollouts, recovered inertia) is :mod:`fvin_mpc.inertia`.
+The command line of :mod:`fvin_mpc.studies.spherical`, whose docstring (the method) is this command's ``--help``.
 """
 
 from __future__ import annotations
@@ -21,13 +8,14 @@ import argparse
 import json
 import time
 from pathlib import Path
+import fvin_mpc.studies.spherical as spherical_module
 from fvin_mpc.core.data import save_data
 from fvin_mpc.learning.collection import collect
 from fvin_mpc.studies.spherical import SCENE, closed_loop_study, markdown_tables, merge_results
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m fvin_mpc.spherical_report", description=__doc__,
+    parser = argparse.ArgumentParser(prog="python -m fvin_mpc.spherical_report", description=spherical_module.__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)
     c = sub.add_parser("collect", help="speed-bounded trajectory data of the spherical pendulum")

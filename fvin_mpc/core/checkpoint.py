@@ -27,7 +27,6 @@ FORMAT = "fvin_mpc.checkpoint/1"
 #: Where the shipped checkpoints live (next to the package in a source checkout or
 #: installed as package data).
 CHECKPOINT_DIR = Path(__file__).resolve().parents[2] / "checkpoints"
-DEFAULT_CHECKPOINT = "pendulum_sign-invariant"
 
 
 class CheckpointError(ValueError):
@@ -98,7 +97,7 @@ def save_checkpoint(path: str | Path, config: ModelConfig, weights: Mapping[str,
     return stem
 
 
-def load_checkpoint(name_or_path: str | Path = DEFAULT_CHECKPOINT) -> Checkpoint:
+def load_checkpoint(name_or_path: str | Path) -> Checkpoint:
     """Read a checkpoint written by :func:`save_checkpoint`; see the module docstring."""
     stem = resolve_checkpoint_path(name_or_path)
     sidecar_path, weights_path = _with(stem, ".json"), _with(stem, ".safetensors")

@@ -32,6 +32,7 @@ from typing import Any
 
 import numpy as np
 
+from fvin_mpc.envs.scenes import resolve_scene
 from fvin_mpc.control.mpc import MPCSettings
 
 #: Pendulum-v1's constants (gymnasium.envs.classic_control.pendulum, g = 10 as ``make`` uses).
@@ -172,7 +173,7 @@ def reference_return(theta0: float, theta_dot0: float, guesses: list[np.ndarray]
 class BenchmarkConfig:
     """One run: ``checkpoint`` (``None`` with ``true_model``), MPC ``horizon``, episodes, seed, reference."""
 
-    checkpoint: str = "pendulum_sign-invariant"
+    checkpoint: str = resolve_scene("pendulum").default_checkpoint  # Pendulum-v1's physics is the pendulum scene's
     true_model: bool = False
     horizon: int = 30
     episodes: int = 100
