@@ -1,0 +1,139 @@
+"""The real-time iteration MPC (``fvin_mpc.control.rti``): its S³ chart, convergence to the IPOPT
+MPC's optimum on a fixed problem, the swing-up's first torque from exact rest, the safe fallback,
+deterministic fixed-latency episodes and the offset-free estimator against a known torque (oracle).
+Behaviour only: no timings are asserted."""
+
+from __future__ import annotations
+
+import casadi as ca
+import numpy as np
+import pytest
+
+from fvin_mpc.control.closed_loop import episode_metrics, run_episode
+from fvin_mpc.control.mpc import MPC, _Plan
+from fvin_mpc.control.rti import RealTimeMPC, local, local_np, retract, retract_np
+from fvin_mpc.control.scene import scene_env, scene_model, scene_mpc, scene_mpc_settings
+from fvin_mpc.envs.disturbance import ConstantTorqueDisturbance
+
+#: Cold budgets this generous let the iteration caps, not the wall clock, decide: deterministic runs.
+DETERMINISTIC = {"rti_cold_budget_s": 60.0}
+
+
+@pytest.fixture(scope="module")
+def pendulum():
+    env = scene_env("pendulum", true_model=True)
+    return env, scene_model(env, true_model=True)
+
+
+@pytest.fixture(scope="module")
+def spherical():
+    env = scene_env("spherical_pendulum", true_model=True)
+    return env, scene_model(env, true_model=True)
+
+
+def rti(env, model, **overrides):
+    return scene_mpc(env, model, scene_mpc_settings(env, solver="rti", **{**DETERMINISTIC, **overrides}))
+
+
+def test_chart_inverts_and_ignores_the_quaternion_sign():
+    rng = np.random.default_rng(0)
+    q_bar = rng.normal(size=(5, 4))
+    q_bar /= np.linalg.norm(q_bar, axis=1, keepdims=True)
+    theta = 0.4 * rng.normal(size=(5, 3))
+    q = retract_np(q_bar, theta)
+    np.testing.assert_allclose(np.linalg.norm(q, axis=1), 1.0, atol=1e-15)
+    np.testing.assert_allclose(local_np(q_bar, q), theta, atol=1e-12)
+    np.testing.assert_allclose(local_np(q_bar, -q), theta, atol=1e-12)
+    np.testing.assert_allclose(local_np(-q_bar, q), theta, atol=1e-12)
+    for i in range(5):  # the CasADi versions the QP is built from agree
+        np.testing.assert_allclose(np.asarray(retract(ca.DM(q_bar[i]), ca.DM(theta[i]))).ravel(), q[i], atol=1e-14)
+        np.testing.assert_allclose(np.asarray(local(ca.DM(q_bar[i]), ca.DM(q[i]))).ravel(), theta[i], atol=1e-12)
+
+
+def test_scene_mpc_dispatches_on_the_solver_setting(pendulum):
+    env, model = pendulum
+    assert isinstance(rti(env, model), RealTimeMPC)
+    assert type(scene_mpc(env, model, scene_mpc_settings(env, cold_starts=("rollout+",)))) is MPC
+
+
+def test_iterations_reach_the_ipopt_optimum_on_a_fixed_problem(spherical):
+    """From rest, the same first guess: IPOPT solved to convergence, and RTI iterations with the
+    measured state fixed. The Gauss–Newton SQP converges to the same plan's cost."""
+    env, model = spherical
+    settings = scene_mpc_settings(env, cold_starts=("goal",), solver="rti", terminal_energy_weight=0.0, **DETERMINISTIC)
+    reference = scene_mpc(env, model, scene_mpc_settings(env, cold_starts=("goal",), terminal_energy_weight=0.0))
+    x0, _ = env.reset()
+    _, info = reference(x0)
+    assert info["success"]
+    controller = scene_mpc(env, model, settings)
+    guess = controller._first_guess(x0, "goal")
+    plan = _Plan(guess.states, guess.controls, None, None)
+    for _ in range(20):
+        plan, status = controller._iterate(plan, controller._linearize_at(plan), x0)
+        assert plan is not None, status
+    cost, gap = controller.plan_cost(plan)
+    assert gap < 1e-6
+    assert abs(cost - info["cost"]) <= 1e-3 * info["cost"]
+    np.testing.assert_allclose(plan.controls[0], info["controls"][0], atol=1e-3)
+
+
+@pytest.mark.parametrize("scene", ["pendulum", "spherical"])
+def test_first_torque_from_exact_rest_is_nonzero(scene, request):
+    env, model = request.getfixturevalue(scene)
+    controller = rti(env, model)
+    x0, _ = env.reset()  # hanging exactly at rest: a stationary point of the swing-up problem
+    u, info = controller(x0)
+    assert info["success"] and info["iterations"] >= 1
+    assert np.max(np.abs(u)) > 0.1 * np.max(env.unwrapped.torque_high)
+
+
+def test_failed_qp_delivers_the_shifted_previous_plan_clipped(pendulum):
+    env, model = pendulum
+    controller = rti(env, model)
+    x0, _ = env.reset(options={"qpos": np.array([2.0]), "qvel": np.array([1.0])})
+    controller(x0)
+    previous = controller._plan.controls.copy()
+    controller.prepare()
+
+    class FailingQP:
+        def __call__(self, **_):
+            return {"x": ca.DM.nan(controller._size)}
+
+        def stats(self):
+            return {"success": False, "return_status": "forced failure"}
+
+    controller._qp = FailingQP()
+    u, info = controller(model(x0, previous[0])[0])
+    assert not info["success"] and info["fallback"] == "previous-plan" and info["status"] == "forced failure"
+    np.testing.assert_array_equal(u, np.clip(previous[1], env.unwrapped.torque_low, env.unwrapped.torque_high))
+    assert np.all(np.isfinite(u))
+
+
+def test_fixed_latency_swing_up_is_deterministic(pendulum):
+    env, model = pendulum
+    controller = rti(env, model)
+    first, _ = run_episode(env, controller, 8.0, latency=0.01)
+    second, _ = run_episode(env, controller, 8.0, latency=0.01)
+    np.testing.assert_array_equal(first.u, second.u)
+    np.testing.assert_array_equal(first.q, second.q)
+    metrics = episode_metrics(first)
+    assert metrics["success"] and metrics["hold_error_rad"] < 1e-3
+    assert metrics["deadline_misses"] == 0 and metrics["controller_failures"] == 0
+
+
+@pytest.mark.parametrize("scene, torque", [("pendulum", [0.3]), ("spherical", [0.2, -0.15, 0.1])])
+def test_disturbance_estimate_converges_to_the_oracle_torque(scene, torque, request):
+    """A known constant torque on the plant (closed-form model, fixed latency): the estimate
+    converges to it and the goal is held with no steady error; without the estimator it is not."""
+    env, model = request.getfixturevalue(scene)
+    near_goal = ({"qpos": np.array([np.pi - 0.3]), "qvel": np.array([0.0])} if scene == "pendulum"
+                 else {"qpos": np.array([0.0, 0.8, 0.6, 0.0]), "qvel": np.zeros(3)})
+    disturbed = ConstantTorqueDisturbance(env, torque)
+    horizon = 20 if scene == "pendulum" else None
+    episode, _ = run_episode(disturbed, rti(env, model, horizon=horizon), 4.0, near_goal, latency=0.01)
+    estimate = episode.controller_info[-1]["disturbance"]
+    np.testing.assert_allclose(estimate, torque, atol=2e-3)
+    offset_free = episode.angle_from_goal[-20:].max()
+    plain, _ = run_episode(disturbed, rti(env, model, horizon=horizon, disturbance_gain=0.0), 4.0, near_goal,
+                           latency=0.01)
+    assert offset_free < 2e-3 < plain.angle_from_goal[-20:].max()
