@@ -40,12 +40,37 @@ def add_mpc_arguments(parser: argparse.ArgumentParser) -> None:
                        help="Lagrangian Hessian")
     group.add_argument("--single-start", action="store_true",
                        help="cold solves from one first guess instead of every guess (multi-start)")
+    group.add_argument("--solver", choices=["ipopt", "sqpmethod", "fatrop", "rti"], default=None,
+                       help="ipopt: solved to convergence every period (the reference); rti: one Gauss–Newton "
+                            "SQP iteration per period (real-time iteration, bounded compute)")
+
+
+def parse_latency(text: str) -> Any:
+    """``--latency``: ``none``, ``measured`` or a fixed delay in seconds."""
+    if text in ("none", "measured"):
+        return text
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected none, measured or seconds, got {text!r}") from None
+    if not value >= 0.0:
+        raise argparse.ArgumentTypeError(f"a fixed latency must be >= 0 s, got {text!r}")
+    return value
+
+
+def add_latency_argument(parser: argparse.ArgumentParser, default: str = "none") -> None:
+    """``--latency none|measured|SECONDS`` (:func:`fvin_mpc.control.closed_loop.run_episode`)."""
+    parser.add_argument("--latency", type=parse_latency, default=default,
+                        help="none: the simulator waits for the controller (model-quality studies); measured: "
+                             "each torque acts from the first MuJoCo sub-step after the controller's measured "
+                             "compute time (real-time claims); SECONDS: a fixed delay (deterministic)")
 
 
 def mpc_overrides(args: argparse.Namespace) -> dict[str, Any]:
     """The :func:`~fvin_mpc.control.scene.scene_mpc_settings` overrides the options ask for."""
     overrides = {field: getattr(args, option[2:].replace("-", "_")) for option, (field, _, _) in MPC_OPTIONS.items()}
     overrides["hessian"] = args.hessian
+    overrides["solver"] = args.solver
     if args.single_start:
         overrides["cold_starts"] = ("rollout+",)
     return overrides

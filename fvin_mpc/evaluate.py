@@ -11,7 +11,7 @@ import sys
 from pathlib import Path
 from typing import Sequence
 import fvin_mpc.studies.evaluation as evaluation_module
-from fvin_mpc._cli import add_mpc_arguments, add_scene_arguments, mpc_overrides
+from fvin_mpc._cli import add_latency_argument, add_mpc_arguments, add_scene_arguments, mpc_overrides
 from fvin_mpc.studies.evaluation import CONTROLLERS, DEFAULT_MAX_OMEGA, EvaluationConfig, evaluate, make_env, summary_table, write_report
 
 
@@ -31,6 +31,7 @@ def build_parser() -> argparse.ArgumentParser:
                         help="where evaluation.{json,md} and the plots go (default: %(default)s)")
     parser.add_argument("--json", type=Path, default=None, help="also write the JSON result here")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_latency_argument(parser)
     add_mpc_arguments(parser)
     return parser
 
@@ -44,7 +45,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             scene=args.scene, checkpoint=args.checkpoint, episodes=args.episodes, duration_s=args.duration,
             controllers=tuple(n.strip() for n in args.controllers.split(",") if n.strip()), seed=args.seed,
             max_omega=args.max_omega, control_period=args.control_period,
-            mpc=tuple((name, value) for name, value in mpc_overrides(args).items() if value is not None))
+            mpc=tuple((name, value) for name, value in mpc_overrides(args).items() if value is not None),
+            latency=args.latency)
         if args.workers < 1:
             raise ValueError(f"--workers must be >= 1, got {args.workers}")
         make_env(config).close()  # fails early on an unknown scene

@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any, Sequence
 import numpy as np
 from fvin_mpc.control.closed_loop import episode_metrics, plot_episode, run_episode, write_video
-from fvin_mpc._cli import add_mpc_arguments, add_scene_arguments, mpc_overrides
+from fvin_mpc._cli import add_latency_argument, add_mpc_arguments, add_scene_arguments, mpc_overrides
 from fvin_mpc.control.scene import scene_env, scene_model, scene_mpc, scene_mpc_settings
 
 
@@ -49,6 +49,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--plot", type=Path, default=Path("swingup.png"), help="plot path ('' for none)")
     parser.add_argument("--video", type=Path, default=None, help="render an MP4 (headless: MUJOCO_GL=egl)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_latency_argument(parser)
     add_mpc_arguments(parser)
     return parser
 
@@ -68,12 +69,13 @@ def main(argv: Sequence[str] | None = None) -> int:
           file=sys.stderr)
     episode, frames = run_episode(env, controller, args.duration, parse_init(args.init, env.joint_type),
                                   seed=args.seed, render=args.video is not None, progress=not args.quiet,
-                                  description=f"swing-up {model.name}")
+                                  description=f"swing-up {model.name}", latency=args.latency)
     metrics = episode_metrics(episode)
     summary = {
         "swung_up": metrics["swung_up"], "time_to_upright_s": metrics["time_to_upright_s"],
         "hold_error_rad": metrics["hold_error_rad"], "solve_time_ms": metrics["solve_time_ms"],
         "control_period_s": metrics["control_period_s"], "solver_failures": metrics["controller_failures"],
+        "solver": settings.solver, "latency": args.latency, "deadline_misses": metrics["deadline_misses"],
         "newton_iters": model.newton_iters, "horizon": settings.horizon, "horizon_s": settings.horizon * model.step_size,
         "hessian": settings.hessian, "terminal_energy_weight": settings.terminal_energy_weight,
         "cold_starts": list(settings.cold_starts), "max_abs_torque": metrics["max_abs_torque"],

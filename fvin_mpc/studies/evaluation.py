@@ -66,6 +66,8 @@ class EvaluationConfig:
         control_period: seconds per step; ``None`` = the checkpoint's step if it exists, else the scene's.
         mpc: :class:`~fvin_mpc.control.mpc.MPCSettings` fields changed from the scene's
             (:func:`fvin_mpc.control.scene.scene_mpc_settings`), as ``(name, value)`` pairs.
+        latency: :func:`~fvin_mpc.control.closed_loop.run_episode`'s ``latency``: ``"none"`` (the
+            simulator waits for the controller), ``"measured"`` or a fixed delay in seconds.
     """
 
     scene: str = "pendulum"
@@ -77,6 +79,7 @@ class EvaluationConfig:
     max_omega: float = DEFAULT_MAX_OMEGA
     control_period: float | None = None
     mpc: tuple[tuple[str, Any], ...] = ()
+    latency: Any = "none"
 
     def __post_init__(self) -> None:
         if self.episodes < 1:
@@ -88,8 +91,10 @@ class EvaluationConfig:
             raise ValueError(f"unknown controllers {unknown}; choose from {', '.join(CONTROLLERS)}")
         if not (math.isfinite(self.max_omega) and self.max_omega >= 0):
             raise ValueError(f"max_omega must be finite and >= 0, got {self.max_omega}")
+        from fvin_mpc.control.closed_loop import _check_latency
         from fvin_mpc.control.mpc import MPCSettings
 
+        _check_latency(self.latency)
         try:  # validate the overrides (names and values) now, not in a worker
             MPCSettings(**dict(self.mpc))
         except TypeError as error:
@@ -197,7 +202,8 @@ def run_task(name: str, start: EpisodeStart) -> dict[str, Any]:
 
     env, config = _WORKER["env"], _WORKER["config"]
     controller = _worker_controller(name)
-    episode, _ = run_episode(env, controller, config.duration_s, start.reset_options, seed=start.seed)
+    episode, _ = run_episode(env, controller, config.duration_s, start.reset_options, seed=start.seed,
+                             latency=config.latency)
     metrics = episode_metrics(episode)
     axis = env.unwrapped.joint_axis
     goal = env.unwrapped.goal
@@ -242,6 +248,7 @@ def summarize(records: list[dict[str, Any]]) -> dict[str, Any]:
     times = np.array([m["time_to_upright_s"] for m in successes], dtype=float)
     costs = np.array([m["accumulated_cost"] for m in metrics])
     calls_ms = 1e3 * np.concatenate([r["controller_time_s"] for r in records])
+    calls_ms = calls_ms[np.isfinite(calls_ms)]  # skipped observations (latency-aware runs) have none
     return {
         "episodes": len(metrics),
         "successes": len(successes),
@@ -253,6 +260,8 @@ def summarize(records: list[dict[str, Any]]) -> dict[str, Any]:
         "max_abs_torque": float(max(m["max_abs_torque"] for m in metrics)),
         "controller_time_median_ms": float(np.median(calls_ms)),
         "controller_time_p95_ms": float(np.percentile(calls_ms, 95)),
+        "controller_time_p99_ms": float(np.percentile(calls_ms, 99)),
+        "deadline_misses": int(sum(m["deadline_misses"] for m in metrics)),
         "controller_failures": int(sum(m["controller_failures"] for m in metrics)),
         "episodes_with_failures": int(sum(m["controller_failures"] > 0 for m in metrics)),
         "failed_episodes": [r["index"] for r in records if not r["metrics"]["success"]],
@@ -414,7 +423,7 @@ def plot_phase_portraits(result: EvaluationResult, path: Path) -> None:
 
 def _settings_text(config: EvaluationConfig) -> str:
     settings = mpc_settings(config)
-    return (f"horizon {settings.horizon}, Hessian {settings.hessian}, max_iter {settings.max_iter}, "
+    return (f"solver {settings.solver}, horizon {settings.horizon}, Hessian {settings.hessian}, max_iter {settings.max_iter}, "
             f"terminal energy weight {settings.terminal_energy_weight:g}, cold starts {', '.join(settings.cold_starts)}")
 
 
@@ -439,7 +448,9 @@ Produced by `{command}`
 
 {config.episodes} episodes of {config.duration_s:g} s per controller; episode 0 starts hanging at rest,
 the others from the env's seeded random reset (seed {config.seed} + i; |ω₀| ≤ {config.max_omega:g} rad/s).
-Learned model: `{config.checkpoint_name}`; MPC settings: {_settings_text(config)}. Success: within 0.1 rad of upright from some time on
+Learned model: `{config.checkpoint_name}`; MPC settings: {_settings_text(config)}; latency mode: `{config.latency}`
+(`none`: the simulator waits for the controller; `measured`: each torque acts from the first MuJoCo
+sub-step after the controller's measured compute time). Success: within 0.1 rad of upright from some time on
 to the end of the episode. Time to upright over the successful episodes; controller time per call
 (wall clock, median and p95 over all calls); failed solves = IPOPT did not accept the solve (the
 controller then applied its fallback).{skipped}
