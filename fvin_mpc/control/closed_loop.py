@@ -88,6 +88,8 @@ class Episode:
             time when measured, the fixed delay, or 0 in waiting mode); ``nan`` where the period's
             observation was skipped.
         busy_s: ``(T,)`` feedback plus preparation time per sampled period (``nan`` where skipped).
+        cpu_s: ``(T,)`` CPU time of the thread in the controller's call and preparation (``nan``
+            where skipped): on a shared machine, wall time minus this is time spent waiting for a core.
         deadline_misses: periods whose busy time exceeded the control period.
         skipped: periods whose observation the controller could not take (still busy).
     """
@@ -107,6 +109,7 @@ class Episode:
     latency: Any = "none"
     compute_s: np.ndarray | None = None
     busy_s: np.ndarray | None = None
+    cpu_s: np.ndarray | None = None
     deadline_misses: int = 0
     skipped: int = 0
 
@@ -143,7 +146,7 @@ def run_episode(env: Any, controller: Controller, duration_s: float, reset_optio
     q, omega = [observation[:4]], [observation[4:]]
     angle, energy, times = [info["angle_from_goal"]], [info["energy"]], [info["time"]]
     controls, rewards, wall, success, fallback, recorded = [], [], [], [], [], []
-    compute, busy = [], []
+    compute, busy, cpu = [], [], []
     applied = np.zeros(base.action_space.shape[0])  # the torque acting on the plant
     pending: tuple[int, np.ndarray] | None = None  # (global sub-step from which it acts, torque)
     free_at = 0  # global sub-step from which the controller can take an observation
@@ -152,6 +155,7 @@ def run_episode(env: Any, controller: Controller, duration_s: float, reset_optio
     for k in bar:
         first = k * frame_skip
         if first >= free_at:
+            cpu_start = time.thread_time()
             start = time.perf_counter()
             u, controller_info = controller(observation)
             feedback = time.perf_counter() - start
@@ -160,6 +164,7 @@ def run_episode(env: Any, controller: Controller, duration_s: float, reset_optio
                 start = time.perf_counter()
                 prepare()
                 preparation = time.perf_counter() - start
+            cpu.append(time.thread_time() - cpu_start)
             u = np.asarray(u, dtype=float)
             if latency == "none":
                 delay, busy_time = 0.0, 0.0
@@ -182,6 +187,7 @@ def run_episode(env: Any, controller: Controller, duration_s: float, reset_optio
             wall.append(np.nan)
             compute.append(np.nan)
             busy.append(np.nan)
+            cpu.append(np.nan)
             success.append(True)
             fallback.append(None)
             recorded.append({"skipped": True})
@@ -212,7 +218,7 @@ def run_episode(env: Any, controller: Controller, duration_s: float, reset_optio
         angle_from_goal=np.array(angle), energy=np.array(energy), reward=np.array(rewards),
         controller_time_s=np.array(wall), controller_success=np.array(success), fallback=fallback,
         control_period=float(base.dt), controller_info=recorded, latency=latency,
-        compute_s=np.array(compute), busy_s=np.array(busy), deadline_misses=misses, skipped=skipped,
+        compute_s=np.array(compute), busy_s=np.array(busy), cpu_s=np.array(cpu), deadline_misses=misses, skipped=skipped,
     )
     return episode, frames
 
@@ -292,6 +298,7 @@ def episode_metrics(episode: Episode, upright_tolerance: float = UPRIGHT_TOLERAN
         "hold_error_rad": hold_error,
         "solve_time_ms": {"median": float(np.median(times_ms)), "p95": float(np.percentile(times_ms, 95)),
                           "p99": float(np.percentile(times_ms, 99)), "max": float(times_ms.max())},
+        "cpu_time_ms_median": float(np.nanmedian(1e3 * episode.cpu_s)) if episode.cpu_s is not None else None,
         "latency": episode.latency,
         "deadline_misses": int(episode.deadline_misses),
         "skipped_observations": int(episode.skipped),

@@ -7,6 +7,15 @@ interpreted; warm start none / primal / primal–dual; and CasADi's ``sqpmethod`
 ``fatrop`` on the same problem. Per configuration: median / p95 solve time, mean iterations,
 closed-loop success and time to upright, and — for compiled configurations — the time to
 build the solver with an empty cache (gcc runs) and with the library cached.
+
+A second table (unless ``--no-realtime``; not in ``--quick``) puts the real-time iteration
+(:class:`fvin_mpc.control.rti.RealTimeMPC`) beside IPOPT on both scenes (``pendulum``,
+``spherical_pendulum``), learned and closed-form model in the same run, with the scene's own MPC
+settings (what the commands use): IPOPT in waiting mode (the reference: the simulator waits for it)
+and with measured latency, and the RTI with measured latency (``run_episode(latency="measured")``:
+each torque acts from the first MuJoCo sub-step after the controller's compute time). Per row: the
+whole controller call (feedback plus preparation; median, p99, max), its CPU time, iterations per
+call, deadline misses, and the swing-up from rest (time to upright, hold error over the last 3 s).
 """
 
 from __future__ import annotations
@@ -77,8 +86,59 @@ def _cold_build_s(exported: Any, settings: Any) -> float:
     return seconds
 
 
+#: (label, settings overrides, latency) of the real-time table; IPOPT's waiting row is the reference.
+REALTIME_CONFIGS: tuple[tuple[str, dict[str, Any], Any], ...] = (
+    ("ipopt (waiting)", {}, "none"),
+    ("ipopt", {}, "measured"),
+    ("rti", {"solver": "rti"}, "measured"),
+    ("rti ≤4 it. in 10 ms", {"solver": "rti", "rti_max_iter": 4, "rti_budget_s": 0.01}, "measured"),
+)
+REALTIME_SCENES = ("pendulum", "spherical_pendulum")
+REALTIME_COLUMNS = ["scene", "model", "controller", "latency", "call_ms_median", "call_ms_p99", "call_ms_max",
+                    "cpu_ms_median", "learned_vs_true", "iterations_mean", "deadline_misses", "failures",
+                    "time_to_upright_s", "hold_error_rad", "swung_up"]
+
+
+def realtime_rows(duration: float = 10.0, seed: int = 0, scenes: tuple[str, ...] = REALTIME_SCENES,
+                  configs: tuple[tuple[str, dict[str, Any], Any], ...] = REALTIME_CONFIGS) -> list[dict[str, Any]]:
+    """One swing-up from rest per scene × model (learned, closed form) × configuration."""
+    import numpy as np
+
+    from fvin_mpc.control.closed_loop import episode_metrics, run_episode
+    from fvin_mpc.control.scene import scene_env, scene_model, scene_mpc, scene_mpc_settings
+
+    rows: list[dict[str, Any]] = []
+    for scene in scenes:
+        for true_model in (False, True):
+            env = scene_env(scene, true_model=true_model)
+            exported = scene_model(env, true_model=true_model)
+            for label, overrides, latency in configs:
+                controller = scene_mpc(env, exported, scene_mpc_settings(env, **overrides))
+                episode, _ = run_episode(env, controller, duration, seed=seed, latency=latency)
+                metrics = episode_metrics(episode)
+                calls = 1e3 * episode.controller_time_s[np.isfinite(episode.controller_time_s)]
+                iterations = [i["iterations"] for i in episode.controller_info if "iterations" in i]
+                rows.append({
+                    "scene": scene, "model": "closed form" if true_model else "learned", "controller": label,
+                    "latency": latency, "call_ms_median": float(np.median(calls)),
+                    "call_ms_p99": float(np.percentile(calls, 99)), "call_ms_max": float(calls.max()),
+                    "cpu_ms_median": float(np.nanmedian(1e3 * episode.cpu_s)) if episode.cpu_s is not None else None,
+                    "iterations_mean": float(np.mean(iterations)) if iterations else None,
+                    "deadline_misses": metrics["deadline_misses"], "failures": metrics["controller_failures"],
+                    "time_to_upright_s": metrics["time_to_upright_s"], "hold_error_rad": metrics["hold_error_rad"],
+                    "swung_up": metrics["swung_up"],
+                })
+            env.close()
+    for row in rows:
+        true_row = next(r for r in rows if r["scene"] == row["scene"] and r["controller"] == row["controller"]
+                        and r["model"] == "closed form")
+        row["learned_vs_true"] = row["call_ms_median"] / true_row["call_ms_median"] if row["model"] == "learned" else None
+    return rows
+
+
 def run(quick: bool = False, seed: int = 0, repeats: int = 5, model: str = "learned", horizon: int = 30,
-        duration: float = 8.0, cold: bool = True, **_: Any) -> StudyResult:
+        duration: float = 8.0, cold: bool = True, realtime: bool = True, realtime_duration: float = 10.0,
+        **_: Any) -> StudyResult:
     from fvin_mpc.control.mpc import MPCSettings
 
     model = "true" if quick else model
@@ -119,6 +179,24 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 5, model: str = "lear
         "solver failures (fallback torques), iteration limits, or convergence to a different local optimum.",
         NOISE_NOTE,
     ]
+    if realtime and not quick:
+        from fvin_mpc.studies.report import markdown_table
+
+        load = os.getloadavg()
+        realtime_table = realtime_rows(realtime_duration, seed)
+        notes += [
+            "## Real-time controllers, both scenes, learned vs closed form",
+            markdown_table(realtime_table, REALTIME_COLUMNS),
+            f"Swing-up from hanging at rest, {realtime_duration:g} s, the scene's MPC settings. `latency` none: the "
+            "simulator waits for the controller (IPOPT's reference row: model quality, not real time); measured: "
+            "each torque acts from the first 5 ms MuJoCo sub-step after the controller's measured compute time, "
+            "the previous torque holds until then, and a call that outlasts the 50 ms period skips the next "
+            "observation (a deadline miss). `call_ms`: wall time of the whole controller call per sampled period "
+            "(feedback plus the RTI's preparation); `cpu_ms`: its CPU time (the difference is time the shared "
+            "machine gave to other jobs); `learned_vs_true`: median call time, learned over closed form, same "
+            "controller. `rti ≤4 it. in 10 ms`: further Gauss–Newton iterations while the call's wall time allows. "
+            f"Load average (1, 5, 15 min) when the table started: {load[0]:.2f}, {load[1]:.2f}, {load[2]:.2f}.",
+        ]
 
     return StudyResult("solver", rows,
                        ["config", "mpc_ms_median", "mpc_ms_p95", "time_vs_default", "iterations_mean", "success",
@@ -151,3 +229,7 @@ def add_arguments(parser: Any) -> None:
     parser.add_argument("--duration", type=float, default=8.0, help="closed-loop seconds (default: %(default)s)")
     parser.add_argument("--no-cold", dest="cold", action="store_false",
                         help="skip the build with an empty compiled-code cache")
+    parser.add_argument("--no-realtime", dest="realtime", action="store_false",
+                        help="skip the real-time table (RTI beside IPOPT on both scenes, measured latency)")
+    parser.add_argument("--realtime-duration", type=float, default=10.0,
+                        help="closed-loop seconds per real-time row (default: %(default)s)")
