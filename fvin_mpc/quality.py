@@ -51,7 +51,7 @@ def main(argv: list[str] | None = None) -> int:
         "rollout": rollout_error(checkpoint, held_out, args.horizon),
         # The closed-form body through the same integrator: the error the step size alone causes.
         "rollout_true_model": rollout_error(checkpoint, held_out, args.horizon, terms=body.terms(NP)),
-        "components": compare_components(checkpoint, body, quaternions, axis),
+        "components": compare_components(checkpoint, body, quaternions, axis, env.rest),
         "energy": energy_behaviour(checkpoint, body, np.array([0.5, 1.5, 2.5, 3.0]), args.energy_steps, axis,
                                    env.rest, env.goal),
         "energy_on_hinge": energy_behaviour(checkpoint, body, np.array([0.5, 1.5, 2.5, 3.0]), args.energy_steps, axis,

@@ -146,7 +146,7 @@ def test_bounded_collection_respects_speed_limit():
     np.testing.assert_array_equal(data.omega, again.omega)
 
 
-def test_inertia_recovery_of_an_exact_scaled_model(body):
+def test_inertia_recovery_of_an_exact_scaled_model(env, body):
     """A fixed-inertia model holding λ·J_true and λ·g_true: λ, principal moments and axes come back."""
     from fvin_mpc.core.checkpoint import Checkpoint
     from fvin_mpc.studies.inertia import recover_inertia, uniform_quaternions
@@ -165,7 +165,7 @@ def test_inertia_recovery_of_an_exact_scaled_model(body):
         pytest.skip("Cholesky packing order differs from this test's assumption")
     weights[f"gain_w{config.hidden_layers}"] = np.zeros_like(weights[f"gain_w{config.hidden_layers}"])
     weights[f"gain_b{config.hidden_layers}"] = (2.0 * scale * np.eye(3)).ravel()
-    result = recover_inertia(Checkpoint(config, weights), body, uniform_quaternions(64, seed=0))
+    result = recover_inertia(Checkpoint(config, weights), body, uniform_quaternions(64, seed=0), env.rest)
     assert result["lambda"] == pytest.approx(scale, rel=1e-12)
     np.testing.assert_allclose(result["principal_moments_learned"], result["principal_moments_true"], rtol=1e-10)
     assert max(result["principal_axes_angle_deg"]) < 1e-4
@@ -174,7 +174,7 @@ def test_inertia_recovery_of_an_exact_scaled_model(body):
     assert max(abs(e) for e in result["actuator_referenced_moments_relative_error"]) < 1e-10
 
 
-def test_actuator_referenced_inertia_is_blind_to_a_per_axis_scale(body):
+def test_actuator_referenced_inertia_is_blind_to_a_per_axis_scale(env, body):
     """Scaling the z row of J and of g by μ (what the data barely constrain: gravity has no torque about
     body z) moves the global-λ comparison but not J_act = sym(2 ḡ⁻¹ J̄) nor the x/y per-axis λ."""
     from fvin_mpc.core.checkpoint import Checkpoint
@@ -189,7 +189,7 @@ def test_actuator_referenced_inertia_is_blind_to_a_per_axis_scale(body):
     weights["inertia_cholesky"] = np.array([lower[0, 0], lower[1, 1], lower[2, 2], lower[1, 0], lower[2, 0], lower[2, 1]])
     weights[f"gain_w{config.hidden_layers}"] = np.zeros_like(weights[f"gain_w{config.hidden_layers}"])
     weights[f"gain_b{config.hidden_layers}"] = (2.0 * np.diag(mu)).ravel()
-    result = recover_inertia(Checkpoint(config, weights), body, uniform_quaternions(64, seed=1))
+    result = recover_inertia(Checkpoint(config, weights), body, uniform_quaternions(64, seed=1), env.rest)
     np.testing.assert_allclose(result["lambda_per_body_axis_from_gain"], mu, rtol=1e-12)
     assert max(abs(e) for e in result["actuator_referenced_moments_relative_error"]) < 1e-10
     assert max(abs(e) for e in result["principal_moments_relative_error"]) > 0.1

@@ -44,16 +44,16 @@ def uniform_quaternions(count: int, seed: int) -> np.ndarray:
     return q / np.linalg.norm(q, axis=1, keepdims=True)
 
 
-def scene_body(scene: str = "spherical_pendulum") -> Any:
-    """The closed-form :class:`~fvin_mpc.core.rigid_body.PivotedRigidBody` of a scene (read off its MJCF)."""
+def scene_body(scene: str = "spherical_pendulum") -> tuple[Any, np.ndarray]:
+    """The closed-form :class:`~fvin_mpc.core.rigid_body.PivotedRigidBody` of a scene (read off its
+    MJCF) and the scene's rest orientation."""
+    from fvin_mpc.core.rigid_body import from_mujoco
     from fvin_mpc.envs import RigidBodyEnv
 
-    from fvin_mpc.core.rigid_body import from_mujoco
-
     env = RigidBodyEnv(scene=scene)
-    body = from_mujoco(env.model, env.body_name)
+    body, rest = from_mujoco(env.model, env.body_name), env.rest
     env.close()
-    return body
+    return body, rest
 
 
 def principal_axes(inertia: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -68,7 +68,7 @@ def axis_angles_deg(learned_axes: np.ndarray, true_axes: np.ndarray) -> np.ndarr
     return np.degrees(np.arccos(cosines))
 
 
-def recover_inertia(checkpoint: Checkpoint, body: Any, quaternions: np.ndarray) -> dict[str, Any]:
+def recover_inertia(checkpoint: Checkpoint, body: Any, quaternions: np.ndarray, rest: np.ndarray) -> dict[str, Any]:
     """Learned ``J``, ``U``, ``g`` against ``body`` after fixing λ on ``g`` (see the module docstring)."""
     learned = LearnedTerms(checkpoint.weights, checkpoint.config, NP)
     true = body.terms(NP)
@@ -84,9 +84,9 @@ def recover_inertia(checkpoint: Checkpoint, body: Any, quaternions: np.ndarray) 
     moments_true, axes_true = principal_axes(j_true)
     variation = np.linalg.norm(j_learned - j_mean, axis=(1, 2)) / np.linalg.norm(j_mean)
 
-    identity = _components(np.array([[1.0, 0.0, 0.0, 0.0]]))
-    u_learned = (np.asarray(learned.potential(q)) - np.asarray(learned.potential(identity))) / scale
-    u_true = np.asarray(true.potential(q))
+    at_rest = _components(np.asarray(rest, dtype=float)[None])
+    u_learned = (np.asarray(learned.potential(q)) - np.asarray(learned.potential(at_rest))) / scale
+    u_true = np.asarray(true.potential(q)) - np.asarray(true.potential(at_rest))
     g_learned = np.array(learned.control_gain(q), dtype=float) / scale  # (3, m, B)
     g_true = np.broadcast_to(np.array(true.control_gain(q), dtype=float), g_learned.shape)
     gain_error = np.linalg.norm(g_learned - g_true, axis=(0, 1)) / np.linalg.norm(g_true, axis=(0, 1))
@@ -100,8 +100,7 @@ def recover_inertia(checkpoint: Checkpoint, body: Any, quaternions: np.ndarray) 
     if g_mean.shape[0] == g_mean.shape[1] and abs(np.linalg.det(g_mean)) > 1e-12:
         raw = 2.0 * np.linalg.solve(g_mean, j_raw_mean) @ np.linalg.inv(np.array(body.actuator_axes, dtype=float))
         actuator_referenced = 0.5 * (raw + raw.T)
-    identity_u = np.asarray(learned.potential(identity))
-    u_raw = np.asarray(learned.potential(q)) - identity_u
+    u_raw = np.asarray(learned.potential(q)) - np.asarray(learned.potential(at_rest))
     lambda_potential = float((u_raw * u_true).sum() / (u_true * u_true).sum())
     result = {
         "samples": int(quaternions.shape[0]),
@@ -210,7 +209,7 @@ def report(checkpoint: Checkpoint | str | Path, data: TrajectoryData, horizon: i
     if not isinstance(checkpoint, Checkpoint):
         checkpoint = load_checkpoint(checkpoint)
     scene = checkpoint.scene or "spherical_pendulum"
-    body = scene_body(scene)
+    body, rest = scene_body(scene)
     horizon = min(horizon, data.u.shape[1])
     learned = rollout_error(checkpoint, data, horizon)
     true = true_rollout_error(body, checkpoint.config.step_size, checkpoint.config.newton_iters, data, horizon)
@@ -218,7 +217,7 @@ def report(checkpoint: Checkpoint | str | Path, data: TrajectoryData, horizon: i
         "checkpoint": str(checkpoint.path), "variant": checkpoint.config.variant,
         "hidden_width": checkpoint.config.hidden_width, "scene": scene,
         "rollout": {"learned": learned, "true_model": true},
-        "components": recover_inertia(checkpoint, body, uniform_quaternions(samples, seed)),
+        "components": recover_inertia(checkpoint, body, uniform_quaternions(samples, seed), rest),
         "energy": energy_drift(checkpoint, body, 32, energy_steps, 4.0, seed),
         "solvability": solvability_summary(checkpoint, body, seed),
     }

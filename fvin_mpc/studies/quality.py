@@ -76,26 +76,28 @@ def fit_scale(learned: Any, true: Any, quaternions: np.ndarray) -> float:
     return float((g_learned * g_true).sum() / (g_true * g_true).sum())
 
 
-def compare_components(checkpoint: Checkpoint, true_body: Any, quaternions: np.ndarray, axis: np.ndarray) -> dict[str, Any]:
-    """Learned vs true ``J`` (along ``axis``), ``U`` (relative to hanging), ``g`` after fixing λ;
-    for a model with dissipation also ``D`` (constant; along ``axis`` and the whole matrix, over λ)."""
+def compare_components(checkpoint: Checkpoint, true_body: Any, quaternions: np.ndarray, axis: np.ndarray,
+                       rest: np.ndarray) -> dict[str, Any]:
+    """Learned vs true ``J`` (along ``axis``), ``U`` (both relative to the ``rest`` orientation), ``g``
+    after fixing λ; for a model with dissipation also ``D`` (constant; along ``axis`` and the whole
+    matrix, over λ)."""
     learned = LearnedTerms(checkpoint.weights, checkpoint.config, NP)
     true = true_body.terms(NP)
     scale = fit_scale(learned, true, quaternions)
     q = _components(quaternions)
-    identity = _components(np.array([[1.0, 0.0, 0.0, 0.0]]))
+    at_rest = _components(np.asarray(rest, dtype=float)[None])
     j_learned = np.array(learned.inertia(q), dtype=float)  # 3×3×B
     j_axis = np.einsum("i,ijb,j->b", axis, j_learned, axis) / scale
     j_true = float(axis @ np.array(true_body.inertia) @ axis)
-    u_learned = (np.asarray(learned.potential(q)) - np.asarray(learned.potential(identity))) / scale
-    u_true = np.asarray(true.potential(q))
+    u_learned = (np.asarray(learned.potential(q)) - np.asarray(learned.potential(at_rest))) / scale
+    u_true = np.asarray(true.potential(q)) - np.asarray(true.potential(at_rest))
     g_learned = np.array(learned.control_gain(q), dtype=float) / scale
     g_true = np.broadcast_to(np.array(true.control_gain(q), dtype=float), g_learned.shape)
     dissipation = {}
-    d_learned = learned.dissipation(identity)
+    d_learned = learned.dissipation(at_rest)
     if d_learned is not None:
         d_learned = np.array(d_learned, dtype=float)[..., 0] / scale
-        d_true = true.dissipation(identity)
+        d_true = true.dissipation(at_rest)
         d_true = np.zeros((3, 3)) if d_true is None else np.array(d_true, dtype=float)[..., 0]
         dissipation = {
             "dissipation_axis_true": float(axis @ d_true @ axis), "dissipation_axis": float(axis @ d_learned @ axis),
