@@ -91,7 +91,8 @@ def test_training_is_seeded_and_reduces_the_rollout_loss():
     from fvin_mpc.learning.training import TrainSettings, train
 
     data = synthetic_pendulum_data()
-    settings = TrainSettings(iterations=100, window=4, seed=3, eval_every=20, learning_rate=2e-2)
+    settings = TrainSettings(optimizer="adam", iterations=100, window=4, seed=3, eval_every=20, learning_rate=2e-2,
+                             patience=0, threads=1)
     model_a, report_a = train(data, ModelConfig(hidden_width=8), settings, progress=False)
     model_b, report_b = train(data, ModelConfig(hidden_width=8), settings, progress=False)
     assert report_a["final_train_loss"] == report_b["final_train_loss"]

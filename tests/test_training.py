@@ -65,7 +65,7 @@ def test_lm_window_jacobian_matches_the_loss_gradient(data):
 
 
 def test_lm_needs_far_fewer_iterations_than_adam(data):
-    common = dict(iterations=6, window=3, seed=3, patience=0, threads=1)
+    common = dict(iterations=8, window=3, seed=3, patience=0, threads=1)
     _, lm = train(data, SMALL, TrainSettings(optimizer="lm", **common), progress=False)
     _, adam = train(data, SMALL, TrainSettings(optimizer="adam", learning_rate=2e-2, eval_every=1, **common), progress=False)
     initial = lm["history"][0]["train"]
