@@ -3,13 +3,28 @@
 Given ``(q_k, ω_k, u_k)``, a step size ``h`` and the rigid-body terms ``J(q)`` (SPD),
 ``U(q)``, ``g(q)`` (3×m) and optionally a dissipation ``D(q)`` (PSD):
 
-1. ``π_k = 2 J(q_k) ω_k``, ``f⁻ = f⁺ = (h/2) (g(q_k) u_k − D(q_k) ω_k)``.
+1. ``π_k = 2 J(q_k) ω_k``; discrete forces ``f⁻ = (h/2)(g(q_k) u_k − D(q_k) ω_k)`` and
+   ``f⁺ = (h/2)(g(q_k) u_k − D(q_{k+1}) ω_{k+1})``.
 2. ``C = −(h/4) (π_k + f⁻ − (h/2) H(q_k) ∇U(q_k))``.
 3. Solve ``Φ(ξ) := G(exp(−ξ)) J Im(exp(−ξ)) = C`` by Newton from ``ξ = 0``.
    The first iterate is exact and nearly free: ``∂Φ/∂ξ(0) = −J`` so ``ξ₁ = −J⁻¹C``.
 4. ``q_{k+1} = q_k ⊗ exp(ξ)``.
-5. ``π_{k+1} = (4/h) G(exp ξ) J Im(exp ξ) − (h/2) H(q_{k+1}) ∇U(q_{k+1}) + f⁺``,
-   ``ω_{k+1} = ½ J(q_{k+1})⁻¹ π_{k+1}``.
+5. ``π_{k+1} = (4/h) G(exp ξ) J Im(exp ξ) − (h/2) H(q_{k+1}) ∇U(q_{k+1}) + f⁺`` with
+   ``π_{k+1} = 2 J(q_{k+1}) ω_{k+1}``. ``f⁺`` is linear in ``ω_{k+1}``, so this is the 3×3
+   linear system ``(2 J(q_{k+1}) + (h/2) D(q_{k+1})) ω_{k+1} = P`` with
+   ``P = (4/h) G(exp ξ) J Im(exp ξ) − (h/2) H(q_{k+1}) ∇U(q_{k+1}) + (h/2) g(q_k) u_k``
+   (SPD: ``J`` SPD, ``D`` PSD). Without ``D``: ``ω_{k+1} = ½ J(q_{k+1})⁻¹ P``, as before.
+
+Damping: taking ``−Dω`` at the start of the step in ``f⁻`` and at its end in ``f⁺`` (the
+trapezoidal rule for the virtual work of the force) keeps the step symmetric — for constant
+``J``, ``g`` and ``u`` held over the step, the step from ``(q_k, ω_k)`` with ``h`` and the one
+from ``(q_{k+1}, ω_{k+1})`` with ``−h`` are each other's inverse — so it is second order, and
+the end-of-step damping costs no implicit solve because it is linear in ``ω_{k+1}`` (the
+implicit-damping trick of simulators). Holding ``−D ω_k`` in both halves, as an earlier
+version did, made any damped step first order. The control force ``g u`` stays at ``q_k`` in
+both halves (zero-order hold, unchanged), so a configuration-dependent learned ``g`` under a
+nonzero control is still integrated at first order in its ``q`` dependence; with ``D`` absent
+the step is exactly (bit for bit) the undamped one.
 
 ``J`` in steps 3 and 5 is the discrete Lagrangian's inertia, evaluated at ``q_k``; the
 Legendre map at ``q_{k+1}`` uses ``J(q_{k+1})``. For a constant ``J`` the two agree.
@@ -145,11 +160,15 @@ def _clamp_increment(xi: s3.Vec3, ops: Ops) -> s3.Vec3:
 
 def generalized_force(q: s3.Quat, omega: s3.Vec3, u: tuple[Any, ...], terms: RigidBodyTerms) -> s3.Vec3:
     """``g(q) u − D(q) ω`` — the continuous left-trivialized force on S³ (twice the SO(3) torque)."""
-    force = s3.matvec(terms.control_gain(q), u)
+    return _force_from_control(q, omega, s3.matvec(terms.control_gain(q), u), terms)
+
+
+def _force_from_control(q: s3.Quat, omega: s3.Vec3, control_force: s3.Vec3, terms: RigidBodyTerms) -> s3.Vec3:
+    """``control_force − D(q) ω`` (``control_force`` itself when the model has no ``D``)."""
     damping = terms.dissipation(q)
-    if damping is not None:
-        force = s3.sub(force, s3.matvec(damping, omega))
-    return force  # type: ignore[return-value]
+    if damping is None:
+        return control_force
+    return s3.sub(control_force, s3.matvec(damping, omega))  # type: ignore[return-value]
 
 
 @dataclass(frozen=True)
@@ -159,24 +178,26 @@ class ImplicitProblem:
     Attributes:
         inertia: ``J(q_k)`` (rows).
         rhs: ``C`` of DESIGN.md step 2.
-        discrete_force: ``f⁻ = f⁺ = (h/2)(g u − D ω)``.
+        control_force: ``(h/2) g(q_k) u_k`` — the part of ``f⁺`` known before the solve; the
+            damping part ``−(h/2) D(q_{k+1}) ω_{k+1}`` is solved for in :func:`finish_step`.
     """
 
     inertia: s3.Mat3
     rhs: s3.Vec3
-    discrete_force: s3.Vec3
+    control_force: s3.Vec3
 
 
 def implicit_problem(q: s3.Quat, omega: s3.Vec3, u: tuple[Any, ...], terms: RigidBodyTerms,
                      step_size: float) -> ImplicitProblem:
-    """Steps 1–2: momentum, discrete forces and the right-hand side ``C``."""
+    """Steps 1–2: momentum, ``f⁻`` and the right-hand side ``C``."""
     h = step_size
     inertia = terms.inertia(q)
     momentum = s3.scale(2.0, s3.matvec(inertia, omega))
-    discrete_force = s3.scale(h / 2.0, generalized_force(q, omega, u, terms))
+    control = s3.matvec(terms.control_gain(q), u)
+    force_minus = s3.scale(h / 2.0, _force_from_control(q, omega, control, terms))
     gravity = s3.H_apply(q, terms.potential_gradient(q))
-    rhs = s3.scale(-h / 4.0, s3.sub(s3.add(momentum, discrete_force), s3.scale(h / 2.0, gravity)))
-    return ImplicitProblem(inertia=inertia, rhs=rhs, discrete_force=discrete_force)
+    rhs = s3.scale(-h / 4.0, s3.sub(s3.add(momentum, force_minus), s3.scale(h / 2.0, gravity)))
+    return ImplicitProblem(inertia=inertia, rhs=rhs, control_force=s3.scale(h / 2.0, control))
 
 
 def finish_step(q: s3.Quat, xi: s3.Vec3, problem: ImplicitProblem, terms: RigidBodyTerms, step_size: float,
@@ -187,9 +208,17 @@ def finish_step(q: s3.Quat, xi: s3.Vec3, problem: ImplicitProblem, terms: RigidB
     q_next = s3.multiply(q, increment)
     gravity_next = s3.H_apply(q_next, terms.potential_gradient(q_next))
     kinetic = s3.G_apply(increment, s3.matvec(inertia, s3.imaginary(increment)))
-    momentum_next = s3.add(s3.sub(s3.scale(4.0 / h, kinetic), s3.scale(h / 2.0, gravity_next)), problem.discrete_force)
+    # π_{k+1} + (h/2) D ω_{k+1}: everything in step 5 but the end-of-step damping.
+    momentum_next = s3.add(s3.sub(s3.scale(4.0 / h, kinetic), s3.scale(h / 2.0, gravity_next)), problem.control_force)
     inertia_next = inertia if terms.constant_inertia else terms.inertia(q_next)
-    omega_next = s3.scale(0.5, s3.solve3(inertia_next, momentum_next))
+    damping_next = terms.dissipation(q_next)
+    if damping_next is None:
+        omega_next = s3.scale(0.5, s3.solve3(inertia_next, momentum_next))
+    else:
+        # (2 J + (h/2) D) ω_{k+1} = π_{k+1} + (h/2) D ω_{k+1}  — SPD, so always solvable.
+        system = tuple(tuple(2.0 * inertia_next[i][j] + (h / 2.0) * damping_next[i][j] for j in range(3))
+                       for i in range(3))
+        omega_next = s3.solve3(system, momentum_next)  # type: ignore[arg-type]
 
     residual = None
     if with_residual:
