@@ -74,7 +74,7 @@ def test_iterations_reach_the_ipopt_optimum_on_a_fixed_problem(spherical):
     cost, gap = controller.plan_cost(plan)
     assert gap < 1e-6
     assert abs(cost - info["cost"]) <= 1e-3 * info["cost"]
-    np.testing.assert_allclose(plan.controls[0], info["controls"][0], atol=1e-3)
+    np.testing.assert_allclose(plan.controls[0], info["controls"][0], atol=1e-2)  # |u| ≤ 1.5
 
 
 @pytest.mark.parametrize("scene", ["pendulum", "spherical"])
@@ -87,9 +87,10 @@ def test_first_torque_from_exact_rest_is_nonzero(scene, request):
     assert np.max(np.abs(u)) > 0.1 * np.max(env.unwrapped.torque_high)
 
 
-def test_failed_qp_delivers_the_shifted_previous_plan_clipped(pendulum):
+@pytest.mark.parametrize("qp_solver", ["riccati", "hpipm"])
+def test_failed_qp_delivers_the_shifted_previous_plan_clipped(pendulum, qp_solver):
     env, model = pendulum
-    controller = rti(env, model)
+    controller = rti(env, model, rti_qp_solver=qp_solver)
     x0, _ = env.reset(options={"qpos": np.array([2.0]), "qvel": np.array([1.0])})
     controller(x0)
     previous = controller._plan.controls.copy()
@@ -102,9 +103,16 @@ def test_failed_qp_delivers_the_shifted_previous_plan_clipped(pendulum):
         def stats(self):
             return {"success": False, "return_status": "forced failure"}
 
-    controller._qp = FailingQP()
+    def failing_feedback(states, controls, *_):
+        return states * np.nan, controls * np.nan, np.nan, np.nan
+
+    if qp_solver == "hpipm":
+        controller._qp = FailingQP()
+    else:
+        controller._feedback = failing_feedback
     u, info = controller(model(x0, previous[0])[0])
-    assert not info["success"] and info["fallback"] == "previous-plan" and info["status"] == "forced failure"
+    assert not info["success"] and info["fallback"] == "previous-plan"
+    assert info["status"] == ("forced failure" if qp_solver == "hpipm" else "qp-not-finite")
     np.testing.assert_array_equal(u, np.clip(previous[1], env.unwrapped.torque_low, env.unwrapped.torque_high))
     assert np.all(np.isfinite(u))
 

@@ -121,8 +121,11 @@ class MPCSettings:
         rti_regularization: Levenberg–Marquardt term added to the Gauss–Newton Hessian of the QP.
         rti_omega_penalty: ``solver="rti"``: weight on the squared excess of each ``|ω_i|`` over its
             bound (the real-time iteration's soft form of the ``ω`` bound).
-        rti_qp_solver: the QP solver of ``solver="rti"``: ``"hpipm"`` (Riccati-based interior point on
-            the stage-wise sparse QP), ``"qrqp"`` or ``"osqp"`` (CasADi's, same QP).
+        rti_qp_solver: the QP solver of ``solver="rti"``: ``"riccati"`` (a fixed number of
+            interior-point iterations, each a Riccati recursion, generated and compiled with the
+            linearization and the update on S³: one C call per iteration), ``"hpipm"`` (HPIPM through
+            ``casadi.conic`` on the stage-wise sparse QP), ``"qrqp"`` or ``"osqp"`` (CasADi's, same QP).
+        rti_qp_iterations: interior-point iterations of ``rti_qp_solver="riccati"``.
         disturbance_gain: ``solver="rti"`` only: gain ``α`` of the offset-free estimator of a constant
             input disturbance ``d`` (``x⁺ = F(x, u + d)``); ``0`` switches it off.
     """
@@ -153,7 +156,8 @@ class MPCSettings:
     rti_cold_budget_s: float = 0.02
     rti_regularization: float = 1e-6
     rti_omega_penalty: float = 100.0
-    rti_qp_solver: Literal["hpipm", "qrqp", "osqp"] = "hpipm"
+    rti_qp_solver: Literal["riccati", "hpipm", "qrqp", "osqp"] = "riccati"
+    rti_qp_iterations: int = 10
     disturbance_gain: float = 0.5
 
     def __post_init__(self) -> None:
@@ -178,7 +182,9 @@ class MPCSettings:
         if not (self.rti_budget_s >= 0.0 and self.rti_cold_budget_s >= 0.0 and self.rti_regularization >= 0.0
                 and self.rti_omega_penalty >= 0.0):
             raise ValueError("rti_budget_s, rti_cold_budget_s, rti_regularization and rti_omega_penalty must be >= 0")
-        if self.rti_qp_solver not in ("hpipm", "qrqp", "osqp"):
+        if self.rti_qp_iterations < 1:
+            raise ValueError(f"rti_qp_iterations must be >= 1, got {self.rti_qp_iterations}")
+        if self.rti_qp_solver not in ("riccati", "hpipm", "qrqp", "osqp"):
             raise ValueError(f"unknown rti_qp_solver {self.rti_qp_solver!r}")
         if not 0.0 <= self.disturbance_gain <= 1.0:
             raise ValueError(f"disturbance_gain must be in [0, 1], got {self.disturbance_gain}")

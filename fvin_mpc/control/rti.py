@@ -31,7 +31,7 @@ model), solved differently (Diehl's real-time iteration, as in acados' SQP-RTI):
 * **offset-free** (``disturbance_gain = α > 0``) — the model is ``x⁺ = F(x, u + d)`` with a
   constant input disturbance ``d``. After each step the prediction ``F(x_prev, u_prev + d̂)`` is
   compared with the measured ``ω``: ``d̂ ← d̂ + α·B⁺(ω − ω̂)`` (``B = ∂ω⁺/∂u``, least squares),
-  within :data:`DISTURBANCE_REGION_RAD` of the goal only, ``|d̂|`` at most half the torque range. The
+  within :data:`DISTURBANCE_REGION_RAD` of the goal and below :data:`DISTURBANCE_REGION_SPEED` only, ``|d̂|`` at most half the torque range. The
   control cost is ``|u − u_s|²`` with ``u_s = u_goal − d̂`` the torque that holds the goal in the
   model (``F(goal, 0, u_goal) = (goal, 0)``): at the goal the MPC has no reason to move, and the
   plant's steady state is where the corrected model agrees with it — no steady error from a
@@ -68,6 +68,8 @@ RTI_COLD_ORDER = ("goal", "rollout+", "rollout-")
 #: prediction does not know) reads as a large, sign-changing "disturbance" that feeds back through
 #: the plan; near the goal the torque is nearly constant and the estimate is what it should be.
 DISTURBANCE_REGION_RAD = 0.5
+#: … and while every ``|ω_i|`` is below this (rad/s): a swing passing the goal fast is not holding it.
+DISTURBANCE_REGION_SPEED = 1.0
 #: Planned ``|ω_i|`` are kept below this fraction of ``1/h`` (the step's solvability limit).
 OMEGA_VALID_FRACTION = 0.9
 
@@ -117,6 +119,101 @@ def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """``a × b`` over the last axis (``np.cross`` costs more in call overhead than in arithmetic here)."""
     return np.stack([a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1], a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
                      a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]], axis=-1)
+
+
+# ----------------------------------------------------------------------------- compiled QP + update
+def riccati_feedback_function(n: int, m: int, low: np.ndarray, high: np.ndarray, omega_step: float,
+                              omega_valid: float, iterations: int, centering: float = 0.1,
+                              boundary: float = 0.995) -> ca.Function:
+    """One feedback iteration as a single CasADi function (compiled with the linearization):
+    ``(X̄ (7,N+1), Ū (m,N), x0 (7), H (s,sN), H_N (6,6), g (s,N), g_N (6), [A B] (6,sN), c (6,N))
+    → (X (7,N+1), U (m,N), step, μ)``, ``s = 6 + m``.
+
+    The QP ``min Σ ½[δ;Δu]ᵀH_k[δ;Δu] + g_kᵀ[δ;Δu] + ½δ_NᵀH_Nδ_N + g_Nᵀδ_N`` s.t.
+    ``δ_{k+1} = A_kδ_k + B_kΔu_k + c_k``, ``δ_0 = local(x̄_0, x0)``, ``low ≤ ū_k + Δu_k ≤ high`` is
+    solved by a primal–dual interior-point method on the input boxes with a fixed number of
+    ``iterations``: each solves the barrier-modified LQ problem (``R + diag(λ/s)``) by a Riccati
+    recursion (``O(N)``, backward ``mapaccum``), takes the fraction-to-boundary step and reduces
+    ``μ`` to ``centering ×`` the mean complementarity. Then the trust region and the update on S³
+    (as :meth:`RealTimeMPC._iterate`). No Python between the stages: the whole iteration is one call.
+    """
+    nd, size = TANGENT_DIM, TANGENT_DIM + m
+    # --- one backward Riccati stage: (P, p) at k+1 → at k, with the gains of stage k
+    P, p = ca.SX.sym("P", nd, nd), ca.SX.sym("p", nd)
+    hk, gk, abk, ck = ca.SX.sym("H", size, size), ca.SX.sym("g", size), ca.SX.sym("AB", nd, size), ca.SX.sym("c", nd)
+    dk, rk = ca.SX.sym("d", m), ca.SX.sym("r", m)
+    a_k, b_k = abk[:, :nd], abk[:, nd:]
+    pc = ca.mtimes(P, ck) + p
+    gram = hk[nd:, nd:] + ca.diag(dk) + ca.mtimes([b_k.T, P, b_k])
+    cross = hk[nd:, :nd] + ca.mtimes([b_k.T, P, a_k])
+    gain = -ca.solve(gram, cross)
+    feedforward = -ca.solve(gram, rk + ca.mtimes(b_k.T, pc))
+    P_prev = hk[:nd, :nd] + ca.mtimes([a_k.T, P, a_k]) + ca.mtimes(cross.T, gain)
+    backward = ca.Function("rti_riccati_stage", [P, p, hk, gk, abk, ck, dk, rk],
+                           [0.5 * (P_prev + P_prev.T), gk[:nd] + ca.mtimes(a_k.T, pc) + ca.mtimes(cross.T, feedforward),
+                            gain, feedforward]).mapaccum("rti_riccati", n, 2)
+    # --- one forward stage
+    delta, gain_k, ff_k = ca.SX.sym("delta", nd), ca.SX.sym("K", m, nd), ca.SX.sym("k", m)
+    v = ca.mtimes(gain_k, delta) + ff_k
+    forward = ca.Function("rti_forward_stage", [delta, gain_k, ff_k, abk, ck],
+                          [ca.mtimes(abk, ca.vertcat(delta, v)) + ck, v]).mapaccum("rti_forward", n, 1)
+    # --- retraction of one stage
+    x_bar, step_k = ca.SX.sym("x_bar", STATE_DIM), ca.SX.sym("step", nd)
+    retracted = ca.Function("rti_retract", [x_bar, step_k], [ca.vertcat(retract(x_bar[:4], step_k[:3]),
+                                                                        x_bar[4:] + step_k[3:])]).map(n)
+
+    def reverse(matrix: Any, width: int) -> Any:  # stage blocks of `width` columns in reverse order
+        return matrix[:, [(n - 1 - k) * width + j for k in range(n) for j in range(width)]]
+
+    states, controls = ca.MX.sym("X", STATE_DIM, n + 1), ca.MX.sym("U", m, n)
+    x0, hessians, terminal_hessian = ca.MX.sym("x0", STATE_DIM), ca.MX.sym("H", size, size * n), ca.MX.sym("HN", nd, nd)
+    gradients, terminal_gradient = ca.MX.sym("g", size, n), ca.MX.sym("gN", nd)
+    jacobians, gaps = ca.MX.sym("AB", nd, size * n), ca.MX.sym("c", nd, n)
+    delta0 = ca.vertcat(local(states[:4, 0], x0[:4]), x0[4:] - states[4:, 0])
+    lower = ca.fmax(ca.repmat(ca.DM(np.maximum(low, -1e6)), 1, n) - controls, -1e6)
+    upper = ca.fmin(ca.repmat(ca.DM(np.minimum(high, 1e6)), 1, n) - controls, 1e6)
+    width = upper - lower
+    hessians_rev, jacobians_rev = reverse(hessians, size), reverse(jacobians, size)
+    gradients_rev, gaps_rev = reverse(gradients, 1), reverse(gaps, 1)
+
+    def solve_lq(d: Any, r: Any) -> tuple[Any, Any]:
+        _, _, gains, feedforwards = backward(terminal_hessian, terminal_gradient, hessians_rev, gradients_rev,
+                                             jacobians_rev, gaps_rev, reverse(d, 1), reverse(r, 1))
+        deltas, v = forward(delta0, reverse(gains, nd), reverse(feedforwards, 1), jacobians, gaps)
+        return deltas, v
+
+    # interior start: Δu in the box, 1 % of its width away from a bound; λ = μ₀/s
+    v = ca.fmin(ca.fmax(ca.MX.zeros(m, n), lower + 0.01 * width), upper - 0.01 * width)
+    slack_low, slack_up = v - lower, upper - v
+    mu = ca.MX(0.1)
+    dual_low, dual_up = mu / slack_low, mu / slack_up
+    for _ in range(iterations):
+        slack_low, slack_up = v - lower, upper - v
+        curvature = dual_low / slack_low + dual_up / slack_up
+        linear = gradients[nd:, :] - mu / slack_low + mu / slack_up - curvature * v
+        deltas, target = solve_lq(curvature, linear)
+        dv = target - v
+        d_low = mu / slack_low - dual_low - dual_low / slack_low * dv
+        d_up = mu / slack_up - dual_up + dual_up / slack_up * dv
+        ratios = ca.vertcat(ca.vec(slack_low / ca.fmax(-dv, 1e-300)), ca.vec(slack_up / ca.fmax(dv, 1e-300)),
+                            ca.vec(dual_low / ca.fmax(-d_low, 1e-300)), ca.vec(dual_up / ca.fmax(-d_up, 1e-300)))
+        alpha = ca.fmin(1.0, boundary * ca.mmin(ratios))
+        v, dual_low, dual_up = v + alpha * dv, dual_low + alpha * d_low, dual_up + alpha * d_up
+        mu = centering * (ca.sum1(ca.sum2(dual_low * (v - lower))) + ca.sum1(ca.sum2(dual_up * (upper - v)))) / (2 * m * n)
+    # The states of the last Riccati solve (closed-loop forward pass, consistent with its controls to
+    # within (1 − α)|Δu|): propagating the final controls open loop would amplify the interior-point
+    # method's inexactness through the unstable upright dynamics (e^{λ·horizon} ≈ 10³–10⁴ here).
+    # --- trust region, update on S³
+    steps = ca.vertcat(ca.fmin(ca.fmax(deltas[:3, :], -STEP_LIMIT_ANGLE), STEP_LIMIT_ANGLE),
+                       ca.fmin(ca.fmax(deltas[3:, :], -omega_step), omega_step))
+    moved = retracted(states[:, 1:], steps)
+    new_states = ca.horzcat(x0, ca.vertcat(moved[:4, :], ca.fmin(ca.fmax(moved[4:, :], -omega_valid), omega_valid)))
+    new_controls = ca.fmin(ca.fmax(controls + v, ca.DM(low)), ca.DM(high))
+    step = ca.fmax(ca.fmax(ca.mmax(ca.fabs(v) / ca.repmat(ca.DM(np.minimum(high - low, 1e6)), 1, n)),
+                           ca.mmax(ca.fabs(steps[:3, :])) / STEP_LIMIT_ANGLE), ca.mmax(ca.fabs(steps[3:, :])) / omega_step)
+    return ca.Function("rti_feedback", [states, controls, x0, hessians, terminal_hessian, gradients, terminal_gradient,
+                                        jacobians, gaps], [new_states, new_controls, step, mu],
+                       ["X", "U", "x0", "H", "HN", "g", "gN", "AB", "c"], ["X_new", "U_new", "step", "mu"])
 
 
 class RealTimeMPC(MPC):
@@ -210,23 +307,36 @@ class RealTimeMPC(MPC):
                                 [hessian, gradient, constraints, ca.vec(gaps), ca.sum2(costs) + terminal_value,
                                  jacobians[:, :nd], blocks[0][nd:, :nd]],
                                 ["X", "U", "goal", "d", "u_s"], ["H", "g", "A", "gaps", "cost", "A0", "S0"])
+        linearize_blocks = ca.Function("rti_linearize_blocks", [states, controls, goal_mx, d_mx, u_s_mx],
+                                       [hessians, terminal_hessian, gradients, terminal_gradient, jacobians, gaps,
+                                        ca.sum2(costs) + terminal_value],
+                                       ["X", "U", "goal", "d", "u_s"], ["H", "HN", "g", "gN", "AB", "gaps", "cost"])
         # one step and its ∂ω⁺/∂u, for the disturbance estimator and the target control
         x_sym, u_sym = ca.SX.sym("x", STATE_DIM), ca.SX.sym("u", m)
         stepped, residual = self.model.step(x_sym, u_sym)
-        predict = ca.Function("rti_predict", [x_sym, u_sym], [stepped, ca.jacobian(stepped[4:], u_sym), residual])
+        b = ca.jacobian(stepped[4:], u_sym)  # ∂ω⁺/∂u (3, m), and its least-squares inverse (m, 3)
+        predict = ca.Function("rti_predict", [x_sym, u_sym],
+                              [stepped, b, residual, ca.solve(ca.mtimes(b.T, b), b.T)])
 
+        self._omega_valid = OMEGA_VALID_FRACTION / self.model.step_size
+        riccati = s.rti_qp_solver == "riccati"
+        if riccati:
+            linearize = linearize_blocks
+            functions = [linearize, predict, riccati_feedback_function(
+                n, m, self.torque_low, self.torque_high, STEP_LIMIT_OMEGA * self.omega_bound, self._omega_valid,
+                s.rti_qp_iterations)]
+        else:
+            functions = [linearize, predict]
         self.compile_report = None
         if s.compile == "cached":
             compiled, self.compile_report = compile_functions(
-                [linearize, predict], prefix=re.sub(r"[^0-9A-Za-z_]", "_", f"rti_{self.model.name}"))
-            self._linearize, self._predict = compiled["rti_linearize"], compiled["rti_predict"]
-        else:
-            self._linearize, self._predict = linearize, predict
-        self._hessian_sparsity = hessian.sparsity()
-        self._qp = self._make_qp(hessian.sparsity(), constraints.sparsity())
+                functions, prefix=re.sub(r"[^0-9A-Za-z_]", "_", f"rti_{self.model.name}"))
+            functions = [compiled[function.name()] for function in functions]
+        self._linearize, self._predict = functions[:2]
+        self._feedback = functions[2] if riccati else None
+        self._qp = None if riccati else self._make_qp(hessian.sparsity(), constraints.sparsity())
         self._size = size
         self._stage_size = stage_size
-        self._omega_valid = OMEGA_VALID_FRACTION / self.model.step_size
         self._u_goal = self._goal_control()
 
     def _make_qp(self, h: ca.Sparsity, a: ca.Sparsity) -> ca.Function:
@@ -247,9 +357,8 @@ class RealTimeMPC(MPC):
         x_goal = np.concatenate([self.goal, np.zeros(3)])
         u = np.zeros(self.model.control_dim)
         for _ in range(5):
-            stepped, b, _ = self._predict(x_goal, u)
-            omega = np.asarray(stepped, dtype=float).ravel()[4:]
-            u = u - np.linalg.lstsq(np.asarray(b, dtype=float), omega, rcond=None)[0]
+            stepped, _, _, inverse = self._predict(x_goal, u)
+            u = u - np.asarray(inverse, dtype=float) @ np.asarray(stepped, dtype=float).ravel()[4:]
         return u
 
     # ------------------------------------------------------------------ state of the controller
@@ -259,7 +368,7 @@ class RealTimeMPC(MPC):
         self._plan: _Plan | None = None
         self._linearization: tuple[Any, ...] | None = None
         self.disturbance = np.zeros(self.model.control_dim)
-        self._last: tuple[np.ndarray, np.ndarray] | None = None  # (predicted ω, ∂ω/∂u) after the last torque
+        self._last: tuple[np.ndarray, np.ndarray] | None = None  # (predicted ω, (∂ω/∂u)⁺) after the last torque
 
     @property
     def target_control(self) -> np.ndarray:
@@ -273,6 +382,8 @@ class RealTimeMPC(MPC):
     def _iterate(self, plan: _Plan, linearization: tuple[Any, ...], x0: np.ndarray) -> tuple[_Plan | None, str]:
         """Solve the QP at ``plan`` with ``δ_0`` fixed by the measured ``x0``; the updated plan (or
         ``None`` and the QP solver's status)."""
+        if self._feedback is not None:
+            return self._iterate_riccati(plan, linearization, x0)
         h, g, a, gaps, _, a0, s0 = linearization
         n, m, nd, size = self.horizon, self.model.control_dim, TANGENT_DIM, self._stage_size
         delta0 = np.concatenate([local_np(plan.states[0, :4], x0[:4]), x0[4:] - plan.states[0, 4:]])
@@ -314,6 +425,18 @@ class RealTimeMPC(MPC):
                              float(np.max(np.abs(clipped[:, 3:]))) / omega_limit)
         return _Plan(states, controls, None, None), "rti"
 
+    def _iterate_riccati(self, plan: _Plan, linearization: tuple[Any, ...],
+                         x0: np.ndarray) -> tuple[_Plan | None, str]:
+        """:meth:`_iterate` in one compiled call (:func:`riccati_feedback_function`)."""
+        h, h_n, g, g_n, ab, gaps, _ = linearization
+        states, controls, step, mu = self._feedback(plan.states.T, plan.controls.T, x0, h, h_n, g, g_n, ab, gaps)
+        states, controls = np.asarray(states, dtype=float).T, np.asarray(controls, dtype=float).T
+        self.qp_iterations = self.settings.rti_qp_iterations
+        self.last_step, self.qp_mu = float(step), float(mu)
+        if not (np.all(np.isfinite(states)) and np.all(np.isfinite(controls))):
+            return None, "qp-not-finite"
+        return _Plan(states, controls, None, None), "rti"
+
     def _improve(self, plan: _Plan, x0: np.ndarray, iterations: int, deadline: float,
                  linearization: tuple[Any, ...] | None = None) -> tuple[_Plan | None, int, str, float]:
         """Up to ``iterations`` SQP iterations from ``plan``: the first always, each further one only
@@ -347,7 +470,7 @@ class RealTimeMPC(MPC):
         if self._plan is None or self._linearization is not None:
             return
         plan = self._plan
-        last_state, _, _ = self._predict(plan.states[-1], plan.controls[-1] + self.disturbance)
+        last_state = self._predict(plan.states[-1], plan.controls[-1] + self.disturbance)[0]
         states = np.vstack([plan.states[1:], np.asarray(last_state, dtype=float).reshape(1, STATE_DIM)])
         states[-1, 4:] = np.clip(states[-1, 4:], -self.omega_bound, self.omega_bound)
         controls = np.vstack([plan.controls[1:], plan.controls[-1:]])
@@ -360,10 +483,10 @@ class RealTimeMPC(MPC):
         if alpha == 0.0 or self._last is None:
             return
         cosine = min(abs(float(np.dot(x0[:4], self.goal))), 1.0)
-        if 2.0 * np.arccos(cosine) > DISTURBANCE_REGION_RAD:
+        if 2.0 * np.arccos(cosine) > DISTURBANCE_REGION_RAD or np.max(np.abs(x0[4:])) > DISTURBANCE_REGION_SPEED:
             return
-        predicted, b = self._last
-        step = np.linalg.lstsq(b, x0[4:] - predicted, rcond=None)[0]
+        predicted, inverse = self._last
+        step = inverse @ (x0[4:] - predicted)
         limit = 0.5 * (self.torque_high - self.torque_low)
         self.disturbance = np.clip(self.disturbance + alpha * step, -limit, limit)
 
@@ -407,8 +530,8 @@ class RealTimeMPC(MPC):
                 plan, fallback = self._plan, "previous-plan"
         self._plan, self._linearization = plan, None
         u = np.clip(plan.controls[0], self.torque_low, self.torque_high)
-        predicted, b, residual = self._predict(x0, u + self.disturbance)
-        self._last = (np.asarray(predicted, dtype=float).ravel()[4:], np.asarray(b, dtype=float))
+        predicted, _, residual, inverse = self._predict(x0, u + self.disturbance)
+        self._last = (np.asarray(predicted, dtype=float).ravel()[4:], np.asarray(inverse, dtype=float))
         residual = float(residual)
         info = {"status": status, "success": success, "fallback": fallback, "iterations": iterations,
                 "solve_time_s": time.perf_counter() - start, "cost": float("nan"), "step_residual": residual,
@@ -418,8 +541,12 @@ class RealTimeMPC(MPC):
 
     def _score(self, plan: _Plan) -> float:
         """A cold guess's merit: model cost plus a heavy penalty on its dynamics gaps."""
-        gaps, cost = self._linearize_at(plan)[3:5]
+        gaps, cost = self._gaps_and_cost(plan)
         return float(cost) + 1e3 * float(np.sum(np.square(np.asarray(gaps, dtype=float))))
+
+    def _gaps_and_cost(self, plan: _Plan) -> tuple[Any, Any]:
+        linearization = self._linearize_at(plan)
+        return linearization[5:7] if self._feedback is not None else linearization[3:5]
 
     def plan_cost(self, plan: _Plan | None = None) -> tuple[float, float]:
         """``(cost, largest gap)`` of ``plan`` (default: the current one) under the model — for tests
@@ -427,5 +554,5 @@ class RealTimeMPC(MPC):
         plan = self._plan if plan is None else plan
         if plan is None:
             raise ValueError("no plan yet: call the controller first")
-        gaps, cost = self._linearize_at(plan)[3:5]
+        gaps, cost = self._gaps_and_cost(plan)
         return float(cost), float(np.max(np.abs(np.asarray(gaps, dtype=float))))
