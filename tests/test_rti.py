@@ -74,7 +74,8 @@ def test_iterations_reach_the_ipopt_optimum_on_a_fixed_problem(spherical):
     cost, gap = controller.plan_cost(plan)
     assert gap < 1e-6
     assert abs(cost - info["cost"]) <= 1e-3 * info["cost"]
-    np.testing.assert_allclose(plan.controls[0], info["controls"][0], atol=1e-2)  # |u| ≤ 1.5
+    # the problem is mirror-symmetric about the hanging state: the same optimum may swing either way
+    np.testing.assert_allclose(np.abs(plan.controls[0]), np.abs(info["controls"][0]), atol=1e-2)
 
 
 @pytest.mark.parametrize("scene", ["pendulum", "spherical"])
