@@ -4,8 +4,10 @@
 :func:`fvin_mpc.control.scene.scene_mpc` with ``MPCSettings(solver="rti")`` — then
 ``u, info = controller(x)`` once per period and, after the torque is sent, ``controller.prepare()``
 (:func:`fvin_mpc.control.closed_loop.run_episode` does both; a call finds the preparation done or
-does it itself). Same problem as :class:`fvin_mpc.control.mpc.MPC` (same cost, bounds and
-model), solved differently (Diehl's real-time iteration, as in acados' SQP-RTI):
+does it itself). The problem of :class:`fvin_mpc.control.mpc.MPC` (same model, cost weights,
+torque bounds, terminal energy term), with two differences: the ``ω`` bound is a stiff penalty, and
+the control cost is measured from the torque that holds the goal in the model (``u_s`` below; 0 for
+an unbiased model). Solved differently (Diehl's real-time iteration, as in acados' SQP-RTI):
 
 * **local coordinates on S³** — each stage's state is a linearization point ``x̄_k = (q̄_k, ω̄_k)``
   plus a 6-vector ``δ_k = (θ_k, ν_k)``: ``q = q̄ ⊗ (1, θ)/√(1 + |θ|²)``, ``ω = ω̄ + ν`` (the
@@ -18,16 +20,27 @@ model), solved differently (Diehl's real-time iteration, as in acados' SQP-RTI):
   MPC's cost is a sum of squares: ``c(q) = |q|² − ⟨q, g⟩² = |(I − ggᵀ)q|²``, the energy deficit,
   ``ω``, ``u − u_s``), so the Hessian needs first derivatives only; bounds on ``u`` as
   boxes, the bound on ``ω`` as a stiff penalty on its excess (``rti_omega_penalty``: a hard bound
-  made the linearized QP infeasible from the spinning first guesses of the ball joint). ``δ_0`` is fixed to the measured state in ``x̄_0``'s chart. The QP is stage-wise sparse
-  and goes to HPIPM (Riccati recursion inside an interior-point method, ``O(N)``) through
-  ``casadi.conic``. All of ``A_k, B_k, c_k``, Hessian and gradient come from one CasADi function,
-  compiled once (:func:`fvin_mpc.control.export.compile_functions`).
+  made the linearized QP infeasible from the spinning first guesses of the ball joint). ``δ_0`` is fixed
+  to the measured state in ``x̄_0``'s chart. The QP is stage-wise sparse. By default
+  (``rti_qp_solver="riccati"``) it is solved by a fixed number of primal–dual interior-point
+  iterations on the input boxes, each a Riccati recursion (``O(N)``), generated together with the
+  trust region and the update on S³ as one CasADi function (:func:`riccati_feedback_function`) and
+  compiled with the linearization (:func:`fvin_mpc.control.export.compile_functions`): one C call
+  per iteration, no Python between stages. ``"hpipm"`` sends the same QP to HPIPM through
+  ``casadi.conic`` (about 1 ms of interface overhead per call here, docs/realtime.md).
+  ``A_k, B_k, c_k``, Hessian blocks and gradients come from one compiled function.
 * **preparation / feedback** — after a torque is sent, :meth:`prepare` shifts the plan by one
   step (the last stage predicted by the model) and linearizes it; the next call only fixes
   ``δ_0`` and solves the QP (feedback), then iterates again only while ``rti_budget_s`` allows.
-* **cold start** — after :meth:`reset` the plan is each of ``cold_starts``' first guesses (the
-  model rolled out under ``±f·u_max``: not the symmetric rest, so the first torque is non-zero),
-  improved by up to ``rti_cold_iter`` iterations within ``rti_cold_budget_s``; the best is kept.
+* **trust region** — each stage's state step is clipped (:data:`STEP_LIMIT_ANGLE`,
+  :data:`STEP_LIMIT_OMEGA`) and planned ``|ω|`` kept inside the step's solvability limit: a full
+  Gauss–Newton step from a guess with large gaps otherwise leaps to where the model means nothing.
+* **cold start** — after :meth:`reset`, ``cold_starts``' first guesses in :data:`RTI_COLD_ORDER`
+  (``"goal"`` first: an orientation path to the goal, or the model rolled out under ``±f·u_max``;
+  neither is the symmetric rest, so the first torque is non-zero), each improved by up to
+  ``rti_cold_iter`` iterations while ``rti_cold_budget_s`` lasts; the best is kept. The budget is
+  what bounds the first call (it is below the 50 ms period by default); the plan keeps improving by
+  one iteration per period afterwards.
 * **offset-free** (``disturbance_gain = α > 0``) — the model is ``x⁺ = F(x, u + d)`` with a
   constant input disturbance ``d``. After each step the prediction ``F(x_prev, u_prev + d̂)`` is
   compared with the measured ``ω``: ``d̂ ← d̂ + α·B⁺(ω − ω̂)`` (``B = ∂ω⁺/∂u``, least squares),
