@@ -196,3 +196,45 @@ def test_envs_installs_inside_the_package_not_as_a_top_level_envs(tmp_path):
     import gymnasium
 
     assert gymnasium.spec("fvin_mpc/Pendulum-v0").entry_point.startswith("fvin_mpc.envs.")
+
+
+# ---------------------------------------------------------------------- the whole pipeline, from the CLIs alone
+def test_a_user_mjcf_goes_through_collect_train_swingup_with_default_settings(tmp_path, capsys):
+    """A small, fast version of docs/custom_scene.md: nothing but the MJCF's physics is declared;
+    collect, train and swingup agree on the control period, the task and the dissipation."""
+    from fvin_mpc import collect, swingup, train
+    from fvin_mpc.core.checkpoint import load_checkpoint
+    from fvin_mpc.core.data import load_data
+
+    data_path, stem, summary_path = tmp_path / "weak.npz", tmp_path / "weak_model", tmp_path / "run.json"
+    assert collect.main(["--scene", str(WEAK_PENDULUM), "--trajectories", "12", "--steps", "8", "--out",
+                         str(data_path), "--quiet"]) == 0
+    data = load_data(data_path)
+    assert data.control_period == pytest.approx(0.02)
+    assert train.main(["--data", str(data_path), "--out", str(stem), "--iterations", "2", "--quiet"]) == 0
+    checkpoint = load_checkpoint(stem)
+    assert checkpoint.config.step_size == pytest.approx(0.02)
+    assert checkpoint.config.dissipation  # the scene's joint damping switched it on by default
+    capsys.readouterr()
+    assert swingup.main(["--scene", str(WEAK_PENDULUM), "--checkpoint", str(stem), "--duration", "0.1",
+                         "--horizon", "5", "--plot", "", "--quiet", "--json", str(summary_path)]) == 0
+    summary = json.loads(summary_path.read_text())
+    assert summary["control_period_s"] == pytest.approx(0.02)
+    assert summary["terminal_energy_weight"] == DEFAULT_TERMINAL_ENERGY_WEIGHT
+    assert tuple(summary["cold_starts"]) == COLD_STARTS
+
+
+
+@pytest.mark.slow
+def test_the_shipped_weak_pendulum_model_swings_it_up(tmp_path):
+    """docs/custom_scene.md's learned-model run: the checkpoint trained by the default pipeline
+    (collect → train) swings the weak pendulum up from rest with default settings. A missing
+    shipped checkpoint is a failure, not a skip."""
+    from fvin_mpc import swingup
+
+    out = tmp_path / "learned.json"
+    assert swingup.main(["--scene", str(WEAK_PENDULUM), "--duration", "10", "--plot", "", "--quiet",
+                         "--json", str(out)]) == 0
+    summary = json.loads(out.read_text())
+    assert summary["model"] == "weak_pendulum_sign-invariant"
+    assert summary["swung_up"] and summary["time_to_upright_s"] < 8.0, summary
