@@ -1,4 +1,4 @@
-"""Command-line options the commands share: the scene, its model and the MPC's settings."""
+"""Command-line options the commands share: the scene, its model, the MPC's settings and the execution backend."""
 
 from __future__ import annotations
 
@@ -74,3 +74,27 @@ def mpc_overrides(args: argparse.Namespace) -> dict[str, Any]:
     if args.single_start:
         overrides["cold_starts"] = ("rollout+",)
     return overrides
+
+
+def add_backend_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--backend process|ray`` and ``--ray-address`` (:func:`fvin_mpc.studies.pool.run_tasks`)."""
+    group = parser.add_argument_group("execution backend")
+    group.add_argument("--backend", choices=["process", "ray"], default="process",
+                       help="process: this machine (serial, or --workers spawned processes; default); ray: --workers "
+                            "Ray actors of one CPU each, on the cluster at --ray-address / $RAY_ADDRESS, else on a "
+                            'local one (needs pip install -e ".[ray]")')
+    group.add_argument("--ray-address", default=None,
+                       help="Ray cluster to run on, e.g. auto or ray://head:10001 (default: $RAY_ADDRESS if set, "
+                            "else a local cluster started for this run)")
+
+
+def backend_options(args: argparse.Namespace) -> dict[str, Any]:
+    """``backend`` and ``address`` for :func:`~fvin_mpc.studies.pool.run_tasks`; ``--ray-address`` needs ``--backend ray``."""
+    if args.ray_address is not None and args.backend != "ray":
+        raise ValueError("--ray-address needs --backend ray")
+    if args.backend == "ray":
+        import importlib.util
+
+        if importlib.util.find_spec("ray") is None:
+            raise ValueError('--backend ray needs Ray: pip install -e ".[ray]"')
+    return {"backend": args.backend, "address": args.ray_address}

@@ -11,6 +11,8 @@ import sys
 from pathlib import Path
 from typing import Sequence
 import fvin_mpc.studies.pendulum_v1 as pendulum_v1_module
+from fvin_mpc._cli import add_backend_arguments, backend_options
+from fvin_mpc.studies.pool import TasksFailed
 from fvin_mpc.studies.pendulum_v1 import BenchmarkConfig, ZOO_BEST, plot_returns, run_benchmark, summarize, write_markdown
 
 
@@ -27,7 +29,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--single-start", action="store_true",
                         help="plain MPC: one first guess per episode instead of the multi-start")
     parser.add_argument("--no-reference", action="store_true", help="skip the per-seed episode optimization")
-    parser.add_argument("--workers", type=int, default=1, help="parallel processes (default: %(default)s)")
+    parser.add_argument("--workers", type=int, default=1,
+                        help="parallel processes, or Ray actors with --backend ray (default: %(default)s)")
+    add_backend_arguments(parser)
     parser.add_argument("--out", type=Path, default=Path("docs/pendulum-v1.md"),
                         help="Markdown report; .json and .png next to it (default: %(default)s)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -47,10 +51,14 @@ def main(argv: Sequence[str] | None = None) -> int:
             from fvin_mpc.core.checkpoint import load_checkpoint
 
             load_checkpoint(config.checkpoint)  # a clear error before any worker starts
-        records = run_benchmark(config, args.workers, progress=not args.quiet)
+        backend = backend_options(args)
+        records = run_benchmark(config, args.workers, progress=not args.quiet, **backend)
     except ValueError as error:
         print(f"error: {error}", file=sys.stderr)
         return 2
+    except TasksFailed as error:
+        print(f"error: {error}", file=sys.stderr)
+        return 1
     summary = summarize(records)
     command = "python -m fvin_mpc.pendulum_v1 " + " ".join(shlex.quote(a) for a in argv)
     args.out.parent.mkdir(parents=True, exist_ok=True)

@@ -11,6 +11,8 @@ import importlib
 import sys
 from pathlib import Path
 
+from fvin_mpc._cli import add_backend_arguments, backend_options
+
 #: study name → module (each has ``run(quick, seed, repeats, **options) -> StudyResult`` and
 #: optionally ``add_arguments(parser)`` for its own options).
 STUDIES = {
@@ -39,6 +41,11 @@ def build_parser() -> argparse.ArgumentParser:
         sub.add_argument("--seed", type=int, default=0, help="seeds data, initial states and training (default: %(default)s)")
         if hasattr(module, "add_arguments"):
             module.add_arguments(sub)
+        if getattr(module, "PARALLEL_ROWS", False):
+            sub.add_argument("--workers", type=int, default=1,
+                             help="rows in parallel (processes, or Ray actors with --backend ray); the rows' timings "
+                                  "then include the contention (default: %(default)s)")
+            add_backend_arguments(sub)
     return parser
 
 
@@ -48,11 +55,16 @@ def main(argv: list[str] | None = None) -> int:
     if args.repeats < 1:
         print(f"error: --repeats must be >= 1, got {args.repeats}", file=sys.stderr)
         return 2
+    from fvin_mpc.studies.pool import TasksFailed
     from fvin_mpc.studies.report import StudySkipped, write_study
 
     module = importlib.import_module(STUDIES[args.study])
     options = {k: v for k, v in vars(args).items() if k not in ("study", "quick", "out_dir", "repeats", "seed")}
     try:
+        if "backend" in options:
+            if options["workers"] < 1:
+                raise ValueError(f"--workers must be >= 1, got {options['workers']}")
+            backend_options(args)  # checks --ray-address and that Ray is there
         result = module.run(quick=args.quick, seed=args.seed, repeats=args.repeats, **options)
     except StudySkipped as reason:
         print(f"skipped {args.study}: {reason}", file=sys.stderr)
@@ -60,6 +72,9 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, FileNotFoundError) as error:
         print(f"error: {error}", file=sys.stderr)
         return 2
+    except TasksFailed as error:
+        print(f"error: {error}", file=sys.stderr)
+        return 1
     paths = write_study(result, args.out_dir, argv)
     print(paths["md"].read_text())
     return 0

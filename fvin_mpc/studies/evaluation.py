@@ -21,8 +21,9 @@ torque, controller time per call (median, p95 over all calls) and controller fai
 
 Outputs in ``--out-dir``: ``evaluation.json``, ``evaluation.md`` (tables + command),
 ``time_to_upright.png`` (distribution) and, for a hinge, ``phase_portraits.png``
-(angle from upright vs angular rate). ``--workers N`` runs episodes in N processes; each
-builds its controllers once (the MPC's compiled library comes from the on-disk cache).
+(angle from upright vs angular rate). ``--workers N`` runs episodes in N processes (or, with
+``--backend ray``, N Ray actors, docs/ray.md); each builds its controllers once (the MPC's
+compiled library comes from the on-disk cache).
 """
 
 from __future__ import annotations
@@ -269,8 +270,9 @@ def summarize(records: list[dict[str, Any]]) -> dict[str, Any]:
 
 
 def evaluate(config: EvaluationConfig, workers: int = 1, progress: bool = True,
-             log: Any = None) -> EvaluationResult:
-    """Run ``config.controllers`` over :func:`episode_starts`; ``workers > 1`` uses a process pool.
+             log: Any = None, backend: str = "process", address: str | None = None) -> EvaluationResult:
+    """Run ``config.controllers`` over :func:`episode_starts`; ``workers > 1`` uses a process pool,
+    ``backend="ray"`` Ray actors (``address``: the cluster; :func:`fvin_mpc.studies.pool.run_tasks`).
 
     Controllers that do not apply (or whose default checkpoint is missing) are skipped with a
     message in :attr:`EvaluationResult.skipped` (and on ``log``).
@@ -298,7 +300,8 @@ def evaluate(config: EvaluationConfig, workers: int = 1, progress: bool = True,
         names.append(name)
     episode_list = episode_starts(config)
     tasks = [(name, start) for start in episode_list for name in names]
-    records = run_tasks(run_task, tasks, _init_worker, (config,), workers, progress, f"evaluate {config.scene}")
+    records = run_tasks(run_task, tasks, _init_worker, (config,), workers, progress, f"evaluate {config.scene}",
+                        backend=backend, address=address)
     summary = {name: summarize([r for r in records if r["controller"] == name]) for name in names}
     episodes = []
     for start in episode_list:

@@ -249,14 +249,17 @@ def run_seed(seed: int) -> dict[str, Any]:
     return record
 
 
-def run_benchmark(config: BenchmarkConfig, workers: int = 1, progress: bool = True) -> list[dict[str, Any]]:
-    """Episodes ``seed … seed + episodes − 1``; ``workers > 1`` uses a process pool."""
+def run_benchmark(config: BenchmarkConfig, workers: int = 1, progress: bool = True, backend: str = "process",
+                  address: str | None = None) -> list[dict[str, Any]]:
+    """Episodes ``seed … seed + episodes − 1``; ``workers > 1`` uses a process pool, ``backend="ray"``
+    Ray actors (``address``: the cluster; :func:`fvin_mpc.studies.pool.run_tasks`)."""
     from fvin_mpc.studies.pool import run_tasks
 
-    if workers > 1:
+    if workers > 1 or backend != "process":
         build_mpc(config)  # compiles the MPC's library into the disk cache once, before the workers load it
     seeds = [(config.seed + i,) for i in range(config.episodes)]
-    return run_tasks(run_seed, seeds, _init_worker, (config,), workers, progress, "Pendulum-v1")
+    return run_tasks(run_seed, seeds, _init_worker, (config,), workers, progress, "Pendulum-v1",
+                     backend=backend, address=address)
 
 
 def summarize(records: list[dict[str, Any]]) -> dict[str, Any]:

@@ -27,6 +27,9 @@ from fvin_mpc.learning.timing import torch_threads
 from fvin_mpc.studies.bench.common import NOISE_NOTE, heldout_data, make_env, plot_pareto, solve_stats
 
 WIDTHS = (8, 16, 32, 64)
+#: ``run`` takes ``workers``, ``backend`` and ``ray_address``: its rows go through
+#: :func:`fvin_mpc.studies.pool.run_tasks` (``python -m fvin_mpc.bench`` adds the options).
+PARALLEL_ROWS = True
 VARIANTS = ("sign-invariant", "fixed-inertia")
 
 
@@ -66,13 +69,60 @@ def _trained(data: Any, variant: str, width: int, iterations: int, seed: int, pr
     return load_checkpoint(stem), True
 
 
-def run(quick: bool = False, seed: int = 0, repeats: int = 5, iterations: int = 200, train_trajectories: int = 32,
-        horizon: int = 30, duration: float = 4.0, widths: str = ",".join(map(str, WIDTHS)), **_: Any) -> StudyResult:
+_WORKER: dict[str, Any] = {}
+
+
+def _init_worker(data: Any, heldout: Any, iterations: int, seed: int, horizon: int, duration: float, quick: bool) -> None:
+    _WORKER.clear()
+    _WORKER.update(data=data, heldout=heldout, iterations=iterations, seed=seed, horizon=horizon, duration=duration,
+                   quick=quick, env=make_env("pendulum"))
+
+
+def width_row(variant: str, width: int) -> dict[str, Any]:
+    """One row (in the current worker): the model trained (or from the cache), its held-out rollout
+    error and its MPC's swing-up; ``compile_failure`` says if the MPC fell back to interpreted."""
     from fvin_mpc.control.export import from_checkpoint
     from fvin_mpc.control.mpc import MPCSettings
-    from fvin_mpc.core.networks import LearnedTerms
     from fvin_mpc.core.backend import get_ops
+    from fvin_mpc.core.networks import LearnedTerms
     from fvin_mpc.studies.quality import rollout
+
+    w = _WORKER
+    heldout, quick, seed = w["heldout"], w["quick"], w["seed"]
+    checkpoint, trained_now = _trained(w["data"], variant, width, w["iterations"], seed, progress=False)
+    training = checkpoint.metadata["training"]
+    terms = LearnedTerms(checkpoint.weights, checkpoint.config, get_ops("numpy"))
+    q_hat, _, _ = rollout(terms, checkpoint.config.step_size, checkpoint.config.newton_iters,
+                          heldout.q[:, 0], heldout.omega[:, 0], heldout.u)
+    d = np.clip(np.abs((q_hat * heldout.q).sum(-1)), 0.0, 1.0)
+    angle = 2.0 * np.arctan2(np.sqrt(np.maximum(0.0, 1.0 - d * d)), d)
+    exported = from_checkpoint(checkpoint)
+    settings = replace(MPCSettings(), horizon=w["horizon"], compile="none" if quick else "cached")
+    compile_failure = None
+    try:
+        metrics = solve_stats(w["env"], exported, settings, w["duration"], seed=seed)
+    except RuntimeError as error:  # the C compiler gave up (seen: gcc segfault at width 64)
+        first_line = str(error).splitlines()[0][:160]
+        compile_failure = f"{variant} width {width}: {first_line}"
+        settings = replace(settings, compile="none")
+        metrics = solve_stats(w["env"], exported, settings, w["duration"], seed=seed)
+    return {
+        "variant": variant, "width": width, "parameters": int(sum(np.size(v) for v in checkpoint.weights.values())),
+        "rollout_angle_final_mean": float(angle[:, -1].mean()), "rollout_angle_mean": float(angle.mean()),
+        "validation_loss": training["final_validation_loss"],
+        "train_s": training["wall_clock_s"], "train_s_per_iter": training["seconds_per_iteration"],
+        "trained_now": trained_now,
+        "mpc_ms_median": metrics["solver_ms_median"], "mpc_ms_p95": metrics["solver_ms_p95"],
+        "iterations_mean": metrics["iterations_mean"], "success": metrics["success"],
+        "time_to_upright_s": metrics["time_to_upright_s"], "mpc_build_s": metrics["build_s"],
+        "label": f"{variant[:4]} w{width}", "mpc_compile": settings.compile, "compile_failure": compile_failure,
+    }
+
+
+def run(quick: bool = False, seed: int = 0, repeats: int = 5, iterations: int = 200, train_trajectories: int = 32,
+        horizon: int = 30, duration: float = 4.0, widths: str = ",".join(map(str, WIDTHS)), workers: int = 1,
+        backend: str = "process", ray_address: str | None = None, **_: Any) -> StudyResult:
+    from fvin_mpc.studies.pool import run_tasks
 
     width_list = [4] if quick else [int(w) for w in widths.split(",")]
     variants = ("fixed-inertia",) if quick else VARIANTS
@@ -91,40 +141,15 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 5, iterations: int = 
         heldout = collect("pendulum", 8, 10, 1, progress=False)
     else:
         heldout = heldout_data("pendulum", seed=1)
-    env = make_env("pendulum")
-    numpy_ops = get_ops("numpy")
-    rows: list[dict[str, Any]] = []
-    compile_failures: list[str] = []
-    for variant in variants:
-        for width in width_list:
-            checkpoint, trained_now = _trained(data, variant, width, iterations, seed, progress=not quick)
-            training = checkpoint.metadata["training"]
-            terms = LearnedTerms(checkpoint.weights, checkpoint.config, numpy_ops)
-            q_hat, _, _ = rollout(terms, checkpoint.config.step_size, checkpoint.config.newton_iters,
-                                  heldout.q[:, 0], heldout.omega[:, 0], heldout.u)
-            d = np.clip(np.abs((q_hat * heldout.q).sum(-1)), 0.0, 1.0)
-            angle = 2.0 * np.arctan2(np.sqrt(np.maximum(0.0, 1.0 - d * d)), d)
-            exported = from_checkpoint(checkpoint)
-            settings = replace(MPCSettings(), horizon=horizon, compile="none" if quick else "cached")
-            try:
-                metrics = solve_stats(env, exported, settings, duration, seed=seed)
-            except RuntimeError as error:  # the C compiler gave up (seen: gcc segfault at width 64)
-                first_line = str(error).splitlines()[0][:160]
-                compile_failures.append(f"{variant} width {width}: {first_line}")
-                settings = replace(settings, compile="none")
-                metrics = solve_stats(env, exported, settings, duration, seed=seed)
-            rows.append({
-                "variant": variant, "width": width, "parameters": int(sum(np.size(w) for w in checkpoint.weights.values())),
-                "rollout_angle_final_mean": float(angle[:, -1].mean()), "rollout_angle_mean": float(angle.mean()),
-                "validation_loss": training["final_validation_loss"],
-                "train_s": training["wall_clock_s"], "train_s_per_iter": training["seconds_per_iteration"],
-                "trained_now": trained_now,
-                "mpc_ms_median": metrics["solver_ms_median"], "mpc_ms_p95": metrics["solver_ms_p95"],
-                "iterations_mean": metrics["iterations_mean"], "success": metrics["success"],
-                "time_to_upright_s": metrics["time_to_upright_s"], "mpc_build_s": metrics["build_s"],
-                "label": f"{variant[:4]} w{width}", "mpc_compile": settings.compile,
-            })
-    env.close()
+    # Rows are independent (each trains, rolls out and swings up its own model): they go through the
+    # one execution backend, serially by default (``--workers``/``--backend`` to spread them).
+    rows = run_tasks(width_row, [(variant, width) for variant in variants for width in width_list], _init_worker,
+                     (data, heldout, iterations, seed, horizon, duration, quick), workers, not quick, "width study",
+                     backend=backend, address=ray_address)
+    compile_failures = [row.pop("compile_failure") for row in rows]
+    compile_failures = [failure for failure in compile_failures if failure]
+    if "env" in _WORKER:  # ran in this process
+        _WORKER.pop("env").close()
     notes = [
         f"Training: {iterations} full-batch Adam iterations (eager torch, one thread, no `torch.compile`: its ≈ 75 s of "
         f"compilation per model would exceed the training itself), window 8, on {train_trajectories} trajectories of "
@@ -137,6 +162,10 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 5, iterations: int = 
         f"swing-up from rest for {duration:g} s; `mpc_build_s` includes gcc on the first run.",
         NOISE_NOTE,
     ]
+    if workers > 1:
+        notes.insert(2, f"Rows ran concurrently on {workers} workers ({backend} backend): each row's timings (training, "
+                        "MPC solves) include the contention of the others; compare them with a `--workers 1` run "
+                        "only as ratios.")
     if compile_failures:
         notes.insert(2, "**Compiling the MPC's functions failed** for " + "; ".join(compile_failures)
                      + " — that row's MPC ran interpreted (`mpc_compile` = none), so its solve time is not comparable "
