@@ -482,6 +482,23 @@ def _train(data: TrajectoryData, config: ModelConfig, settings: TrainSettings, p
     return model, report
 
 
+def split_losses(weights: Mapping[str, Any], config: ModelConfig, data: TrajectoryData,
+                 settings: TrainSettings = TrainSettings()) -> tuple[float, float]:
+    """``(train, validation)`` rollout losses of a model with ``weights`` on ``data``, split and
+    windowed as :func:`train` does with ``settings`` (e.g. a shipped checkpoint on new data)."""
+    import torch
+
+    from fvin_mpc.learning.model import DTYPE, S3FVIN
+
+    model = S3FVIN(config, weights)
+    losses = []
+    for subset in split_data(data, settings.validation_fraction, settings.seed):
+        windows = tuple(torch.as_tensor(a, dtype=DTYPE) for a in subset.windows(settings.window))
+        with torch.no_grad():
+            losses.append(rollout_loss(model, *windows, settings.omega_weight).item())
+    return losses[0], losses[1]
+
+
 def reference_iteration(variant: str, windows: int, steps: int, compile: bool, seed: int = 0) -> tuple[Any, float]:
     """The reference workload of ``bench train-speed``: one full-batch Adam iteration (rollout,
     loss, backward, step) on ``windows`` random windows of ``steps`` steps, hidden width 10.
