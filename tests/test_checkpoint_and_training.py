@@ -10,7 +10,7 @@ from fvin_mpc.core.checkpoint import CheckpointError, load_checkpoint, save_chec
 from fvin_mpc.core.data import load_data, save_data
 from fvin_mpc.core.networks import ModelConfig, init_weights
 from fvin_mpc.core.rigid_body import PENDULUM
-from synthetic import synthetic_hinge_data
+from helpers import synthetic_hinge_data
 
 NP = get_ops("numpy")
 
