@@ -128,41 +128,30 @@ MIN_CONTROL_PERIOD = 0.02
 
 _ACTUATED = ScenePhysics(gravity=True, joint_damping=False, dry_friction=False, actuator_limits=True, contact=False)
 
+def _built_in(name: str, physics: ScenePhysics, **task: Any) -> SceneSpec:
+    """A scene of ``envs/scenes/<name>.xml``: the built-in MJCFs all observe the body ``pendulum``
+    and are controlled at 50 ms (ten RK4 steps of 5 ms)."""
+    return SceneSpec(name=name, xml_path=SCENE_DIR / f"{name}.xml", body="pendulum", control_period=0.05,
+                     physics=physics, **task)
+
+
 SCENES: dict[str, SceneSpec] = {
     spec.name: spec
     for spec in (
-        SceneSpec(
-            name="pendulum",
-            xml_path=SCENE_DIR / "pendulum.xml",
-            body="pendulum",
-            control_period=0.05,
-            physics=_ACTUATED,
-            # The 1.5 s horizon is shorter than a swing-up from near hanging; the terminal energy
-            # cost (on by default) makes pumping pay inside it (docs/evaluation.md).
-        ),
-        SceneSpec(
-            name="pendulum_damped",
-            xml_path=SCENE_DIR / "pendulum_damped.xml",
-            body="pendulum",
-            control_period=0.05,
-            physics=replace(_ACTUATED, joint_damping=True),
-            # At horizons 30 and 40 the plan settles on a local optimum that never swings up, with the
-            # learned and the closed-form model alike; 2.5 s escapes it (docs/scenes.md). Tuned
-            # without the terminal energy cost.
-            mpc={"horizon": 50, "terminal_energy_weight": 0.0},
-        ),
-        SceneSpec(
-            name="spherical_pendulum",
-            xml_path=SCENE_DIR / "spherical_pendulum.xml",
-            body="pendulum",
-            control_period=0.05,
-            physics=_ACTUATED,
-            # 1.5 N·m against 6 N·m of gravity torque about a slow axis needs several pumps: with a
-            # 1.5 s horizon the plan stalls near the bottom, with 2.5 s it swings up; cold solves
-            # from rest take ≈ 130 IPOPT iterations (docs/spherical.md). The terminal energy cost
-            # does not help on a ball joint (the energy can sit in a conical swing).
-            mpc={"horizon": 50, "max_iter": 300, "terminal_energy_weight": 0.0},
-        ),
+        # The 1.5 s horizon is shorter than a swing-up from near hanging; the terminal energy cost
+        # (on by default) makes pumping pay inside it (docs/evaluation.md).
+        _built_in("pendulum", _ACTUATED),
+        # At horizons 30 and 40 the plan settles on a local optimum that never swings up, with the
+        # learned and the closed-form model alike; 2.5 s escapes it (docs/scenes.md). Tuned without
+        # the terminal energy cost.
+        _built_in("pendulum_damped", replace(_ACTUATED, joint_damping=True),
+                  mpc={"horizon": 50, "terminal_energy_weight": 0.0}),
+        # 1.5 N·m against 6 N·m of gravity torque about a slow axis needs several pumps: with a 1.5 s
+        # horizon the plan stalls near the bottom, with 2.5 s it swings up; cold solves from rest take
+        # ≈ 130 IPOPT iterations (docs/spherical.md). The terminal energy cost does not help on a ball
+        # joint (the energy can sit in a conical swing).
+        _built_in("spherical_pendulum", _ACTUATED,
+                  mpc={"horizon": 50, "max_iter": 300, "terminal_energy_weight": 0.0}),
     )
 }
 

@@ -66,6 +66,12 @@ def add_latency_argument(parser: argparse.ArgumentParser, default: str = "none")
                              "compute time (real-time claims); SECONDS: a fixed delay (deterministic)")
 
 
+def add_closed_loop_arguments(parser: argparse.ArgumentParser) -> None:
+    """What a closed-loop command needs beyond the scene: ``--latency`` and the MPC settings."""
+    add_latency_argument(parser)
+    add_mpc_arguments(parser)
+
+
 def mpc_overrides(args: argparse.Namespace) -> dict[str, Any]:
     """The :func:`~fvin_mpc.control.scene.scene_mpc_settings` overrides the options ask for."""
     overrides = {field: getattr(args, option[2:].replace("-", "_")) for option, (field, _, _) in MPC_OPTIONS.items()}
@@ -76,9 +82,11 @@ def mpc_overrides(args: argparse.Namespace) -> dict[str, Any]:
     return overrides
 
 
-def add_backend_arguments(parser: argparse.ArgumentParser) -> None:
-    """``--backend process|ray`` and ``--ray-address`` (:func:`fvin_mpc.studies.pool.run_tasks`)."""
+def add_backend_arguments(parser: argparse.ArgumentParser,
+                          workers_help: str = "parallel processes, or Ray actors with --backend ray") -> None:
+    """``--workers``, ``--backend process|ray`` and ``--ray-address`` (:func:`fvin_mpc.studies.pool.run_tasks`)."""
     group = parser.add_argument_group("execution backend")
+    group.add_argument("--workers", type=int, default=1, help=f"{workers_help} (default: %(default)s)")
     group.add_argument("--backend", choices=["process", "ray"], default="process",
                        help="process: this machine (serial, or --workers spawned processes; default); ray: --workers "
                             "Ray actors of one CPU each, on the cluster at --ray-address / $RAY_ADDRESS, else on a "
@@ -89,7 +97,10 @@ def add_backend_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def backend_options(args: argparse.Namespace) -> dict[str, Any]:
-    """``backend`` and ``address`` for :func:`~fvin_mpc.studies.pool.run_tasks`; ``--ray-address`` needs ``--backend ray``."""
+    """``backend`` and ``address`` for :func:`~fvin_mpc.studies.pool.run_tasks`; ``ValueError`` for
+    ``--workers`` below 1, ``--ray-address`` without ``--backend ray``, or Ray missing."""
+    if args.workers < 1:
+        raise ValueError(f"--workers must be >= 1, got {args.workers}")
     if args.ray_address is not None and args.backend != "ray":
         raise ValueError("--ray-address needs --backend ray")
     if args.backend == "ray":
@@ -98,3 +109,14 @@ def backend_options(args: argparse.Namespace) -> dict[str, Any]:
         if importlib.util.find_spec("ray") is None:
             raise ValueError('--backend ray needs Ray: pip install -e ".[ray]"')
     return {"backend": args.backend, "address": args.ray_address}
+
+
+def exit_status(error: Exception) -> int:
+    """Print a command's error on stderr; its exit status: 1 for tasks that failed while running
+    (:class:`~fvin_mpc.studies.pool.TasksFailed`, their inputs listed), 2 for input the command refused."""
+    import sys
+
+    from fvin_mpc.studies.pool import TasksFailed
+
+    print(f"error: {error}", file=sys.stderr)
+    return 1 if isinstance(error, TasksFailed) else 2

@@ -4,16 +4,19 @@ The command line of :mod:`fvin_mpc.studies.evaluation`, whose docstring (the met
 """
 
 from __future__ import annotations
+
 import argparse
 import json
 import shlex
 import sys
 from pathlib import Path
 from typing import Sequence
+
 import fvin_mpc.studies.evaluation as evaluation_module
-from fvin_mpc._cli import (add_backend_arguments, add_latency_argument, add_mpc_arguments, add_scene_arguments,
-                           backend_options, mpc_overrides)
-from fvin_mpc.studies.evaluation import CONTROLLERS, DEFAULT_MAX_OMEGA, EvaluationConfig, evaluate, make_env, summary_table, write_report
+from fvin_mpc._cli import (add_backend_arguments, add_closed_loop_arguments, add_scene_arguments, backend_options,
+                           exit_status, mpc_overrides)
+from fvin_mpc.studies.evaluation import (CONTROLLERS, DEFAULT_MAX_OMEGA, EvaluationConfig, evaluate, make_env,
+                                         summary_table, write_report)
 from fvin_mpc.studies.pool import TasksFailed
 
 
@@ -28,15 +31,12 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--seed", type=int, default=0, help="base seed of the initial states (default: %(default)s)")
     parser.add_argument("--max-omega", type=float, default=DEFAULT_MAX_OMEGA,
                         help="largest |ω| of the random initial states, rad/s (default: %(default)s)")
-    parser.add_argument("--workers", type=int, default=1,
-                        help="parallel processes, or Ray actors with --backend ray (default: %(default)s)")
     add_backend_arguments(parser)
     parser.add_argument("--out-dir", type=Path, default=Path("docs/evaluation"),
                         help="where evaluation.{json,md} and the plots go (default: %(default)s)")
     parser.add_argument("--json", type=Path, default=None, help="also write the JSON result here")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
-    add_latency_argument(parser)
-    add_mpc_arguments(parser)
+    add_closed_loop_arguments(parser)
     return parser
 
 
@@ -51,17 +51,11 @@ def main(argv: Sequence[str] | None = None) -> int:
             max_omega=args.max_omega, control_period=args.control_period,
             mpc=tuple((name, value) for name, value in mpc_overrides(args).items() if value is not None),
             latency=args.latency)
-        if args.workers < 1:
-            raise ValueError(f"--workers must be >= 1, got {args.workers}")
         backend = backend_options(args)
         make_env(config).close()  # fails early on an unknown scene
         result = evaluate(config, workers=args.workers, progress=not args.quiet, **backend)
-    except (ValueError, FileNotFoundError) as error:
-        print(f"error: {error}", file=sys.stderr)
-        return 2
-    except TasksFailed as error:
-        print(f"error: {error}", file=sys.stderr)
-        return 1
+    except (ValueError, FileNotFoundError, TasksFailed) as error:
+        return exit_status(error)
     if not result.summary:
         print("error: no controller applies to this scene", file=sys.stderr)
         return 2

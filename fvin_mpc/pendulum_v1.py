@@ -4,16 +4,19 @@ The command line of :mod:`fvin_mpc.studies.pendulum_v1`, whose docstring (the me
 """
 
 from __future__ import annotations
+
 import argparse
 import json
 import shlex
 import sys
 from pathlib import Path
 from typing import Sequence
+
 import fvin_mpc.studies.pendulum_v1 as pendulum_v1_module
-from fvin_mpc._cli import add_backend_arguments, backend_options
+from fvin_mpc._cli import add_backend_arguments, backend_options, exit_status
+from fvin_mpc.studies.pendulum_v1 import (ZOO_BEST, BenchmarkConfig, plot_returns, run_benchmark, summarize,
+                                          write_markdown)
 from fvin_mpc.studies.pool import TasksFailed
-from fvin_mpc.studies.pendulum_v1 import BenchmarkConfig, ZOO_BEST, plot_returns, run_benchmark, summarize, write_markdown
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -29,8 +32,6 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--single-start", action="store_true",
                         help="plain MPC: one first guess per episode instead of the multi-start")
     parser.add_argument("--no-reference", action="store_true", help="skip the per-seed episode optimization")
-    parser.add_argument("--workers", type=int, default=1,
-                        help="parallel processes, or Ray actors with --backend ray (default: %(default)s)")
     add_backend_arguments(parser)
     parser.add_argument("--out", type=Path, default=Path("docs/pendulum-v1.md"),
                         help="Markdown report; .json and .png next to it (default: %(default)s)")
@@ -42,8 +43,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     args = build_parser().parse_args(argv)
     try:
-        if args.workers < 1:
-            raise ValueError(f"--workers must be >= 1, got {args.workers}")
         config = BenchmarkConfig(checkpoint=args.checkpoint, true_model=args.true_model, horizon=args.horizon,
                                  episodes=args.episodes, seed=args.seed, reference=not args.no_reference,
                                  multistart=not args.single_start, terminal_energy_weight=args.energy_weight)
@@ -53,12 +52,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             load_checkpoint(config.checkpoint)  # a clear error before any worker starts
         backend = backend_options(args)
         records = run_benchmark(config, args.workers, progress=not args.quiet, **backend)
-    except ValueError as error:
-        print(f"error: {error}", file=sys.stderr)
-        return 2
-    except TasksFailed as error:
-        print(f"error: {error}", file=sys.stderr)
-        return 1
+    except (ValueError, FileNotFoundError, TasksFailed) as error:
+        return exit_status(error)
     summary = summarize(records)
     command = "python -m fvin_mpc.pendulum_v1 " + " ".join(shlex.quote(a) for a in argv)
     args.out.parent.mkdir(parents=True, exist_ok=True)

@@ -55,10 +55,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--iterations", type=int, default=None, help="most iterations per run (default: the optimizer's)")
     parser.add_argument("--patience", type=int, default=None, help="early-stopping patience (default: train's)")
     parser.add_argument("--time-limit", type=float, default=None, help="seconds of training per run (default: none)")
-    parser.add_argument("--workers", type=int, default=1,
-                        help="runs in parallel: processes, or Ray actors with --backend ray; each run uses one "
-                             "torch thread (default: %(default)s)")
-    add_backend_arguments(parser)
+    add_backend_arguments(parser, "runs in parallel: processes, or Ray actors with --backend ray; each run uses one "
+                                  "torch thread")
     parser.add_argument("--out-dir", type=Path, default=Path("checkpoints/sweep"),
                         help="checkpoints, sweep.md and sweep.json (default: %(default)s)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -71,8 +69,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     train = {"optimizer": args.optimizer, "iterations": args.iterations, "patience": args.patience,
              "time_limit_s": args.time_limit}
     try:
-        if args.workers < 1:
-            raise ValueError(f"--workers must be >= 1, got {args.workers}")
         config = SweepConfig(data=str(args.data), variants=args.variants, widths=args.widths, seeds=args.seeds,
                              sizes=args.sizes, subset_seed=args.seed, hidden_layers=args.hidden_layers,
                              dissipation=args.dissipation,

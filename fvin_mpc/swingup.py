@@ -14,9 +14,11 @@ import json
 import sys
 from pathlib import Path
 from typing import Any, Sequence
+
 import numpy as np
+
+from fvin_mpc._cli import add_closed_loop_arguments, add_scene_arguments, mpc_overrides
 from fvin_mpc.control.closed_loop import episode_metrics, plot_episode, run_episode, write_video
-from fvin_mpc._cli import add_latency_argument, add_mpc_arguments, add_scene_arguments, mpc_overrides
 from fvin_mpc.control.scene import scene_env, scene_model, scene_mpc, scene_mpc_settings
 
 
@@ -49,8 +51,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--plot", type=Path, default=Path("swingup.png"), help="plot path ('' for none)")
     parser.add_argument("--video", type=Path, default=None, help="render an MP4 (headless: MUJOCO_GL=egl)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
-    add_latency_argument(parser)
-    add_mpc_arguments(parser)
+    add_closed_loop_arguments(parser)
     return parser
 
 

@@ -208,6 +208,16 @@ rotation_vector_batches = st.lists(st.tuples(S.unit_vectors(), _SMALL_NORMS).map
                                    min_size=1, max_size=6).map(np.array)
 
 
+def on_every_backend(examples: int, **strategies_of_arguments):
+    """The decorators of an identity test: every backend, ``examples`` Hypothesis cases each (counted)."""
+    def decorate(test):
+        test = S.counted(test)
+        test = given(**strategies_of_arguments)(test)
+        test = settings(max_examples=S.budget(examples))(test)
+        return pytest.mark.parametrize("backend", BACKENDS)(test)
+    return decorate
+
+
 def _exp_log(ops, q):
     return s3.exp(s3.log(q, ops), ops)
 
@@ -251,29 +261,20 @@ def _H_adjoint(ops, q, x, y4):
     return s3.dot(s3.H_apply(q, y4), x), s3.dot(y4, s3.H_transpose_apply(q, x)), s3.H_apply(q, q)
 
 
-@pytest.mark.parametrize("backend", BACKENDS)
-@settings(max_examples=S.budget(25))
-@given(q=quaternion_batches())
-@S.counted
+@on_every_backend(25, q=quaternion_batches())
 def test_exp_of_log_is_plus_or_minus_q(backend, q):
     back = evaluate(backend, _exp_log, q)
     error = np.minimum(np.abs(back - q).max(1), np.abs(back + q).max(1))
     assert error.max() <= 1e-14, (q, back)
 
 
-@pytest.mark.parametrize("backend", BACKENDS)
-@settings(max_examples=S.budget(25))
-@given(v=rotation_vector_batches)
-@S.counted
+@on_every_backend(25, v=rotation_vector_batches)
 def test_log_of_exp_is_v_below_a_quarter_turn(backend, v):
     back = evaluate(backend, _log_exp, v)
     assert np.all(np.abs(back - v) <= 1e-15 + 1e-12 * np.linalg.norm(v, axis=1, keepdims=True)), (v, back - v)
 
 
-@pytest.mark.parametrize("backend", BACKENDS)
-@settings(max_examples=S.budget(25))
-@given(v=st.one_of(rotation_vector_batches, vector_batches(low=-10.0, high=10.0)))
-@S.counted
+@on_every_backend(25, v=st.one_of(rotation_vector_batches, vector_batches(low=-10.0, high=10.0)))
 def test_exp_is_a_unit_quaternion_rotating_by_twice_the_norm(backend, v):
     q = evaluate(backend, _exp, v)
     close(np.linalg.norm(q, axis=1), 1.0, atol=2e-16 * 4)
@@ -281,20 +282,14 @@ def test_exp_is_a_unit_quaternion_rotating_by_twice_the_norm(backend, v):
     close(q[:, 0], np.cos(norm), atol=1e-15)  # DESIGN.md: no half angle
 
 
-@pytest.mark.parametrize("backend", BACKENDS)
-@settings(max_examples=S.budget(25))
-@given(q=quaternion_batches())
-@S.counted
+@on_every_backend(25, q=quaternion_batches())
 def test_q_times_its_conjugate_is_the_identity(backend, q):
     out = evaluate(backend, _times_conjugate, q)
     identity = np.tile([1.0, 0.0, 0.0, 0.0], 2)
     close(out, identity, atol=1e-15)  # |q|² = 1 to rounding
 
 
-@pytest.mark.parametrize("backend", BACKENDS)
-@settings(max_examples=S.budget(25))
-@given(p=quaternion_batches(3), q=quaternion_batches(3), r=quaternion_batches(3))
-@S.counted
+@on_every_backend(25, p=quaternion_batches(3), q=quaternion_batches(3), r=quaternion_batches(3))
 def test_product_is_associative_and_is_the_hamilton_product(backend, p, q, r):
     n = min(len(p), len(q), len(r))
     p, q, r = p[:n], q[:n], r[:n]
@@ -303,10 +298,7 @@ def test_product_is_associative_and_is_the_hamilton_product(backend, p, q, r):
     close(evaluate(backend, _product, p, q), independent, atol=1e-15)
 
 
-@pytest.mark.parametrize("backend", BACKENDS)
-@settings(max_examples=S.budget(25))
-@given(p=quaternion_batches(4), q=quaternion_batches(4))
-@S.counted
+@on_every_backend(25, p=quaternion_batches(4), q=quaternion_batches(4))
 def test_rotation_matrix_orthonormal_det_one_and_a_homomorphism(backend, p, q):
     n = min(len(p), len(q))
     p, q = p[:n], q[:n]
@@ -318,10 +310,7 @@ def test_rotation_matrix_orthonormal_det_one_and_a_homomorphism(backend, p, q):
     close(evaluate(backend, _rotation_of_product, p, q).reshape(n, 3, 3), rp @ rq, atol=1e-14)
 
 
-@pytest.mark.parametrize("backend", BACKENDS)
-@settings(max_examples=S.budget(25))
-@given(q=quaternion_batches(4), x=vector_batches(4), y=vector_batches(4))
-@S.counted
+@on_every_backend(25, q=quaternion_batches(4), x=vector_batches(4), y=vector_batches(4))
 def test_G_transpose_and_H_transpose_are_products_with_a_pure_quaternion(backend, q, x, y):
     """``G(q)ᵀx = Im(q ⊗ (0,x))``, ``H(q)ᵀx = q ⊗ (0,x)`` (DESIGN.md), ``G_apply`` the adjoint of
     ``G_transpose_apply``, and ``G(q) = q_s I − [q_v]×`` as a matrix."""
@@ -339,10 +328,8 @@ def test_G_transpose_and_H_transpose_are_products_with_a_pure_quaternion(backend
     close(out[:, 16:19], np.einsum("nij,nj->ni", g_matrix, x), atol=1e-14)
 
 
-@pytest.mark.parametrize("backend", BACKENDS)
-@settings(max_examples=S.budget(25))
-@given(q=quaternion_batches(4), x=vector_batches(4), y=st.lists(S.vectors(4, -3.0, 3.0), min_size=4, max_size=4).map(np.array))
-@S.counted
+@on_every_backend(25, q=quaternion_batches(4), x=vector_batches(4),
+                  y=st.lists(S.vectors(4, -3.0, 3.0), min_size=4, max_size=4).map(np.array))
 def test_H_is_the_adjoint_of_H_transpose_and_annihilates_q(backend, q, x, y):
     n = min(len(q), len(x))
     out = evaluate(backend, _H_adjoint, q[:n], x[:n], y[:n])

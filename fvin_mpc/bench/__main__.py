@@ -11,7 +11,7 @@ import importlib
 import sys
 from pathlib import Path
 
-from fvin_mpc._cli import add_backend_arguments, backend_options
+from fvin_mpc._cli import add_backend_arguments, backend_options, exit_status
 
 #: study name → module (each has ``run(quick, seed, repeats, **options) -> StudyResult`` and
 #: optionally ``add_arguments(parser)`` for its own options).
@@ -42,10 +42,8 @@ def build_parser() -> argparse.ArgumentParser:
         if hasattr(module, "add_arguments"):
             module.add_arguments(sub)
         if getattr(module, "PARALLEL_ROWS", False):
-            sub.add_argument("--workers", type=int, default=1,
-                             help="rows in parallel (processes, or Ray actors with --backend ray); the rows' timings "
-                                  "then include the contention (default: %(default)s)")
-            add_backend_arguments(sub)
+            add_backend_arguments(sub, "rows in parallel (processes, or Ray actors with --backend ray); the rows' "
+                                       "timings then include the contention")
     return parser
 
 
@@ -62,19 +60,13 @@ def main(argv: list[str] | None = None) -> int:
     options = {k: v for k, v in vars(args).items() if k not in ("study", "quick", "out_dir", "repeats", "seed")}
     try:
         if "backend" in options:
-            if options["workers"] < 1:
-                raise ValueError(f"--workers must be >= 1, got {options['workers']}")
-            backend_options(args)  # checks --ray-address and that Ray is there
+            backend_options(args)  # checks --workers, --ray-address and that Ray is there
         result = module.run(quick=args.quick, seed=args.seed, repeats=args.repeats, **options)
     except StudySkipped as reason:
         print(f"skipped {args.study}: {reason}", file=sys.stderr)
         return 0
-    except (ValueError, FileNotFoundError) as error:
-        print(f"error: {error}", file=sys.stderr)
-        return 2
-    except TasksFailed as error:
-        print(f"error: {error}", file=sys.stderr)
-        return 1
+    except (ValueError, FileNotFoundError, TasksFailed) as error:
+        return exit_status(error)
     paths = write_study(result, args.out_dir, argv)
     print(paths["md"].read_text())
     return 0

@@ -23,18 +23,18 @@ Optimizers (``docs/training.md`` has measurements):
 
 from __future__ import annotations
 
-import contextlib
 import math
 import os
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any, Iterator, Literal, Mapping
+from typing import Any, Literal, Mapping
 
 import numpy as np
 
 from fvin_mpc.core.data import TrajectoryData
 from fvin_mpc.core.networks import ModelConfig
+from fvin_mpc.learning.timing import torch_threads
 
 DEFAULT_DATA = Path("data/pendulum.npz")
 
@@ -134,19 +134,6 @@ def safe_thread_count(cores: int | None = None, load: float | None = None) -> in
     cores = available_cores() if cores is None else cores
     load = os.getloadavg()[0] if load is None else load
     return max(1, min(cores, int(math.floor(cores - load))))
-
-
-@contextlib.contextmanager
-def torch_threads(threads: int) -> Iterator[None]:
-    """Run the block with ``threads`` torch intra-op threads, restoring the previous count."""
-    import torch
-
-    previous = torch.get_num_threads()
-    torch.set_num_threads(threads)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(previous)
 
 
 # ---------------------------------------------------------------------------- scene facts

@@ -88,7 +88,7 @@ def _fresh_process(data: Path, mode: str, target: float, threads: int, seed: int
 
 def run(quick: bool = False, seed: int = 0, repeats: int = 5, threads: int = 1, modes: str = "eager,compiled",
         optimizers: str = ",".join(MODES), to_target: bool = True, time_limit: float = 600.0, **_: Any) -> StudyResult:
-    from fvin_mpc.learning.training import torch_threads
+    from fvin_mpc.learning.timing import torch_threads
 
     with torch_threads(threads):
         result = _per_iteration(quick, seed, repeats, ["eager"] if quick else modes.split(","))
