@@ -118,6 +118,11 @@ class MPCSettings:
         rti_cold_iter: iterations per cold-start guess on a cold call (after ``reset()``) …
         rti_cold_budget_s: … within this wall-clock budget (s) over all guesses; when it runs out the
             best plan so far is used (``info["status"] = "budget"``).
+        rti_cold_solver: how a cold call (after ``reset()``) of ``solver="rti"`` gets its first plan:
+            ``"rti"`` (budgeted Gauss–Newton iterations from the first guesses: the call stays within
+            ``rti_cold_budget_s``) or ``"ipopt"`` (the IPOPT MPC solved to convergence once, multi-start as
+            ``cold_starts``: a better first plan, but the first call takes as long as IPOPT needs —
+            deadline misses at the start in latency-aware runs).
         rti_regularization: Levenberg–Marquardt term added to the Gauss–Newton Hessian of the QP.
         rti_omega_penalty: ``solver="rti"``: weight on the squared excess of each ``|ω_i|`` over its
             bound (the real-time iteration's soft form of the ``ω`` bound).
@@ -154,6 +159,7 @@ class MPCSettings:
     rti_tol: float = 1e-3
     rti_cold_iter: int = 10
     rti_cold_budget_s: float = 0.02
+    rti_cold_solver: Literal["rti", "ipopt"] = "rti"
     rti_regularization: float = 1e-6
     rti_omega_penalty: float = 100.0
     rti_qp_solver: Literal["riccati", "hpipm", "qrqp", "osqp"] = "riccati"
@@ -182,6 +188,8 @@ class MPCSettings:
         if not (self.rti_budget_s >= 0.0 and self.rti_cold_budget_s >= 0.0 and self.rti_regularization >= 0.0
                 and self.rti_omega_penalty >= 0.0):
             raise ValueError("rti_budget_s, rti_cold_budget_s, rti_regularization and rti_omega_penalty must be >= 0")
+        if self.rti_cold_solver not in ("rti", "ipopt"):
+            raise ValueError(f"unknown rti_cold_solver {self.rti_cold_solver!r}")
         if self.rti_qp_iterations < 1:
             raise ValueError(f"rti_qp_iterations must be >= 1, got {self.rti_qp_iterations}")
         if self.rti_qp_solver not in ("riccati", "hpipm", "qrqp", "osqp"):

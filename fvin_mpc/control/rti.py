@@ -245,6 +245,10 @@ class RealTimeMPC(MPC):
         if settings.solver != "rti":
             settings = MPCSettings(**{**settings.__dict__, "solver": "rti"})
         super().__init__(model, settings, goal, torque_low, torque_high, rest)
+        self._cold_mpc = None
+        if settings.rti_cold_solver == "ipopt":
+            self._cold_mpc = MPC(model, MPCSettings(**{**settings.__dict__, "solver": "ipopt"}), goal, torque_low,
+                                 torque_high, rest)
         self.reset()
 
     # ------------------------------------------------------------------ problem
@@ -510,7 +514,19 @@ class RealTimeMPC(MPC):
         s = self.settings
         extra: dict[str, Any] = {}
         self._estimate_disturbance(x0)
-        if self._plan is None:  # cold: each first guess, a few iterations, within the cold budget
+        if self._plan is None and self._cold_mpc is not None:  # cold: IPOPT to convergence, once
+            self._cold_mpc.reset()
+            _, cold_info = self._cold_mpc(x0)
+            self._plan = _Plan(np.asarray(cold_info["states"], dtype=float).copy(),
+                               np.asarray(cold_info["controls"], dtype=float).copy(), None, None)
+            self._plan.states[0] = x0
+            extra = {"cold_start": cold_info.get("cold_start"), "cold_solver": "ipopt",
+                     "cold_ipopt_success": cold_info["success"]}
+            plan, iterations, status, _ = self._improve(self._plan, x0, 1, start, None)
+            fallback, success = None, plan is not None
+            if plan is None:
+                plan, fallback = self._plan, "previous-plan"
+        elif self._plan is None:  # cold: each first guess, a few iterations, within the cold budget
             deadline = start + s.rti_cold_budget_s
             best: tuple[float, _Plan, str] | None = None
             costs: dict[str, float] = {}
