@@ -14,7 +14,7 @@ from typing import Sequence
 
 import fvin_mpc.studies.pendulum_v1 as pendulum_v1_module
 from fvin_mpc._cli import add_backend_arguments, backend_options, exit_status
-from fvin_mpc.studies.pendulum_v1 import (ZOO_BEST, BenchmarkConfig, plot_returns, run_benchmark, summarize,
+from fvin_mpc.studies.pendulum_v1 import (BenchmarkConfig, plot_returns, run_benchmark, summarize,
                                           write_markdown)
 from fvin_mpc.studies.pool import TasksFailed
 
@@ -60,9 +60,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     label = "MPC (true model)" if config.true_model else "MPC (learned)"
     plot_returns(records, args.out.with_suffix(".png"), label)
     write_markdown(summary, records, config, command.strip(), args.out)
-    slim = [{k: v for k, v in r.items() if k not in ("controls", "controller_time_s")} for r in records]
-    args.out.with_suffix(".json").write_text(json.dumps({"config": config.__dict__, "summary": summary,
-                                                         "zoo_best": ZOO_BEST, "episodes": slim}, indent=1) + "\n")
     print(json.dumps(summary, indent=2))
     print(f"wrote {args.out}, {args.out.with_suffix('.json')}, {args.out.with_suffix('.png')}", file=sys.stderr)
     return 0

@@ -31,8 +31,7 @@ def test_notebook_executes(path, monkeypatch):
     from fvin_mpc.core.checkpoint import CHECKPOINT_DIR
 
     missing = [name for name in REQUIRED_CHECKPOINTS if not (CHECKPOINT_DIR / f"{name}.json").exists()]
-    if missing:
-        pytest.skip(f"shipped checkpoints missing: {missing}")
+    assert not missing, f"shipped checkpoints missing: {missing}"  # a failure, not a skip
     monkeypatch.setenv("MPLBACKEND", "Agg")
     monkeypatch.setenv("OMP_NUM_THREADS", "1")
     notebook = nbformat.read(path, as_version=4)

@@ -107,7 +107,7 @@ def test_solve3_inverts_random_matrices():
 
 
 def test_torch_gradients_finite_at_zero_rotation():
-    torch = pytest.importorskip("torch")
+    import torch
     ops = get_ops("torch")
     v = torch.zeros(3, dtype=torch.float64, requires_grad=True)
     q = s3.exp(tuple(v.unbind()), ops)
@@ -120,7 +120,7 @@ def test_torch_gradients_finite_at_zero_rotation():
 
 
 def test_casadi_derivatives_finite_at_zero_rotation():
-    ca = pytest.importorskip("casadi")
+    import casadi as ca
     ops = get_ops("casadi")
     v = ca.SX.sym("v", 3)
     q = ca.vertcat(*s3.exp(tuple(v[i] for i in range(3)), ops))
@@ -162,7 +162,7 @@ def _flatten(value):
 @functools.lru_cache(maxsize=None)
 def _casadi_function(fn, dims):
     """``fn`` traced once on SX symbols (one per input component) as a CasADi Function."""
-    ca = pytest.importorskip("casadi")
+    import casadi as ca
     inputs = [ca.SX.sym(f"a{i}", d) for i, d in enumerate(dims)]
     out = _flatten(fn(get_ops("casadi"), *(tuple(x[j] for j in range(x.shape[0])) for x in inputs)))
     return ca.Function("identity", inputs, [ca.vertcat(*out)])
@@ -177,13 +177,13 @@ def evaluate(backend, fn, *arrays):
         out = _flatten(fn(get_ops("numpy"), *(tuple(a[:, j] for j in range(a.shape[1])) for a in arrays)))
         return np.stack([np.broadcast_to(np.asarray(x, dtype=float), (n,)) for x in out], -1)
     if backend == "torch":
-        torch = pytest.importorskip("torch")
+        import torch
         tensors = [torch.as_tensor(a, dtype=torch.float64) for a in arrays]
         out = _flatten(fn(get_ops("torch"), *(tuple(t.unbind(-1)) for t in tensors)))
         for x in out:
             assert not isinstance(x, torch.Tensor) or x.dtype == torch.float64
         return np.stack([np.broadcast_to(torch.as_tensor(x).detach().numpy(), (n,)) for x in out], -1)
-    ca = pytest.importorskip("casadi")
+    import casadi as ca
     if backend == "casadi-sx":  # symbolic, then evaluated numerically on all rows at once
         function = _casadi_function(fn, tuple(a.shape[1] for a in arrays))
         return np.array(function.map(n)(*(a.T for a in arrays))).T
@@ -341,13 +341,13 @@ def _sinc_derivatives(backend, t):
     """``(d/dt, d²/dt²)`` of :func:`s3.sinc_sqrt` at the points ``t``: autodiff in torch and CasADi,
     a central difference of the backend's own values in NumPy (and CasADi-DM)."""
     if backend == "torch":
-        torch = pytest.importorskip("torch")
+        import torch
         x = torch.as_tensor(t, dtype=torch.float64).requires_grad_(True)
         (first,) = torch.autograd.grad(s3.sinc_sqrt(x, get_ops("torch")).sum(), x, create_graph=True)
         (second,) = torch.autograd.grad(first.sum(), x)
         return first.detach().numpy(), second.numpy()
     if backend == "casadi-sx":
-        ca = pytest.importorskip("casadi")
+        import casadi as ca
         x = ca.SX.sym("t")
         value = s3.sinc_sqrt(x, get_ops("casadi"))
         first = ca.jacobian(value, x)

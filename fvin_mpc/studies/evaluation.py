@@ -28,7 +28,6 @@ compiled library comes from the on-disk cache).
 
 from __future__ import annotations
 
-import json
 import math
 import sys
 import time
@@ -40,6 +39,7 @@ import numpy as np
 
 from fvin_mpc.studies import starts
 from fvin_mpc.studies.pool import run_tasks
+from fvin_mpc.studies.report import write_report as write_report_files
 from fvin_mpc.studies.starts import EpisodeStart
 
 #: Every controller the evaluation knows, in report order.
@@ -436,7 +436,6 @@ def write_report(result: EvaluationResult, out_dir: Path, command: str) -> list[
     env = make_env(result.config)
     axis, goal = env.unwrapped.joint_axis, env.unwrapped.goal
     written = [out_dir / "evaluation.json", out_dir / "evaluation.md", out_dir / "time_to_upright.png"]
-    written[0].write_text(json.dumps(result.to_json(), indent=1) + "\n")
     plot_time_to_upright(result, written[2])
     images = [f"![time to upright]({written[2].name})"]
     if axis is not None and result.summary:
@@ -445,11 +444,7 @@ def write_report(result: EvaluationResult, out_dir: Path, command: str) -> list[
         images.append(f"![phase portraits]({written[-1].name})")
     config = result.config
     skipped = "".join(f"\n- `{name}` skipped: {reason}" for name, reason in result.skipped.items())
-    text = f"""# Closed-loop evaluation: `{config.scene}`
-
-Produced by `{command}`
-
-{config.episodes} episodes of {config.duration_s:g} s per controller; episode 0 starts hanging at rest,
+    text = f"""{config.episodes} episodes of {config.duration_s:g} s per controller; episode 0 starts hanging at rest,
 the others from the env's seeded random reset (seed {config.seed} + i; |ω₀| ≤ {config.max_omega:g} rad/s).
 Learned model: `{config.checkpoint_name}`; MPC settings: {_settings_text(config)}; latency mode: `{config.latency}`
 (`none`: the simulator waits for the controller; `measured`: each torque acts from the first MuJoCo
@@ -466,7 +461,7 @@ controller then applied its fallback).{skipped}
 
 {per_seed_table(result, axis, goal)}
 """
-    written[1].write_text(text)
+    write_report_files(out_dir / "evaluation", f"Closed-loop evaluation: `{config.scene}`", result.to_json(), text, command)
     env.close()
     return written
 

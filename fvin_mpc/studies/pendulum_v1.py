@@ -308,8 +308,11 @@ def plot_returns(records: list[dict[str, Any]], path: Path, label: str) -> None:
 
 def write_markdown(summary: dict[str, Any], records: list[dict[str, Any]], config: BenchmarkConfig, command: str,
                    path: Path) -> None:
+    """``path`` (``.md``) and its ``.json`` twin through the one report writer."""
+    from fvin_mpc.studies.report import write_report
+
     model = "closed-form pendulum (true model)" if config.true_model else f"learned `{config.checkpoint}`"
-    lines = [f"# Pendulum-v1 with the MPC on the {model}", "", f"Produced by `{command}`", "",
+    lines = [
              "| controller | episodes | mean return ± std | median | worst | upright at end | failed solves "
              "| controller ms median / p95 |", "|---|---|---|---|---|---|---|---|",
              f"| MPC on {model}, N = {config.horizon}{', multi-start' if config.multistart else ''} | {summary['episodes']} | {summary['return_mean']:.1f} ± "
@@ -356,4 +359,7 @@ def write_markdown(summary: dict[str, Any], records: list[dict[str, Any]], confi
         ref = r.get("reference_return")
         lines.append(f"| {r['seed']} | {r['theta0']:+.2f} | {r['theta_dot0']:+.2f} | {r['return']:.1f} | "
                      + (f"{ref:.1f} | {ref - r['return']:.2f} |" if ref is not None else "— | — |"))
-    path.write_text("\n".join(lines) + "\n")
+    slim = [{k: v for k, v in r.items() if k not in ("controls", "controller_time_s")} for r in records]
+    write_report(path.with_suffix(""), f"Pendulum-v1 with the MPC on the {model}",
+                 {"config": config.__dict__, "summary": summary, "zoo_best": ZOO_BEST, "episodes": slim},
+                 "\n".join(lines), command)

@@ -1,9 +1,12 @@
-"""Accuracy-vs-time studies: ``python -m fvin_mpc.bench <study>``.
+"""The one report writer of the studies, and the accuracy-vs-time studies' results.
 
-Every study returns a :class:`StudyResult`; :func:`write_study` turns it into
-``<out>/<study>.json``, ``<out>/<study>.md`` (a Markdown table headed by the command that
-produced it) and ``<out>/<study>.png``. Times are medians over repeats, compared as
-ratios within one run because the machines are shared and noisy.
+:func:`write_report` writes every report's pair of files: ``<stem>.json`` (the data, the command
+that produced it and the machine) and ``<stem>.md`` (a title, "Produced by `command`", then the
+body). The evaluation, Pendulum-v1 and the ``python -m fvin_mpc.bench <study>`` studies use it.
+
+Every bench study returns a :class:`StudyResult`; :func:`write_study` turns it into
+``<out>/<study>.json``, ``<out>/<study>.md`` (a Markdown table) and ``<out>/<study>.png``. Times
+are medians over repeats, compared as ratios within one run because the machines are shared and noisy.
 """
 
 from __future__ import annotations
@@ -69,6 +72,23 @@ def markdown_table(rows: list[dict[str, Any]], columns: Sequence[str]) -> str:
     return "\n".join(lines)
 
 
+def machine() -> dict[str, Any]:
+    """What a report says about where it ran: Python, platform, processor, cores and the load average."""
+    import os
+
+    return {"python": sys.version.split()[0], "platform": platform.platform(), "processor": platform.processor(),
+            "cores": os.cpu_count(), "load_average_1_5_15_min": list(os.getloadavg())}
+
+
+def write_report(stem: Path, title: str, data: dict[str, Any], body: str, command: str) -> tuple[Path, Path]:
+    """``<stem>.json`` = ``{"command", "machine", **data}`` and ``<stem>.md`` = title, command, body."""
+    stem.parent.mkdir(parents=True, exist_ok=True)
+    json_path, markdown_path = stem.parent / f"{stem.name}.json", stem.parent / f"{stem.name}.md"
+    json_path.write_text(json.dumps({"command": command, "machine": machine(), **data}, indent=1, default=float) + "\n")
+    markdown_path.write_text(f"# {title}\n\nProduced by `{command}`\n\n{body.rstrip()}\n")
+    return json_path, markdown_path
+
+
 def write_study(result: StudyResult, out_dir: Path, argv: Sequence[str]) -> dict[str, Path]:
     """Write the JSON, Markdown and PNG of ``result`` into ``out_dir``."""
     import matplotlib
@@ -76,16 +96,13 @@ def write_study(result: StudyResult, out_dir: Path, argv: Sequence[str]) -> dict
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    out_dir.mkdir(parents=True, exist_ok=True)
     command = "python -m fvin_mpc.bench " + " ".join(shlex.quote(a) for a in argv)
-    machine = {"python": sys.version.split()[0], "platform": platform.platform(), "processor": platform.processor()}
-    paths = {"json": out_dir / f"{result.name}.json", "md": out_dir / f"{result.name}.md", "png": out_dir / f"{result.name}.png"}
-    paths["json"].write_text(json.dumps({"study": result.name, "command": command, "machine": machine,
-                                         "rows": result.rows, "notes": result.notes}, indent=2, default=float) + "\n")
-    body = [f"# `{result.name}` study", "", f"Produced by `{command}`", "", markdown_table(result.rows, result.columns), ""]
-    body += [note + "\n" for note in result.notes]
+    body = [markdown_table(result.rows, result.columns), ""] + [note + "\n" for note in result.notes]
     body += [f"![{result.name}]({result.name}.png)", ""]
-    paths["md"].write_text("\n".join(body))
+    paths = dict(zip(("json", "md"), write_report(out_dir / result.name, f"`{result.name}` study",
+                                                   {"study": result.name, "rows": result.rows, "notes": result.notes},
+                                                   "\n".join(body), command)))
+    paths["png"] = out_dir / f"{result.name}.png"
     if result.plot is not None:
         figure = plt.figure(figsize=(7, 4.5))
         result.plot(figure, result.rows)

@@ -12,7 +12,7 @@ from fvin_mpc.control import export
 from fvin_mpc.core.checkpoint import save_checkpoint
 from fvin_mpc.core.networks import ModelConfig, init_weights
 
-torch = pytest.importorskip("torch")
+import torch  # noqa: E402  (a dependency: a missing torch is a failure, not a skip)
 WEIGHT_SEEDS = (0, 1, 2)
 
 
