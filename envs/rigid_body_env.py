@@ -99,11 +99,12 @@ class RigidBodyEnv(gymnasium.Env):
 
     ## Starting State
 
-    Hanging at rest: the joint at the MJCF's ``qpos0`` with zero velocity (the hard start of the
-    swing-up). ``reset(options=...)`` accepts:
+    Hanging at rest: the scene's rest orientation (:attr:`rest`, the potential's minimum unless the
+    scene declares it) with zero velocity — the hard start of the swing-up, whatever ``qpos0`` the
+    MJCF was written with. ``reset(options=...)`` accepts:
 
-    - ``{"qpos": ..., "qvel": ...}``: the joint state exactly (either may be omitted: ``qpos0`` /
-      zero). Shapes ``(1,)``/``(1,)`` for a hinge (angle in rad, rate in rad/s), ``(4,)``/``(3,)``
+    - ``{"qpos": ..., "qvel": ...}``: the joint state exactly (either may be omitted: the rest
+      position / zero). Shapes ``(1,)``/``(1,)`` for a hinge (angle in rad, rate in rad/s), ``(4,)``/``(3,)``
       for a ball (quaternion (w, x, y, z), normalized here; body-frame angular velocity).
     - ``{"random": True, "max_omega": 1.0}``: an orientation uniform over the joint's range (hinge
       angle uniform in [−π, π), ball quaternion uniform on S³) and an angular velocity uniform in
@@ -123,16 +124,19 @@ class RigidBodyEnv(gymnasium.Env):
     ## Arguments
 
     - ``scene``: built-in scene name (``"pendulum"``, ``"pendulum_damped"``,
-      ``"spherical_pendulum"``) or path to an MJCF file. Default ``"pendulum"``.
-    - ``body``: the observed body. Default: the scene's; for an MJCF, the only body with a joint
+      ``"spherical_pendulum"``), a path to an MJCF file, or a :class:`~envs.scenes.SceneSpec`
+      (:func:`~envs.scenes.resolve_scene`: a path to a built-in's file is that scene). Default ``"pendulum"``.
+    - ``body``: the observed body. Default: the scene's; else the only body with a joint
       (``ValueError`` if there are several).
     - ``goal``: goal orientation quaternion (w, x, y, z), normalized here. Default: the scene's
-      (upright, ``(0, 0, 1, 0)``, for the built-ins); for an MJCF, the body's orientation at
-      ``qpos0`` (hanging at rest in the usual case, where it is the identity).
+      declared goal; else the maximum of the body's potential (upright, ``(0, 0, 1, 0)`` for the
+      built-ins), read off the MJCF (``ValueError`` if there is none: no gravity, or the centre of
+      mass on the pivot).
     - ``physics``: the :class:`~envs.scenes.ScenePhysics` to simulate. Default: the scene's; for an
       MJCF, :func:`~envs.scenes.infer_physics` (what the file would simulate).
     - ``control_period``: seconds per step, a whole multiple of the MJCF timestep. Default: the
-      scene's (0.05 s); for an MJCF, the multiple of its timestep closest to 0.05 s.
+      scene's (0.05 s for the built-ins); else the smallest multiple of the timestep that is at least
+      :data:`~envs.scenes.MIN_CONTROL_PERIOD` (20 ms).
     - ``render_mode``: ``None`` or ``"rgb_array"`` (``MUJOCO_GL=egl`` headless); ``width``,
       ``height``: image size in pixels (at most the MJCF's offscreen buffer, 640×480 built in).
 
