@@ -119,22 +119,18 @@ SETTING_NAMES = frozenset(f.name for f in fields(MPCSettings))
 
 def scene_mpc_settings(env: Any, **overrides: Any) -> MPCSettings:
     """The settings :func:`scene_mpc` uses: derived from the scene's scales
-    (:func:`default_mpc_settings`), then the scene's declared ``mpc`` fields, then ``overrides``
-    (``None`` values ignored, so CLI options can be passed through as they are). With
-    ``solver="rti"`` a scene's declared ``terminal_energy_weight`` is not applied (an override is)."""
+    (:func:`default_mpc_settings`), then the scene's declared ``mpc`` fields and its fields for the
+    solver in use (``mpc_per_solver``), then ``overrides`` (``None`` values ignored, so CLI options
+    can be passed through as they are)."""
     base = env.unwrapped
     unknown = set(overrides) - SETTING_NAMES
     if unknown:
         raise ValueError(f"unknown MPC settings {sorted(unknown)}; expected some of {sorted(SETTING_NAMES)}")
     settings = default_mpc_settings(scene_scales(env))
-    declared = dict(base.scene_spec.mpc)
+    spec = base.scene_spec
     given = {k: v for k, v in overrides.items() if v is not None}
-    if given.get("solver", declared.get("solver")) == "rti":
-        # The real-time iteration keeps the terminal energy-deficit term even where a scene switches
-        # it off for IPOPT: one Gauss–Newton step per period cannot leave a swing that never pumps
-        # (a local optimum a converged, multi-started IPOPT solve escapes); docs/realtime.md.
-        declared.pop("terminal_energy_weight", None)
-    return replace(settings, **{**declared, **given})
+    solver = given.get("solver", spec.mpc.get("solver", settings.solver))
+    return replace(settings, **{**spec.mpc, **spec.mpc_per_solver.get(solver, {}), **given})
 
 
 def scene_env(scene: Any = "pendulum", checkpoint: Any = None, true_model: bool = False,
