@@ -364,11 +364,16 @@ class RigidBodyEnv(gymnasium.Env):
         self.set_state(qpos, qvel)
         return self._observation(), self._info()
 
-    def step(self, action: Any):
+    def step(self, action: Any, substeps: int | None = None):
+        """One control period (``frame_skip`` MuJoCo sub-steps) under ``action``; ``substeps`` runs
+        only that many sub-steps (a torque that changes within a period, as a latency-aware closed
+        loop delivers it: :func:`fvin_mpc.control.closed_loop.run_episode`)."""
         u = as_float_array(action, (self._model.nu,), "action")
         u = np.clip(u, self.action_space.low, self.action_space.high)
+        if substeps is not None and not 1 <= substeps <= self._frame_skip:
+            raise ValueError(f"substeps must be in [1, {self._frame_skip}], got {substeps}")
         self._data.ctrl[:] = u
-        for _ in range(self._frame_skip):
+        for _ in range(self._frame_skip if substeps is None else substeps):
             mujoco.mj_step(self._model, self._data)
         # mj_step leaves positions/velocities-derived quantities (xquat, cvel, energy) at the
         # state *before* the last substep; bring them up to date.

@@ -243,25 +243,19 @@ def _substeps(seconds: float, substep: float) -> int:
 def _step_segments(env: Any, segments: list[tuple[int, np.ndarray]], frame_skip: int) -> tuple[Any, float, bool, dict]:
     """Advance the plant one control period under piecewise-constant torques ``[(sub-steps, u), …]``.
 
-    One segment is ``env.step(u)``. Several are ``env.step`` calls with the env's sub-step count set
-    to each segment's length (MuJoCo integrates the same sub-steps, the torque changes between them);
-    the reward is the sub-step-weighted mean of the segments' rewards, the observation the last one's.
+    One segment is ``env.step(u)``. Several are calls of the plant's ``step(u, substeps=n)`` (MuJoCo
+    integrates the same sub-steps, the torque changes between them); the reward is the
+    sub-step-weighted mean of the segments' rewards, the observation the last one's.
     """
     if len(segments) == 1:
         observation, reward, terminated, _, info = env.step(segments[0][1])
         return observation, float(reward), terminated, info
     base = env.unwrapped
-    if not hasattr(base, "_frame_skip"):
-        raise NotImplementedError(f"{type(base).__name__} cannot change the torque within a control period")
     total, terminated = 0.0, False
-    try:
-        for count, u in segments:
-            base._frame_skip = count
-            observation, reward, done, _, info = env.step(u)
-            total += reward * count / frame_skip
-            terminated = terminated or done
-    finally:
-        base._frame_skip = frame_skip
+    for count, u in segments:
+        observation, reward, done, _, info = base.step(u, substeps=count)
+        total += reward * count / frame_skip
+        terminated = terminated or done
     return observation, total, terminated, info
 
 
