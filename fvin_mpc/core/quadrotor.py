@@ -1,0 +1,164 @@
+"""A closed-form free rigid body with rotors (a quadrotor) in R³ × S³ — the ground truth for the
+combined step (:mod:`fvin_mpc.core.fvin_r3s3`), on components for every backend.
+
+Physics (world z up, gravity ``−g e_z``; body origin at the centre of mass):
+
+* rotor ``i`` at body site ``rᵢ`` pushes with thrust ``uᵢ ≥ 0`` (N) along the body z axis:
+  ``F_x = R(q) e_z Σ uᵢ`` (world frame);
+* body torque ``τ = B u`` with column ``i`` of ``B`` equal to ``rᵢ × e_z + κ sᵢ e_z``
+  (arm × thrust plus the yaw reaction of a rotor spinning in direction ``sᵢ = ±1``);
+  the model's gain is ``g = 2 B`` (DESIGN.md, factor of two);
+* ``U(x, q) = m g x_z + ½ k |x + R(q) a − b|²``: gravity, plus an optional tether — a spring of
+  stiffness ``k`` from the body site ``a`` to the world anchor ``b`` (``k = 0``: a free quadrotor,
+  ``U`` independent of ``q``). The tether is what couples ``x`` and ``q`` through ``U``.
+
+Newton–Euler: ``m v̇ = −∇ₓU + F_x``, ``q̇ = ½ q ⊗ (0, ω)``,
+``J ω̇ + ω × Jω = B u + a × Rᵀ(−k d)`` with ``d = x + R(q) a − b``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+from fvin_mpc.core import s3
+from fvin_mpc.core.backend import Ops
+
+Matrix = tuple[tuple[float, ...], ...]
+Vector = tuple[float, float, float]
+
+
+@dataclass(frozen=True)
+class Quadrotor:
+    """Rotor craft parameters (SI units).
+
+    Attributes:
+        mass: ``m`` (kg); ``M = m I``.
+        inertia: 3×3 body inertia about the centre of mass (kg·m²), ``J``.
+        rotor_sites: body-frame positions ``rᵢ`` of the rotors (m), one per control.
+        rotor_spins: ``sᵢ = ±1``, the sign of each rotor's yaw reaction.
+        yaw_coefficient: ``κ`` (m): yaw torque per newton of thrust.
+        gravity: ``g`` (m/s²), along −z.
+        tether_stiffness: ``k`` (N/m); 0 for none.
+        tether_site: ``a``, body frame (m).
+        tether_anchor: ``b``, world frame (m).
+    """
+
+    mass: float
+    inertia: Matrix
+    rotor_sites: tuple[Vector, ...]
+    rotor_spins: tuple[float, ...]
+    yaw_coefficient: float
+    gravity: float = 9.81
+    tether_stiffness: float = 0.0
+    tether_site: Vector = (0.0, 0.0, 0.0)
+    tether_anchor: Vector = (0.0, 0.0, 0.0)
+    constant_inertia: bool = field(default=True, init=False)
+
+    def __post_init__(self) -> None:
+        if len(self.rotor_sites) != len(self.rotor_spins):
+            raise ValueError("one spin per rotor site")
+
+    @property
+    def control_dim(self) -> int:
+        return len(self.rotor_sites)
+
+    @property
+    def torque_map(self) -> Matrix:
+        """``B`` (3×m): body torque per newton of each rotor's thrust."""
+        columns = [(r[1], -r[0], self.yaw_coefficient * s) for r, s in zip(self.rotor_sites, self.rotor_spins)]
+        return tuple(tuple(c[i] for c in columns) for i in range(3))
+
+    @property
+    def hover_thrust(self) -> float:
+        """Per-rotor thrust that holds the untethered craft level at rest: ``m g / n``."""
+        return self.mass * self.gravity / self.control_dim
+
+    def terms(self, ops: Ops) -> "QuadrotorTerms":
+        return QuadrotorTerms(self, ops)
+
+
+class QuadrotorTerms:
+    """:class:`Quadrotor` as :class:`~fvin_mpc.core.fvin_r3s3.CombinedTerms` on a backend."""
+
+    constant_inertia = True
+
+    def __init__(self, body: Quadrotor, ops: Ops) -> None:
+        self.body, self.ops = body, ops
+        self.control_dim = body.control_dim
+        self._gain = tuple(tuple(2.0 * b for b in row) for row in body.torque_map)
+
+    def mass_matrix(self) -> s3.Mat3:
+        m = self.body.mass
+        return ((m, 0.0, 0.0), (0.0, m, 0.0), (0.0, 0.0, m))
+
+    def inertia(self, q: s3.Quat) -> s3.Mat3:
+        zero = 0.0 * q[0]
+        return tuple(tuple(entry + zero for entry in row) for row in self.body.inertia)  # type: ignore[return-value]
+
+    def _tether(self, x: s3.Vec3, q: s3.Quat) -> s3.Vec3:
+        """``d = x + R(q) a − b``, with ``R(q) a = (w² − v·v) a + 2 (v·a) v + 2 w v × a``."""
+        a, b = self.body.tether_site, self.body.tether_anchor
+        w, v = q[0], s3.imaginary(q)
+        va, vxa = s3.dot(v, a), s3.cross(v, a)
+        ww_vv = w * w - s3.dot(v, v)
+        return tuple(x[i] + ww_vv * a[i] + 2.0 * va * v[i] + 2.0 * w * vxa[i] - b[i] for i in range(3))  # type: ignore[return-value]
+
+    def potential(self, x: s3.Vec3, q: s3.Quat) -> Any:
+        body = self.body
+        u = body.mass * body.gravity * x[2] + 0.0 * q[0]
+        if body.tether_stiffness:
+            d = self._tether(x, q)
+            u = u + 0.5 * body.tether_stiffness * s3.dot(d, d)
+        return u
+
+    def potential_gradient_x(self, x: s3.Vec3, q: s3.Quat) -> s3.Vec3:
+        body = self.body
+        zero = 0.0 * (x[0] + q[0])
+        gravity = (zero, zero, body.mass * body.gravity + zero)
+        if not body.tether_stiffness:
+            return gravity  # type: ignore[return-value]
+        return s3.add(gravity, s3.scale(body.tether_stiffness, self._tether(x, q)))  # type: ignore[return-value]
+
+    def potential_gradient_q(self, x: s3.Vec3, q: s3.Quat) -> s3.Quat:
+        """Euclidean ``∂U/∂q`` of the homogeneous ``R(q) a`` above (``U`` does not see ``|q|``'s
+        extension off S³ in the step: only ``H(q)∇_qU``, its tangential part, enters)."""
+        body = self.body
+        zero = 0.0 * (x[0] + q[0])
+        if not body.tether_stiffness:
+            return (zero, zero, zero, zero)
+        k, a = body.tether_stiffness, body.tether_site
+        d = self._tether(x, q)
+        w, v = q[0], s3.imaginary(q)
+        ad, vd, va = s3.dot(a, d), s3.dot(v, d), s3.dot(v, a)
+        axd = s3.cross(a, d)
+        d_w = 2.0 * w * ad + 2.0 * s3.dot(d, s3.cross(v, a))
+        d_v = tuple(-2.0 * ad * v[i] + 2.0 * vd * a[i] + 2.0 * va * d[i] + 2.0 * w * axd[i] for i in range(3))
+        return (k * d_w, k * d_v[0], k * d_v[1], k * d_v[2])
+
+    def translational_force(self, x: s3.Vec3, q: s3.Quat, u: tuple[Any, ...]) -> s3.Vec3:
+        """``R(q) e_z Σ uᵢ``: the third column of ``R(q)`` times the total thrust."""
+        w, qx, qy, qz = q
+        total = u[0]
+        for u_i in u[1:]:
+            total = total + u_i
+        return (2.0 * (qx * qz + w * qy) * total, 2.0 * (qy * qz - w * qx) * total,
+                (w * w - qx * qx - qy * qy + qz * qz) * total)
+
+    def control_gain(self, x: s3.Vec3, q: s3.Quat) -> tuple[tuple[Any, ...], ...]:
+        zero = 0.0 * q[0]
+        return tuple(tuple(entry + zero for entry in row) for row in self._gain)
+
+
+def x_configuration(mass: float, inertia: Matrix, arm: float, yaw_coefficient: float, **kwargs: Any) -> Quadrotor:
+    """Four rotors in an ×: sites ``arm·(±1, ±1, 0)/√2``, spins alternating around the frame."""
+    c = arm / math.sqrt(2.0)
+    sites = ((c, c, 0.0), (-c, c, 0.0), (-c, -c, 0.0), (c, -c, 0.0))
+    return Quadrotor(mass=mass, inertia=inertia, rotor_sites=sites, rotor_spins=(1.0, -1.0, 1.0, -1.0),
+                     yaw_coefficient=yaw_coefficient, **kwargs)
+
+
+#: A small quadrotor (≈ 0.5 kg, 0.17 m arms), slightly asymmetric inertia so a tumble is not trivial.
+QUADROTOR = x_configuration(mass=0.5, inertia=((2.3e-3, 0.0, 0.0), (0.0, 2.9e-3, 0.0), (0.0, 0.0, 4.6e-3)),
+                            arm=0.17, yaw_coefficient=0.016)
