@@ -110,10 +110,11 @@ class R3S3StepResult:
 
 def r3s3_step(x: s3.Vec3, q: s3.Quat, v: s3.Vec3, omega: s3.Vec3, u: tuple[Any, ...], terms: CombinedTerms,
               h: float, K: int, ops: Ops, with_residual: bool = False,
-              force_rule: str = "hold") -> R3S3StepResult:
+              force_rule: str = "trapezoid") -> R3S3StepResult:
     """One step ``(x_k, q_k, v_k, ω_k, u_k) → (x_{k+1}, q_{k+1}, v_{k+1}, ω_{k+1})``; see the module
-    docstring. ``K`` Newton iterations for the rotation; ``force_rule`` ``"hold"`` (eq. 3.6) or
-    ``"trapezoid"``."""
+    docstring. ``K`` Newton iterations for the rotation; ``force_rule`` ``"trapezoid"`` (default:
+    second order) or ``"hold"`` (eq. 3.6 as written: first order in ``x``, ``v`` when ``F_x`` turns
+    with the body)."""
     if force_rule not in FORCE_RULES:
         raise ValueError(f"force_rule must be one of {FORCE_RULES}, got {force_rule!r}")
     mass = terms.mass_matrix()
