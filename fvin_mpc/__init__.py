@@ -4,7 +4,8 @@ Layers, each importing only those above it in this list (``tests/test_layers.py`
 imports and holds the line):
 
 * :mod:`fvin_mpc.core` — the math, written once for NumPy, torch and CasADi: ``backend`` (the only
-  backend-specific code), ``s3`` (quaternion algebra), ``fvin`` (the forced step), ``networks``
+  backend-specific code), ``s3`` (quaternion algebra), ``fvin`` (the forced step), ``fvin_r3s3`` (translation and rotation
+  together) and ``quadrotor``, ``networks``
   (learned ``J``, ``U``, ``g``, ``D``), ``rigid_body`` (closed-form bodies, read off an MJCF),
   ``state`` (the state ``x = (q, ω)`` and its validator), ``checkpoint``, ``data``.
 * :mod:`fvin_mpc.envs` — Gymnasium environments over MuJoCo scenes and the scene declarations
