@@ -29,6 +29,12 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--seed", type=int, default=0, help="first env.reset seed (default: %(default)s)")
     parser.add_argument("--energy-weight", type=float, default=None,
                         help="terminal energy-deficit weight W_E (default: the scenes' default, DEFAULT_TERMINAL_ENERGY_WEIGHT)")
+    parser.add_argument("--solver", choices=["ipopt", "rti"], default="ipopt",
+                        help="ipopt: solved to convergence every step; rti: one real-time iteration per step "
+                             "(default: %(default)s)")
+    parser.add_argument("--rti-cold-solver", choices=["rti", "ipopt"], default="rti",
+                        help="with --solver rti: the first call's plan from budgeted RTI iterations or from IPOPT "
+                             "(default: %(default)s)")
     parser.add_argument("--single-start", action="store_true",
                         help="plain MPC: one first guess per episode instead of the multi-start")
     parser.add_argument("--no-reference", action="store_true", help="skip the per-seed episode optimization")
@@ -45,7 +51,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         config = BenchmarkConfig(checkpoint=args.checkpoint, true_model=args.true_model, horizon=args.horizon,
                                  episodes=args.episodes, seed=args.seed, reference=not args.no_reference,
-                                 multistart=not args.single_start, terminal_energy_weight=args.energy_weight)
+                                 multistart=not args.single_start, terminal_energy_weight=args.energy_weight,
+                                 solver=args.solver, rti_cold_solver=args.rti_cold_solver)
         if not config.true_model:
             from fvin_mpc.core.checkpoint import load_checkpoint
 

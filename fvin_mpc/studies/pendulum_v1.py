@@ -182,6 +182,8 @@ class BenchmarkConfig:
     newton_iters: int | None = None
     multistart: bool = True
     terminal_energy_weight: float | None = None
+    solver: str = "ipopt"
+    rti_cold_solver: str = "rti"
 
     def __post_init__(self) -> None:
         if self.episodes < 1:
@@ -199,7 +201,8 @@ def build_mpc(config: BenchmarkConfig) -> Any:
     model = scene_model(env, config.checkpoint, config.true_model, config.newton_iters)
     if abs(model.step_size - DT) > 1e-12:
         raise ValueError(f"{config.checkpoint}: needs h = {DT} s, got h = {model.step_size}")
-    return scene_mpc(env, model, benchmark_settings(config.horizon, config.terminal_energy_weight, config.multistart))
+    settings = benchmark_settings(config.horizon, config.terminal_energy_weight, config.multistart)
+    return scene_mpc(env, model, replace(settings, solver=config.solver, rti_cold_solver=config.rti_cold_solver))
 
 
 def run_v1_episode(env: Any, controller: Any, seed: int) -> dict[str, Any]:
@@ -315,7 +318,7 @@ def write_markdown(summary: dict[str, Any], records: list[dict[str, Any]], confi
     lines = [
              "| controller | episodes | mean return ± std | median | worst | upright at end | failed solves "
              "| controller ms median / p95 |", "|---|---|---|---|---|---|---|---|",
-             f"| MPC on {model}, N = {config.horizon}{', multi-start' if config.multistart else ''} | {summary['episodes']} | {summary['return_mean']:.1f} ± "
+             f"| MPC ({config.solver}) on {model}, N = {config.horizon}{', multi-start' if config.multistart else ''} | {summary['episodes']} | {summary['return_mean']:.1f} ± "
              f"{summary['return_std']:.1f} | {summary['return_median']:.1f} | {summary['return_min']:.1f} "
              f"| {summary['upright_at_end']}/{summary['episodes']} | {summary['failed_solves']} "
              f"| {summary['controller_time_median_ms']:.1f} / {summary['controller_time_p95_ms']:.1f} |"]
