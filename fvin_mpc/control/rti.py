@@ -64,7 +64,11 @@ import numpy as np
 
 from fvin_mpc.control.export import ExportedModel, compile_functions
 from fvin_mpc.control.mpc import MPC, MPCSettings, _Plan
+from fvin_mpc.core import s3
+from fvin_mpc.core.backend import Ops, get_ops
 from fvin_mpc.core.state import STATE_DIM, check_state
+
+CA, NP = get_ops("casadi"), get_ops("numpy")
 
 #: Dimension of a state's local coordinates ``δ = (θ, ν)``.
 TANGENT_DIM = 6
@@ -88,50 +92,35 @@ OMEGA_VALID_FRACTION = 0.9
 
 
 # ----------------------------------------------------------------------------- S³ chart
-def _qmul(p: Any, q: Any) -> Any:
-    """Hamilton product of ``(w, x, y, z)`` quaternions (CasADi column vectors)."""
-    return ca.vertcat(p[0] * q[0] - p[1] * q[1] - p[2] * q[2] - p[3] * q[3],
-                      p[0] * q[1] + p[1] * q[0] + p[2] * q[3] - p[3] * q[2],
-                      p[0] * q[2] - p[1] * q[3] + p[2] * q[0] + p[3] * q[1],
-                      p[0] * q[3] + p[1] * q[2] - p[2] * q[1] + p[3] * q[0])
+def chart_retract(q_bar: s3.Quat, theta: s3.Vec3, ops: Ops) -> s3.Quat:
+    """``q̄ ⊗ (1, θ)/√(1 + |θ|²)`` on components (:mod:`fvin_mpc.core.s3`, any backend)."""
+    return s3.scale(1.0 / ops.sqrt(1.0 + s3.dot(theta, theta)), s3.multiply(q_bar, (1.0, *theta)))
 
 
-def _conj(q: Any) -> Any:
-    return ca.vertcat(q[0], -q[1], -q[2], -q[3])
+def chart_local(q_bar: s3.Quat, q: s3.Quat) -> s3.Vec3:
+    """``Im(p)/Re(p)`` with ``p = q̄* ⊗ q`` — the inverse of :func:`chart_retract`, the same for ``±q``."""
+    p = s3.multiply(s3.conjugate(q_bar), q)
+    return tuple(component / p[0] for component in p[1:])
 
 
 def retract(q_bar: Any, theta: Any) -> Any:
-    """``q̄ ⊗ (1, θ)/√(1 + |θ|²)`` (CasADi)."""
-    return _qmul(q_bar, ca.vertcat(1, theta)) / ca.sqrt(1 + ca.sumsqr(theta))
+    """:func:`chart_retract` for CasADi column vectors."""
+    return ca.vertcat(*chart_retract(tuple(q_bar[i] for i in range(4)), tuple(theta[i] for i in range(3)), CA))
 
 
 def local(q_bar: Any, q: Any) -> Any:
-    """``Im(p)/Re(p)`` with ``p = q̄* ⊗ q`` — the inverse of :func:`retract`, the same for ``±q`` (CasADi)."""
-    p = _qmul(_conj(q_bar), q)
-    return p[1:] / p[0]
+    """:func:`chart_local` for CasADi column vectors."""
+    return ca.vertcat(*chart_local(tuple(q_bar[i] for i in range(4)), tuple(q[i] for i in range(4))))
 
 
 def retract_np(q_bar: np.ndarray, theta: np.ndarray) -> np.ndarray:
-    """:func:`retract` for arrays ``q̄ (…, 4)``, ``θ (…, 3)``."""
-    w1, v1 = q_bar[..., :1], q_bar[..., 1:]
-    w = w1[..., 0] - np.sum(v1 * theta, axis=-1)
-    v = w1 * theta + v1 + _cross(v1, theta)
-    return np.concatenate([w[..., None], v], axis=-1) / np.sqrt(1.0 + np.sum(theta * theta, axis=-1))[..., None]
+    """:func:`chart_retract` for arrays ``q̄ (…, 4)``, ``θ (…, 3)``."""
+    return np.stack(chart_retract(tuple(np.moveaxis(q_bar, -1, 0)), tuple(np.moveaxis(theta, -1, 0)), NP), axis=-1)
 
 
 def local_np(q_bar: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """:func:`local` for arrays ``(…, 4)``."""
-    w1, v1 = q_bar[..., :1], -q_bar[..., 1:]
-    w2, v2 = q[..., :1], q[..., 1:]
-    w = w1[..., 0] * w2[..., 0] - np.sum(v1 * v2, axis=-1)
-    v = w1 * v2 + w2 * v1 + _cross(v1, v2)
-    return v / w[..., None]
-
-
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """``a × b`` over the last axis (``np.cross`` costs more in call overhead than in arithmetic here)."""
-    return np.stack([a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1], a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
-                     a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]], axis=-1)
+    """:func:`chart_local` for arrays ``(…, 4)``."""
+    return np.stack(chart_local(tuple(np.moveaxis(q_bar, -1, 0)), tuple(np.moveaxis(q, -1, 0))), axis=-1)
 
 
 # ----------------------------------------------------------------------------- compiled QP + update
@@ -428,7 +417,6 @@ class RealTimeMPC(MPC):
         omega_limit = STEP_LIMIT_OMEGA * self.omega_bound
         clipped = np.concatenate([np.clip(steps[:, :3], -STEP_LIMIT_ANGLE, STEP_LIMIT_ANGLE),
                                   np.clip(steps[:, 3:], -omega_limit, omega_limit)], axis=1)
-        largest = 1.0
         deltas = np.vstack([delta0[None, :], clipped])
         states = np.empty_like(plan.states)
         states[:, :4] = retract_np(plan.states[:, :4], deltas[:, :3])
