@@ -162,13 +162,35 @@ SCENES: dict[str, SceneSpec] = {
 }
 
 
+#: Scenes of one free body (a 13-number state ``(x, q, v, ω)``, :class:`~fvin_mpc.envs.QuadrotorEnv`),
+#: apart from :data:`SCENES` (bodies on a pivot, :class:`~fvin_mpc.envs.RigidBodyEnv`), whose
+#: consumers build a pivoted env from every entry. :func:`get_scene` and :func:`resolve_scene` know both.
+FREE_BODY_SCENES: dict[str, SceneSpec] = {
+    # 20 ms (50 Hz, ten RK4 sub-steps of 2 ms): the craft's attitude is fast — full differential thrust
+    # turns it at ≈ 260 rad/s² about x, a tumble recovers within a few tenths of a second — so 50 ms
+    # would leave the MPC two or three decisions per recovery; at 20 ms a tumble at |ω| = 10 rad/s
+    # turns 0.2 rad per step (h|ω| = 0.2, far inside the step's solvability limit h|ω| ≈ 1), and the
+    # 2 ms sub-steps let the latency-aware loop apply a torque 2 ms after it is computed.
+    spec.name: spec
+    for spec in (
+        SceneSpec(name="quadrotor", xml_path=SCENE_DIR / "quadrotor.xml", body="quadrotor", control_period=0.02,
+                  physics=_ACTUATED, goal=(1.0, 0.0, 0.0, 0.0), rest=(1.0, 0.0, 0.0, 0.0),
+                  checkpoint="quadrotor_sign-invariant"),
+    )
+}
+
+
+def _all_scenes() -> dict[str, SceneSpec]:
+    return {**SCENES, **FREE_BODY_SCENES}
+
+
 def get_scene(name: str) -> SceneSpec:
     """The built-in :class:`SceneSpec` called ``name``; ``ValueError`` listing the known ones."""
     try:
-        return SCENES[name]
+        return _all_scenes()[name]
     except KeyError:
         raise ValueError(
-            f"unknown scene {name!r}: expected one of {sorted(SCENES)} or a path to an existing MJCF (.xml) file"
+            f"unknown scene {name!r}: expected one of {sorted(_all_scenes())} or a path to an existing MJCF (.xml) file"
         ) from None
 
 
@@ -183,11 +205,11 @@ def resolve_scene(scene: str | Path | SceneSpec) -> SceneSpec:
     """
     if isinstance(scene, SceneSpec):
         return scene
-    if isinstance(scene, str) and scene in SCENES:
-        return SCENES[scene]
+    if isinstance(scene, str) and scene in _all_scenes():
+        return _all_scenes()[scene]
     path = Path(scene)
     if isinstance(scene, Path) or path.suffix.lower() == ".xml" or path.exists():
-        for spec in SCENES.values():
+        for spec in _all_scenes().values():
             if path.exists() and path.resolve() == spec.xml_path.resolve():
                 return spec
         return SceneSpec(name=path.stem, xml_path=path)  # build_model reports a missing or invalid file
