@@ -141,3 +141,24 @@ def total_energy(x: s3.Vec3, q: s3.Quat, v: s3.Vec3, omega: s3.Vec3, terms: Comb
     translational = 0.5 * s3.dot(v, s3.matvec(terms.mass_matrix(), v))
     rotational = 0.5 * s3.dot(omega, s3.matvec(terms.inertia(q), omega))
     return translational + rotational + terms.potential(x, q)
+
+
+#: Entries of the state ``(x, q, v, ω)``.
+FREE_STATE_DIM = 13
+
+
+def split_free_state(state: Any, ops: Ops) -> tuple[s3.Vec3, s3.Quat, s3.Vec3, s3.Vec3]:
+    """``(x, q, v, ω)`` components of a stacked state (NumPy/torch ``(..., 13)``, CasADi ``(13, 1)``)."""
+    c = ops.unstack(state)
+    if len(c) != FREE_STATE_DIM:
+        raise ValueError(f"a free-body state has {FREE_STATE_DIM} entries (x, q, v, ω), got {len(c)}")
+    return c[0:3], c[3:7], c[7:10], c[10:13]  # type: ignore[return-value]
+
+
+def step_state(state: Any, u: Any, terms: CombinedTerms, h: float, K: int, ops: Ops,
+               force_rule: str = "trapezoid") -> tuple[Any, Any]:
+    """:func:`r3s3_step` on stacked arrays: ``state (..., 13)``, ``u (..., m)`` → ``(state_next, residual)``
+    (CasADi: columns). The one place the 13-number layout ``(x, q, v, ω)`` is packed and unpacked."""
+    x, q, v, omega = split_free_state(state, ops)
+    out = r3s3_step(x, q, v, omega, ops.unstack(u), terms, h, K, ops, with_residual=True, force_rule=force_rule)
+    return ops.stack((*out.x, *out.q, *out.v, *out.omega)), out.residual

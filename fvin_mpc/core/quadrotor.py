@@ -43,6 +43,7 @@ class Quadrotor:
         tether_stiffness: ``k`` (N/m); 0 for none.
         tether_site: ``a``, body frame (m).
         tether_anchor: ``b``, world frame (m).
+        thrust_low, thrust_high: per-rotor thrust bounds (N); ``None``: unbounded.
     """
 
     mass: float
@@ -54,11 +55,16 @@ class Quadrotor:
     tether_stiffness: float = 0.0
     tether_site: Vector = (0.0, 0.0, 0.0)
     tether_anchor: Vector = (0.0, 0.0, 0.0)
+    thrust_low: tuple[float, ...] | None = None
+    thrust_high: tuple[float, ...] | None = None
     constant_inertia: bool = field(default=True, init=False)
 
     def __post_init__(self) -> None:
         if len(self.rotor_sites) != len(self.rotor_spins):
             raise ValueError("one spin per rotor site")
+        for bounds in (self.thrust_low, self.thrust_high):
+            if bounds is not None and len(bounds) != len(self.rotor_sites):
+                raise ValueError("one thrust bound per rotor site")
 
     @property
     def control_dim(self) -> int:
@@ -162,3 +168,76 @@ def x_configuration(mass: float, inertia: Matrix, arm: float, yaw_coefficient: f
 #: A small quadrotor (≈ 0.5 kg, 0.17 m arms), slightly asymmetric inertia so a tumble is not trivial.
 QUADROTOR = x_configuration(mass=0.5, inertia=((2.3e-3, 0.0, 0.0), (0.0, 2.9e-3, 0.0), (0.0, 0.0, 4.6e-3)),
                             arm=0.17, yaw_coefficient=0.016)
+
+
+def from_mujoco(model: Any, body: str) -> Quadrotor:
+    """The closed-form :class:`Quadrotor` of ``body`` in a compiled MuJoCo model (as
+    :func:`fvin_mpc.core.rigid_body.from_mujoco` for pivoted bodies).
+
+    Read off the model, not the scene file: mass; inertia about the centre of mass (rotated from
+    the principal frame ``body_iquat``); gravity (zero when the model's flags disable it); one
+    rotor per actuator, each a site transmission on ``body`` whose gear pushes along the body z
+    axis, ``gear = (0, 0, 1, 0, 0, ±κ)`` in the body frame: its site (``rᵢ``), the sign of its
+    yaw reaction (``sᵢ``) and ``κ``, which must be the same for every rotor; the thrust bounds
+    (``ctrlrange`` when limited and clamping is not disabled).
+
+    Requirements (``ValueError`` otherwise): ``body`` has one free joint and is the model's only
+    moving body; its centre of mass is the body origin (the free joint's position is then the
+    model's ``x``); every actuator is a plain gain (``force = ctrl``, no bias, no dynamics).
+
+    Args:
+        model: a ``mujoco.MjModel``.
+        body: the craft's body name.
+    """
+    import mujoco
+    import numpy as np
+
+    body_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, body)
+    if body_id < 0:
+        raise ValueError(f"no body named {body!r} in the model")
+    free = int(mujoco.mjtJoint.mjJNT_FREE)
+    if model.body_jntnum[body_id] != 1 or int(model.jnt_type[model.body_jntadr[body_id]]) != free or model.nv != 6:
+        raise ValueError(f"body {body!r} must have one free joint, the model's only degree of freedom")
+    if np.linalg.norm(model.body_ipos[body_id]) > 1e-12:
+        raise ValueError(f"body {body!r}: the centre of mass must be the body origin, got {model.body_ipos[body_id]}")
+    mass = float(model.body_mass[body_id])
+    frame = np.zeros(9)
+    mujoco.mju_quat2Mat(frame, np.asarray(model.body_iquat[body_id], dtype=float))
+    frame = frame.reshape(3, 3)
+    inertia = frame @ np.diag(model.body_inertia[body_id]) @ frame.T
+    gravity = np.asarray(model.opt.gravity, dtype=float)
+    if gravity[0] != 0.0 or gravity[1] != 0.0:
+        raise ValueError(f"gravity must point along −z, got {gravity}")
+    if model.opt.disableflags & mujoco.mjtDisableBit.mjDSBL_GRAVITY:
+        gravity = np.zeros(3)
+    sites, spins, yaw = [], [], []
+    for a in range(model.nu):
+        name = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_ACTUATOR, a) or f"#{a}"
+        site = int(model.actuator_trnid[a, 0])
+        if model.actuator_trntype[a] != mujoco.mjtTrn.mjTRN_SITE or model.site_bodyid[site] != body_id:
+            raise ValueError(f"actuator {name!r} must act through a site of body {body!r}")
+        plain = (model.actuator_dyntype[a] == mujoco.mjtDyn.mjDYN_NONE
+                 and model.actuator_gaintype[a] == mujoco.mjtGain.mjGAIN_FIXED
+                 and model.actuator_gainprm[a, 0] == 1.0 and not np.any(model.actuator_biasprm[a])
+                 and model.actuator_biastype[a] == mujoco.mjtBias.mjBIAS_NONE)
+        if not plain:
+            raise ValueError(f"actuator {name!r} must be a plain gain (force = ctrl, no bias, no dynamics)")
+        site_frame = np.zeros(9)
+        mujoco.mju_quat2Mat(site_frame, np.asarray(model.site_quat[site], dtype=float))
+        site_frame = site_frame.reshape(3, 3)
+        force, torque = site_frame @ model.actuator_gear[a, :3], site_frame @ model.actuator_gear[a, 3:]
+        if not np.allclose(force, [0.0, 0.0, 1.0], atol=1e-12) or not np.allclose(torque[:2], 0.0, atol=1e-12):
+            raise ValueError(f"actuator {name!r}: the gear must push along body z with a yaw torque only, "
+                             f"got force {force}, torque {torque} (body frame)")
+        sites.append(tuple(float(c) for c in model.site_pos[site]))
+        spins.append(1.0 if torque[2] >= 0.0 else -1.0)
+        yaw.append(abs(float(torque[2])))
+    if np.ptp(yaw) > 1e-12 * max(max(yaw), 1.0):
+        raise ValueError(f"the rotors' yaw coefficients differ ({yaw}); a Quadrotor has one κ")
+    clamped = not model.opt.disableflags & mujoco.mjtDisableBit.mjDSBL_CLAMPCTRL
+    limited = clamped and bool(np.all(model.actuator_ctrllimited))
+    as_tuple = lambda matrix: tuple(tuple(float(x) for x in row) for row in matrix)  # noqa: E731
+    return Quadrotor(mass=mass, inertia=as_tuple(inertia), rotor_sites=tuple(sites), rotor_spins=tuple(spins),
+                     yaw_coefficient=float(yaw[0]), gravity=-float(gravity[2]),
+                     thrust_low=tuple(float(v) for v in model.actuator_ctrlrange[:, 0]) if limited else None,
+                     thrust_high=tuple(float(v) for v in model.actuator_ctrlrange[:, 1]) if limited else None)
