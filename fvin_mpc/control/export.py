@@ -16,6 +16,12 @@ named by the SHA-256 of the generated C source (which spells out the weights, ``
 every option baked into the functions), so a second run with the same model and
 settings does not compile again.
 
+Free bodies (R³ × S³, ``docs/r3s3.md``): :func:`free_body_step_function` builds
+``F(x[13], u[m]) -> (x_next[13], residual)`` with ``x = [x, q (w,x,y,z), v (world), ω (body)]``
+from :func:`fvin_mpc.core.fvin_r3s3.step_state`; :func:`from_quadrotor` (closed form, read off the
+MJCF by :func:`fvin_mpc.core.quadrotor.from_mujoco`) and :func:`from_checkpoint` (a learned R³ × S³
+checkpoint) give the same :class:`ExportedModel` with the same call signature.
+
 No torch here: the control runtime reads weights with safetensors/NumPy.
 """
 
@@ -34,10 +40,11 @@ from typing import Any, Sequence
 import casadi as ca
 import numpy as np
 
-from fvin_mpc.core import fvin
+from fvin_mpc.core import fvin, fvin_r3s3
 from fvin_mpc.core.backend import get_ops
 from fvin_mpc.core.checkpoint import Checkpoint, load_checkpoint
 from fvin_mpc.core.networks import LearnedTerms, ModelConfig
+from fvin_mpc.core.networks_r3s3 import CONFIGURATION_SPACE as R3S3, LearnedCombinedTerms, R3S3Config
 from fvin_mpc.core.state import STATE_DIM, split_state
 
 CA = get_ops("casadi")
@@ -66,6 +73,24 @@ def step_function(terms: Any, step_size: float, newton_iters: int, name: str = "
     return ca.Function(name, [x, u], [x_next, result.residual], ["x", "u"], ["x_next", "residual"])
 
 
+def free_body_step_function(terms: Any, step_size: float, newton_iters: int, force_rule: str = "trapezoid",
+                            name: str = "fvin_r3s3_step") -> ca.Function:
+    """``F(x[13], u[m]) -> (x_next[13], residual)`` of a free body (R³ × S³) as an SX function:
+    :func:`fvin_mpc.core.fvin_r3s3.step_state` on :class:`~fvin_mpc.core.fvin_r3s3.CombinedTerms`
+    built on the CasADi backend; ``residual`` as in :func:`step_function`."""
+    x = ca.SX.sym("x", fvin_r3s3.FREE_STATE_DIM)
+    u = ca.SX.sym("u", terms.control_dim)
+    x_next, residual = fvin_r3s3.step_state(x, u, terms, step_size, newton_iters, CA, force_rule)
+    return ca.Function(name, [x, u], [x_next, residual], ["x", "u"], ["x_next", "residual"])
+
+
+def free_body_energy_function(terms: Any, name: str = "fvin_r3s3_energy") -> ca.Function:
+    """``E(x[13]) -> ½vᵀMv + ½ωᵀJω + U(x, q)`` as an SX function, from the same terms as the step."""
+    x = ca.SX.sym("x", fvin_r3s3.FREE_STATE_DIM)
+    energy = fvin_r3s3.total_energy(*fvin_r3s3.split_free_state(x, CA), terms)
+    return ca.Function(name, [x], [energy], ["x"], ["energy"])
+
+
 def energy_function(terms: Any, name: str = "fvin_energy") -> ca.Function:
     """``E(x[7]) -> ½ωᵀJ(q)ω + U(q)`` as an SX function, from the same terms as the step."""
     x = ca.SX.sym("x", STATE_DIM)
@@ -78,14 +103,17 @@ class ExportedModel:
     """A discrete-time model ``x_{k+1} = F(x_k, u_k)`` ready for a controller.
 
     Attributes:
-        step: ``F(x[7], u[m]) -> (x_next[7], residual)`` (see :func:`step_function`).
+        step: ``F(x[n], u[m]) -> (x_next[n], residual)`` (see :func:`step_function`, and
+            :func:`free_body_step_function` for ``n = 13``).
         step_size: ``h`` (s), the control period the model was trained at.
         newton_iters: ``K`` unrolled in ``step``.
         control_dim: ``m``.
         numpy_terms: the same ``J``, ``U``, ``g`` evaluated with NumPy (energies, LQR).
         name: a short label (checkpoint stem or ``"true:<body>"``).
-        energy_function: ``E(x[7]) -> energy`` symbolic (see :func:`energy_function`), for
+        energy_function: ``E(x[n]) -> energy`` symbolic (see :func:`energy_function`), for
             costs on the model's energy (the MPC's ``terminal_energy_weight``).
+        configuration_space: ``"S3"`` (a pivoted body, ``x = (q, ω)``, n = 7) or ``"R3xS3"``
+            (a free body, ``x = (x, q, v, ω)``, n = 13).
     """
 
     step: ca.Function
@@ -95,14 +123,20 @@ class ExportedModel:
     numpy_terms: Any
     name: str
     energy_function: ca.Function
+    configuration_space: str = "S3"
+
+    @property
+    def state_dim(self) -> int:
+        """``n``: 7 for ``"S3"``, 13 for ``"R3xS3"``."""
+        return fvin_r3s3.FREE_STATE_DIM if self.configuration_space == R3S3 else STATE_DIM
 
     def __call__(self, x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, float]:
-        """One numeric step: ``(x_next (7,), residual)``."""
+        """One numeric step: ``(x_next (n,), residual)``."""
         x_next, residual = self.step(x, u)
         return np.asarray(x_next, dtype=float).ravel(), float(residual)
 
     def rollout(self, x0: np.ndarray, controls: np.ndarray) -> np.ndarray:
-        """States ``(T+1, 7)`` under ``controls (T, m)`` from ``x0 (7,)``."""
+        """States ``(T+1, n)`` under ``controls (T, m)`` from ``x0 (n,)``."""
         controls = np.asarray(controls, dtype=float).reshape(-1, self.control_dim)
         states = [np.asarray(x0, dtype=float)]
         for u in controls:
@@ -110,7 +144,11 @@ class ExportedModel:
         return np.array(states)
 
     def energy(self, x: np.ndarray) -> float:
-        """``½ωᵀJω + U(q)`` of the state ``x = (q, ω)`` ``(7,)``, in the model's own scale."""
+        """``½ωᵀJω + U(q)`` of the state ``x = (q, ω)`` ``(7,)`` (free body: ``½vᵀMv + ½ωᵀJω + U(x, q)``
+        of ``(x, q, v, ω)`` ``(13,)``), in the model's own scale."""
+        if self.configuration_space == R3S3:
+            return float(fvin_r3s3.total_energy(*fvin_r3s3.split_free_state(np.asarray(x, dtype=float), NP),
+                                                self.numpy_terms))
         q, omega = split_state(np.asarray(x, dtype=float))
         return float(fvin.total_energy(tuple(q), tuple(omega), self.numpy_terms))
 
@@ -119,10 +157,15 @@ def from_checkpoint(checkpoint: Checkpoint | str | Path, newton_iters: int | Non
     """Export a checkpoint (object, shipped name or path) with ``K = newton_iters`` (default: the checkpoint's)."""
     if not isinstance(checkpoint, Checkpoint):
         checkpoint = load_checkpoint(checkpoint)
+    label = checkpoint.path.name if checkpoint.path is not None else "checkpoint"
+    if isinstance(checkpoint.config, R3S3Config):
+        free: R3S3Config = checkpoint.config
+        k = newton_iters or free.newton_iters
+        return _free_body_model(LearnedCombinedTerms(checkpoint.weights, free, CA),
+                                LearnedCombinedTerms(checkpoint.weights, free, NP), free.step_size, k, free.force_rule, label)
     config: ModelConfig = checkpoint.config
     k = newton_iters or config.newton_iters
     terms = LearnedTerms(checkpoint.weights, config, CA)
-    label = checkpoint.path.name if checkpoint.path is not None else "checkpoint"
     return ExportedModel(
         step=step_function(terms, config.step_size, k), step_size=config.step_size, newton_iters=k,
         control_dim=config.control_dim, numpy_terms=LearnedTerms(checkpoint.weights, config, NP), name=label,
@@ -136,6 +179,22 @@ def from_rigid_body(body: Any, step_size: float, newton_iters: int = 2, name: st
     return ExportedModel(
         step=step_function(terms, step_size, newton_iters), step_size=step_size, newton_iters=newton_iters,
         control_dim=body.control_dim, numpy_terms=body.terms(NP), name=name, energy_function=energy_function(terms),
+    )
+
+
+def from_quadrotor(body: Any, step_size: float, newton_iters: int = 2, force_rule: str = "trapezoid",
+                   name: str = "true:quadrotor") -> ExportedModel:
+    """Export a closed-form :class:`~fvin_mpc.core.quadrotor.Quadrotor` through the same R³ × S³ step
+    (same signature as a learned R³ × S³ checkpoint's :func:`from_checkpoint`)."""
+    return _free_body_model(body.terms(CA), body.terms(NP), step_size, newton_iters, force_rule, name)
+
+
+def _free_body_model(terms: Any, numpy_terms: Any, step_size: float, newton_iters: int, force_rule: str,
+                     name: str) -> ExportedModel:
+    return ExportedModel(
+        step=free_body_step_function(terms, step_size, newton_iters, force_rule), step_size=step_size,
+        newton_iters=newton_iters, control_dim=terms.control_dim, numpy_terms=numpy_terms, name=name,
+        energy_function=free_body_energy_function(terms), configuration_space=R3S3,
     )
 
 

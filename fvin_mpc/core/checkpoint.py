@@ -4,8 +4,13 @@ A checkpoint ``name`` is two files: ``name.safetensors`` (float64 tensors, read 
 ``safetensors.numpy`` so the control runtime needs no torch) and ``name.json``::
 
     {"format": "fvin_mpc.checkpoint/1", "model": {ModelConfig fields}, "weights_sha256": "…",
-     "scene": "pendulum", "body": "pole", "data": {...}, "training": {...},
-     "versions": {...}}
+     "configuration_space": "S3", "scene": "pendulum", "body": "pole", "data": {...},
+     "training": {...}, "versions": {...}}
+
+``configuration_space`` says which model the weights belong to: ``"S3"`` (a pivoted body,
+:class:`~fvin_mpc.core.networks.ModelConfig`; also what a sidecar without the field means) or
+``"R3xS3"`` (a free body, :class:`~fvin_mpc.core.networks_r3s3.R3S3Config`, whose ``model`` fields
+repeat it).
 
 Every problem (missing file, truncated or malformed weights, bad JSON, weights that do
 not match the config) raises :class:`CheckpointError` with a one-line message naming it.
@@ -21,7 +26,11 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from fvin_mpc.core import networks_r3s3
 from fvin_mpc.core.networks import ModelConfig, check_weights
+
+#: A checkpoint's model configuration: pivoted (S³) or free body (R³ × S³).
+AnyConfig = ModelConfig | networks_r3s3.R3S3Config
 
 FORMAT = "fvin_mpc.checkpoint/1"
 #: Where the shipped checkpoints live (next to the package in a source checkout or
@@ -37,7 +46,7 @@ class CheckpointError(ValueError):
 class Checkpoint:
     """A trained model: its config, NumPy float64 weights and free-form metadata."""
 
-    config: ModelConfig
+    config: AnyConfig
     weights: Mapping[str, np.ndarray]
     metadata: Mapping[str, Any] = field(default_factory=dict)
     path: Path | None = None
@@ -45,6 +54,31 @@ class Checkpoint:
     @property
     def scene(self) -> str | None:
         return self.metadata.get("scene")
+
+    @property
+    def configuration_space(self) -> str:
+        """``"S3"`` or ``"R3xS3"``."""
+        return configuration_space(self.config)
+
+
+def configuration_space(config: AnyConfig) -> str:
+    """``"R3xS3"`` for a free-body config, ``"S3"`` for a pivoted one."""
+    return networks_r3s3.CONFIGURATION_SPACE if isinstance(config, networks_r3s3.R3S3Config) else "S3"
+
+
+def _check_weights(weights: Mapping[str, Any], config: AnyConfig) -> None:
+    if isinstance(config, networks_r3s3.R3S3Config):
+        networks_r3s3.check_weights(weights, config)
+    else:
+        check_weights(weights, config)
+
+
+def _config_from_dict(model: Mapping[str, Any], space: Any) -> AnyConfig:
+    if space == networks_r3s3.CONFIGURATION_SPACE or model.get("configuration_space") == networks_r3s3.CONFIGURATION_SPACE:
+        return networks_r3s3.R3S3Config.from_dict(model)
+    if space not in (None, "S3"):
+        raise ValueError(f"unknown configuration_space {space!r}")
+    return ModelConfig.from_dict(model)
 
 
 _SUFFIXES = (".safetensors", ".json")
@@ -82,17 +116,18 @@ def weights_digest(weights_path: Path) -> str:
     return hashlib.sha256(weights_path.read_bytes()).hexdigest()
 
 
-def save_checkpoint(path: str | Path, config: ModelConfig, weights: Mapping[str, np.ndarray], **metadata: Any) -> Path:
+def save_checkpoint(path: str | Path, config: AnyConfig, weights: Mapping[str, np.ndarray], **metadata: Any) -> Path:
     """Write ``path.safetensors`` and ``path.json``; returns the stem."""
     from safetensors.numpy import save_file
 
-    check_weights(weights, config)
+    _check_weights(weights, config)
     stem = _stem(path)
     stem.parent.mkdir(parents=True, exist_ok=True)
     arrays = {name: np.ascontiguousarray(np.asarray(value, dtype=np.float64)) for name, value in weights.items()}
     save_file(arrays, str(_with(stem, ".safetensors")))
     sidecar = {"format": FORMAT, "model": config.to_dict(),
-               "weights_sha256": weights_digest(_with(stem, ".safetensors")), **metadata}
+               "weights_sha256": weights_digest(_with(stem, ".safetensors")),
+               "configuration_space": configuration_space(config), **metadata}
     _with(stem, ".json").write_text(json.dumps(sidecar, indent=2, sort_keys=False) + "\n")
     return stem
 
@@ -111,7 +146,7 @@ def load_checkpoint(name_or_path: str | Path) -> Checkpoint:
     if not isinstance(sidecar, dict) or sidecar.get("format") != FORMAT:
         raise CheckpointError(f"{sidecar_path}: not a {FORMAT} sidecar (format field is {sidecar.get('format') if isinstance(sidecar, dict) else None!r})")
     try:
-        config = ModelConfig.from_dict(sidecar["model"])
+        config = _config_from_dict(sidecar["model"], sidecar.get("configuration_space"))
     except (KeyError, TypeError, ValueError) as error:
         raise CheckpointError(f"{sidecar_path}: invalid model config ({error})") from None
     try:
@@ -125,7 +160,7 @@ def load_checkpoint(name_or_path: str | Path) -> Checkpoint:
     if expected_digest is not None and expected_digest != weights_digest(weights_path):
         raise CheckpointError(f"{weights_path}: SHA-256 differs from the sidecar's weights_sha256 (corrupted or replaced)")
     try:
-        check_weights(weights, config)
+        _check_weights(weights, config)
     except ValueError as error:
         raise CheckpointError(f"{weights_path}: {error}") from None
     for name, value in weights.items():
