@@ -30,6 +30,8 @@ from typing import Any, Literal, Protocol, Union
 
 import numpy as np
 
+from fvin_mpc.control.state_layout import layout_of
+
 #: Upright means within this angle of the goal (rad) …
 UPRIGHT_TOLERANCE = 0.1
 #: … and holding means staying within this angle over the last :data:`HOLD_WINDOW_S` seconds.
@@ -47,7 +49,8 @@ Latency = Union[Literal["none", "measured"], float]
 
 
 class Controller(Protocol):
-    """``u, info = controller(x)`` from the measured state ``x = (q, ω)`` ``(7,)``; ``reset()`` between episodes."""
+    """``u, info = controller(x)`` from the measured state ``x`` (``(q, ω)`` ``(7,)``, or ``(x, q, v, ω)``
+    ``(13,)`` for a free body); ``reset()`` between episodes."""
 
     def __call__(self, x: np.ndarray) -> tuple[np.ndarray, dict[str, Any]]: ...
     def reset(self) -> None: ...
@@ -92,6 +95,7 @@ class Episode:
             where skipped): on a shared machine, wall time minus this is time spent waiting for a core.
         deadline_misses: periods whose busy time exceeded the control period.
         skipped: periods whose observation the controller could not take (still busy).
+        states: ``(T+1, n)`` the whole observations (``(q, ω)``, or ``(x, q, v, ω)`` for a free body).
     """
 
     time: np.ndarray
@@ -112,6 +116,7 @@ class Episode:
     cpu_s: np.ndarray | None = None
     deadline_misses: int = 0
     skipped: int = 0
+    states: np.ndarray | None = None
 
 
 def run_episode(env: Any, controller: Controller, duration_s: float, reset_options: dict[str, Any] | None = None,
@@ -122,7 +127,9 @@ def run_episode(env: Any, controller: Controller, duration_s: float, reset_optio
     Args:
         env: an :class:`envs.RigidBodyEnv` (or a wrapper of one).
         controller: see :class:`Controller`; reset before the episode. An optional ``prepare()``
-            is called after each delivered torque (module docstring).
+            is called after each delivered torque (module docstring); an optional ``set_time(t)`` is
+            told the time of each observation it takes (s since the episode's start: a controller
+            tracking a time-varying reference).
         duration_s: rounded to whole control periods.
         reset_options: passed to ``env.reset`` (``{"qpos": …, "qvel": …}`` or ``{"random": True}``).
         seed: passed to ``env.reset``.
@@ -142,8 +149,10 @@ def run_episode(env: Any, controller: Controller, duration_s: float, reset_optio
     observation, info = env.reset(seed=seed, options=reset_options)
     controller.reset()
     prepare = getattr(controller, "prepare", None)
+    set_time = getattr(controller, "set_time", None)
     frames = [env.render()] if render else []
-    q, omega = [observation[:4]], [observation[4:]]
+    layout = layout_of(len(observation))
+    observations = [observation]
     angle, energy, times = [info["angle_from_goal"]], [info["energy"]], [info["time"]]
     controls, rewards, wall, success, fallback, recorded = [], [], [], [], [], []
     compute, busy, cpu = [], [], []
@@ -155,6 +164,8 @@ def run_episode(env: Any, controller: Controller, duration_s: float, reset_optio
     for k in bar:
         first = k * frame_skip
         if first >= free_at:
+            if set_time is not None:
+                set_time(times[-1] - times[0])
             cpu_start = time.thread_time()
             start = time.perf_counter()
             u, controller_info = controller(observation)
@@ -201,8 +212,7 @@ def run_episode(env: Any, controller: Controller, duration_s: float, reset_optio
         else:
             segments.append((frame_skip, applied))
         observation, reward, terminated, info = _step_segments(env, segments, frame_skip)
-        q.append(observation[:4])
-        omega.append(observation[4:])
+        observations.append(observation)
         controls.append(applied.copy())
         rewards.append(reward)
         angle.append(info["angle_from_goal"])
@@ -213,12 +223,15 @@ def run_episode(env: Any, controller: Controller, duration_s: float, reset_optio
         bar.set_postfix(angle=f"{angle[-1]:.2f}", ms=f"{1e3 * wall[-1]:.1f}")
         if terminated:
             break
+    states = np.array(observations)
     episode = Episode(
-        time=np.asarray(times) - times[0], q=np.array(q), omega=np.array(omega), u=np.array(controls),
+        time=np.asarray(times) - times[0], q=states[:, layout.quaternion], omega=states[:, layout.omega],
+        u=np.array(controls),
         angle_from_goal=np.array(angle), energy=np.array(energy), reward=np.array(rewards),
         controller_time_s=np.array(wall), controller_success=np.array(success), fallback=fallback,
         control_period=float(base.dt), controller_info=recorded, latency=latency,
         compute_s=np.array(compute), busy_s=np.array(busy), cpu_s=np.array(cpu), deadline_misses=misses, skipped=skipped,
+        states=states,
     )
     return episode, frames
 

@@ -133,6 +133,18 @@ class MPCSettings:
         rti_qp_iterations: interior-point iterations of ``rti_qp_solver="riccati"``.
         disturbance_gain: ``solver="rti"`` only: gain ``α`` of the offset-free estimator of a constant
             input disturbance ``d`` (``x⁺ = F(x, u + d)``); ``0`` switches it off.
+        position_weight: ``solver="rti"`` with a free body (``(x, q, v, ω)`` states): ``w_x`` on
+            ``|x − x_ref|²`` per stage …
+        velocity_weight: … ``w_v`` on ``|v − v_ref|²`` per stage …
+        terminal_position_weight: … ``W_x`` on the last stage's …
+        terminal_velocity_weight: … and ``W_v``. Pivoted bodies have no ``x``, ``v``: unused there.
+        orientation_residual: ``solver="rti"``: the least-squares residual whose square is the
+            orientation cost: ``"projector"`` ``(I − g gᵀ) q`` (``|·|² = sin²(angle/2)``, as the IPOPT
+            MPC's ``c(q)``) or ``"rotation-vector"`` ``log(±g* ⊗ q)`` (half the rotation vector,
+            ``|·|² = (angle/2)²``, the sign making the real part ≥ 0). Near the goal the two agree;
+            far from it the projector's Gauss–Newton model has a false minimum at the upside-down
+            orientation (its residual's Jacobian is orthogonal to the residual there: the model sees
+            every turn as uphill), the rotation vector's does not — the quadrotor's recovery needs it.
     """
 
     horizon: int = 30
@@ -165,6 +177,11 @@ class MPCSettings:
     rti_qp_solver: Literal["riccati", "hpipm", "qrqp", "osqp"] = "riccati"
     rti_qp_iterations: int = 10
     disturbance_gain: float = 0.5
+    position_weight: float = 0.0
+    velocity_weight: float = 0.0
+    terminal_position_weight: float = 0.0
+    terminal_velocity_weight: float = 0.0
+    orientation_residual: Literal["projector", "rotation-vector"] = "projector"
 
     def __post_init__(self) -> None:
         if self.horizon < 1:
@@ -172,7 +189,8 @@ class MPCSettings:
         if not 0.0 < self.omega_bound_fraction <= 1.0:
             raise ValueError(f"omega_bound_fraction must be in (0, 1], got {self.omega_bound_fraction}")
         for name in ("orientation_weight", "omega_weight", "control_weight", "terminal_orientation_weight",
-                     "terminal_omega_weight", "terminal_energy_weight"):
+                     "terminal_omega_weight", "terminal_energy_weight", "position_weight", "velocity_weight",
+                     "terminal_position_weight", "terminal_velocity_weight"):
             if not getattr(self, name) >= 0.0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
         if self.hessian not in ("gauss-newton", "exact", "limited-memory"):
@@ -190,6 +208,8 @@ class MPCSettings:
             raise ValueError("rti_budget_s, rti_cold_budget_s, rti_regularization and rti_omega_penalty must be >= 0")
         if self.rti_cold_solver not in ("rti", "ipopt"):
             raise ValueError(f"unknown rti_cold_solver {self.rti_cold_solver!r}")
+        if self.orientation_residual not in ("projector", "rotation-vector"):
+            raise ValueError(f"unknown orientation_residual {self.orientation_residual!r}")
         if self.rti_qp_iterations < 1:
             raise ValueError(f"rti_qp_iterations must be >= 1, got {self.rti_qp_iterations}")
         if self.rti_qp_solver not in ("riccati", "hpipm", "qrqp", "osqp"):

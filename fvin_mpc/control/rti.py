@@ -57,7 +57,7 @@ from __future__ import annotations
 
 import re
 import time
-from typing import Any
+from typing import Any, Protocol
 
 import casadi as ca
 import numpy as np
@@ -66,16 +66,19 @@ from fvin_mpc.control.export import ExportedModel, compile_functions
 from fvin_mpc.control.mpc import MPC, MPCSettings, _Plan
 from fvin_mpc.core import s3
 from fvin_mpc.core.backend import Ops, get_ops
-from fvin_mpc.core.state import STATE_DIM, check_state
+from fvin_mpc.control.state_layout import FREE_BODY, PIVOTED, StateLayout, layout_of
+from fvin_mpc.core.state import unit_quaternion
 
 CA, NP = get_ops("casadi"), get_ops("numpy")
 
-#: Dimension of a state's local coordinates ``δ = (θ, ν)``.
-TANGENT_DIM = 6
 #: Trust region of one iteration, per stage: largest ``|θ_i|`` (Gibbs vector, ≈ half the turn in rad) …
 STEP_LIMIT_ANGLE = 0.5
-#: … and largest ``|Δω_i|`` as a fraction of the ``ω`` bound; larger state steps are clipped.
+#: … largest ``|Δω_i|`` as a fraction of the ``ω`` bound; larger state steps are clipped …
 STEP_LIMIT_OMEGA = 0.5
+#: … and, for a free body, largest ``|Δx_i|`` (m) …
+STEP_LIMIT_POSITION = 1.0
+#: … and ``|Δv_i|`` (m/s).
+STEP_LIMIT_VELOCITY = 2.0
 #: The order a cold call tries ``cold_starts`` in (within ``rti_cold_budget_s``): from the ``"goal"``
 #: guess the iteration reached IPOPT's optimum on the ball joint in ~10 iterations, from the
 #: rollouts (ω clipped to the bound: large gaps) it diverged (docs/realtime.md).
@@ -123,23 +126,66 @@ def local_np(q_bar: np.ndarray, q: np.ndarray) -> np.ndarray:
     return np.stack(chart_local(tuple(np.moveaxis(q_bar, -1, 0)), tuple(np.moveaxis(q, -1, 0))), axis=-1)
 
 
+def retract_state(layout: StateLayout, x_bar: Any, delta: Any) -> Any:
+    """A state from its linearization point ``x̄`` and local coordinates ``δ`` (CasADi columns): the
+    quaternion by :func:`retract`, every other entry by addition."""
+    a, qs = layout.before, layout.quaternion
+    parts = [x_bar[:a] + delta[:a]] if a else []
+    return ca.vertcat(*parts, retract(x_bar[qs], delta[layout.chart]), x_bar[qs.stop:] + delta[a + 3:])
+
+
+def local_state(layout: StateLayout, x_bar: Any, x: Any) -> Any:
+    """The inverse of :func:`retract_state`: ``δ`` of ``x`` in ``x̄``'s chart (the same for ``±q``)."""
+    a, qs = layout.before, layout.quaternion
+    parts = [x[:a] - x_bar[:a]] if a else []
+    return ca.vertcat(*parts, local(x_bar[qs], x[qs]), x[qs.stop:] - x_bar[qs.stop:])
+
+
+def retract_state_np(layout: StateLayout, x_bar: np.ndarray, delta: np.ndarray) -> np.ndarray:
+    """:func:`retract_state` for arrays ``x̄ (…, n)``, ``δ (…, n − 1)``."""
+    a, qs = layout.before, layout.quaternion
+    return np.concatenate([x_bar[..., :a] + delta[..., :a], retract_np(x_bar[..., qs], delta[..., layout.chart]),
+                           x_bar[..., qs.stop:] + delta[..., a + 3:]], axis=-1)
+
+
+def local_state_np(layout: StateLayout, x_bar: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """:func:`local_state` for arrays ``(…, n)``."""
+    a, qs = layout.before, layout.quaternion
+    return np.concatenate([x[..., :a] - x_bar[..., :a], local_np(x_bar[..., qs], x[..., qs]),
+                           x[..., qs.stop:] - x_bar[..., qs.stop:]], axis=-1)
+
+
+def step_limits(layout: StateLayout, omega_step: float) -> np.ndarray:
+    """The trust region of one iteration per entry of ``δ``: :data:`STEP_LIMIT_POSITION`,
+    :data:`STEP_LIMIT_ANGLE`, :data:`STEP_LIMIT_VELOCITY`, ``omega_step`` for ``ω``."""
+    limits = np.empty(layout.tangent_dim)
+    limits[:layout.before] = STEP_LIMIT_POSITION
+    limits[layout.chart] = STEP_LIMIT_ANGLE
+    limits[layout.chart.stop:] = STEP_LIMIT_VELOCITY
+    limits[layout.tangent_omega] = omega_step
+    return limits
+
+
 # ----------------------------------------------------------------------------- compiled QP + update
-def riccati_feedback_function(n: int, m: int, low: np.ndarray, high: np.ndarray, omega_step: float,
-                              omega_valid: float, iterations: int, centering: float = 0.1,
+def riccati_feedback_function(layout: StateLayout, n: int, m: int, low: np.ndarray, high: np.ndarray,
+                              limits: np.ndarray, omega_valid: float, iterations: int, centering: float = 0.1,
                               boundary: float = 0.995) -> ca.Function:
     """One feedback iteration as a single CasADi function (compiled with the linearization):
-    ``(X̄ (7,N+1), Ū (m,N), x0 (7), H (s,sN), H_N (6,6), g (s,N), g_N (6), [A B] (6,sN), c (6,N))
-    → (X (7,N+1), U (m,N), step, μ)``, ``s = 6 + m``.
+    ``(X̄ (n_x,N+1), Ū (m,N), x0 (n_x), H (s,sN), H_N (n_δ,n_δ), g (s,N), g_N (n_δ), [A B] (n_δ,sN),
+    c (n_δ,N)) → (X (n_x,N+1), U (m,N), step, μ)``, ``s = n_δ + m``; ``n_x``, ``n_δ`` the ``layout``'s
+    state and tangent dimensions (7 and 6 for a pivoted body, 13 and 12 for a free one).
 
     The QP ``min Σ ½[δ;Δu]ᵀH_k[δ;Δu] + g_kᵀ[δ;Δu] + ½δ_NᵀH_Nδ_N + g_Nᵀδ_N`` s.t.
     ``δ_{k+1} = A_kδ_k + B_kΔu_k + c_k``, ``δ_0 = local(x̄_0, x0)``, ``low ≤ ū_k + Δu_k ≤ high`` is
     solved by a primal–dual interior-point method on the input boxes with a fixed number of
     ``iterations``: each solves the barrier-modified LQ problem (``R + diag(λ/s)``) by a Riccati
     recursion (``O(N)``, backward ``mapaccum``), takes the fraction-to-boundary step and reduces
-    ``μ`` to ``centering ×`` the mean complementarity. Then the trust region and the update on S³
-    (as :meth:`RealTimeMPC._iterate`). No Python between the stages: the whole iteration is one call.
+    ``μ`` to ``centering ×`` the mean complementarity. Then the trust region (``limits``, per entry of
+    ``δ``: :func:`step_limits`), the update on S³ and ``|ω|`` within ``omega_valid`` (as
+    :meth:`RealTimeMPC._iterate`). No Python between the stages: the whole iteration is one call.
     """
-    nd, size = TANGENT_DIM, TANGENT_DIM + m
+    ns, nd = layout.state_dim, layout.tangent_dim
+    size = nd + m
     # --- one backward Riccati stage: (P, p) at k+1 → at k, with the gains of stage k
     P, p = ca.SX.sym("P", nd, nd), ca.SX.sym("p", nd)
     hk, gk, abk, ck = ca.SX.sym("H", size, size), ca.SX.sym("g", size), ca.SX.sym("AB", nd, size), ca.SX.sym("c", nd)
@@ -160,18 +206,17 @@ def riccati_feedback_function(n: int, m: int, low: np.ndarray, high: np.ndarray,
     forward = ca.Function("rti_forward_stage", [delta, gain_k, ff_k, abk, ck],
                           [ca.mtimes(abk, ca.vertcat(delta, v)) + ck, v]).mapaccum("rti_forward", n, 1)
     # --- retraction of one stage
-    x_bar, step_k = ca.SX.sym("x_bar", STATE_DIM), ca.SX.sym("step", nd)
-    retracted = ca.Function("rti_retract", [x_bar, step_k], [ca.vertcat(retract(x_bar[:4], step_k[:3]),
-                                                                        x_bar[4:] + step_k[3:])]).map(n)
+    x_bar, step_k = ca.SX.sym("x_bar", ns), ca.SX.sym("step", nd)
+    retracted = ca.Function("rti_retract", [x_bar, step_k], [retract_state(layout, x_bar, step_k)]).map(n)
 
     def reverse(matrix: Any, width: int) -> Any:  # stage blocks of `width` columns in reverse order
         return matrix[:, [(n - 1 - k) * width + j for k in range(n) for j in range(width)]]
 
-    states, controls = ca.MX.sym("X", STATE_DIM, n + 1), ca.MX.sym("U", m, n)
-    x0, hessians, terminal_hessian = ca.MX.sym("x0", STATE_DIM), ca.MX.sym("H", size, size * n), ca.MX.sym("HN", nd, nd)
+    states, controls = ca.MX.sym("X", ns, n + 1), ca.MX.sym("U", m, n)
+    x0, hessians, terminal_hessian = ca.MX.sym("x0", ns), ca.MX.sym("H", size, size * n), ca.MX.sym("HN", nd, nd)
     gradients, terminal_gradient = ca.MX.sym("g", size, n), ca.MX.sym("gN", nd)
     jacobians, gaps = ca.MX.sym("AB", nd, size * n), ca.MX.sym("c", nd, n)
-    delta0 = ca.vertcat(local(states[:4, 0], x0[:4]), x0[4:] - states[4:, 0])
+    delta0 = local_state(layout, states[:, 0], x0)
     lower = ca.fmax(ca.repmat(ca.DM(np.maximum(low, -1e6)), 1, n) - controls, -1e6)
     upper = ca.fmin(ca.repmat(ca.DM(np.minimum(high, 1e6)), 1, n) - controls, 1e6)
     width = upper - lower
@@ -206,16 +251,41 @@ def riccati_feedback_function(n: int, m: int, low: np.ndarray, high: np.ndarray,
     # within (1 − α)|Δu|): propagating the final controls open loop would amplify the interior-point
     # method's inexactness through the unstable upright dynamics (e^{λ·horizon} ≈ 10³–10⁴ here).
     # --- trust region, update on S³
-    steps = ca.vertcat(ca.fmin(ca.fmax(deltas[:3, :], -STEP_LIMIT_ANGLE), STEP_LIMIT_ANGLE),
-                       ca.fmin(ca.fmax(deltas[3:, :], -omega_step), omega_step))
+    bound = ca.repmat(ca.DM(limits), 1, n)
+    steps = ca.fmin(ca.fmax(deltas, -bound), bound)
     moved = retracted(states[:, 1:], steps)
-    new_states = ca.horzcat(x0, ca.vertcat(moved[:4, :], ca.fmin(ca.fmax(moved[4:, :], -omega_valid), omega_valid)))
+    omega = ns - 3
+    new_states = ca.horzcat(x0, ca.vertcat(moved[:omega, :], ca.fmin(ca.fmax(moved[omega:, :], -omega_valid), omega_valid)))
     new_controls = ca.fmin(ca.fmax(controls + v, ca.DM(low)), ca.DM(high))
-    step = ca.fmax(ca.fmax(ca.mmax(ca.fabs(v) / ca.repmat(ca.DM(np.minimum(high - low, 1e6)), 1, n)),
-                           ca.mmax(ca.fabs(steps[:3, :])) / STEP_LIMIT_ANGLE), ca.mmax(ca.fabs(steps[3:, :])) / omega_step)
+    step = ca.fmax(ca.mmax(ca.fabs(v) / ca.repmat(ca.DM(np.minimum(high - low, 1e6)), 1, n)),
+                   ca.mmax(ca.fabs(steps) / bound))
     return ca.Function("rti_feedback", [states, controls, x0, hessians, terminal_hessian, gradients, terminal_gradient,
                                         jacobians, gaps], [new_states, new_controls, step, mu],
                        ["X", "U", "x0", "H", "HN", "g", "gN", "AB", "c"], ["X_new", "U_new", "step", "mu"])
+
+
+class Reference(Protocol):
+    """What the MPC tracks: ``states, scales = reference(times)`` for times ``(T,)`` (s) — reference
+    states ``(T, n)`` in the model's layout and control scales ``(T,)``: the stage's target control is
+    ``scale × u_goal`` (``u_goal`` holds the goal at rest in the model; for a quadrotor the ratio of
+    the thrust the reference needs to hover thrust). ``constant`` says the answer never changes
+    with time (computed once)."""
+
+    constant: bool
+
+    def __call__(self, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]: ...
+
+
+class ConstantReference:
+    """The goal state at every time, control scale 1: swing up and hold, hover at a point."""
+
+    constant = True
+
+    def __init__(self, state: np.ndarray) -> None:
+        self.state = np.asarray(state, dtype=float)
+
+    def __call__(self, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return np.tile(self.state, (len(times), 1)), np.ones(len(times))
 
 
 class RealTimeMPC(MPC):
@@ -233,7 +303,19 @@ class RealTimeMPC(MPC):
                  rest: Any = None) -> None:
         if settings.solver != "rti":
             settings = MPCSettings(**{**settings.__dict__, "solver": "rti"})
-        super().__init__(model, settings, goal, torque_low, torque_high, rest)
+        #: where the quaternion sits in the model's states (pivoted ``(q, ω)`` or free ``(x, q, v, ω)``)
+        self.layout = layout_of(int(model.step.size1_in(0)))
+        if self.layout is PIVOTED:  # the goal is an orientation, at rest
+            goal_state = np.concatenate([unit_quaternion(goal, "goal"), np.zeros(3)])
+        else:  # the goal is a state: hover there
+            goal_state = self.layout.check(goal)
+            if settings.terminal_energy_weight > 0 or settings.rti_cold_solver == "ipopt":
+                raise ValueError(f"a {self.layout.name} model takes no terminal energy term and no IPOPT cold start "
+                                 "(both are written for pivoted bodies)")
+        #: the goal state; the reference is this state at rest unless :meth:`set_reference` says otherwise
+        self.goal_state = goal_state
+        self._reference: Reference = ConstantReference(goal_state)
+        super().__init__(model, settings, goal_state[self.layout.quaternion], torque_low, torque_high, rest)
         self._cold_mpc = None
         if settings.rti_cold_solver == "ipopt":
             self._cold_mpc = MPC(model, MPCSettings(**{**settings.__dict__, "solver": "ipopt"}), goal, torque_low,
@@ -242,15 +324,17 @@ class RealTimeMPC(MPC):
 
     # ------------------------------------------------------------------ problem
     def _build(self) -> None:
-        s, n, m = self.settings, self.horizon, self.model.control_dim
-        nd = TANGENT_DIM
+        s, n, m, layout = self.settings, self.horizon, self.model.control_dim, self.layout
+        ns, nd, a = layout.state_dim, layout.tangent_dim, layout.before
+        qs, ws = layout.quaternion, layout.omega
         stage_size = nd + m
 
-        x_bar, x_next_bar = ca.SX.sym("x_bar", STATE_DIM), ca.SX.sym("x_next_bar", STATE_DIM)
+        x_bar, x_next_bar = ca.SX.sym("x_bar", ns), ca.SX.sym("x_next_bar", ns)
         u_bar, d, u_s = ca.SX.sym("u_bar", m), ca.SX.sym("d", m), ca.SX.sym("u_s", m)
-        goal = ca.SX.sym("goal", 4)
+        reference = ca.SX.sym("reference", ns)  # the stage's reference state
+        goal = reference[qs]
         delta, du = ca.SX.sym("delta", nd), ca.SX.sym("du", m)
-        x = ca.vertcat(retract(x_bar[:4], delta[:3]), x_bar[4:] + delta[3:])
+        x = retract_state(layout, x_bar, delta)
         u = u_bar + du
         zero = [ca.DM.zeros(nd), ca.DM.zeros(m)]
 
@@ -259,7 +343,7 @@ class RealTimeMPC(MPC):
 
         # --- dynamics: e(δ, Δu) = F(x, u + d) in x̄_{k+1}'s chart
         y = self.model.step(x, u + d)[0]
-        gap = ca.vertcat(local(x_next_bar[:4], y[:4]), y[4:] - x_next_bar[4:])
+        gap = local_state(layout, x_next_bar, y)
         c, jac = at_zero([gap, ca.jacobian(gap, ca.vertcat(delta, du))])
         stage_dynamics = ca.Function("rti_dynamics", [x_bar, u_bar, x_next_bar, d], [c, jac])
 
@@ -267,11 +351,29 @@ class RealTimeMPC(MPC):
         projector = ca.SX.eye(4) - ca.mtimes(goal, goal.T)
         # |ω_i| ≤ bound as an exact-penalty-like soft constraint (zero inside the bound): the
         # linearized QP then has only the torque boxes and is always feasible.
-        excess = np.sqrt(s.rti_omega_penalty) * (x[4:] - ca.fmin(ca.fmax(x[4:], -self.omega_bound), self.omega_bound))
-        stage_residual = ca.vertcat(np.sqrt(s.orientation_weight) * ca.mtimes(projector, x[:4]),
-                                    np.sqrt(s.omega_weight) * x[4:], np.sqrt(s.control_weight) * (u - u_s), excess)
-        terminal_parts = [np.sqrt(s.terminal_orientation_weight) * ca.mtimes(projector, x[:4]),
-                          np.sqrt(s.terminal_omega_weight) * x[4:], excess]
+        omega = x[ws]
+        if s.orientation_residual == "projector":
+            orientation_error = ca.mtimes(projector, x[qs])
+        else:  # half the rotation vector from the reference to q, of the sign-aligned relative rotation
+            relative = s3.multiply(s3.conjugate(tuple(goal[i] for i in range(4))), tuple(x[qs][i] for i in range(4)))
+            aligned = s3.scale(ca.if_else(relative[0] >= 0, 1.0, -1.0), relative)
+            orientation_error = ca.vertcat(*s3.log(aligned, CA))
+        excess = np.sqrt(s.rti_omega_penalty) * (omega - ca.fmin(ca.fmax(omega, -self.omega_bound), self.omega_bound))
+
+        def tracking(position_weight: float, orientation_weight: float, velocity_weight: float,
+                     omega_weight: float) -> list[Any]:
+            """Residuals of the state against the stage's reference: position and velocity (free
+            bodies), the sign-invariant orientation ``(I − g gᵀ) q``, ``ω``."""
+            velocity = slice(qs.stop, ws.start)
+            translation = [np.sqrt(position_weight) * (x[:a] - reference[:a])] if a else []
+            rate = [np.sqrt(velocity_weight) * (x[velocity] - reference[velocity])] if a else []
+            return [*translation, np.sqrt(orientation_weight) * orientation_error, *rate,
+                    np.sqrt(omega_weight) * (omega - reference[ws])]
+
+        stage_residual = ca.vertcat(*tracking(s.position_weight, s.orientation_weight, s.velocity_weight,
+                                              s.omega_weight), np.sqrt(s.control_weight) * (u - u_s), excess)
+        terminal_parts = [*tracking(s.terminal_position_weight, s.terminal_orientation_weight,
+                                    s.terminal_velocity_weight, s.terminal_omega_weight), excess]
         if s.terminal_energy_weight > 0:
             energy = self.model.energy_function
             rest_energy = self.model.energy(np.concatenate([self.rest, np.zeros(3)]))
@@ -286,19 +388,18 @@ class RealTimeMPC(MPC):
             hessian = 2.0 * ca.mtimes(jacobian.T, jacobian) + regularization * ca.SX.eye(size)
             return at_zero([ca.densify(hessian), 2.0 * ca.mtimes(jacobian.T, residual), ca.sumsqr(residual)])
 
-        stage_cost = ca.Function("rti_stage_cost", [x_bar, u_bar, goal, u_s],
+        stage_cost = ca.Function("rti_stage_cost", [x_bar, u_bar, reference, u_s],
                                  gauss_newton(stage_residual, ca.vertcat(delta, du), stage_size))
-        terminal_cost = ca.Function("rti_terminal_cost", [x_bar, goal], gauss_newton(terminal_residual, delta, nd))
+        terminal_cost = ca.Function("rti_terminal_cost", [x_bar, reference], gauss_newton(terminal_residual, delta, nd))
 
         # --- the whole QP over the horizon, stage-wise, δ_0 eliminated (it is fixed by the measurement):
         # z = (Δu_0, δ_1, Δu_1, …, δ_N); the feedback adds A_0 δ_0 to the first gap and S_0 δ_0 to the
         # gradient of Δu_0.
-        states, controls = ca.MX.sym("X", STATE_DIM, n + 1), ca.MX.sym("U", m, n)
-        goal_mx, d_mx, u_s_mx = ca.MX.sym("goal", 4), ca.MX.sym("d", m), ca.MX.sym("u_s", m)
+        states, controls = ca.MX.sym("X", ns, n + 1), ca.MX.sym("U", m, n)
+        references, d_mx, u_s_mx = ca.MX.sym("R", ns, n + 1), ca.MX.sym("d", m), ca.MX.sym("u_s", m, n)
         gaps, jacobians = stage_dynamics.map(n)(states[:, :n], controls, states[:, 1:], ca.repmat(d_mx, 1, n))
-        hessians, gradients, costs = stage_cost.map(n)(states[:, :n], controls, ca.repmat(goal_mx, 1, n),
-                                                        ca.repmat(u_s_mx, 1, n))
-        terminal_hessian, terminal_gradient, terminal_value = terminal_cost(states[:, n], goal_mx)
+        hessians, gradients, costs = stage_cost.map(n)(states[:, :n], controls, references[:, :n], u_s_mx)
+        terminal_hessian, terminal_gradient, terminal_value = terminal_cost(states[:, n], references[:, n])
         size = stage_size * n
         blocks = [hessians[:, k * stage_size:(k + 1) * stage_size] for k in range(n)]
         hessian = ca.diagcat(blocks[0][nd:, nd:], *blocks[1:], terminal_hessian)
@@ -309,27 +410,29 @@ class RealTimeMPC(MPC):
                                    -ca.MX.eye(nd), ca.MX(nd, size - column - stage_size - nd)))
         constraints = ca.vertcat(*rows)
         gradient = ca.vertcat(gradients[nd:, 0], ca.vec(gradients[:, 1:]), terminal_gradient)
-        linearize = ca.Function("rti_linearize", [states, controls, goal_mx, d_mx, u_s_mx],
+        linearize = ca.Function("rti_linearize", [states, controls, references, d_mx, u_s_mx],
                                 [hessian, gradient, constraints, ca.vec(gaps), ca.sum2(costs) + terminal_value,
                                  jacobians[:, :nd], blocks[0][nd:, :nd]],
-                                ["X", "U", "goal", "d", "u_s"], ["H", "g", "A", "gaps", "cost", "A0", "S0"])
-        linearize_blocks = ca.Function("rti_linearize_blocks", [states, controls, goal_mx, d_mx, u_s_mx],
+                                ["X", "U", "R", "d", "u_s"], ["H", "g", "A", "gaps", "cost", "A0", "S0"])
+        linearize_blocks = ca.Function("rti_linearize_blocks", [states, controls, references, d_mx, u_s_mx],
                                        [hessians, terminal_hessian, gradients, terminal_gradient, jacobians, gaps,
                                         ca.sum2(costs) + terminal_value],
-                                       ["X", "U", "goal", "d", "u_s"], ["H", "HN", "g", "gN", "AB", "gaps", "cost"])
-        # one step and its ∂ω⁺/∂u, for the disturbance estimator and the target control
-        x_sym, u_sym = ca.SX.sym("x", STATE_DIM), ca.SX.sym("u", m)
+                                       ["X", "U", "R", "d", "u_s"], ["H", "HN", "g", "gN", "AB", "gaps", "cost"])
+        # one step and the derivative of its rates (ω, or v and ω) in u, for the disturbance
+        # estimator and the target control
+        x_sym, u_sym = ca.SX.sym("x", ns), ca.SX.sym("u", m)
         stepped, residual = self.model.step(x_sym, u_sym)
-        b = ca.jacobian(stepped[4:], u_sym)  # ∂ω⁺/∂u (3, m), and its least-squares inverse (m, 3)
+        b = ca.jacobian(stepped[layout.rates], u_sym)  # ∂(rates)⁺/∂u (b, m), and its least-squares inverse (m, b)
         predict = ca.Function("rti_predict", [x_sym, u_sym],
                               [stepped, b, residual, ca.solve(ca.mtimes(b.T, b), b.T)])
 
         self._omega_valid = OMEGA_VALID_FRACTION / self.model.step_size
+        self._step_limits = step_limits(layout, STEP_LIMIT_OMEGA * self.omega_bound)
         riccati = s.rti_qp_solver == "riccati"
         if riccati:
             linearize = linearize_blocks
             functions = [linearize, predict, riccati_feedback_function(
-                n, m, self.torque_low, self.torque_high, STEP_LIMIT_OMEGA * self.omega_bound, self._omega_valid,
+                layout, n, m, self.torque_low, self.torque_high, self._step_limits, self._omega_valid,
                 s.rti_qp_iterations)]
         else:
             functions = [linearize, predict]
@@ -348,7 +451,7 @@ class RealTimeMPC(MPC):
     def _make_qp(self, h: ca.Sparsity, a: ca.Sparsity) -> ca.Function:
         s, n, m = self.settings, self.horizon, self.model.control_dim
         if s.rti_qp_solver == "hpipm":
-            options = {"N": n, "nx": [0] + [TANGENT_DIM] * n, "nu": [m] * n + [0], "ng": [0] * (n + 1),
+            options = {"N": n, "nx": [0] + [self.layout.tangent_dim] * n, "nu": [m] * n + [0], "ng": [0] * (n + 1),
                        "hpipm": {"iter_max": 50, "warm_start": 0, "mode": "speed_abs"},
                        "error_on_fail": False}
         elif s.rti_qp_solver == "qrqp":
@@ -359,30 +462,89 @@ class RealTimeMPC(MPC):
         return ca.conic("rti_qp", s.rti_qp_solver, {"h": h, "a": a}, options)
 
     def _goal_control(self) -> np.ndarray:
-        """``u_goal``: the control that holds the goal at rest in the model (least squares, Newton)."""
-        x_goal = np.concatenate([self.goal, np.zeros(3)])
+        """``u_goal``: the control that holds the goal at rest in the model — its rates (``ω``, or ``v``
+        and ``ω``) stay zero (least squares, Newton). For a quadrotor: the hover thrusts."""
+        x_goal = self.goal_state.copy()
+        x_goal[self.layout.rates] = 0.0
         u = np.zeros(self.model.control_dim)
         for _ in range(5):
             stepped, _, _, inverse = self._predict(x_goal, u)
-            u = u - np.asarray(inverse, dtype=float) @ np.asarray(stepped, dtype=float).ravel()[4:]
+            u = u - np.asarray(inverse, dtype=float) @ np.asarray(stepped, dtype=float).ravel()[self.layout.rates]
         return u
 
     # ------------------------------------------------------------------ state of the controller
     def reset(self) -> None:
-        """Forget the plan and the disturbance estimate (the next call is a cold start)."""
+        """Forget the plan and the disturbance estimate (the next call is a cold start); the clock
+        restarts at 0."""
         self._previous = None
         self._plan: _Plan | None = None
         self._linearization: tuple[Any, ...] | None = None
         self.disturbance = np.zeros(self.model.control_dim)
-        self._last: tuple[np.ndarray, np.ndarray] | None = None  # (predicted ω, (∂ω/∂u)⁺) after the last torque
+        self._last: tuple[np.ndarray, np.ndarray] | None = None  # (predicted rates, (∂rates/∂u)⁺) after the last torque
+        self._time = 0.0
+
+    def set_reference(self, reference: "Reference") -> None:
+        """Track ``reference`` (a :class:`Reference`: states and control scales over time) from now on."""
+        self._reference = reference
+        self._reference_cache = None
+        self._linearization = None
+
+    def set_time(self, t: float) -> None:
+        """The time of the next measurement (s, on the reference's clock). Without it the clock
+        advances by one step per call; :func:`fvin_mpc.control.closed_loop.run_episode` tells it."""
+        if abs(float(t) - self._time) > 1e-9 and not self._reference.constant:
+            self._linearization = None  # prepared for another time
+        self._time = float(t)
+
+    def reference_window(self) -> tuple[np.ndarray, np.ndarray]:
+        """The reference over the horizon from the current time: states ``(N+1, n)`` and target
+        controls ``u_s,k = clip(s_k u_goal − d̂)`` ``(N, m)`` (``s_k`` the reference's control scale)."""
+        cache = getattr(self, "_reference_cache", None)
+        if cache is None or not self._reference.constant:
+            n = self.horizon
+            states, scales = self._reference(self._time + self.model.step_size * np.arange(n + 1))
+            cache = (np.asarray(states, dtype=float).reshape(n + 1, self.layout.state_dim),
+                     np.asarray(scales, dtype=float).reshape(n + 1)[:n])
+            self._reference_cache = cache
+        states, scales = cache
+        return states, np.clip(scales[:, None] * self._u_goal - self.disturbance, self.torque_low, self.torque_high)
 
     @property
     def target_control(self) -> np.ndarray:
-        """``u_s = u_goal − d̂``, clipped to the bounds."""
-        return np.clip(self._u_goal - self.disturbance, self.torque_low, self.torque_high)
+        """``u_s = u_goal − d̂`` (times the reference's control scale now), clipped to the bounds."""
+        return self.reference_window()[1][0]
 
     def _linearize_at(self, plan: _Plan) -> tuple[Any, ...]:
-        return self._linearize(plan.states.T, plan.controls.T, self.goal, self.disturbance, self.target_control)
+        references, targets = self.reference_window()
+        return self._linearize(plan.states.T, plan.controls.T, references.T, self.disturbance, targets.T)
+
+    def _first_guess(self, x0: np.ndarray, start: str) -> _Plan:
+        """A pivoted body's guesses are :class:`~fvin_mpc.control.mpc.MPC`'s. A free body's:
+        ``"goal"`` — the reference, the orientation turned from the measured one to the reference's
+        along the geodesic over the first third of the horizon, the reference's target controls;
+        ``"rollout±"`` — the model rolled out under ``±f·u_max`` (clipped; for a quadrotor with a
+        2 g thrust range ``+`` is about hover thrust, ``−`` free fall), ``ω`` clipped to its bound."""
+        if self.layout is PIVOTED:
+            return super()._first_guess(x0, start)
+        n, layout = self.horizon, self.layout
+        if start == "goal":
+            references, targets = self.reference_window()
+            states = references.copy()
+            q0 = x0[layout.quaternion]
+            q_ref = references[:, layout.quaternion] * np.where(references[:, layout.quaternion] @ q0 >= 0, 1.0, -1.0)[:, None]
+            relative = s3.multiply(s3.conjugate(tuple(q0)), tuple(q_ref.T))
+            turn = np.array(s3.log(relative, NP))  # (3, N+1): q_ref = q0 ⊗ exp(turn)
+            weights = np.clip(np.arange(n + 1) / max(1, n // 3), 0.0, 1.0)
+            states[:, layout.quaternion] = np.array(s3.multiply(tuple(q0), s3.exp(tuple(weights * turn), NP))).T
+            states[:, layout.omega] = 0.0
+            states[0] = x0
+            return _Plan(states, targets.copy(), None, None)
+        sign = 1.0 if start == "rollout+" else -1.0
+        controls = np.clip(np.tile(sign * self.settings.initial_torque_fraction * self.torque_high, (n, 1)),
+                           self.torque_low, self.torque_high)
+        states = self.model.rollout(x0, controls)
+        states[1:, layout.omega] = np.clip(states[1:, layout.omega], -self.omega_bound, self.omega_bound)
+        return _Plan(states, controls, None, None)
 
     # ------------------------------------------------------------------ one SQP iteration
     def _iterate(self, plan: _Plan, linearization: tuple[Any, ...], x0: np.ndarray) -> tuple[_Plan | None, str]:
@@ -391,8 +553,9 @@ class RealTimeMPC(MPC):
         if self._feedback is not None:
             return self._iterate_riccati(plan, linearization, x0)
         h, g, a, gaps, _, a0, s0 = linearization
-        n, m, nd, size = self.horizon, self.model.control_dim, TANGENT_DIM, self._stage_size
-        delta0 = np.concatenate([local_np(plan.states[0, :4], x0[:4]), x0[4:] - plan.states[0, 4:]])
+        n, m, size, layout = self.horizon, self.model.control_dim, self._stage_size, self.layout
+        nd = layout.tangent_dim
+        delta0 = local_state_np(layout, plan.states[0], x0)
         gaps = -np.asarray(gaps, dtype=float).ravel()
         gaps[:nd] -= np.asarray(a0, dtype=float) @ delta0
         g = np.asarray(g, dtype=float).ravel()
@@ -409,25 +572,21 @@ class RealTimeMPC(MPC):
         if not (stats.get("success", False) and np.all(np.isfinite(z))):
             return None, str(stats.get("return_status", "qp-failed"))
         stages = z[:n * size].reshape(n, size)  # rows: (Δu_k, δ_{k+1})
-        # A crude trust region: each stage's state step is clipped to `STEP_LIMIT_ANGLE` and to a
-        # fraction of the ω bound (a Gauss–Newton step from a poor guess — with large gaps — can
+        # A crude trust region: each stage's state step is clipped to `step_limits` (`STEP_LIMIT_ANGLE`,
+        # a fraction of the ω bound, …: a Gauss–Newton step from a poor guess — with large gaps — can
         # otherwise leap past h|ω| ≈ 1, where the model means nothing). Clipping per stage, not
         # scaling the whole step, keeps the progress of the stages that are fine.
         steps = stages[:, m:]
-        omega_limit = STEP_LIMIT_OMEGA * self.omega_bound
-        clipped = np.concatenate([np.clip(steps[:, :3], -STEP_LIMIT_ANGLE, STEP_LIMIT_ANGLE),
-                                  np.clip(steps[:, 3:], -omega_limit, omega_limit)], axis=1)
+        clipped = np.clip(steps, -self._step_limits, self._step_limits)
         deltas = np.vstack([delta0[None, :], clipped])
-        states = np.empty_like(plan.states)
-        states[:, :4] = retract_np(plan.states[:, :4], deltas[:, :3])
-        states[:, 4:] = np.clip(plan.states[:, 4:] + deltas[:, 3:], -self._omega_valid, self._omega_valid)
+        states = retract_state_np(layout, plan.states, deltas)
+        states[:, layout.omega] = np.clip(states[:, layout.omega], -self._omega_valid, self._omega_valid)
         states[0] = x0
         controls = np.clip(plan.controls + stages[:, :m], self.torque_low, self.torque_high)
         self.step_scale = float(np.mean(clipped == steps))
         #: size of the last step: largest |Δu| over the torque range, or |δ| over the trust region
         self.last_step = max(float(np.max(np.abs(stages[:, :m]) / (self.torque_high - self.torque_low))),
-                             float(np.max(np.abs(clipped[:, :3]))) / STEP_LIMIT_ANGLE,
-                             float(np.max(np.abs(clipped[:, 3:]))) / omega_limit)
+                             float(np.max(np.abs(clipped) / self._step_limits)))
         return _Plan(states, controls, None, None), "rti"
 
     def _iterate_riccati(self, plan: _Plan, linearization: tuple[Any, ...],
@@ -476,8 +635,9 @@ class RealTimeMPC(MPC):
             return
         plan = self._plan
         last_state = self._predict(plan.states[-1], plan.controls[-1] + self.disturbance)[0]
-        states = np.vstack([plan.states[1:], np.asarray(last_state, dtype=float).reshape(1, STATE_DIM)])
-        states[-1, 4:] = np.clip(states[-1, 4:], -self.omega_bound, self.omega_bound)
+        states = np.vstack([plan.states[1:], np.asarray(last_state, dtype=float).reshape(1, self.layout.state_dim)])
+        omega = self.layout.omega
+        states[-1, omega] = np.clip(states[-1, omega], -self.omega_bound, self.omega_bound)
         controls = np.vstack([plan.controls[1:], plan.controls[-1:]])
         self._plan = _Plan(states, controls, None, None)
         self._linearization = self._linearize_at(self._plan)
@@ -487,18 +647,20 @@ class RealTimeMPC(MPC):
         alpha = self.settings.disturbance_gain
         if alpha == 0.0 or self._last is None:
             return
-        cosine = min(abs(float(np.dot(x0[:4], self.goal))), 1.0)
-        if 2.0 * np.arccos(cosine) > DISTURBANCE_REGION_RAD or np.max(np.abs(x0[4:])) > DISTURBANCE_REGION_SPEED:
+        layout = self.layout
+        goal = self.reference_window()[0][0, layout.quaternion]
+        cosine = min(abs(float(np.dot(x0[layout.quaternion], goal))), 1.0)
+        if 2.0 * np.arccos(cosine) > DISTURBANCE_REGION_RAD or np.max(np.abs(x0[layout.omega])) > DISTURBANCE_REGION_SPEED:
             return
         predicted, inverse = self._last
-        step = inverse @ (x0[4:] - predicted)
+        step = inverse @ (x0[layout.rates] - predicted)
         limit = 0.5 * (self.torque_high - self.torque_low)
         self.disturbance = np.clip(self.disturbance + alpha * step, -limit, limit)
 
     def __call__(self, x: Any) -> tuple[np.ndarray, dict[str, Any]]:
         """The torque for the measured state ``x = (q, ω)`` ``(7,)``; see the class docstring for ``info``."""
         start = time.perf_counter()
-        x0 = check_state(x)
+        x0 = self.layout.check(x)
         s = self.settings
         extra: dict[str, Any] = {}
         self._estimate_disturbance(x0)
@@ -548,7 +710,8 @@ class RealTimeMPC(MPC):
         self._plan, self._linearization = plan, None
         u = np.clip(plan.controls[0], self.torque_low, self.torque_high)
         predicted, _, residual, inverse = self._predict(x0, u + self.disturbance)
-        self._last = (np.asarray(predicted, dtype=float).ravel()[4:], np.asarray(inverse, dtype=float))
+        self._last = (np.asarray(predicted, dtype=float).ravel()[self.layout.rates], np.asarray(inverse, dtype=float))
+        self._time += self.model.step_size  # the next measurement's time unless set_time says otherwise
         residual = float(residual)
         info = {"status": status, "success": success, "fallback": fallback, "iterations": iterations,
                 "solve_time_s": time.perf_counter() - start, "cost": float("nan"), "step_residual": residual,

@@ -1,0 +1,224 @@
+"""The quadrotor's tasks for the real-time MPC: recovery to hover and figure-eight tracking.
+
+The controller is :class:`fvin_mpc.control.rti.RealTimeMPC` on a free-body model
+``F(x[13], u[4]) -> x[13]`` (``x = (x, q, v, ω)``, :mod:`fvin_mpc.control.state_layout`) — the same
+class, QP and failure semantics as the pendulums', with the translational block in its chart and its
+cost. This module holds what is particular to the craft:
+
+* :func:`quadrotor_mpc_settings` — the cost weights and horizon (per stage: position, velocity,
+  attitude ``(I − g gᵀ) q``, ``ω``, thrust from the reference's; thrust boxes are the actuators');
+* :func:`quadrotor_model` — the planning model: a learned R³ × S³ checkpoint, or the closed form
+  read off the scene's MJCF;
+* :func:`quadrotor_mpc` — the controller on a :class:`~fvin_mpc.envs.quadrotor_env.QuadrotorEnv`;
+* :class:`FigureEight` — a time-varying reference (position, velocity, the attitude that points the
+  thrust where the acceleration needs it, and the thrust ratio to hover), and :func:`recovery_starts`;
+* :func:`flight_metrics` — recovered or not, time to recover, RMS position error.
+
+Offset-free estimation: :class:`~fvin_mpc.control.rti.RealTimeMPC`'s input disturbance ``d`` (4
+thrusts) seen through ``∂(v, ω)⁺/∂u``. Four thrusts span the collective force along the body z axis
+and the three body torques, so ``d̂`` absorbs a thrust-scale (mass) error and torque biases; a lateral
+force bias is outside its span and would leave a position offset.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+
+from fvin_mpc.control.export import ExportedModel
+from fvin_mpc.control.mpc import MPCSettings
+from fvin_mpc.control.rti import ConstantReference, RealTimeMPC
+from fvin_mpc.control.state_layout import FREE_BODY
+
+#: Recovered: within this distance of the hover point (m) …
+RECOVERY_POSITION_TOLERANCE = 0.1
+#: … and this angle of level (rad), from some time to the end of the episode.
+RECOVERY_ANGLE_TOLERANCE = 0.1
+
+
+def quadrotor_mpc_settings(**overrides: Any) -> MPCSettings:
+    """:class:`MPCSettings` for the quadrotor's real-time MPC (``h = 20 ms``, 1 s horizon), tuned on
+    the closed-form model in MuJoCo (docs/quadrotor-mpc.md); ``overrides`` (``None`` ignored) on top."""
+    base = MPCSettings(
+        solver="rti", horizon=50,
+        position_weight=2.0, velocity_weight=0.2, orientation_weight=1.0, omega_weight=0.01, control_weight=0.5,
+        terminal_position_weight=20.0, terminal_velocity_weight=2.0, terminal_orientation_weight=10.0,
+        terminal_omega_weight=0.1, terminal_energy_weight=0.0,
+        orientation_residual="rotation-vector", cold_starts=("goal",), rti_cold_iter=10, rti_cold_budget_s=0.015,
+        omega_bound_fraction=0.6, disturbance_gain=0.5,
+    )
+    return replace(base, **{k: v for k, v in overrides.items() if v is not None})
+
+
+def quadrotor_model(env: Any, checkpoint: Any = None, true_model: bool = False, newton_iters: int | None = None) -> ExportedModel:
+    """The planning model on the quadrotor ``env``: a learned R³ × S³ ``checkpoint`` (object, shipped
+    name or path; default the scene's), or with ``true_model`` the closed form read off the MJCF
+    (:func:`fvin_mpc.core.quadrotor.from_mujoco`) at the env's control period.
+
+    Raises:
+        ValueError: the model's step differs from the env's control period, or it is not a free body.
+    """
+    from fvin_mpc.control import export
+
+    base = env.unwrapped
+    if true_model:
+        from fvin_mpc.core.quadrotor import from_mujoco
+
+        craft = from_mujoco(base.model, base.body_name)
+        model = export.from_quadrotor(craft, base.dt, newton_iters or 2, name=f"true_{base.scene_spec.name}")
+    else:
+        model = export.from_checkpoint(checkpoint or base.scene_spec.default_checkpoint, newton_iters)
+    if int(model.step.size1_in(0)) != FREE_BODY.state_dim:
+        raise ValueError(f"{model.name} is not a free-body model (its states have {model.step.size1_in(0)} entries)")
+    if abs(model.step_size - base.dt) > 1e-9:
+        raise ValueError(f"the model's step {model.step_size} s differs from the env's control period {base.dt} s")
+    return model
+
+
+def quadrotor_mpc(env: Any, model: ExportedModel, settings: MPCSettings | None = None) -> RealTimeMPC:
+    """The real-time MPC on the quadrotor ``env``: hover at its hover point, level, the actuators'
+    thrust bounds; ``settings`` default to :func:`quadrotor_mpc_settings`."""
+    base = env.unwrapped
+    return RealTimeMPC(model, quadrotor_mpc_settings() if settings is None else settings, base.goal_state,
+                       base.torque_low, base.torque_high)
+
+
+def hover_reference(env: Any) -> ConstantReference:
+    """Hover at the env's hover point, level, at rest (the controller's default reference)."""
+    return ConstantReference(env.unwrapped.goal_state)
+
+
+@dataclass(frozen=True)
+class FigureEight:
+    """A horizontal figure-eight (lemniscate of Gerono) around ``center``:
+    ``p(t) = c + (A sin φ, (A/2) sin 2φ, 0)``, ``φ = 2π t / period``; ``2A`` wide, ``A`` across.
+
+    The reference attitude is the yaw-free tilt that points the body z axis along ``p̈ + g e_z``
+    (differential flatness with zero yaw), ``ω`` its body rate (central difference), and the
+    control scale ``|p̈ + g e_z| / g`` (the thrust the acceleration needs, over hover thrust).
+    At ``t = 0`` the path is at ``center`` moving at its full speed; :meth:`__call__` ramps the phase
+    in over ``ramp_s`` seconds (``φ̇`` from 0) so that a craft hovering at ``center`` can join it.
+
+    Attributes:
+        center: ``(3,)`` m.
+        amplitude: ``A`` (m).
+        period: seconds per loop.
+        gravity: m/s².
+        ramp_s: the phase accelerates over this many seconds (0: none).
+    """
+
+    center: tuple[float, float, float]
+    amplitude: float = 0.5
+    period: float = 3.0
+    gravity: float = 9.81
+    ramp_s: float = 1.0
+
+    constant = False
+
+    def phase(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``φ, φ̇, φ̈`` at ``t``: ``φ̇`` rises as ``Ω·s(t/ramp)`` with a smoothstep ``s``, then stays ``Ω``."""
+        rate = 2.0 * math.pi / self.period
+        t = np.asarray(t, dtype=float)
+        if self.ramp_s <= 0.0:
+            return rate * t, np.full_like(t, rate), np.zeros_like(t)
+        r = np.clip(t / self.ramp_s, 0.0, 1.0)
+        smooth, smooth_rate = 3 * r**2 - 2 * r**3, (6 * r - 6 * r**2) / self.ramp_s
+        # ∫₀ᵗ Ω s(τ/T) dτ = Ω T (r³ − r⁴/2) while ramping, then Ω T/2 + Ω (t − T)
+        integral = np.where(t < self.ramp_s, self.ramp_s * (r**3 - 0.5 * r**4), 0.5 * self.ramp_s + (t - self.ramp_s))
+        return rate * integral, rate * smooth, rate * smooth_rate
+
+    def trajectory(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Position, velocity, acceleration ``(T, 3)`` at times ``t``."""
+        phi, dphi, ddphi = self.phase(t)
+        a = self.amplitude
+        zeros = np.zeros_like(phi)
+        position = np.stack([a * np.sin(phi), 0.5 * a * np.sin(2 * phi), zeros], axis=-1) + np.asarray(self.center)
+        d_phi = np.stack([a * np.cos(phi), a * np.cos(2 * phi), zeros], axis=-1)  # ∂p/∂φ
+        dd_phi = np.stack([-a * np.sin(phi), -2 * a * np.sin(2 * phi), zeros], axis=-1)
+        velocity = d_phi * dphi[:, None]
+        acceleration = dd_phi * dphi[:, None] ** 2 + d_phi * ddphi[:, None]
+        return position, velocity, acceleration
+
+    def attitude(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The reference quaternions ``(T, 4)`` and thrust ratios ``(T,)`` at ``t``."""
+        _, _, acceleration = self.trajectory(t)
+        thrust = acceleration + np.array([0.0, 0.0, self.gravity])
+        norm = np.linalg.norm(thrust, axis=1)
+        z = thrust / norm[:, None]
+        # the shortest rotation taking e_z to z: q ∝ (1 + z_z, e_z × z) = (1 + z_z, −z_y, z_x, 0)
+        q = np.stack([1.0 + z[:, 2], -z[:, 1], z[:, 0], np.zeros_like(norm)], axis=1)
+        return q / np.linalg.norm(q, axis=1, keepdims=True), norm / self.gravity
+
+    def __call__(self, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Reference states ``(T, 13)`` and control scales ``(T,)`` (the :class:`~fvin_mpc.control.rti.Reference` protocol)."""
+        times = np.asarray(times, dtype=float)
+        position, velocity, _ = self.trajectory(times)
+        q, scale = self.attitude(times)
+        dt = 1e-4
+        q_plus, _ = self.attitude(times + dt)
+        q_minus, _ = self.attitude(np.maximum(times - dt, 0.0))
+        q_dot = (q_plus - q_minus) / (times + dt - np.maximum(times - dt, 0.0))[:, None]
+        # ω = 2 Im(q* ⊗ q̇) (body frame)
+        w, v = q[:, 0], -q[:, 1:]
+        dw, dv = q_dot[:, 0], q_dot[:, 1:]
+        omega = 2.0 * (w[:, None] * dv + dw[:, None] * v + np.cross(v, dv))
+        return np.concatenate([position, q, velocity, omega], axis=1), scale
+
+
+def recovery_starts(hover_point: Any, count: int = 20, seed: int = 0,
+                    max_omega: float = 10.0) -> list[tuple[dict[str, Any], int]]:
+    """``count`` seeded starts at ``hover_point`` as ``(env reset options, env seed)``: upside down at
+    rest, upside down tumbling at ``max_omega`` about a random axis, then the env's random attitudes
+    (uniform on S³) tumbling at up to ``max_omega`` rad/s (its ``reset(seed=…)`` draws them)."""
+    rng = np.random.default_rng(seed)
+    upside_down = np.concatenate([np.asarray(hover_point, dtype=float), [0.0, 1.0, 0.0, 0.0]])
+    axis = rng.normal(size=3)
+    starts: list[tuple[dict[str, Any], int]] = [
+        ({"qpos": upside_down, "qvel": np.zeros(6)}, seed),
+        ({"qpos": upside_down, "qvel": np.concatenate([np.zeros(3), max_omega * axis / np.linalg.norm(axis)])}, seed + 1),
+    ]
+    starts += [({"max_omega": max_omega}, seed + i) for i in range(2, count)]
+    return starts[:count]
+
+
+def flight_metrics(episode: Any, reference: Any, settle_s: float = 0.0,
+                   position_tolerance: float = RECOVERY_POSITION_TOLERANCE,
+                   angle_tolerance: float = RECOVERY_ANGLE_TOLERANCE) -> dict[str, Any]:
+    """Numbers of a quadrotor episode against ``reference`` (a :class:`Reference`):
+
+    ``recovered`` — within ``position_tolerance`` of the reference position and ``angle_tolerance``
+    of its attitude from some time on to the end; ``time_to_recover_s`` that time; ``rms_position_m``
+    — RMS of ``|x − x_ref|`` over ``t ≥ settle_s``; ``max_position_m`` likewise; plus the controller
+    figures of :func:`fvin_mpc.control.closed_loop.episode_metrics` (time per call, CPU time, deadline
+    misses, failures). Angles are sign-invariant (``2 acos |⟨q, q_ref⟩|``).
+    """
+    from fvin_mpc.control.closed_loop import episode_metrics
+
+    states = episode.states
+    layout = FREE_BODY
+    wanted, _ = reference(episode.time)
+    position_error = np.linalg.norm(states[:, :3] - wanted[:, :3], axis=1)
+    cosine = np.clip(np.abs(np.sum(states[:, layout.quaternion] * wanted[:, layout.quaternion], axis=1)), 0.0, 1.0)
+    angle = 2.0 * np.arccos(cosine)
+    outside = np.flatnonzero((position_error >= position_tolerance) | (angle >= angle_tolerance))
+    if outside.size == 0:
+        recovered_at: float | None = float(episode.time[0])
+    elif outside[-1] + 1 < episode.time.size:
+        recovered_at = float(episode.time[outside[-1] + 1])
+    else:
+        recovered_at = None
+    window = episode.time >= settle_s
+    controller = episode_metrics(episode)
+    return {
+        "recovered": recovered_at is not None, "time_to_recover_s": recovered_at,
+        "rms_position_m": float(np.sqrt(np.mean(position_error[window] ** 2))),
+        "max_position_m": float(position_error[window].max()),
+        "final_position_m": float(position_error[-1]), "final_angle_rad": float(angle[-1]),
+        "max_speed_mps": float(np.linalg.norm(states[:, 7:10], axis=1).max()),
+        **{key: controller[key] for key in ("solve_time_ms", "cpu_time_ms_median", "latency", "deadline_misses",
+                                             "skipped_observations", "controller_failures", "control_period_s",
+                                             "duration_s")},
+    }
