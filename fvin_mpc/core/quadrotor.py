@@ -241,3 +241,86 @@ def from_mujoco(model: Any, body: str) -> Quadrotor:
                      yaw_coefficient=float(yaw[0]), gravity=-float(gravity[2]),
                      thrust_low=tuple(float(v) for v in model.actuator_ctrlrange[:, 0]) if limited else None,
                      thrust_high=tuple(float(v) for v in model.actuator_ctrlrange[:, 1]) if limited else None)
+
+
+@dataclass(frozen=True)
+class GeometricController:
+    """A stabilizing closed-form controller for a :class:`Quadrotor` (NumPy): position PD with gravity
+    compensation and attitude tracking on SO(3) (Lee, Leok & McClamroch 2010), then the thrusts that
+    give the commanded total thrust and body torque, clipped to the bounds. Used to collect data that
+    cover the flight envelope without leaving it; not the MPC.
+
+    Gains: ``position_gain`` and ``velocity_gain`` per kg (``k_x = m·position_gain``), the lateral
+    acceleration demand capped at ``max_lateral_acceleration`` g, ``attitude_frequency``
+    ``ω_R`` and ``attitude_damping`` ``ζ`` (``k_R = ω_R² J``, ``k_ω = 2ζω_R J``). The collective thrust is
+    at least ``min_thrust_fraction`` of the weight, so that an upside-down craft keeps torque authority.
+    """
+
+    body: Quadrotor
+    position_gain: float = 4.0
+    velocity_gain: float = 3.0
+    max_lateral_acceleration: float = 0.6
+    attitude_frequency: float = 15.0
+    attitude_damping: float = 1.0
+    min_thrust_fraction: float = 1.0
+
+    def allocation(self) -> Any:
+        """``A`` (4×m): ``[Σuᵢ; τ] = A u``."""
+        import numpy as np
+
+        return np.vstack([np.ones(self.body.control_dim), np.array(self.body.torque_map)])
+
+    def __call__(self, state: Any, target_position: Any, target_velocity: Any = (0.0, 0.0, 0.0),
+                 target_yaw: float = 0.0) -> Any:
+        """Thrusts ``(m,)`` for the state ``(x, q, v, ω)`` ``(13,)`` towards the target."""
+        import numpy as np
+
+        body = self.body
+        m, inertia = body.mass, np.array(body.inertia)
+        x, q, v, omega = state[:3], state[3:7], state[7:10], state[10:13]
+        rotation = np.array(s3.rotation_matrix(tuple(q / np.linalg.norm(q))), dtype=float)
+        acceleration = (-self.position_gain * (x - np.asarray(target_position))
+                        - self.velocity_gain * (v - np.asarray(target_velocity)))
+        # Height first: the lateral demand is capped so that a tilted craft never trades lift for it.
+        lateral = np.linalg.norm(acceleration[:2])
+        if lateral > self.max_lateral_acceleration * body.gravity:
+            acceleration[:2] *= self.max_lateral_acceleration * body.gravity / lateral
+        force = m * (acceleration + np.array([0.0, 0.0, body.gravity]))
+        b3 = force / max(np.linalg.norm(force), 1e-9)
+        heading = np.array([math.cos(target_yaw), math.sin(target_yaw), 0.0])
+        b2 = np.cross(b3, heading)
+        b2 = b2 / max(np.linalg.norm(b2), 1e-9)
+        desired = np.column_stack([np.cross(b2, b3), b2, b3])
+        error = desired.T @ rotation - rotation.T @ desired
+        e_rotation = 0.5 * np.array([error[2, 1], error[0, 2], error[1, 0]])
+        k_rotation = self.attitude_frequency**2 * inertia
+        k_omega = 2.0 * self.attitude_damping * self.attitude_frequency * inertia
+        torque = -k_rotation @ e_rotation - k_omega @ omega + np.cross(omega, inertia @ omega)
+        thrust = max(float(force @ rotation[:, 2]), self.min_thrust_fraction * m * body.gravity)
+        low = -np.inf if body.thrust_low is None else np.array(body.thrust_low)
+        high = np.inf if body.thrust_high is None else np.array(body.thrust_high)
+        inverse = np.linalg.inv(self.allocation())
+        # Yaw authority is small (κ ≪ arm): the yaw torque is limited to what the rotors can give on
+        # top of the thrust and the roll and pitch torques; if even those saturate, the thrust moves
+        # towards mid-range, then roll and pitch are scaled down together (their direction kept) —
+        # clipping thrusts instead would turn a righting torque into a yaw one.
+        if np.all(np.isfinite(high)):
+            thrust = min(thrust, 0.95 * float(np.sum(high)))
+        middle = 0.5 * float(np.sum(low + high)) if np.all(np.isfinite(low + high)) else thrust
+        candidates = [(rp, t) for rp in (1.0, 0.7, 0.5, 0.3, 0.15, 0.0)
+                      for t in (thrust, 0.5 * (thrust + middle), middle)]
+        # Then the collective thrust gives way before roll and pitch do (a craft that cannot turn cannot
+        # recover: at full thrust on every rotor there is no torque left).
+        for roll_pitch, collective in candidates:
+            base = inverse @ np.array([collective, roll_pitch * torque[0], roll_pitch * torque[1], 0.0])
+            per_yaw = inverse[:, 3]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                bound_a, bound_b = (low - base) / per_yaw, (high - base) / per_yaw
+            lowest = np.max(np.where(per_yaw != 0.0, np.minimum(bound_a, bound_b), -np.inf))
+            highest = np.min(np.where(per_yaw != 0.0, np.maximum(bound_a, bound_b), np.inf))
+            if lowest <= highest:
+                u = base + per_yaw * float(np.clip(torque[2], lowest, highest))
+                break
+        else:
+            u = base
+        return np.clip(u, low, high)
