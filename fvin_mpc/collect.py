@@ -5,6 +5,11 @@ velocity up to ``--max-omega``), controls are either constant over a trajectory 
 the paper's experiments) or random piecewise constant (a new level every
 ``--hold-steps`` control periods), drawn uniformly inside the actuators' range. Half
 of the trajectories use each mode. Everything is seeded.
+
+Free-body scenes (``--scene quadrotor``) are flown instead by a closed-form stabilizing controller
+towards random waypoints, with random thrust perturbations, half of the episodes starting in a
+tumble (upside down included, ``|ω|`` up to ``--max-omega``, default 10 rad/s there); defaults
+300 episodes of 50 periods (15,000 transitions).
 """
 
 from __future__ import annotations
@@ -12,8 +17,9 @@ import argparse
 import json
 from pathlib import Path
 from fvin_mpc.core.data import save_data
-from fvin_mpc.envs.scenes import resolve_scene
-from fvin_mpc.learning.collection import collect
+from fvin_mpc.core.free_body_data import save_free_body_data
+from fvin_mpc.envs.scenes import FREE_BODY_SCENES, resolve_scene
+from fvin_mpc.learning.collection import collect, collect_quadrotor
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -21,9 +27,9 @@ def main(argv: list[str] | None = None) -> int:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--scene", default="pendulum", help="built-in scene name or MJCF path (default: %(default)s)")
     parser.add_argument("--body", default=None, help="body to observe (default: the scene's)")
-    parser.add_argument("--trajectories", type=int, default=320)
-    parser.add_argument("--steps", type=int, default=20, help="control periods per trajectory")
-    parser.add_argument("--max-omega", type=float, default=6.0, help="largest initial |ω| (rad/s)")
+    parser.add_argument("--trajectories", type=int, default=None, help="default: 320 (free body: 300)")
+    parser.add_argument("--steps", type=int, default=None, help="control periods per trajectory (default: 20; free body: 50)")
+    parser.add_argument("--max-omega", type=float, default=None, help="largest initial |ω| (rad/s; default: 6; free body: 10)")
     parser.add_argument("--hold-steps", type=int, default=4, help="periods per level of piecewise-constant controls")
     parser.add_argument("--control-period", type=float, default=None,
                         help="seconds per step (default: the scene's; a whole multiple of its MJCF timestep)")
@@ -33,6 +39,19 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=None, help="output .npz (default: data/<scene name>.npz, the MJCF's stem for a path)")
     parser.add_argument("--quiet", action="store_true")
     args = parser.parse_args(argv)
+    spec = resolve_scene(args.scene)
+    if spec.name in FREE_BODY_SCENES:
+        free = collect_quadrotor(args.scene, trajectories=args.trajectories or 300, steps=args.steps or 50,
+                                 seed=args.seed, max_omega=10.0 if args.max_omega is None else args.max_omega,
+                                 progress=not args.quiet)
+        out = args.out or Path("data") / f"{spec.name}.npz"
+        save_free_body_data(out, free)
+        print(json.dumps({"out": str(out), **{k: free.metadata[k] for k in ("scene", "trajectories", "transitions",
+                                                                           "control_period", "coverage")}}))
+        return 0
+    args.trajectories = args.trajectories or 320
+    args.steps = args.steps or 20
+    args.max_omega = 6.0 if args.max_omega is None else args.max_omega
     data = collect(args.scene, args.trajectories, args.steps, args.seed, args.max_omega, args.hold_steps,
                    args.body, progress=not args.quiet, control_period=args.control_period, max_speed=args.max_speed)
     out = args.out or Path("data") / f"{resolve_scene(args.scene).name}.npz"

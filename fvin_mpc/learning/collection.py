@@ -1,5 +1,8 @@
 """Collect trajectories from a scene: ``python -m fvin_mpc.collect``.
 
+Free-body scenes (``quadrotor``) are flown by a perturbed stabilizing controller instead
+(:func:`collect_quadrotor`); what follows is the pivoted scenes' collection.
+
 Initial states are drawn uniformly (angle(s) over the whole circle/sphere, angular
 velocity up to ``--max-omega``), controls are either constant over a trajectory (as in
 the paper's experiments) or random piecewise constant (a new level every
@@ -9,13 +12,16 @@ of the trajectories use each mode. Everything is seeded.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import math
 
 import numpy as np
 
 from fvin_mpc.core.data import TrajectoryData
+
+if TYPE_CHECKING:
+    from fvin_mpc.core.free_body_data import FreeBodyData
 
 
 def random_joint_state(env: Any, rng: np.random.Generator, max_omega: float) -> tuple[np.ndarray, np.ndarray]:
@@ -116,3 +122,96 @@ def collect(scene: str = "pendulum", trajectories: int = 320, steps: int = 20, s
                         collector=SPEED_BOUNDED)
     env.close()
     return TrajectoryData(qs, omegas, us, metadata)
+
+
+#: ``metadata["collector"]`` of free-body data flown by a perturbed stabilizing controller.
+STABILIZED_FLIGHT = "stabilized-flight"
+
+
+def collect_quadrotor(scene: str = "quadrotor", trajectories: int = 300, steps: int = 50, seed: int = 0,
+                      max_omega: float = 10.0, tumbling_fraction: float = 0.5, waypoint_radius: float = 1.0,
+                      waypoint_steps: int = 25, noise_fraction: float = 0.35, hold_steps: int = 2,
+                      max_distance: float = 6.0, progress: bool = True) -> "FreeBodyData":
+    """Fly ``trajectories`` seeded episodes of ``steps`` control periods in a free-body scene.
+
+    Each episode flies :class:`~fvin_mpc.core.quadrotor.GeometricController` (the closed-form craft
+    read off the MJCF) towards waypoints drawn uniformly in the ball of ``waypoint_radius`` around the
+    hover point (a new one every ``waypoint_steps`` periods), with every rotor's thrust perturbed by
+    uniform noise of up to ``noise_fraction`` of the hover thrust times a per-episode level in
+    [0, 1], held for ``hold_steps`` periods, then clipped to the bounds. A ``tumbling_fraction`` of
+    the episodes starts in the env's recovery reset (attitude uniform on S³, ``|ω| ≤ max_omega``);
+    the others start level-ish (``|ω| ≤ 1``, attitude within 0.5 rad) up to 0.5 m from the hover
+    point, moving at up to 1 m/s. The controller's gains are scaled per episode by a factor in
+    [0.6, 1.4] so that the data do not follow one closed loop. Episodes that get farther than
+    ``max_distance`` from the hover point are flown again with fresh draws (metadata: the count).
+
+    Returns :class:`~fvin_mpc.core.free_body_data.FreeBodyData` (``state (N, steps+1, 13)``, ``u (N, steps, 4)``).
+    """
+    from dataclasses import replace as _replace
+
+    from tqdm.auto import tqdm
+
+    from fvin_mpc.core import s3
+    from fvin_mpc.core.free_body_data import FreeBodyData
+    from fvin_mpc.core.quadrotor import GeometricController, from_mujoco
+    from fvin_mpc.envs import QuadrotorEnv
+    from fvin_mpc.envs.quadrotor_env import uniform_in_ball
+
+    env = QuadrotorEnv(scene=scene)
+    body = from_mujoco(env.model, env.body_name)
+    rng = np.random.default_rng(seed)
+    low, high = env.action_space.low.astype(np.float64), env.action_space.high.astype(np.float64)
+    hover = env.hover_point
+    states = np.empty((trajectories, steps + 1, 13))
+    controls = np.empty((trajectories, steps, low.size))
+    redrawn = tumbling = 0
+    for i in tqdm(range(trajectories), desc=f"collect {env.scene_spec.name}", disable=not progress):
+        while True:
+            tumble = bool(rng.uniform() < tumbling_fraction)
+            if tumble:
+                observation = env.reset(seed=int(rng.integers(2**31)), options={"max_omega": max_omega})[0]
+            else:
+                axis = rng.normal(size=3)
+                angle = rng.uniform(0.0, 0.5)
+                turn = np.concatenate([[math.cos(angle / 2)], math.sin(angle / 2) * axis / np.linalg.norm(axis)])
+                offset, velocity, omega = (uniform_in_ball(rng, r) for r in (0.5, 1.0, 1.0))
+                observation = env.reset(options={"qpos": np.concatenate([hover + offset, turn]),
+                                                 "qvel": np.concatenate([velocity, omega])})[0]
+            gains = rng.uniform(0.6, 1.4)
+            controller = _replace(GeometricController(body), position_gain=4.0 * gains, velocity_gain=3.0 * gains,
+                                  attitude_frequency=15.0 * rng.uniform(0.7, 1.3))
+            noise_level = noise_fraction * rng.uniform() * env.hover_thrust
+            waypoint = hover
+            states[i, 0] = observation
+            noise = np.zeros(low.size)
+            for k in range(steps):
+                if k % waypoint_steps == 0:
+                    waypoint = hover + uniform_in_ball(rng, waypoint_radius)
+                if k % hold_steps == 0:
+                    noise = rng.uniform(-1.0, 1.0, size=low.size) * noise_level
+                u = np.clip(controller(observation, waypoint) + noise, low, high)
+                observation = env.step(u)[0]
+                states[i, k + 1], controls[i, k] = observation, u
+            if np.linalg.norm(states[i, :, :3] - hover, axis=1).max() <= max_distance:
+                tumbling += tumble
+                break
+            redrawn += 1
+    speeds = np.linalg.norm(states[..., 10:], axis=-1)
+    tilts = np.array([[np.degrees(math.acos(np.clip(s3.rotation_matrix(tuple(q))[2][2], -1.0, 1.0))) for q in traj]
+                      for traj in states[..., 3:7]])
+    metadata = {
+        "scene": str(scene), "body": env.body_name, "control_period": float(env.dt), "seed": seed,
+        "trajectories": trajectories, "steps": steps, "transitions": trajectories * steps,
+        "collector": STABILIZED_FLIGHT, "tumbling_episodes": int(tumbling), "redrawn_episodes": int(redrawn),
+        "max_omega": max_omega, "waypoint_radius": waypoint_radius, "waypoint_steps": waypoint_steps,
+        "noise_fraction": noise_fraction, "hold_steps": hold_steps, "max_distance": max_distance,
+        "coverage": {
+            "max_abs_omega": float(speeds.max()), "median_abs_omega": float(np.median(speeds)),
+            "max_speed": float(np.linalg.norm(states[..., 7:10], axis=-1).max()),
+            "max_distance": float(np.linalg.norm(states[..., :3] - hover, axis=-1).max()),
+            "upside_down_share": float((tilts > 90.0).mean()), "max_tilt_deg": float(tilts.max()),
+            "saturated_share": float(((controls <= low + 1e-12) | (controls >= high - 1e-12)).mean()),
+        },
+    }
+    env.close()
+    return FreeBodyData(states, controls, metadata)
