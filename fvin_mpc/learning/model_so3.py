@@ -1,0 +1,127 @@
+"""The trainable torch SO3FVIN (float64, batched) — a thin shell around the shared SO(3) step.
+
+All math lives in :mod:`fvin_mpc.core.so3`, :mod:`fvin_mpc.core.fvin_so3` and
+:mod:`fvin_mpc.core.networks_so3`. The interface is :class:`fvin_mpc.learning.model.S3FVIN`'s
+(``weights``, ``config``, ``step``, ``rollout(q0, omega0, controls)``, ``energy``) so that
+:func:`fvin_mpc.learning.training.train` trains either on the same data, loss and early stopping:
+states enter and leave as quaternions ``q (B, 4)`` (the data's convention); inside a rollout the
+model carries ``R (B, 3, 3)`` and returns a quaternion preimage of each ``R`` (the loss is sign
+invariant, so which preimage does not matter).
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable, Mapping
+
+import numpy as np
+import torch
+from torch import nn
+
+from fvin_mpc.core import fvin_so3, s3, so3
+from fvin_mpc.core.backend import get_ops
+from fvin_mpc.core.data import TrajectoryData
+from fvin_mpc.core.networks_so3 import LearnedSO3Terms, SO3ModelConfig, check_weights, init_weights
+from fvin_mpc.learning.model import DTYPE, TorchStep
+
+
+def matrix_components(r: torch.Tensor) -> so3.Mat3:
+    """``(B, 3, 3)`` → row tuples of ``(B,)`` components."""
+    return tuple(tuple(r[..., i, j] for j in range(3)) for i in range(3))  # type: ignore[return-value]
+
+
+def matrix_tensor(r: so3.Mat3) -> torch.Tensor:
+    """Row tuples of ``(B,)`` components → ``(B, 3, 3)``."""
+    return torch.stack([torch.stack(list(row), dim=-1) for row in r], dim=-2)
+
+
+class SO3FVIN(nn.Module):
+    """Forced variational integrator network on SO(3) (float64), the paper's SO3FVIN baseline.
+
+    Args:
+        config: architecture and integration settings.
+        weights: initial weights (name → array); by default ``init_weights(config, seed)``.
+        seed: seed of the default initialization.
+    """
+
+    def __init__(self, config: SO3ModelConfig, weights: Mapping[str, np.ndarray] | None = None, seed: int = 0) -> None:
+        super().__init__()
+        self.config = config
+        weights = init_weights(config, seed) if weights is None else weights
+        check_weights(weights, config)
+        self.weights = nn.ParameterDict(
+            {name: nn.Parameter(torch.as_tensor(np.asarray(value), dtype=DTYPE).clone()) for name, value in weights.items()}
+        )
+        self._ops = get_ops("torch")
+
+    def terms(self) -> LearnedSO3Terms:
+        return LearnedSO3Terms(self.weights, self.config, self._ops)
+
+    def numpy_weights(self) -> dict[str, np.ndarray]:
+        return {name: p.detach().cpu().numpy().copy() for name, p in self.weights.items()}
+
+    def step_rotation(self, rotation: torch.Tensor, omega: torch.Tensor, u: torch.Tensor, with_residual: bool = False,
+                      newton_iters: int | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+        """One step on rotation matrices: ``R (B, 3, 3)``, ``omega (B, 3)``, ``u (B, m)``."""
+        ops = self._ops
+        out = fvin_so3.so3_step(matrix_components(rotation), ops.unstack(omega), ops.unstack(u), self.terms(),
+                                self.config.step_size, newton_iters or self.config.newton_iters, ops, with_residual)
+        return matrix_tensor(out.rotation), ops.stack(out.omega), out.residual
+
+    def step(self, q: torch.Tensor, omega: torch.Tensor, u: torch.Tensor, with_residual: bool = False,
+             newton_iters: int | None = None) -> TorchStep:
+        """One step from quaternions (``q (B, 4)``; its sign is irrelevant): ``R = R(q)`` in, a preimage out."""
+        ops = self._ops
+        rotation = matrix_tensor(s3.rotation_matrix(ops.unstack(q)))
+        rotation, omega, residual = self.step_rotation(rotation, omega, u, with_residual, newton_iters)
+        return TorchStep(self.quaternion(rotation), omega, residual)
+
+    def quaternion(self, rotation: torch.Tensor) -> torch.Tensor:
+        """A unit-quaternion preimage ``(B, 4)`` of ``R (B, 3, 3)``."""
+        ops = self._ops
+        return ops.stack(so3.quaternion_from_rotation(matrix_components(rotation), ops))
+
+    def rollout(self, q0: torch.Tensor, omega0: torch.Tensor, controls: torch.Tensor,
+                step: Callable[..., TorchStep] | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Roll out ``T`` steps: ``controls (B, T, m)`` → ``q (B, T+1, 4)``, ``omega (B, T+1, 3)``.
+
+        The rotation matrix is carried from step to step; ``step`` (e.g. a ``torch.compile``-d
+        :meth:`step`) replaces that by steps on quaternions."""
+        if step is not None:
+            qs, omegas = [q0], [omega0]
+            for k in range(controls.shape[1]):
+                out = step(qs[-1], omegas[-1], controls[:, k])
+                qs.append(out.q)
+                omegas.append(out.omega)
+            return torch.stack(qs, dim=1), torch.stack(omegas, dim=1)
+        rotation = matrix_tensor(s3.rotation_matrix(self._ops.unstack(q0)))
+        rotations, omegas = [], [omega0]
+        for k in range(controls.shape[1]):
+            rotation, omega, _ = self.step_rotation(rotation, omegas[-1], controls[:, k])
+            rotations.append(rotation)
+            omegas.append(omega)
+        qs = self.quaternion(torch.stack(rotations, dim=1))
+        return torch.cat([q0[:, None], qs], dim=1), torch.stack(omegas, dim=1)
+
+    def energy(self, q: torch.Tensor, omega: torch.Tensor) -> torch.Tensor:
+        ops = self._ops
+        return fvin_so3.total_energy(s3.rotation_matrix(ops.unstack(q)), ops.unstack(omega), self.terms())
+
+    def forward(self, q: torch.Tensor, omega: torch.Tensor, u: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        out = self.step(q, omega, u)
+        return out.q, out.omega
+
+
+def train_so3(data: TrajectoryData, config: SO3ModelConfig, settings: Any, progress: bool = True) -> tuple[SO3FVIN, dict[str, Any]]:
+    """:func:`fvin_mpc.learning.training.train` on an :class:`SO3FVIN` — the same loop, loss, split
+    and early stopping.
+
+    ``train`` builds its model as ``fvin_mpc.learning.model.S3FVIN(config, seed=...)``; until it
+    takes the model class as an argument, this swaps that name for :class:`SO3FVIN` for the
+    duration of the call (nothing else of ``train`` depends on the model's kind)."""
+    from unittest import mock
+
+    from fvin_mpc.learning import model as s3_model
+    from fvin_mpc.learning.training import train
+
+    with mock.patch.object(s3_model, "S3FVIN", SO3FVIN):
+        return train(data, config, settings, progress)  # type: ignore[arg-type]
