@@ -40,10 +40,10 @@ RECOVERY_ANGLE_TOLERANCE = 0.1
 
 
 def quadrotor_mpc_settings(**overrides: Any) -> MPCSettings:
-    """:class:`MPCSettings` for the quadrotor's real-time MPC (``h = 20 ms``, 1 s horizon), tuned on
+    """:class:`MPCSettings` for the quadrotor's real-time MPC (``h = 20 ms``, 0.6 s horizon), tuned on
     the closed-form model in MuJoCo (docs/quadrotor-mpc.md); ``overrides`` (``None`` ignored) on top."""
     base = MPCSettings(
-        solver="rti", horizon=50,
+        solver="rti", horizon=30,
         position_weight=2.0, velocity_weight=0.2, orientation_weight=1.0, omega_weight=0.01, control_weight=0.5,
         terminal_position_weight=20.0, terminal_velocity_weight=2.0, terminal_orientation_weight=10.0,
         terminal_omega_weight=0.1, terminal_energy_weight=0.0,

@@ -500,13 +500,13 @@ class RealTimeMPC(MPC):
         """The reference over the horizon from the current time: states ``(N+1, n)`` and target
         controls ``u_s,k = clip(s_k u_goal − d̂)`` ``(N, m)`` (``s_k`` the reference's control scale)."""
         cache = getattr(self, "_reference_cache", None)
-        if cache is None or not self._reference.constant:
+        if cache is None or not (self._reference.constant or cache[0] == self._time):
             n = self.horizon
             states, scales = self._reference(self._time + self.model.step_size * np.arange(n + 1))
-            cache = (np.asarray(states, dtype=float).reshape(n + 1, self.layout.state_dim),
+            cache = (self._time, np.asarray(states, dtype=float).reshape(n + 1, self.layout.state_dim),
                      np.asarray(scales, dtype=float).reshape(n + 1)[:n])
             self._reference_cache = cache
-        states, scales = cache
+        _, states, scales = cache
         return states, np.clip(scales[:, None] * self._u_goal - self.disturbance, self.torque_low, self.torque_high)
 
     @property
