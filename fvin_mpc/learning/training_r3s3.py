@@ -1,0 +1,220 @@
+"""Train a learned R³ × S³ model on free-body data: ``python -m fvin_mpc.learning.training_r3s3``.
+
+Reuses :mod:`fvin_mpc.learning.training`: the split (:func:`~fvin_mpc.learning.training.split_data`),
+the multi-step loss (:func:`~fvin_mpc.learning.training.rollout_loss`), Levenberg–Marquardt and early
+stopping, the thread choice. The model's rollout speaks the training layout of
+:mod:`fvin_mpc.learning.model_r3s3` (orientation apart, ``(s_x x, s_v v, ω)`` as the second block),
+so the loss is ``4(1 − ⟨q̂, q⟩²) + omega_weight·(s_x²|x̂ − x|² + s_v²|v̂ − v|² + |ω̂ − ω|²)``.
+
+Only the outer loop is written here again (``training.train`` builds the pivoted model itself); it
+is the part to fold into ``training.train`` once that takes a model factory (docs/quadrotor.md).
+
+Also here: the targets of issue 13 that are measured on the model alone — the held-out open-loop
+error over 1 s of the learned model against the closed-form model through the same integrator
+(:func:`open_loop_errors`) and the recovered mass and inertia (:func:`recovered_parameters`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import time
+from dataclasses import asdict, replace
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+from fvin_mpc.core.free_body_data import FreeBodyData, load_free_body_data
+from fvin_mpc.core.networks_r3s3 import LearnedCombinedTerms, R3S3Config, physical_scale
+from fvin_mpc.learning.timing import torch_threads
+from fvin_mpc.learning.training import (TrainSettings, _EarlyStopping, _LevenbergMarquardt, available_cores,
+                                        package_versions, rollout_loss, safe_thread_count, split_data)
+
+#: Position and velocity scales of the loss (1/m, s/m): 1 mm of position error weighs as 0.03 rad/s.
+POSITION_SCALE, VELOCITY_SCALE = 30.0, 10.0
+DEFAULT_DATA = Path("data/quadrotor.npz")
+
+
+def train_r3s3(data: FreeBodyData, config: R3S3Config, settings: TrainSettings = TrainSettings(),
+               position_scale: float = POSITION_SCALE, velocity_scale: float = VELOCITY_SCALE,
+               progress: bool = True) -> tuple[Any, dict[str, Any]]:
+    """Train an :class:`~fvin_mpc.learning.model_r3s3.R3S3FVIN` with Levenberg–Marquardt; returns
+    ``(model, report)`` like :func:`fvin_mpc.learning.training.train`."""
+    if settings.optimizer != "lm":
+        raise ValueError("the R³ × S³ model trains with Levenberg–Marquardt only (settings.optimizer='lm')")
+    if abs(data.control_period - config.step_size) > 1e-12:
+        raise ValueError(f"model step {config.step_size} differs from the data's control period {data.control_period}")
+    if data.u.shape[2] != config.control_dim:
+        raise ValueError(f"data has {data.u.shape[2]} controls, the model config {config.control_dim}")
+    threads = settings.threads if settings.threads is not None else safe_thread_count()
+    load_before = os.getloadavg()
+    with torch_threads(threads):
+        model, report = _train(data, config, settings, position_scale, velocity_scale, progress)
+    report.update(threads=threads, cpu_cores=available_cores(), load_average_start=list(load_before),
+                  load_average_end=list(os.getloadavg()))
+    return model, report
+
+
+def _train(data: FreeBodyData, config: R3S3Config, settings: TrainSettings, position_scale: float,
+           velocity_scale: float, progress: bool) -> tuple[Any, dict[str, Any]]:
+    import torch
+    from tqdm.auto import tqdm
+
+    from fvin_mpc.learning.model_r3s3 import DTYPE, R3S3FVIN
+
+    torch.manual_seed(settings.seed)
+    model = R3S3FVIN(config, seed=settings.seed, position_scale=position_scale, velocity_scale=velocity_scale)
+
+    def windows(subset: FreeBodyData) -> tuple[Any, ...]:
+        states, u = subset.windows(settings.window)
+        return (*model.pack(torch.as_tensor(states, dtype=DTYPE)), torch.as_tensor(u, dtype=DTYPE))
+
+    train_set, validation_set = split_data(data, settings.validation_fraction, settings.seed)  # type: ignore[arg-type]
+    train_windows, validation_windows = windows(train_set), windows(validation_set)
+    lm = _LevenbergMarquardt(model, train_windows, settings)
+    stopping = _EarlyStopping(settings)
+    history: list[dict[str, float]] = []
+    start, completed = time.perf_counter(), 0
+    cpu_start = time.process_time()
+    bar = tqdm(range(settings.max_iterations), desc=f"train R3xS3 {config.variant} (lm)", disable=not progress)
+    for iteration in bar:
+        loss = lm.step()
+        completed = iteration + 1
+        if math.isnan(loss):
+            stopping.reason = "no Levenberg–Marquardt step lowers the training loss (converged)"
+            break
+        with torch.no_grad():
+            validation = rollout_loss(model, *validation_windows, settings.omega_weight).item()
+        history.append({"iteration": completed, "train": loss, "validation": validation,
+                        "elapsed_s": time.perf_counter() - start})
+        bar.set_postfix(train=f"{loss:.2e}", val=f"{validation:.2e}")
+        if stopping.update(validation, model):
+            break
+        if settings.time_limit_s is not None and time.perf_counter() - start > settings.time_limit_s:
+            stopping.reason = f"time limit of {settings.time_limit_s:g} s"
+            break
+    stopping.restore(model)
+    bar.close()
+    seconds, cpu_seconds = time.perf_counter() - start, time.process_time() - cpu_start
+    with torch.no_grad():
+        final_train = rollout_loss(model, *train_windows, settings.omega_weight).item()
+        final_validation = rollout_loss(model, *validation_windows, settings.omega_weight).item()
+    return model, {
+        "optimizer": "lm", "iterations": completed, "stopped": stopping.reason, "settings": asdict(settings),
+        "position_scale": position_scale, "velocity_scale": velocity_scale,
+        "train_windows": int(train_windows[0].shape[0]), "validation_windows": int(validation_windows[0].shape[0]),
+        "final_train_loss": final_train, "final_validation_loss": final_validation,
+        "wall_clock_s": seconds, "cpu_s": cpu_seconds, "history": history,
+    }
+
+
+# ----------------------------------------------------------------------------- targets
+def recovered_parameters(weights: Mapping[str, Any], config: R3S3Config) -> dict[str, Any]:
+    """The learned ``M`` and ``J`` divided by the model's scale ``c``
+    (:func:`fvin_mpc.core.networks_r3s3.physical_scale`), in kg and kg·m²; ``J`` at the identity."""
+    from fvin_mpc.core.backend import get_ops
+
+    terms = LearnedCombinedTerms(weights, config, get_ops("numpy"))
+    scale = physical_scale(terms)
+    identity = tuple(np.float64(c) for c in (1.0, 0.0, 0.0, 0.0))
+    mass = np.array(terms.mass_matrix(), dtype=float) / scale
+    inertia = np.array(terms.inertia(identity), dtype=float) / scale
+    return {"scale": scale, "mass_matrix": mass.tolist(), "inertia": inertia.tolist()}
+
+
+def open_loop_errors(step: Any, data: FreeBodyData, horizon_steps: int) -> dict[str, Any]:
+    """Open-loop rollouts of ``step(state (B, 13), u (B, m)) -> state (B, 13)`` from the first state of
+    every trajectory of ``data`` under its recorded controls, against the recorded states, over
+    ``horizon_steps`` steps: position (m), orientation (rad, sign invariant), velocity (m/s) and
+    angular velocity (rad/s) errors at the end (median, 90th percentile, max) and the largest
+    ``||q| − 1|``."""
+    states = data.state[:, : horizon_steps + 1]
+    predicted = [states[:, 0]]
+    for k in range(horizon_steps):
+        predicted.append(step(predicted[-1], data.u[:, k]))
+    final, truth = predicted[-1], states[:, -1]
+    alignment = np.clip(np.abs(np.sum(final[:, 3:7] * truth[:, 3:7], axis=1) / np.linalg.norm(final[:, 3:7], axis=1)), 0, 1)
+    errors = {
+        "position_m": np.linalg.norm(final[:, :3] - truth[:, :3], axis=1),
+        "orientation_rad": 2.0 * np.arccos(alignment),
+        "velocity_m_s": np.linalg.norm(final[:, 7:10] - truth[:, 7:10], axis=1),
+        "angular_velocity_rad_s": np.linalg.norm(final[:, 10:] - truth[:, 10:], axis=1),
+    }
+    summary: dict[str, Any] = {name: {"median": float(np.median(e)), "p90": float(np.percentile(e, 90)),
+                                      "max": float(np.max(e))} for name, e in errors.items()}
+    summary["max_unit_norm_error"] = float(max(np.abs(np.linalg.norm(p[:, 3:7], axis=1) - 1.0).max() for p in predicted))
+    summary["all_finite"] = bool(all(np.all(np.isfinite(p)) for p in predicted))
+    summary["horizon_s"] = horizon_steps * data.control_period
+    summary["trajectories"] = data.num_trajectories
+    return summary
+
+
+def numpy_step(terms: Any, config_or_step: Any, newton_iters: int, force_rule: str = "trapezoid") -> Any:
+    """``step(state (B, 13), u (B, m))`` of NumPy :class:`CombinedTerms` at step size ``config_or_step``
+    (a float, or a config with ``step_size``)."""
+    from fvin_mpc.core import fvin_r3s3
+    from fvin_mpc.core.backend import get_ops
+
+    h = float(getattr(config_or_step, "step_size", config_or_step))
+    ops = get_ops("numpy")
+    return lambda state, u: fvin_r3s3.step_state(state, u, terms, h, newton_iters, ops, force_rule)[0]
+
+
+# ----------------------------------------------------------------------------- command
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m fvin_mpc.learning.training_r3s3", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--data", type=Path, default=DEFAULT_DATA, help="free-body data (default: %(default)s)")
+    parser.add_argument("--test-data", type=Path, default=None, help="held-out data for the 1 s open-loop error")
+    parser.add_argument("--variant", default="fixed-inertia", choices=("sign-invariant", "fixed-inertia", "plain"))
+    parser.add_argument("--hidden-width", type=int, default=16)
+    parser.add_argument("--newton-iters", type=int, default=2)
+    parser.add_argument("--trajectories", type=int, default=None, help="train on the first N trajectories only")
+    parser.add_argument("--window", type=int, default=8)
+    parser.add_argument("--iterations", type=int, default=None)
+    parser.add_argument("--jacobian-windows", type=int, default=256)
+    parser.add_argument("--patience", type=int, default=6, help="validation evaluations without progress before stopping")
+    parser.add_argument("--time-limit", type=float, default=None, help="seconds")
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--out", type=Path, default=None, help="checkpoint stem (default: checkpoints/quadrotor_<variant>)")
+    parser.add_argument("--quiet", action="store_true")
+    args = parser.parse_args(argv)
+
+    from fvin_mpc.core.checkpoint import save_checkpoint
+
+    data = load_free_body_data(args.data)
+    if args.trajectories is not None:
+        data = data.subset(np.arange(min(args.trajectories, data.num_trajectories)))
+    config = R3S3Config(variant=args.variant, control_dim=data.u.shape[2], hidden_width=args.hidden_width,
+                        step_size=data.control_period, newton_iters=args.newton_iters)
+    settings = TrainSettings(optimizer="lm", iterations=args.iterations, window=args.window, seed=args.seed,
+                             jacobian_windows=args.jacobian_windows, threads=args.threads, patience=args.patience,
+                             time_limit_s=args.time_limit)
+    model, report = train_r3s3(data, config, settings, progress=not args.quiet)
+    weights = model.numpy_weights()
+    summary: dict[str, Any] = {"recovered": recovered_parameters(weights, config)}
+    if args.test_data is not None:
+        test = load_free_body_data(args.test_data)
+        from fvin_mpc.core.backend import get_ops
+
+        summary["open_loop_1s"] = open_loop_errors(
+            numpy_step(LearnedCombinedTerms(weights, config, get_ops("numpy")), config, config.newton_iters,
+                       config.force_rule), test, int(round(1.0 / config.step_size)))
+    stem = args.out or Path("checkpoints") / f"{data.metadata.get('scene', 'quadrotor')}_{args.variant}"
+    history = report.pop("history")
+    save_checkpoint(stem, config, weights, scene=data.metadata.get("scene"), body=data.metadata.get("body"),
+                    data={"path": str(args.data), "trajectories": data.num_trajectories,
+                          "transitions": data.num_transitions, **{k: data.metadata.get(k) for k in ("seed", "collector")}},
+                    training={**report, "history_tail": history[-5:]}, evaluation=summary, versions=package_versions())
+    print(json.dumps({"checkpoint": str(stem), "iterations": report["iterations"], "stopped": report["stopped"],
+                      "final_validation_loss": report["final_validation_loss"], "wall_clock_s": report["wall_clock_s"],
+                      "cpu_s": report["cpu_s"], **summary}, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
