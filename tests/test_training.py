@@ -41,7 +41,7 @@ def test_residual_squares_sum_to_the_rollout_loss(data):
         loss = rollout_loss(model, q, omega, u, 0.3)
         # q and −q are the same rotation: the residuals' squares do not change.
         flipped = rollout_residuals(q_hat, omega_hat, -q, omega, 0.3)
-    assert residuals.shape == (q.shape[0], 4, 9)
+    assert residuals.shape == (q.shape[0], 4, 7)
     np.testing.assert_allclose((residuals**2).sum().item() / (q.shape[0] * 4), loss.item(), rtol=1e-12)
     np.testing.assert_allclose((flipped**2).sum().item(), (residuals**2).sum().item(), rtol=1e-12)
 

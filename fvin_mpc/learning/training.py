@@ -9,9 +9,9 @@ validation loss stops improving and returns the best weights seen.
 Optimizers (``docs/training.md`` has measurements):
 
 - ``"lm"`` (default): Levenberg–Marquardt on the stacked residuals. The loss is a
-  sum of squares ``Σ r²`` with ``r`` = the six components ``2(q̂ᵢqⱼ − q̂ⱼqᵢ)``
-  (Lagrange's identity: their squares sum to ``4(1 − ⟨q̂, q⟩²)`` for unit ``q̂, q``)
-  and ``√omega_weight·(ω̂ − ω)``, scaled by ``1/√(windows·steps)``. Each iteration
+  sum of squares ``Σ r²`` with ``r`` = the four components of ``2(q̂ − ⟨q̂, q⟩ q)``
+  (their squares sum to ``4(1 − ⟨q̂, q⟩²)`` for unit ``q̂, q``) and
+  ``√omega_weight·(ω̂ − ω)``, scaled by ``1/√(windows·steps)``. Each iteration
   solves ``(JᵀJ + λ(diag JᵀJ + ε)) δ = −Jᵀr`` with the full-batch gradient ``Jᵀr``
   and the Gauss–Newton matrix ``JᵀJ`` estimated from ``jacobian_windows`` random
   windows (per-window Jacobians by ``torch.func``: ``vmap(jacrev(·))``). A step is
@@ -184,15 +184,16 @@ def rollout_loss(model: Any, q: Any, omega: Any, u: Any, omega_weight: float, st
 
 
 def rollout_residuals(q_hat: Any, omega_hat: Any, q: Any, omega: Any, omega_weight: float) -> Any:
-    """Residuals ``(W, T, 9)`` whose squares sum to ``W·T·rollout_loss`` (unit quaternions).
+    """Residuals ``(W, T, 7)`` whose squares sum to ``W·T·rollout_loss`` (unit quaternions).
 
-    Orientation: ``2(q̂ᵢqⱼ − q̂ⱼqᵢ)`` for ``i < j`` (Lagrange: ``Σ = 4(|q̂|²|q|² − ⟨q̂, q⟩²)``,
-    smooth and the same for ``±q``); velocity: ``√omega_weight·(ω̂ − ω)``."""
+    Orientation: ``2(q̂ − ⟨q̂, q⟩ q)``, twice the part of ``q̂`` orthogonal to the data's ``q``
+    (its square is ``4(|q̂|² − ⟨q̂, q⟩²) = 4(1 − ⟨q̂, q⟩²)``; smooth, the same for ``±q``, and
+    the fewest residuals with that Gauss–Newton matrix: four, where the six of Lagrange's
+    identity ``2(q̂ᵢqⱼ − q̂ⱼqᵢ)`` give the same ``JᵀJ``); velocity: ``√omega_weight·(ω̂ − ω)``."""
     import torch
 
-    i, j = torch.triu_indices(4, 4, 1, device=q.device)
     a, b = q_hat[:, 1:], q[:, 1:]
-    orientation = 2.0 * (a[..., i] * b[..., j] - a[..., j] * b[..., i])
+    orientation = 2.0 * (a - (a * b).sum(-1, keepdim=True) * b)
     velocity = math.sqrt(omega_weight) * (omega_hat[:, 1:] - omega[:, 1:])
     return torch.cat([orientation, velocity], dim=-1)
 
