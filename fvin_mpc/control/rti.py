@@ -496,17 +496,22 @@ class RealTimeMPC(MPC):
             self._linearization = None  # prepared for another time
         self._time = float(t)
 
-    def reference_window(self) -> tuple[np.ndarray, np.ndarray]:
-        """The reference over the horizon from the current time: states ``(N+1, n)`` and target
-        controls ``u_s,k = clip(s_k u_goal − d̂)`` ``(N, m)`` (``s_k`` the reference's control scale)."""
+    def _sample_reference(self) -> tuple[float, np.ndarray, np.ndarray, ca.DM]:
+        """``(time, states (N+1, n), scales (N,), states as the linearization's DM input)`` of the
+        reference over the horizon from now (cached; the DM spares a conversion per call)."""
         cache = getattr(self, "_reference_cache", None)
         if cache is None or not (self._reference.constant or cache[0] == self._time):
             n = self.horizon
             states, scales = self._reference(self._time + self.model.step_size * np.arange(n + 1))
-            cache = (self._time, np.asarray(states, dtype=float).reshape(n + 1, self.layout.state_dim),
-                     np.asarray(scales, dtype=float).reshape(n + 1)[:n])
+            states = np.asarray(states, dtype=float).reshape(n + 1, self.layout.state_dim)
+            cache = (self._time, states, np.asarray(scales, dtype=float).reshape(n + 1)[:n], ca.DM(states.T))
             self._reference_cache = cache
-        _, states, scales = cache
+        return cache
+
+    def reference_window(self) -> tuple[np.ndarray, np.ndarray]:
+        """The reference over the horizon from the current time: states ``(N+1, n)`` and target
+        controls ``u_s,k = clip(s_k u_goal − d̂)`` ``(N, m)`` (``s_k`` the reference's control scale)."""
+        _, states, scales, _ = self._sample_reference()
         return states, np.clip(scales[:, None] * self._u_goal - self.disturbance, self.torque_low, self.torque_high)
 
     @property
@@ -515,8 +520,13 @@ class RealTimeMPC(MPC):
         return self.reference_window()[1][0]
 
     def _linearize_at(self, plan: _Plan) -> tuple[Any, ...]:
-        references, targets = self.reference_window()
-        return self._linearize(plan.states.T, plan.controls.T, references.T, self.disturbance, targets.T)
+        time_, _, scales, references = self._sample_reference()
+        key = (time_, self.disturbance.tobytes())
+        cached = getattr(self, "_targets_cache", None)
+        if cached is None or cached[0] != key:  # u_s changes only with the time and d̂: convert once
+            targets = np.clip(scales[:, None] * self._u_goal - self.disturbance, self.torque_low, self.torque_high)
+            cached = self._targets_cache = (key, ca.DM(targets.T))
+        return self._linearize(plan.states.T, plan.controls.T, references, self.disturbance, cached[1])
 
     def _first_guess(self, x0: np.ndarray, start: str) -> _Plan:
         """A pivoted body's guesses are :class:`~fvin_mpc.control.mpc.MPC`'s. A free body's:
@@ -648,7 +658,7 @@ class RealTimeMPC(MPC):
         if alpha == 0.0 or self._last is None:
             return
         layout = self.layout
-        goal = self.reference_window()[0][0, layout.quaternion]
+        goal = self._sample_reference()[1][0, layout.quaternion]
         cosine = min(abs(float(np.dot(x0[layout.quaternion], goal))), 1.0)
         if 2.0 * np.arccos(cosine) > DISTURBANCE_REGION_RAD or np.max(np.abs(x0[layout.omega])) > DISTURBANCE_REGION_SPEED:
             return

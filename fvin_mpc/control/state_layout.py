@@ -12,7 +12,7 @@ by difference, the quaternion in a chart of S³.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -34,39 +34,27 @@ class StateLayout:
     after: int
     name: str
 
-    @property
-    def state_dim(self) -> int:
-        return self.before + 4 + self.after
+    # Index facts, computed once (a measured state is sliced by them on every controller call).
+    state_dim: int = field(init=False)
+    #: entries of the local coordinates ``δ``: the quaternion's 3 chart coordinates and the rest
+    tangent_dim: int = field(init=False)
+    #: the quaternion's entries in a state
+    quaternion: slice = field(init=False)
+    #: the entries after the quaternion in a state (``ω``, or ``v`` and ``ω``)
+    rates: slice = field(init=False)
+    #: ``ω`` in a state (its last three entries)
+    omega: slice = field(init=False)
+    #: the quaternion's 3 chart coordinates in ``δ``
+    chart: slice = field(init=False)
+    #: ``ω``'s entries in ``δ`` (its last three)
+    tangent_omega: slice = field(init=False)
 
-    @property
-    def tangent_dim(self) -> int:
-        """Entries of the local coordinates ``δ``: the quaternion's 3 chart coordinates and the rest."""
-        return self.before + 3 + self.after
-
-    @property
-    def quaternion(self) -> slice:
-        """The quaternion's entries in a state."""
-        return slice(self.before, self.before + 4)
-
-    @property
-    def rates(self) -> slice:
-        """The entries after the quaternion in a state (``ω``, or ``v`` and ``ω``)."""
-        return slice(self.before + 4, self.state_dim)
-
-    @property
-    def omega(self) -> slice:
-        """``ω`` in a state (its last three entries)."""
-        return slice(self.state_dim - 3, self.state_dim)
-
-    @property
-    def chart(self) -> slice:
-        """The quaternion's 3 chart coordinates in ``δ``."""
-        return slice(self.before, self.before + 3)
-
-    @property
-    def tangent_omega(self) -> slice:
-        """``ω``'s entries in ``δ`` (its last three)."""
-        return slice(self.tangent_dim - 3, self.tangent_dim)
+    def __post_init__(self) -> None:
+        n, a = self.before + 4 + self.after, self.before
+        facts = {"state_dim": n, "tangent_dim": n - 1, "quaternion": slice(a, a + 4), "rates": slice(a + 4, n),
+                 "omega": slice(n - 3, n), "chart": slice(a, a + 3), "tangent_omega": slice(n - 4, n - 1)}
+        for name, value in facts.items():
+            object.__setattr__(self, name, value)
 
     def check(self, x: Any) -> np.ndarray:
         """A measured state as a float64 copy with a unit quaternion (the policy of
