@@ -22,6 +22,7 @@ STUDIES = {
     "width": "fvin_mpc.studies.bench.width",
     "solver": "fvin_mpc.studies.bench.solver",
     "sim": "fvin_mpc.studies.bench.sim",
+    "paper": "fvin_mpc.studies.bench.paper",
 }
 
 
