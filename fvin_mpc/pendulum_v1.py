@@ -14,9 +14,19 @@ from typing import Sequence
 
 import fvin_mpc.studies.pendulum_v1 as pendulum_v1_module
 from fvin_mpc._cli import add_backend_arguments, backend_options, exit_status
-from fvin_mpc.studies.pendulum_v1 import (BenchmarkConfig, plot_returns, run_benchmark, summarize,
-                                          write_markdown)
+from fvin_mpc.studies.pendulum_v1 import (REFERENCE_GRIDS, BenchmarkConfig, plot_returns, run_benchmark,
+                                          summarize, write_markdown)
 from fvin_mpc.studies.pool import TasksFailed
+
+
+def _grids(text: str) -> tuple[tuple[int, int], ...]:
+    try:
+        grids = tuple(tuple(int(n) for n in item.split("x")) for item in text.split(","))
+    except ValueError:
+        grids = ()
+    if not grids or any(len(g) != 2 for g in grids):
+        raise argparse.ArgumentTypeError(f"expected THETAxRATE[,THETAxRATE...], e.g. 256x129,512x257; got {text!r}")
+    return grids  # type: ignore[return-value]
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -37,7 +47,12 @@ def build_parser() -> argparse.ArgumentParser:
                              "(default: %(default)s)")
     parser.add_argument("--single-start", action="store_true",
                         help="plain MPC: one first guess per episode instead of the multi-start")
-    parser.add_argument("--no-reference", action="store_true", help="skip the per-seed episode optimization")
+    parser.add_argument("--no-reference", action="store_true", help="skip the per-seed global reference")
+    parser.add_argument("--reference-grids", type=_grids, default=REFERENCE_GRIDS,
+                        help="the reference's DP grids, coarse to fine, as THETAxRATE,... (at least two; default: "
+                             + ",".join(f"{a}x{b}" for a, b in REFERENCE_GRIDS) + ")")
+    parser.add_argument("--previous", type=Path, default=None,
+                        help="an earlier run's JSON: its MPC returns and references per seed go into the table")
     add_backend_arguments(parser)
     parser.add_argument("--out", type=Path, default=Path("docs/pendulum-v1.md"),
                         help="Markdown report; .json and .png next to it (default: %(default)s)")
@@ -52,7 +67,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         config = BenchmarkConfig(checkpoint=args.checkpoint, true_model=args.true_model, horizon=args.horizon,
                                  episodes=args.episodes, seed=args.seed, reference=not args.no_reference,
                                  multistart=not args.single_start, terminal_energy_weight=args.energy_weight,
-                                 solver=args.solver, rti_cold_solver=args.rti_cold_solver)
+                                 solver=args.solver, rti_cold_solver=args.rti_cold_solver,
+                                 reference_grids=args.reference_grids)
+        previous = json.loads(args.previous.read_text()) if args.previous else None
         if not config.true_model:
             from fvin_mpc.core.checkpoint import load_checkpoint
 
@@ -66,7 +83,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args.out.parent.mkdir(parents=True, exist_ok=True)
     label = "MPC (true model)" if config.true_model else "MPC (learned)"
     plot_returns(records, args.out.with_suffix(".png"), label)
-    write_markdown(summary, records, config, command.strip(), args.out)
+    write_markdown(summary, records, config, command.strip(), args.out, previous)
     print(json.dumps(summary, indent=2))
     print(f"wrote {args.out}, {args.out.with_suffix('.json')}, {args.out.with_suffix('.png')}", file=sys.stderr)
     return 0
