@@ -41,10 +41,11 @@ def random_state(rng: np.random.Generator) -> np.ndarray:
 
 CONFIGS = [R3S3Config(variant=v, hidden_width=6, step_size=H, newton_iters=3) for v in
            ("fixed-inertia", "sign-invariant", "plain")] + [
-    R3S3Config(variant="fixed-inertia", hidden_width=5, step_size=H, position_in_forces=True, force_rule="hold")]
+    R3S3Config(variant="fixed-inertia", hidden_width=5, step_size=H, position_in_forces=True, force_rule="hold",
+               force_frame="world")]
 
 
-@pytest.mark.parametrize("config", CONFIGS, ids=lambda c: f"{c.variant}-{c.force_rule}-{c.position_in_forces}")
+@pytest.mark.parametrize("config", CONFIGS, ids=lambda c: f"{c.variant}-{c.force_rule}-{c.force_frame}")
 def test_potential_gradients_match_differences_and_sign_invariance_holds(config):
     rng = np.random.default_rng(0)
     terms = LearnedCombinedTerms(lively_weights(config, 1), config, NP)
@@ -71,7 +72,7 @@ def test_potential_gradients_match_differences_and_sign_invariance_holds(config)
     assert same == config.sign_invariant
 
 
-@pytest.mark.parametrize("config", CONFIGS, ids=lambda c: f"{c.variant}-{c.force_rule}-{c.position_in_forces}")
+@pytest.mark.parametrize("config", CONFIGS, ids=lambda c: f"{c.variant}-{c.force_rule}-{c.force_frame}")
 def test_numpy_torch_and_casadi_take_the_same_step(config):
     weights = lively_weights(config, 2)
     rng = np.random.default_rng(1)

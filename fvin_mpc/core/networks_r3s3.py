@@ -10,9 +10,14 @@ Weights (names → arrays; MLPs as in :mod:`fvin_mpc.core.networks`: ``{net}_w{i
 * ``potential_linear`` (3) and MLP ``potential`` on ``(x, q)`` (→ 1): ``U = aᵀx + N(x, q)``. The
   linear term is a uniform field (gravity) exactly, also outside the data's positions, where the
   tanh network flattens out.
-* MLP ``force`` (→ 3m) and MLP ``gain`` (→ 3m): ``F_x = G_x u`` (world frame, control affine) and
-  the rotational gain ``g`` (3×m, row-major), on ``q`` — or on ``(x, q)`` with
+* MLP ``force`` (→ 3m) and MLP ``gain`` (→ 3m): the translational force ``F_x = G_x u`` (control
+  affine) and the rotational gain ``g`` (3×m, row-major), on ``q`` — or on ``(x, q)`` with
   ``position_in_forces`` (a body whose actuation depends on where it is; a rotor craft's does not).
+  With ``force_frame="body"`` (default) the network gives the force in the body frame and
+  ``G_x = R(q) G_b(q)``: actuators that push the body in its own frame (rotors, thrusters). This is
+  what makes ``M`` identifiable: with a free world-frame ``G_x(q)`` only ``M⁻¹G_x`` enters the motion,
+  so any SPD ``M`` fits as well as the true one; with ``R(q) G_b`` and orientations that turn, only
+  ``M ∝ I`` does (the scale ``c`` below aside). ``force_frame="world"`` is the paper's free ``f^x``.
 
 Sign invariance (``"sign-invariant"``, ``"fixed-inertia"``): ``J``, ``U``, ``G_x``, ``g`` are averaged
 over ``q`` and ``−q`` (for ``U``: ``∇_q Û(x, q) = ½(∇_q U(x, q) − ∇_q U(x, −q))``), as for the pivoted
@@ -52,6 +57,7 @@ class R3S3Config:
         newton_iters: ``K`` of the rotational solve.
         force_rule: ``"trapezoid"`` or ``"hold"`` (:func:`fvin_mpc.core.fvin_r3s3.r3s3_step`).
         position_in_forces: ``F_x`` and ``g`` see ``(x, q)`` instead of ``q`` only.
+        force_frame: ``"body"`` (``F_x = R(q) G_b u``) or ``"world"`` (``F_x = G_x u``); module docstring.
         mass_epsilon, inertia_epsilon: ``ε`` of the Cholesky parametrizations.
         configuration_space: always :data:`CONFIGURATION_SPACE` (written to checkpoints).
     """
@@ -64,6 +70,7 @@ class R3S3Config:
     newton_iters: int = 2
     force_rule: str = "trapezoid"
     position_in_forces: bool = False
+    force_frame: str = "body"
     mass_epsilon: float = 1e-6
     inertia_epsilon: float = 1e-8
     configuration_space: str = CONFIGURATION_SPACE
@@ -75,6 +82,8 @@ class R3S3Config:
             raise ValueError(f"unknown variant {self.variant!r}; expected one of {VARIANTS}")
         if self.configuration_space != CONFIGURATION_SPACE:
             raise ValueError(f"configuration_space must be {CONFIGURATION_SPACE!r}, got {self.configuration_space!r}")
+        if self.force_frame not in ("body", "world"):
+            raise ValueError(f"force_frame must be 'body' or 'world', got {self.force_frame!r}")
         if self.force_rule not in FORCE_RULES:
             raise ValueError(f"force_rule must be one of {FORCE_RULES}, got {self.force_rule!r}")
         if self.control_dim < 1 or self.hidden_width < 1 or self.hidden_layers < 1 or self.newton_iters < 1:
@@ -253,7 +262,12 @@ class LearnedCombinedTerms:
     def force_gain(self, x: s3.Vec3, q: s3.Quat) -> tuple[tuple[Any, ...], ...]:
         """``G_x`` (3×m): the world force per unit of each control."""
         flat, m = self._averaged("force", self._force_position(x), q), self.control_dim
-        return tuple(tuple(flat[i * m + j] for j in range(m)) for i in range(3))
+        gain = tuple(tuple(flat[i * m + j] for j in range(m)) for i in range(3))
+        if self.config.force_frame == "world":
+            return gain
+        rotation = s3.rotation_matrix(q)
+        return tuple(tuple(s3.dot(rotation[i], tuple(gain[k][j] for k in range(3))) for j in range(m))
+                     for i in range(3))
 
     def translational_force(self, x: s3.Vec3, q: s3.Quat, u: tuple[Any, ...]) -> s3.Vec3:
         return s3.matvec(self.force_gain(x, q), u)  # type: ignore[return-value]

@@ -152,6 +152,28 @@ def open_loop_errors(step: Any, data: FreeBodyData, horizon_steps: int) -> dict[
     return summary
 
 
+def compare_open_loop(weights: Mapping[str, Any], config: R3S3Config, test: FreeBodyData, scene: str,
+                      horizon_s: float = 1.0) -> dict[str, Any]:
+    """:func:`open_loop_errors` over ``horizon_s`` of the learned model and of the closed-form craft read
+    off the scene's MJCF (:func:`fvin_mpc.core.quadrotor.from_mujoco`), through the same step (``h``,
+    ``K``, force rule), on the same held-out trajectories."""
+    from fvin_mpc.core.backend import get_ops
+    from fvin_mpc.core.quadrotor import from_mujoco
+    from fvin_mpc.envs import QuadrotorEnv
+
+    env = QuadrotorEnv(scene=scene)
+    body = from_mujoco(env.model, env.body_name)
+    env.close()
+    steps = int(round(horizon_s / config.step_size))
+    ops = get_ops("numpy")
+    return {
+        "open_loop_learned": open_loop_errors(numpy_step(LearnedCombinedTerms(weights, config, ops), config,
+                                                         config.newton_iters, config.force_rule), test, steps),
+        "open_loop_closed_form": open_loop_errors(numpy_step(body.terms(ops), config, config.newton_iters,
+                                                             config.force_rule), test, steps),
+    }
+
+
 def numpy_step(terms: Any, config_or_step: Any, newton_iters: int, force_rule: str = "trapezoid") -> Any:
     """``step(state (B, 13), u (B, m))`` of NumPy :class:`CombinedTerms` at step size ``config_or_step``
     (a float, or a config with ``step_size``)."""
@@ -201,9 +223,7 @@ def main(argv: list[str] | None = None) -> int:
         test = load_free_body_data(args.test_data)
         from fvin_mpc.core.backend import get_ops
 
-        summary["open_loop_1s"] = open_loop_errors(
-            numpy_step(LearnedCombinedTerms(weights, config, get_ops("numpy")), config, config.newton_iters,
-                       config.force_rule), test, int(round(1.0 / config.step_size)))
+        summary.update(compare_open_loop(weights, config, test, str(test.metadata.get("scene", "quadrotor"))))
     stem = args.out or Path("checkpoints") / f"{data.metadata.get('scene', 'quadrotor')}_{args.variant}"
     history = report.pop("history")
     save_checkpoint(stem, config, weights, scene=data.metadata.get("scene"), body=data.metadata.get("body"),
