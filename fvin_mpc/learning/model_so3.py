@@ -125,3 +125,26 @@ def train_so3(data: TrajectoryData, config: SO3ModelConfig, settings: Any, progr
 
     with mock.patch.object(s3_model, "S3FVIN", SO3FVIN):
         return train(data, config, settings, progress)  # type: ignore[arg-type]
+
+
+def loss_and_gradient_cpu_s(so3: bool, config: Any, data: TrajectoryData, repeats: int, seed: int = 0) -> float:
+    """Median thread CPU seconds of one full-batch rollout loss with its gradient — the least any
+    optimizer iteration pays — for a freshly initialized SO3FVIN (``so3``) or S3FVIN with ``config``
+    on ``data``'s windows (the training's default window and weight), one torch thread."""
+    import time
+
+    from fvin_mpc.learning.model import S3FVIN
+    from fvin_mpc.learning.timing import torch_threads
+    from fvin_mpc.learning.training import TrainSettings, rollout_loss
+
+    settings = TrainSettings()
+    windows = tuple(torch.as_tensor(a, dtype=DTYPE) for a in data.windows(settings.window))
+    network = (SO3FVIN if so3 else S3FVIN)(config, seed=seed)
+    times = []
+    with torch_threads(1):
+        for _ in range(repeats + 1):  # the first call warms up
+            network.zero_grad()
+            start = time.thread_time()
+            rollout_loss(network, *windows, settings.omega_weight).backward()
+            times.append(time.thread_time() - start)
+    return float(np.median(times[1:]))

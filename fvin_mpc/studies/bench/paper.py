@@ -201,24 +201,9 @@ def training_curves(settings: CurveSettings, cache: Path | None, models: tuple[P
 def loss_gradient_cpu_s(model: PaperModel, data: Any, repeats: int, seed: int = 0) -> float:
     """Median CPU seconds of one full-batch rollout loss and its gradient (what every optimizer
     iteration pays at least once) for a freshly initialized ``model`` on ``data``'s windows."""
-    import torch
+    from fvin_mpc.learning.model_so3 import loss_and_gradient_cpu_s
 
-    from fvin_mpc.learning.model import DTYPE, S3FVIN
-    from fvin_mpc.learning.model_so3 import SO3FVIN
-    from fvin_mpc.learning.timing import torch_threads
-    from fvin_mpc.learning.training import TrainSettings, rollout_loss
-
-    settings = TrainSettings()
-    windows = tuple(torch.as_tensor(a, dtype=DTYPE) for a in data.windows(settings.window))
-    network = (S3FVIN if model.space == "S3" else SO3FVIN)(model_config(model, data), seed=seed)
-    times = []
-    with torch_threads(1):
-        for _ in range(repeats + 1):  # the first call warms up
-            network.zero_grad()
-            start = time.thread_time()
-            rollout_loss(network, *windows, settings.omega_weight).backward()
-            times.append(time.thread_time() - start)
-    return float(np.median(times[1:]))
+    return loss_and_gradient_cpu_s(model.space == "SO3", model_config(model, data), data, repeats, seed)
 
 
 # ---------------------------------------------------------------------------- Figure 1: learned terms, energy
