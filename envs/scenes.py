@@ -175,7 +175,7 @@ FREE_BODY_SCENES: dict[str, SceneSpec] = {
     for spec in (
         SceneSpec(name="quadrotor", xml_path=SCENE_DIR / "quadrotor.xml", body="quadrotor", control_period=0.02,
                   physics=_ACTUATED, goal=(1.0, 0.0, 0.0, 0.0), rest=(1.0, 0.0, 0.0, 0.0),
-                  checkpoint="quadrotor_sign-invariant"),
+                  checkpoint="quadrotor_fixed-inertia"),
     )
 }
 

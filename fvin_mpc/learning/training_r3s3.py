@@ -112,44 +112,60 @@ def _train(data: FreeBodyData, config: R3S3Config, settings: TrainSettings, posi
 
 
 # ----------------------------------------------------------------------------- targets
-def recovered_parameters(weights: Mapping[str, Any], config: R3S3Config) -> dict[str, Any]:
-    """The learned ``M`` and ``J`` divided by the model's scale ``c``
-    (:func:`fvin_mpc.core.networks_r3s3.physical_scale`), in kg and kg·m²; ``J`` at the identity."""
+def recovered_parameters(weights: Mapping[str, Any], config: R3S3Config, body: Any = None,
+                         orientations: int = 200, seed: int = 0) -> dict[str, Any]:
+    """The learned ``M`` and ``J`` in kg and kg·m², each divided by its own scale.
+
+    The translational scale ``c`` is read off the thrust (:func:`fvin_mpc.core.networks_r3s3.physical_scale`:
+    one newton shared evenly by the rotors is one newton; its spread over ``orientations`` random
+    attitudes is reported). An untethered craft's rotation does not see its translation (no term
+    couples them), so its terms carry a second, independent scale ``c_rot``: fixed by the rotors'
+    known torque, ``c_rot = ‖ĝ‖ / ‖2B‖`` (Frobenius, ``B`` from ``body``'s rotor sites and κ), when a
+    closed-form ``body`` (:class:`~fvin_mpc.core.quadrotor.Quadrotor`) is given; then relative errors
+    against its mass and inertia too. ``J`` at the identity."""
     from fvin_mpc.core.backend import get_ops
 
     terms = LearnedCombinedTerms(weights, config, get_ops("numpy"))
     scale = physical_scale(terms)
+    rng = np.random.default_rng(seed)
+    spread = []
+    for _ in range(orientations):
+        q = rng.normal(size=4)
+        q /= np.linalg.norm(q)
+        gain = np.asarray(terms.force_gain(tuple(np.zeros(3)), tuple(q)), dtype=float)
+        spread.append(np.linalg.norm(gain.mean(axis=1)))
     identity = tuple(np.float64(c) for c in (1.0, 0.0, 0.0, 0.0))
     mass = np.array(terms.mass_matrix(), dtype=float) / scale
-    inertia = np.array(terms.inertia(identity), dtype=float) / scale
-    return {"scale": scale, "mass_matrix": mass.tolist(), "inertia": inertia.tolist()}
+    result: dict[str, Any] = {"scale": scale, "scale_over_orientations": {"min": float(np.min(spread)),
+                                                                        "max": float(np.max(spread))},
+                              "mass_matrix": mass.tolist()}
+    inertia = np.array(terms.inertia(identity), dtype=float)
+    if body is None:
+        result["inertia_unscaled"] = inertia.tolist()
+        return result
+    gain = np.array(terms.control_gain(tuple(np.zeros(3)), identity), dtype=float)
+    rotational_scale = float(np.linalg.norm(gain) / np.linalg.norm(2.0 * np.array(body.torque_map)))
+    inertia = inertia / rotational_scale
+    true_inertia = np.array(body.inertia)
+    result.update(
+        rotational_scale=rotational_scale, inertia=inertia.tolist(),
+        mass_relative_error=float(np.abs(np.linalg.eigvalsh(mass) / body.mass - 1.0).max()),
+        inertia_relative_error=float(np.abs(np.diag(inertia) / np.diag(true_inertia) - 1.0).max()),
+        inertia_off_diagonal_relative=float(np.abs(inertia - np.diag(np.diag(inertia))).max() / np.trace(true_inertia) * 3),
+    )
+    return result
 
 
-def open_loop_errors(step: Any, data: FreeBodyData, horizon_steps: int) -> dict[str, Any]:
-    """Open-loop rollouts of ``step(state (B, 13), u (B, m)) -> state (B, 13)`` from the first state of
-    every trajectory of ``data`` under its recorded controls, against the recorded states, over
-    ``horizon_steps`` steps: position (m), orientation (rad, sign invariant), velocity (m/s) and
-    angular velocity (rad/s) errors at the end (median, 90th percentile, max) and the largest
-    ``||q| − 1|``."""
-    states = data.state[:, : horizon_steps + 1]
-    predicted = [states[:, 0]]
-    for k in range(horizon_steps):
-        predicted.append(step(predicted[-1], data.u[:, k]))
-    final, truth = predicted[-1], states[:, -1]
-    alignment = np.clip(np.abs(np.sum(final[:, 3:7] * truth[:, 3:7], axis=1) / np.linalg.norm(final[:, 3:7], axis=1)), 0, 1)
-    errors = {
-        "position_m": np.linalg.norm(final[:, :3] - truth[:, :3], axis=1),
-        "orientation_rad": 2.0 * np.arccos(alignment),
-        "velocity_m_s": np.linalg.norm(final[:, 7:10] - truth[:, 7:10], axis=1),
-        "angular_velocity_rad_s": np.linalg.norm(final[:, 10:] - truth[:, 10:], axis=1),
-    }
-    summary: dict[str, Any] = {name: {"median": float(np.median(e)), "p90": float(np.percentile(e, 90)),
-                                      "max": float(np.max(e))} for name, e in errors.items()}
-    summary["max_unit_norm_error"] = float(max(np.abs(np.linalg.norm(p[:, 3:7], axis=1) - 1.0).max() for p in predicted))
-    summary["all_finite"] = bool(all(np.all(np.isfinite(p)) for p in predicted))
-    summary["horizon_s"] = horizon_steps * data.control_period
-    summary["trajectories"] = data.num_trajectories
-    return summary
+def scene_quadrotor(scene: str) -> Any:
+    """The closed-form :class:`~fvin_mpc.core.quadrotor.Quadrotor` of a free-body scene's MJCF."""
+    from fvin_mpc.core.quadrotor import from_mujoco
+    from fvin_mpc.envs import QuadrotorEnv
+
+    env = QuadrotorEnv(scene=scene)
+    try:
+        return from_mujoco(env.model, env.body_name)
+    finally:
+        env.close()
 
 
 def compare_open_loop(weights: Mapping[str, Any], config: R3S3Config, test: FreeBodyData, scene: str,
@@ -158,12 +174,8 @@ def compare_open_loop(weights: Mapping[str, Any], config: R3S3Config, test: Free
     off the scene's MJCF (:func:`fvin_mpc.core.quadrotor.from_mujoco`), through the same step (``h``,
     ``K``, force rule), on the same held-out trajectories."""
     from fvin_mpc.core.backend import get_ops
-    from fvin_mpc.core.quadrotor import from_mujoco
-    from fvin_mpc.envs import QuadrotorEnv
 
-    env = QuadrotorEnv(scene=scene)
-    body = from_mujoco(env.model, env.body_name)
-    env.close()
+    body = scene_quadrotor(scene)
     steps = int(round(horizon_s / config.step_size))
     ops = get_ops("numpy")
     return {
@@ -218,7 +230,8 @@ def main(argv: list[str] | None = None) -> int:
                              time_limit_s=args.time_limit)
     model, report = train_r3s3(data, config, settings, progress=not args.quiet)
     weights = model.numpy_weights()
-    summary: dict[str, Any] = {"recovered": recovered_parameters(weights, config)}
+    summary: dict[str, Any] = {"recovered": recovered_parameters(weights, config,
+                                                                 scene_quadrotor(str(data.metadata.get("scene", "quadrotor"))))}
     if args.test_data is not None:
         test = load_free_body_data(args.test_data)
         from fvin_mpc.core.backend import get_ops
