@@ -41,9 +41,35 @@ def test_residual_squares_sum_to_the_rollout_loss(data):
         loss = rollout_loss(model, q, omega, u, 0.3)
         # q and −q are the same rotation: the residuals' squares do not change.
         flipped = rollout_residuals(q_hat, omega_hat, -q, omega, 0.3)
-    assert residuals.shape == (q.shape[0], 4, 7)
+    assert residuals.shape == (q.shape[0], 4, 6)
     np.testing.assert_allclose((residuals**2).sum().item() / (q.shape[0] * 4), loss.item(), rtol=1e-12)
     np.testing.assert_allclose((flipped**2).sum().item(), (residuals**2).sum().item(), rtol=1e-12)
+
+
+def test_orientation_residuals_have_lagranges_gauss_newton_matrix(data):
+    """The three ``2 Im(q̄ ⊗ q̂)`` give the sum of squares, ``JᵀJ`` and ``Jᵀr`` of the six
+    ``2(q̂ᵢqⱼ − q̂ⱼqᵢ)`` of Lagrange's identity, for predictions ``q̂`` moved by any parameters."""
+    q = torch.as_tensor(data.windows(3)[0][:5], dtype=torch.float64)
+    generator = torch.Generator().manual_seed(0)
+    mixing = torch.randn(*q.shape, 7, generator=generator, dtype=torch.float64)
+    omega = torch.zeros(q.shape[:-1] + (3,), dtype=torch.float64)
+    i, j = torch.triu_indices(4, 4, 1)
+
+    def residual_sets(theta):
+        q_hat = q + 0.3 * (mixing @ theta)
+        q_hat = q_hat / q_hat.norm(dim=-1, keepdim=True)
+        ours = rollout_residuals(q_hat, omega, q, omega, 0.1)[..., :3].reshape(-1)
+        a, b = q_hat[:, 1:], q[:, 1:]
+        lagrange = (2.0 * (a[..., i] * b[..., j] - a[..., j] * b[..., i])).reshape(-1)
+        return ours, lagrange
+
+    theta = torch.randn(7, generator=generator, dtype=torch.float64)
+    ours, lagrange = residual_sets(theta)
+    j_ours, j_lagrange = torch.autograd.functional.jacobian(residual_sets, theta)
+    assert ours.numel() * 2 == lagrange.numel()
+    np.testing.assert_allclose((ours**2).sum().item(), (lagrange**2).sum().item(), rtol=1e-12)
+    np.testing.assert_allclose((j_ours.T @ j_ours).numpy(), (j_lagrange.T @ j_lagrange).numpy(), rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose((j_ours.T @ ours).numpy(), (j_lagrange.T @ lagrange).numpy(), rtol=1e-10, atol=1e-12)
 
 
 def test_lm_window_jacobian_matches_the_loss_gradient(data):
@@ -102,7 +128,7 @@ def test_compile_is_refused_for_lm():
         TrainSettings(optimizer="lm", compile=True)
 
 
-@pytest.mark.parametrize("cores, load, threads", [(2, 0.05, 1), (2, 1.2, 1), (2, 7.0, 1), (8, 2.5, 5), (8, 0.0, 8), (1, 0.0, 1)])
+@pytest.mark.parametrize("cores, load, threads", [(2, 0.05, 2), (2, 0.6, 1), (2, 1.2, 1), (2, 7.0, 1), (8, 2.5, 6), (8, 0.0, 8), (1, 0.0, 1)])
 def test_safe_thread_count_leaves_busy_cores_alone(cores, load, threads):
     assert safe_thread_count(cores, load) == threads
 

@@ -9,7 +9,7 @@ validation loss stops improving and returns the best weights seen.
 Optimizers (``docs/training.md`` has measurements):
 
 - ``"lm"`` (default): Levenberg–Marquardt on the stacked residuals. The loss is a
-  sum of squares ``Σ r²`` with ``r`` = the four components of ``2(q̂ − ⟨q̂, q⟩ q)``
+  sum of squares ``Σ r²`` with ``r`` = the three components of ``2 Im(q̄ ⊗ q̂)``
   (their squares sum to ``4(1 − ⟨q̂, q⟩²)`` for unit ``q̂, q``) and
   ``√omega_weight·(ω̂ − ω)``, scaled by ``1/√(windows·steps)``. Each iteration
   solves ``(JᵀJ + λ(diag JᵀJ + ε)) δ = −Jᵀr`` with the full-batch gradient ``Jᵀr``
@@ -83,10 +83,10 @@ class TrainSettings:
     validation_fraction: float = 0.1
     seed: int = 0
     eval_every: int | None = None
-    patience: int = 3
-    min_improvement: float = 2e-3
+    patience: int = 2
+    min_improvement: float = 1e-2
     target_loss: float | None = None
-    jacobian_windows: int = 256
+    jacobian_windows: int = 128
     curvature_reuse: int = 1
     threads: int | None = None
     compile: bool = False
@@ -126,14 +126,14 @@ def available_cores() -> int:
 
 def safe_thread_count(cores: int | None = None, load: float | None = None) -> int:
     """Intra-op threads that cannot oversubscribe the machine: the cores not busy by the
-    1-minute load average, rounded down, at least 1.
+    1-minute load average (a core counts as busy once the load claims half of it), at least 1.
 
     Two threads on a 2-core machine already running one job collapse (40–170× slower than
     idle, issue 16); one thread never does. At this model's sizes (tensors of a few thousand
     elements) extra threads gain little anyway (``docs/training.md``)."""
     cores = available_cores() if cores is None else cores
     load = os.getloadavg()[0] if load is None else load
-    return max(1, min(cores, int(math.floor(cores - load))))
+    return max(1, min(cores, int(math.floor(cores - load + 0.5))))
 
 
 # ---------------------------------------------------------------------------- scene facts
@@ -184,18 +184,22 @@ def rollout_loss(model: Any, q: Any, omega: Any, u: Any, omega_weight: float, st
 
 
 def rollout_residuals(q_hat: Any, omega_hat: Any, q: Any, omega: Any, omega_weight: float) -> Any:
-    """Residuals ``(W, T, 7)`` whose squares sum to ``W·T·rollout_loss`` (unit quaternions).
+    """Residuals ``(W, T, 6)`` whose squares sum to ``W·T·rollout_loss`` (unit quaternions).
 
-    Orientation: ``2(q̂ − ⟨q̂, q⟩ q)``, twice the part of ``q̂`` orthogonal to the data's ``q``
-    (its square is ``4(|q̂|² − ⟨q̂, q⟩²) = 4(1 − ⟨q̂, q⟩²)``; smooth, the same for ``±q``, and
-    the fewest residuals with that Gauss–Newton matrix: four, where the six of Lagrange's
-    identity ``2(q̂ᵢqⱼ − q̂ⱼqᵢ)`` give the same ``JᵀJ``); velocity: ``√omega_weight·(ω̂ − ω)``."""
+    Orientation: ``2 Im(q̄ ⊗ q̂)`` — twice the vector part of the rotation from the data's ``q``
+    to the prediction ``q̂``, whose square is ``4(1 − ⟨q̂, q⟩²)`` (the real part is ``⟨q̂, q⟩``)
+    — three residuals, the fewest with that sum of squares (the six of Lagrange's identity
+    ``2(q̂ᵢqⱼ − q̂ⱼqᵢ)`` give the same ``JᵀJ`` and ``Jᵀr``; changing the sign of ``q`` or ``q̂``
+    changes the residuals' sign, not their squares, ``JᵀJ`` or ``Jᵀr``); velocity:
+    ``√omega_weight·(ω̂ − ω)``."""
     import torch
 
-    a, b = q_hat[:, 1:], q[:, 1:]
-    orientation = 2.0 * (a - (a * b).sum(-1, keepdim=True) * b)
+    from fvin_mpc.core import s3
+
+    a, b = q_hat[:, 1:].unbind(-1), q[:, 1:].unbind(-1)
+    orientation = torch.stack(s3.imaginary(s3.multiply(s3.conjugate(b), a)), dim=-1)
     velocity = math.sqrt(omega_weight) * (omega_hat[:, 1:] - omega[:, 1:])
-    return torch.cat([orientation, velocity], dim=-1)
+    return torch.cat([2.0 * orientation, velocity], dim=-1)
 
 
 def split_data(data: TrajectoryData, validation_fraction: float, seed: int) -> tuple[TrajectoryData, TrajectoryData]:
