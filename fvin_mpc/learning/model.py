@@ -36,7 +36,11 @@ class FeatureFirstTorchOps(TorchOps):
 
     The networks' layers then are ``addmm(b, W, x)`` on ``x (in, batch)``: wide, contiguous
     products that torch's CPU kernels run several times faster than ``linear`` on a
-    ``(batch, in)`` matrix a few columns wide, and unstacking gives contiguous components."""
+    ``(batch, in)`` matrix a few columns wide, and unstacking gives contiguous components.
+
+    A single column (one window inside LM's ``torch.func.vmap``) is multiplied element-wise and
+    summed instead: as a matrix product, vmap would turn it into a batch of tiny ``bmm``s and its
+    weight gradient into a batch of tiny outer products, far slower."""
 
     name = "torch"
 
@@ -49,7 +53,7 @@ class FeatureFirstTorchOps(TorchOps):
 
     def linear(self, vector, weight, bias):
         flat = vector.reshape(vector.shape[0], -1)
-        if flat.shape[1] == 1:
+        if flat.shape[1] == 1:  # one window inside torch.func.vmap (class docstring)
             out = (weight * flat[:, 0]).sum(-1, keepdim=True) + bias[:, None]
         else:
             out = torch.addmm(bias[:, None], weight, flat)
