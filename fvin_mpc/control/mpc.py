@@ -133,6 +133,12 @@ class MPCSettings:
         rti_qp_iterations: interior-point iterations of ``rti_qp_solver="riccati"``.
         disturbance_gain: ``solver="rti"`` only: gain ``α`` of the offset-free estimator of a constant
             input disturbance ``d`` (``x⁺ = F(x, u + d)``); ``0`` switches it off.
+        disturbance_region_rad: … updated only within this angle of the reference attitude (rad) …
+        disturbance_region_speed: … and while every ``|ω_i|`` is below this (rad/s). The pendulums'
+            defaults: during a swing-up the torque changes fast, and the delay between measurement and
+            actuation (which the one-step prediction does not know) reads as a large, sign-changing
+            "disturbance" that feeds back through the plan; near the goal and slow the torque is nearly
+            constant and the estimate is what it should be (docs/realtime.md).
         position_weight: ``solver="rti"`` with a free body (``(x, q, v, ω)`` states): ``w_x`` on
             ``|x − x_ref|²`` per stage …
         velocity_weight: … ``w_v`` on ``|v − v_ref|²`` per stage …
@@ -177,6 +183,8 @@ class MPCSettings:
     rti_qp_solver: Literal["riccati", "hpipm", "qrqp", "osqp"] = "riccati"
     rti_qp_iterations: int = 10
     disturbance_gain: float = 0.5
+    disturbance_region_rad: float = 0.5
+    disturbance_region_speed: float = 1.0
     position_weight: float = 0.0
     velocity_weight: float = 0.0
     terminal_position_weight: float = 0.0

@@ -44,7 +44,7 @@ an unbiased model). Solved differently (Diehl's real-time iteration, as in acado
 * **offset-free** (``disturbance_gain = α > 0``) — the model is ``x⁺ = F(x, u + d)`` with a
   constant input disturbance ``d``. After each step the prediction ``F(x_prev, u_prev + d̂)`` is
   compared with the measured ``ω``: ``d̂ ← d̂ + α·B⁺(ω − ω̂)`` (``B = ∂ω⁺/∂u``, least squares),
-  within :data:`DISTURBANCE_REGION_RAD` of the goal and below :data:`DISTURBANCE_REGION_SPEED` only, ``|d̂|`` at most half the torque range. The
+  within ``disturbance_region_rad`` of the reference attitude and below ``disturbance_region_speed`` only, ``|d̂|`` at most half the torque range. The
   control cost is ``|u − u_s|²`` with ``u_s = u_goal − d̂`` the torque that holds the goal in the
   model (``F(goal, 0, u_goal) = (goal, 0)``): at the goal the MPC has no reason to move, and the
   plant's steady state is where the corrected model agrees with it — no steady error from a
@@ -83,13 +83,6 @@ STEP_LIMIT_VELOCITY = 2.0
 #: guess the iteration reached IPOPT's optimum on the ball joint in ~10 iterations, from the
 #: rollouts (ω clipped to the bound: large gaps) it diverged (docs/realtime.md).
 RTI_COLD_ORDER = ("goal", "rollout+", "rollout-")
-#: The disturbance estimate is updated only within this angle of the goal (rad): during a swing-up the
-#: torque changes fast, and the delay between measurement and actuation (which the one-step
-#: prediction does not know) reads as a large, sign-changing "disturbance" that feeds back through
-#: the plan; near the goal the torque is nearly constant and the estimate is what it should be.
-DISTURBANCE_REGION_RAD = 0.5
-#: … and while every ``|ω_i|`` is below this (rad/s): a swing passing the goal fast is not holding it.
-DISTURBANCE_REGION_SPEED = 1.0
 #: Planned ``|ω_i|`` are kept below this fraction of ``1/h`` (the step's solvability limit).
 OMEGA_VALID_FRACTION = 0.9
 
@@ -660,7 +653,8 @@ class RealTimeMPC(MPC):
         layout = self.layout
         goal = self._sample_reference()[1][0, layout.quaternion]
         cosine = min(abs(float(np.dot(x0[layout.quaternion], goal))), 1.0)
-        if 2.0 * np.arccos(cosine) > DISTURBANCE_REGION_RAD or np.max(np.abs(x0[layout.omega])) > DISTURBANCE_REGION_SPEED:
+        s = self.settings
+        if 2.0 * np.arccos(cosine) > s.disturbance_region_rad or np.max(np.abs(x0[layout.omega])) > s.disturbance_region_speed:
             return
         predicted, inverse = self._last
         step = inverse @ (x0[layout.rates] - predicted)
