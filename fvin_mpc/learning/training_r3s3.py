@@ -156,6 +156,34 @@ def recovered_parameters(weights: Mapping[str, Any], config: R3S3Config, body: A
     return result
 
 
+def open_loop_errors(step: Any, data: FreeBodyData, horizon_steps: int) -> dict[str, Any]:
+    """Open-loop rollouts of ``step(state (B, 13), u (B, m)) -> state (B, 13)`` from the first state of
+    every trajectory of ``data`` under its recorded controls, against the recorded states, over
+    ``horizon_steps`` steps: position (m), orientation (rad, sign invariant), velocity (m/s) and
+    angular velocity (rad/s) errors at the end (median, 90th percentile, max) and the largest
+    ``||q| − 1|``."""
+    horizon_steps = min(horizon_steps, data.u.shape[1])  # the recorded trajectories' length at most
+    states = data.state[:, : horizon_steps + 1]
+    predicted = [states[:, 0]]
+    for k in range(horizon_steps):
+        predicted.append(step(predicted[-1], data.u[:, k]))
+    final, truth = predicted[-1], states[:, -1]
+    alignment = np.clip(np.abs(np.sum(final[:, 3:7] * truth[:, 3:7], axis=1) / np.linalg.norm(final[:, 3:7], axis=1)), 0, 1)
+    errors = {
+        "position_m": np.linalg.norm(final[:, :3] - truth[:, :3], axis=1),
+        "orientation_rad": 2.0 * np.arccos(alignment),
+        "velocity_m_s": np.linalg.norm(final[:, 7:10] - truth[:, 7:10], axis=1),
+        "angular_velocity_rad_s": np.linalg.norm(final[:, 10:] - truth[:, 10:], axis=1),
+    }
+    summary: dict[str, Any] = {name: {"median": float(np.median(e)), "p90": float(np.percentile(e, 90)),
+                                      "max": float(np.max(e))} for name, e in errors.items()}
+    summary["max_unit_norm_error"] = float(max(np.abs(np.linalg.norm(p[:, 3:7], axis=1) - 1.0).max() for p in predicted))
+    summary["all_finite"] = bool(all(np.all(np.isfinite(p)) for p in predicted))
+    summary["horizon_s"] = horizon_steps * data.control_period
+    summary["trajectories"] = data.num_trajectories
+    return summary
+
+
 def scene_quadrotor(scene: str) -> Any:
     """The closed-form :class:`~fvin_mpc.core.quadrotor.Quadrotor` of a free-body scene's MJCF."""
     from fvin_mpc.core.quadrotor import from_mujoco
