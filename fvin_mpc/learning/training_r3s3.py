@@ -184,6 +184,19 @@ def open_loop_errors(step: Any, data: FreeBodyData, horizon_steps: int) -> dict[
     return summary
 
 
+def hover_thrust(weights: Mapping[str, Any], config: R3S3Config, data: FreeBodyData) -> float:
+    """The per-rotor thrust, shared evenly, at which the learned model holds still level at the
+    data's hover point (the first recorded position's neighbourhood: ``(0, 0, 1)`` for the scene):
+    ``(∇ₓU)_z / (G_x 1)_z`` at ``(x*, identity)``."""
+    from fvin_mpc.core.backend import get_ops
+
+    terms = LearnedCombinedTerms(weights, config, get_ops("numpy"))
+    x = tuple(np.float64(c) for c in (0.0, 0.0, 1.0))
+    q = tuple(np.float64(c) for c in (1.0, 0.0, 0.0, 0.0))
+    gain = np.asarray(terms.force_gain(x, q), dtype=float)
+    return float(np.asarray(terms.potential_gradient_x(x, q), dtype=float)[2] / gain[2].sum())
+
+
 def scene_quadrotor(scene: str) -> Any:
     """The closed-form :class:`~fvin_mpc.core.quadrotor.Quadrotor` of a free-body scene's MJCF."""
     from fvin_mpc.core.quadrotor import from_mujoco
@@ -243,10 +256,29 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, default=None, help="checkpoint stem (default: checkpoints/quadrotor_<variant>)")
+    parser.add_argument("--evaluate", default=None, metavar="CHECKPOINT",
+                        help="no training: evaluate this checkpoint on --test-data (open loop over 0.2, 0.5 and 1 s, "
+                             "learned beside closed form; recovered mass, inertia and hover thrust)")
     parser.add_argument("--quiet", action="store_true")
     args = parser.parse_args(argv)
 
-    from fvin_mpc.core.checkpoint import save_checkpoint
+    from fvin_mpc.core.checkpoint import load_checkpoint, save_checkpoint
+
+    if args.evaluate is not None:
+        if args.test_data is None:
+            parser.error("--evaluate needs --test-data")
+        checkpoint = load_checkpoint(args.evaluate)
+        test = load_free_body_data(args.test_data)
+        scene = str(test.metadata.get("scene", "quadrotor"))
+        body = scene_quadrotor(scene)
+        result: dict[str, Any] = {"checkpoint": str(checkpoint.path), "test_data": str(args.test_data),
+                                  "recovered": recovered_parameters(checkpoint.weights, checkpoint.config, body),
+                                  "hover_thrust": hover_thrust(checkpoint.weights, checkpoint.config, test),
+                                  "true_hover_thrust": body.hover_thrust}
+        for horizon in (0.2, 0.5, 1.0):
+            result[f"horizon_{horizon:g}s"] = compare_open_loop(checkpoint.weights, checkpoint.config, test, scene, horizon)
+        print(json.dumps(result, indent=2))
+        return 0
 
     data = load_free_body_data(args.data)
     if args.trajectories is not None:
