@@ -162,3 +162,21 @@ def test_figure_eight_reference_is_consistent():
     np.testing.assert_allclose(states[0, :3], [0.0, 0.0, 1.0], atol=1e-15)
     np.testing.assert_allclose(states[0, 7:10], 0.0, atol=1e-15)
     assert np.linalg.norm(velocity, axis=1).max() > 1.0
+
+
+def test_a_skipped_observation_does_not_feed_the_disturbance_estimate(craft):
+    """After a deadline miss the next measurement is two periods after the last prediction: comparing
+    them would read the missed period as a disturbance. ``set_time`` with a jump drops the prediction."""
+    env, model = craft
+    controller = quadrotor_mpc(env, model, quadrotor_mpc_settings(**DETERMINISTIC))
+    x0, _ = env.reset(options={"hover": True})
+    u, _ = controller(x0)
+    controller.prepare()
+    x2 = model(model(x0, u)[0], u)[0]  # two periods later
+    x2[7:10] += 0.05  # and moving: one-step "prediction error" if it were compared
+    controller.set_time(2 * env.dt)
+    _, info = controller(x2)
+    np.testing.assert_array_equal(info["disturbance"], 0.0)
+    controller.set_time(3 * env.dt)  # one step on: the estimate runs again
+    _, info = controller(model(x2, u)[0] + np.r_[np.zeros(7), 0.01, 0.0, 0.0, np.zeros(3)])
+    assert np.any(info["disturbance"] != 0.0)

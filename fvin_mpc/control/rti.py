@@ -485,8 +485,13 @@ class RealTimeMPC(MPC):
     def set_time(self, t: float) -> None:
         """The time of the next measurement (s, on the reference's clock). Without it the clock
         advances by one step per call; :func:`fvin_mpc.control.closed_loop.run_episode` tells it."""
-        if abs(float(t) - self._time) > 1e-9 and not self._reference.constant:
-            self._linearization = None  # prepared for another time
+        if abs(float(t) - self._time) > 1e-9:
+            # Not one step after the last call (a deadline miss skipped observations): the last
+            # one-step prediction says nothing about this measurement, and the preparation was for
+            # another time.
+            self._last = None
+            if not self._reference.constant:
+                self._linearization = None
         self._time = float(t)
 
     def _sample_reference(self) -> tuple[float, np.ndarray, np.ndarray, ca.DM]:
