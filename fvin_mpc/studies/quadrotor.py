@@ -117,6 +117,7 @@ def summarize(model_kind: str, recovery: list[dict[str, Any]] | None, tracking: 
     row: dict[str, Any] = {"model": model_kind,
                            "call_ms_median": float(np.median(times)), "call_ms_p99": float(np.percentile(times, 99)),
                            "call_ms_max": float(times.max()), "cpu_ms_median": float(np.nanmedian(cpu)),
+                           "cpu_ms_p99": float(np.nanpercentile(cpu, 99)),
                            "deadline_misses": int(sum(e.deadline_misses for e in episodes)),
                            "failures": int(sum((~e.controller_success).sum() for e in episodes)),
                            "periods": int(times.size)}
@@ -131,7 +132,7 @@ def summarize(model_kind: str, recovery: list[dict[str, Any]] | None, tracking: 
 
 
 COLUMNS = ("model", "recovered", "recover_s_median", "recover_s_max", "figure_eight_rms_m", "figure_eight_max_m",
-           "call_ms_median", "call_ms_p99", "call_ms_max", "cpu_ms_median", "deadline_misses", "failures")
+           "call_ms_median", "call_ms_p99", "call_ms_max", "cpu_ms_median", "cpu_ms_p99", "deadline_misses", "failures")
 
 
 def side_by_side(out_dir: Path, argv: Sequence[str], episodes: int = 20, seed: int = 0, latency: Any = "measured",
