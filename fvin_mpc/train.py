@@ -93,6 +93,7 @@ def main(argv: list[str] | None = None) -> int:
     out = args.out or default_checkpoint_stem(data, args.variant)
     report["dissipation_chosen"] = "given" if args.dissipation is not None else "scene joint damping"
     report["process_to_train_end_s"] = time.perf_counter() - _START
+    report["process_cpu_to_train_end_s"] = time.process_time()  # CPU seconds since the process started
     stem = save_checkpoint(
         out, config, model.numpy_weights(), scene=scene, body=data.metadata.get("body"),
         data={"path": str(args.data), "trajectories": data.num_trajectories, "transitions": data.num_transitions,

@@ -46,6 +46,28 @@ def test_residual_squares_sum_to_the_rollout_loss(data):
     np.testing.assert_allclose((flipped**2).sum().item(), (residuals**2).sum().item(), rtol=1e-12)
 
 
+@pytest.mark.parametrize("variant", ["sign-invariant", "fixed-inertia", "plain"])
+@pytest.mark.parametrize("dissipation", [False, True])
+def test_rollout_is_the_loop_of_steps(variant, dissipation):
+    """The rollout reuses J, ∇U, D at each q_{k+1} for the next step: the result is bit for bit
+    the loop of ``S3FVIN.step``."""
+    from fvin_mpc.learning.model import DTYPE, S3FVIN
+
+    model = S3FVIN(ModelConfig(variant=variant, control_dim=2, hidden_width=5, dissipation=dissipation), seed=4)
+    generator = torch.Generator().manual_seed(1)
+    q = torch.randn(7, 4, generator=generator, dtype=DTYPE)
+    q = q / q.norm(dim=-1, keepdim=True)
+    omega, u = torch.randn(7, 3, generator=generator, dtype=DTYPE), torch.randn(7, 5, 2, generator=generator, dtype=DTYPE)
+    with torch.no_grad():
+        q_roll, omega_roll = model.rollout(q, omega, u)
+        qs, omegas = [q], [omega]
+        for k in range(u.shape[1]):
+            out = model.step(qs[-1], omegas[-1], u[:, k])
+            qs.append(out.q)
+            omegas.append(out.omega)
+    assert torch.equal(q_roll, torch.stack(qs, 1)) and torch.equal(omega_roll, torch.stack(omegas, 1))
+
+
 def test_orientation_residuals_have_lagranges_gauss_newton_matrix(data):
     """The three ``2 Im(q̄ ⊗ q̂)`` give the sum of squares, ``JᵀJ`` and ``Jᵀr`` of the six
     ``2(q̂ᵢqⱼ − q̂ⱼqᵢ)`` of Lagrange's identity, for predictions ``q̂`` moved by any parameters."""

@@ -430,7 +430,7 @@ def _train(data: TrajectoryData, config: ModelConfig, settings: TrainSettings, p
     stopping = _EarlyStopping(settings)
     history: list[dict[str, float]] = []
     validation_loss = float("nan")
-    start = time.perf_counter()
+    start, cpu_start = time.perf_counter(), time.process_time()
     completed = 0
     bar = tqdm(range(iterations), desc=f"train {config.variant} ({settings.optimizer})", disable=not progress)
     for iteration in bar:
@@ -445,7 +445,7 @@ def _train(data: TrajectoryData, config: ModelConfig, settings: TrainSettings, p
             with torch.no_grad():
                 validation_loss = rollout_loss(model, *validation_windows, settings.omega_weight).item()
             history.append({"iteration": completed, "train": loss, "validation": validation_loss,
-                            "elapsed_s": time.perf_counter() - start})
+                            "elapsed_s": time.perf_counter() - start, "cpu_s": time.process_time() - cpu_start})
             bar.set_postfix(train=f"{loss:.2e}", val=f"{validation_loss:.2e}")
             if stopping.update(validation_loss, model):
                 break
@@ -453,7 +453,7 @@ def _train(data: TrajectoryData, config: ModelConfig, settings: TrainSettings, p
             stopping.reason = f"time limit of {settings.time_limit_s:g} s"
             break
     stopping.restore(model)
-    seconds = time.perf_counter() - start
+    seconds, cpu_seconds = time.perf_counter() - start, time.process_time() - cpu_start
     bar.close()
     with torch.no_grad():
         final_train = rollout_loss(model, *train_windows, settings.omega_weight).item()
@@ -468,6 +468,7 @@ def _train(data: TrajectoryData, config: ModelConfig, settings: TrainSettings, p
         "final_train_loss": final_train,
         "final_validation_loss": final_validation,
         "wall_clock_s": seconds,
+        "cpu_s": cpu_seconds,
         "seconds_per_iteration": seconds / max(completed, 1),
         "history": history,
     }

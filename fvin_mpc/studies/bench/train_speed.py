@@ -79,10 +79,15 @@ def _fresh_process(data: Path, mode: str, target: float, threads: int, seed: int
     training = json.loads(out.with_suffix(".json").read_text())["training"]
     setup_s = launch_to_exit - training["wall_clock_s"]  # interpreter, imports, data, saving
     reached = next((h for h in training["history"] if h["validation"] <= target), None)
+    # CPU seconds (this process's, all threads) — the figure to compare while the machine is loaded.
+    process_cpu = training.get("process_cpu_to_train_end_s")
+    setup_cpu = process_cpu - training["cpu_s"] if process_cpu is not None and "cpu_s" in training else None
+    cpu_to_target = setup_cpu + reached["cpu_s"] if reached and setup_cpu is not None and "cpu_s" in reached else None
     return {"part": "to target", "data": data.name, "mode": mode, "windows": training["train_windows"],
             "target_validation_loss": target, "final_validation_loss": training["final_validation_loss"],
             "iterations": training["iterations"], "iterations_to_target": reached and reached["iteration"],
             "s_to_target": reached and setup_s + reached["elapsed_s"], "launch_to_exit_s": launch_to_exit,
+            "cpu_s_to_target": cpu_to_target, "cpu_s_to_train_end": process_cpu,
             "stopped": training["stopped"], "threads": training["threads"], "load_1min": load}
 
 
@@ -103,7 +108,8 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 5, threads: int = 1, 
             for data, target, mode in tqdm(jobs, desc="train-speed: fresh processes"):
                 result.rows.append(_fresh_process(data, mode, target, threads, seed, time_limit, Path(scratch)))
         result.columns = list(result.columns) + ["data", "target_validation_loss", "final_validation_loss",
-                                                 "iterations_to_target", "s_to_target", "launch_to_exit_s", "load_1min"]
+                                                 "iterations_to_target", "s_to_target", "launch_to_exit_s", "cpu_s_to_target",
+                                                 "cpu_s_to_train_end", "load_1min"]
         result.notes.append(
             "**To target**: each row is one `python -m fvin_mpc.train --data <data> --optimizer <mode> --threads "
             f"{threads} --time-limit {time_limit:g}` in a fresh interpreter (defaults otherwise, early stopping on). "
@@ -111,7 +117,10 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 5, threads: int = 1, 
             "reached. Target: the shipped checkpoint's loss on the same validation split (`pendulum_sign-invariant` "
             "for `pendulum.npz`: its own training data; `pendulum_damped_sign-invariant`, trained on 6,400 other "
             "transitions, for `pendulum_damped_10k.npz`). "
-            "`launch_to_exit_s`: launch → checkpoint written. `load_1min`: the 1-minute load average at launch.")
+            "`launch_to_exit_s`: launch → checkpoint written. `cpu_s_to_target`, `cpu_s_to_train_end`: the "
+            "training process's CPU seconds from its start to the target and to the end of training (what to "
+            "compare on a loaded machine; wall clock ≈ CPU with one thread on an idle one). `load_1min`: the "
+            "1-minute load average at launch.")
     result.notes.append(f"torch ran with {threads} intra-op thread(s); 1-minute load average at the end "
                         f"{os.getloadavg()[0]:.2f} on {os.cpu_count()} cores. "
                         "Timings are from a machine shared with other jobs: compare rows by ratios within this run.")
