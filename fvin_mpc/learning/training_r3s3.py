@@ -40,9 +40,10 @@ DEFAULT_DATA = Path("data/quadrotor.npz")
 
 def train_r3s3(data: FreeBodyData, config: R3S3Config, settings: TrainSettings = TrainSettings(),
                position_scale: float = POSITION_SCALE, velocity_scale: float = VELOCITY_SCALE,
-               progress: bool = True) -> tuple[Any, dict[str, Any]]:
+               progress: bool = True, initial_weights: Mapping[str, Any] | None = None) -> tuple[Any, dict[str, Any]]:
     """Train an :class:`~fvin_mpc.learning.model_r3s3.R3S3FVIN` with Levenberg–Marquardt; returns
-    ``(model, report)`` like :func:`fvin_mpc.learning.training.train`."""
+    ``(model, report)`` like :func:`fvin_mpc.learning.training.train`. ``initial_weights`` continues
+    from a trained model (default: the seeded initialization)."""
     if settings.optimizer != "lm":
         raise ValueError("the R³ × S³ model trains with Levenberg–Marquardt only (settings.optimizer='lm')")
     if abs(data.control_period - config.step_size) > 1e-12:
@@ -52,21 +53,22 @@ def train_r3s3(data: FreeBodyData, config: R3S3Config, settings: TrainSettings =
     threads = settings.threads if settings.threads is not None else safe_thread_count()
     load_before = os.getloadavg()
     with torch_threads(threads):
-        model, report = _train(data, config, settings, position_scale, velocity_scale, progress)
+        model, report = _train(data, config, settings, position_scale, velocity_scale, progress, initial_weights)
     report.update(threads=threads, cpu_cores=available_cores(), load_average_start=list(load_before),
                   load_average_end=list(os.getloadavg()))
     return model, report
 
 
 def _train(data: FreeBodyData, config: R3S3Config, settings: TrainSettings, position_scale: float,
-           velocity_scale: float, progress: bool) -> tuple[Any, dict[str, Any]]:
+           velocity_scale: float, progress: bool, initial_weights: Mapping[str, Any] | None) -> tuple[Any, dict[str, Any]]:
     import torch
     from tqdm.auto import tqdm
 
     from fvin_mpc.learning.model_r3s3 import DTYPE, R3S3FVIN
 
     torch.manual_seed(settings.seed)
-    model = R3S3FVIN(config, seed=settings.seed, position_scale=position_scale, velocity_scale=velocity_scale)
+    model = R3S3FVIN(config, initial_weights, seed=settings.seed, position_scale=position_scale,
+                     velocity_scale=velocity_scale)
 
     def windows(subset: FreeBodyData) -> tuple[Any, ...]:
         states, u = subset.windows(settings.window)
@@ -256,6 +258,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, default=None, help="checkpoint stem (default: checkpoints/quadrotor_<variant>)")
+    parser.add_argument("--init", default=None, metavar="CHECKPOINT",
+                        help="continue training from this checkpoint (its architecture; --variant and --hidden-width are ignored)")
     parser.add_argument("--evaluate", default=None, metavar="CHECKPOINT",
                         help="no training: evaluate this checkpoint on --test-data (open loop over 0.2, 0.5 and 1 s, "
                              "learned beside closed form; recovered mass, inertia and hover thrust)")
@@ -285,10 +289,21 @@ def main(argv: list[str] | None = None) -> int:
         data = data.subset(np.arange(min(args.trajectories, data.num_trajectories)))
     config = R3S3Config(variant=args.variant, control_dim=data.u.shape[2], hidden_width=args.hidden_width,
                         step_size=data.control_period, newton_iters=args.newton_iters)
+    initial = None
+    if args.init is not None:
+        start = load_checkpoint(args.init)
+        if not isinstance(start.config, R3S3Config):
+            parser.error(f"--init {args.init}: not an R3xS3 checkpoint")
+        config, initial = start.config, {name: np.array(value) for name, value in start.weights.items()}
+        previous = dict(start.metadata.get("training", {}))
     settings = TrainSettings(optimizer="lm", iterations=args.iterations, window=args.window, seed=args.seed,
                              jacobian_windows=args.jacobian_windows, threads=args.threads, patience=args.patience,
                              time_limit_s=args.time_limit)
-    model, report = train_r3s3(data, config, settings, progress=not args.quiet)
+    model, report = train_r3s3(data, config, settings, progress=not args.quiet, initial_weights=initial)
+    if args.init is not None:
+        report["continued_from"] = {"checkpoint": str(args.init), "iterations": previous.get("iterations"),
+                                    "wall_clock_s": previous.get("wall_clock_s"), "cpu_s": previous.get("cpu_s"),
+                                    "continued_from": previous.get("continued_from")}
     weights = model.numpy_weights()
     summary: dict[str, Any] = {"recovered": recovered_parameters(weights, config,
                                                                  scene_quadrotor(str(data.metadata.get("scene", "quadrotor"))))}
@@ -297,7 +312,7 @@ def main(argv: list[str] | None = None) -> int:
         from fvin_mpc.core.backend import get_ops
 
         summary.update(compare_open_loop(weights, config, test, str(test.metadata.get("scene", "quadrotor"))))
-    stem = args.out or Path("checkpoints") / f"{data.metadata.get('scene', 'quadrotor')}_{args.variant}"
+    stem = args.out or Path("checkpoints") / f"{data.metadata.get('scene', 'quadrotor')}_{config.variant}"
     history = report.pop("history")
     save_checkpoint(stem, config, weights, scene=data.metadata.get("scene"), body=data.metadata.get("body"),
                     data={"path": str(args.data), "trajectories": data.num_trajectories,
