@@ -264,6 +264,8 @@ class _LevenbergMarquardt:
         self.damping = 10.0
         self.gauss_newton: Any = None
         self.age = 0
+        # The accepted trial's loss with its graph: the next iteration's forward pass.
+        self._accepted_loss: Any = None
         self.rollout = _rollout_module(model)
         self._jacobian = torch.func.vmap(torch.func.jacrev(self._window_residuals), in_dims=(None, 0, 0, 0))
 
@@ -304,7 +306,9 @@ class _LevenbergMarquardt:
         model, settings = self.model, self.settings
         for p in self.parameters:
             p.grad = None
-        loss = rollout_loss(model, *self.windows, settings.omega_weight)
+        loss = self._accepted_loss if self._accepted_loss is not None else rollout_loss(model, *self.windows,
+                                                                                        settings.omega_weight)
+        self._accepted_loss = None
         if not torch.isfinite(loss):
             raise FloatingPointError(f"training loss became {loss.item()}")
         loss.backward()
@@ -337,10 +341,13 @@ class _LevenbergMarquardt:
                 self.damping *= 4.0
                 continue
             self._assign(theta + delta)
-            with torch.no_grad():
-                trial = rollout_loss(self.model, *self.windows, self.settings.omega_weight).item()
+            # With its graph: an accepted trial's forward pass is the next iteration's, which
+            # then needs only the backward (the parameters do not change in between).
+            trial_loss = rollout_loss(self.model, *self.windows, self.settings.omega_weight)
+            trial = trial_loss.item()
             if trial < current:
                 self.damping = max(self.damping / 3.0, 1e-9)
+                self._accepted_loss = trial_loss
                 return True
             self.damping *= 4.0
         self._assign(theta)
