@@ -60,7 +60,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--omega-weight", type=float, default=TrainSettings.omega_weight,
                         help="weight of the angular-velocity error (default: %(default)s)")
     parser.add_argument("--threads", type=int, default=None,
-                        help="torch intra-op threads (default: the cores not busy by the 1-minute load average, at least 1; "
+                        help="torch intra-op threads (default: the cores the 1-minute load average leaves at least half free, "
+                             "at least 1; "
                              f"now {safe_thread_count()})")
     parser.add_argument("--compile", action="store_true",
                         help="torch.compile the step (adam/lbfgs only): ≈75–200 s of compilation, then ≈3× faster iterations")
