@@ -12,13 +12,13 @@ so the MPC runs with a model mismatch (discretization, and the speed clip, which
 respects as a bound ``|ω| ≤ 8`` on its predictions). The MPC's cost is the benchmark's
 reward: ``orientation_weight = 4`` on ``sin²(angle/2)`` (≈ angle²), ``0.1|ω|²``, ``0.001u²``.
 
-Reference per seed (``--reference``): the whole 200-step episode optimized open loop on the
-*exact* discrete dynamics above (direct multiple shooting, IPOPT, the speed clip as a bound
-on ``θ̇``, several initial guesses incl. the MPC's own episode), replayed through the same
-update (or the optimized trajectory's own cost: open-loop replay near upright amplifies rounding
-exponentially). The episode is deterministic given the seed, so this is the best
-return an omniscient controller found — an (approximate, local-optimum) upper bound for any
-policy on that seed; the gap to it is what the MPC leaves on the table.
+Reference per seed (on unless ``--no-reference``): the best return found for the 200-step episode on
+the *exact* discrete map above, by :mod:`fvin_mpc.studies.pendulum_v1_reference` — value iteration
+on grids of the exact map, its policy rolled out (greedy and with torque noise), every rollout, the
+MPC's own episode and two energy-pumping heuristics polished by the episode NLP
+(:class:`EpisodeOptimizer`, direct multiple shooting, IPOPT). The episode is deterministic given the
+seed, so this is the best return an omniscient controller found; the report says how far the
+search's parts agree (its check of globality) and the gap is what the MPC leaves on the table.
 
 Outputs ``--out`` (Markdown), ``<out>.json`` and ``<out>.png`` (returns per seed).
 """
