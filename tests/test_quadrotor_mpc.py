@@ -180,3 +180,20 @@ def test_a_skipped_observation_does_not_feed_the_disturbance_estimate(craft):
     controller.set_time(3 * env.dt)  # one step on: the estimate runs again
     _, info = controller(model(x2, u)[0] + np.r_[np.zeros(7), 0.01, 0.0, 0.0, np.zeros(3)])
     assert np.any(info["disturbance"] != 0.0)
+
+
+def test_fly_command(tmp_path, capsys):
+    """``python -m fvin_mpc.fly``: --help, a refused input, one recovery end to end (closed form, fixed delay)."""
+    import json
+
+    from fvin_mpc import fly
+
+    with pytest.raises(SystemExit) as exit_info:
+        fly.main(["--help"])
+    assert exit_info.value.code == 0 and "figure-eight" in capsys.readouterr().out
+    assert fly.main(["--episodes", "0"]) == 2
+    path = tmp_path / "recovery.json"
+    assert fly.main(["--task", "recovery", "--model", "closed-form", "--episodes", "1", "--latency", "0.01",
+                     "--json", str(path), "--quiet"]) == 0
+    result = json.loads(path.read_text())
+    assert result["summary"]["recovered"] == "1/1" and result["episodes"][0]["initial_angle_rad"] > 3.1
