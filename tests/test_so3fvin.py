@@ -234,3 +234,35 @@ def test_train_and_checkpoint_round_trip(tmp_path):
     loaded = load_so3_checkpoint(stem)
     assert loaded.config == config
     assert all(np.array_equal(loaded.weights[k], v) for k, v in model.numpy_weights().items())
+
+
+@pytest.mark.parametrize("variant", [None, *SO3_VARIANTS])
+def test_casadi_step_matches_numpy(variant):
+    """The step is written once: as a CasADi SX function (closed-form top, or learned terms) it
+    gives NumPy's numbers."""
+    ca = pytest.importorskip("casadi")
+    cas = get_ops("casadi")
+    if variant is None:
+        body, m = TOP, 2
+        terms_ca, terms_np = fvin_so3.PivotedRigidBodySO3Terms(body, cas), fvin_so3.PivotedRigidBodySO3Terms(body, NP)
+    else:
+        config = SO3ModelConfig(variant=variant, control_dim=2)
+        weights = init_weights(config, seed=2)
+        m, terms_ca, terms_np = 2, LearnedSO3Terms(weights, config, cas), LearnedSO3Terms(weights, config, NP)
+    r_sym, omega_sym, u_sym = ca.SX.sym("r", 3, 3), ca.SX.sym("omega", 3), ca.SX.sym("u", m)
+    rotation = tuple(tuple(r_sym[i, j] for j in range(3)) for i in range(3))
+    out = fvin_so3.so3_step(rotation, tuple(omega_sym[i] for i in range(3)), tuple(u_sym[i] for i in range(m)),
+                            terms_ca, 0.05, 3, cas, with_residual=True)
+    step = ca.Function("so3_step", [r_sym, omega_sym, u_sym],
+                       [ca.vertcat(*[out.rotation[i][j] for i in range(3) for j in range(3)]), ca.vertcat(*out.omega),
+                        out.residual])
+    q, omega = random_states(4, seed=9)
+    u = np.random.default_rng(10).normal(size=(4, m))
+    reference = fvin_so3.so3_step(s3.rotation_matrix(components(q)), components(omega), components(u), terms_np,
+                                  0.05, 3, NP, with_residual=True)
+    for k in range(4):
+        r_k = matrix(s3.rotation_matrix(tuple(q[k])))
+        rotation_k, omega_k, residual_k = step(r_k, omega[k], u[k])
+        np.testing.assert_allclose(np.array(rotation_k).reshape(3, 3), matrix(reference.rotation)[k], atol=1e-14)
+        np.testing.assert_allclose(np.array(omega_k).ravel(), np.array(reference.omega)[:, k], atol=1e-12)
+        np.testing.assert_allclose(float(residual_k), reference.residual[k], atol=1e-12)
