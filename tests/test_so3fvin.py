@@ -220,7 +220,7 @@ def test_train_and_checkpoint_round_trip(tmp_path):
     pytest.importorskip("torch")
     from helpers import synthetic_hinge_data
 
-    from fvin_mpc.core.networks_so3 import load_so3_checkpoint, save_so3_checkpoint
+    from fvin_mpc.core.checkpoint import load_checkpoint, save_checkpoint
     from fvin_mpc.learning.model_so3 import train_so3
     from fvin_mpc.learning.training import TrainSettings
 
@@ -230,8 +230,9 @@ def test_train_and_checkpoint_round_trip(tmp_path):
                                                           patience=0), progress=False)
     history = [h["train"] for h in report["history"]]
     assert history[-1] < history[0]
-    stem = save_so3_checkpoint(tmp_path / "so3", config, model.numpy_weights(), training=report)
-    loaded = load_so3_checkpoint(stem)
+    stem = save_checkpoint(tmp_path / "so3", config, model.numpy_weights(), training=report)
+    loaded = load_checkpoint(stem)
+    assert loaded.configuration_space == "SO3"
     assert loaded.config == config
     assert all(np.array_equal(loaded.weights[k], v) for k, v in model.numpy_weights().items())
 

@@ -8,9 +8,10 @@ A checkpoint ``name`` is two files: ``name.safetensors`` (float64 tensors, read 
      "training": {...}, "versions": {...}}
 
 ``configuration_space`` says which model the weights belong to: ``"S3"`` (a pivoted body,
-:class:`~fvin_mpc.core.networks.ModelConfig`; also what a sidecar without the field means) or
+:class:`~fvin_mpc.core.networks.ModelConfig`; also what a sidecar without the field means),
 ``"R3xS3"`` (a free body, :class:`~fvin_mpc.core.networks_r3s3.R3S3Config`, whose ``model`` fields
-repeat it).
+repeat it) or ``"SO3"`` (the paper's SO3FVIN baseline on a pivoted body,
+:class:`~fvin_mpc.core.networks_so3.SO3ModelConfig`).
 
 Every problem (missing file, truncated or malformed weights, bad JSON, weights that do
 not match the config) raises :class:`CheckpointError` with a one-line message naming it.
@@ -26,11 +27,11 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from fvin_mpc.core import networks_r3s3
-from fvin_mpc.core.networks import ModelConfig, check_weights
+from fvin_mpc.core import networks, networks_r3s3, networks_so3
+from fvin_mpc.core.networks import ModelConfig
 
-#: A checkpoint's model configuration: pivoted (S³) or free body (R³ × S³).
-AnyConfig = ModelConfig | networks_r3s3.R3S3Config
+#: A checkpoint's model configuration: pivoted (S³), free body (R³ × S³) or the SO(3) baseline.
+AnyConfig = ModelConfig | networks_r3s3.R3S3Config | networks_so3.SO3ModelConfig
 
 FORMAT = "fvin_mpc.checkpoint/1"
 #: Where the shipped checkpoints live (next to the package in a source checkout or
@@ -57,25 +58,33 @@ class Checkpoint:
 
     @property
     def configuration_space(self) -> str:
-        """``"S3"`` or ``"R3xS3"``."""
+        """``"S3"``, ``"R3xS3"`` or ``"SO3"``."""
         return configuration_space(self.config)
 
 
 def configuration_space(config: AnyConfig) -> str:
-    """``"R3xS3"`` for a free-body config, ``"S3"`` for a pivoted one."""
-    return networks_r3s3.CONFIGURATION_SPACE if isinstance(config, networks_r3s3.R3S3Config) else "S3"
+    """``"R3xS3"`` for a free-body config, ``"SO3"`` for an SO3FVIN one, ``"S3"`` for a pivoted one."""
+    if isinstance(config, networks_r3s3.R3S3Config):
+        return networks_r3s3.CONFIGURATION_SPACE
+    if isinstance(config, networks_so3.SO3ModelConfig):
+        return networks_so3.CONFIGURATION_SPACE
+    return "S3"
 
 
 def _check_weights(weights: Mapping[str, Any], config: AnyConfig) -> None:
     if isinstance(config, networks_r3s3.R3S3Config):
         networks_r3s3.check_weights(weights, config)
+    elif isinstance(config, networks_so3.SO3ModelConfig):
+        networks_so3.check_weights(weights, config)
     else:
-        check_weights(weights, config)
+        networks.check_weights(weights, config)
 
 
 def _config_from_dict(model: Mapping[str, Any], space: Any) -> AnyConfig:
     if space == networks_r3s3.CONFIGURATION_SPACE or model.get("configuration_space") == networks_r3s3.CONFIGURATION_SPACE:
         return networks_r3s3.R3S3Config.from_dict(model)
+    if space == networks_so3.CONFIGURATION_SPACE:
+        return networks_so3.SO3ModelConfig.from_dict(model)
     if space not in (None, "S3"):
         raise ValueError(f"unknown configuration_space {space!r}")
     return ModelConfig.from_dict(model)

@@ -174,36 +174,6 @@ class LearnedSO3Terms:
 
 
 # ---------------------------------------------------------------------------- checkpoints
-#: The sidecar's ``configuration_space`` of an SO3FVIN checkpoint (``core.checkpoint``'s field).
+#: The sidecar's ``configuration_space`` of an SO3FVIN checkpoint (:mod:`fvin_mpc.core.checkpoint`'s field).
 CONFIGURATION_SPACE = "SO3"
 
-
-def save_so3_checkpoint(path: Any, config: SO3ModelConfig, weights: Mapping[str, Any], **metadata: Any) -> Any:
-    """:func:`fvin_mpc.core.checkpoint.save_checkpoint` for an SO3FVIN: the same files and checks,
-    ``configuration_space: "SO3"`` in the sidecar."""
-    from unittest import mock
-
-    from fvin_mpc.core import checkpoint
-
-    # Until core.checkpoint dispatches on this config's kind (as it does for R3xS3), it is given
-    # this module's weight check and configuration space for the duration of the call.
-    with mock.patch.object(checkpoint, "check_weights", check_weights), \
-            mock.patch.object(checkpoint, "configuration_space", lambda config: CONFIGURATION_SPACE):
-        return checkpoint.save_checkpoint(path, config, weights, **metadata)  # type: ignore[arg-type]
-
-
-def load_so3_checkpoint(name_or_path: Any) -> Any:
-    """:func:`fvin_mpc.core.checkpoint.load_checkpoint` for an SO3FVIN checkpoint (every check of
-    it — digest, shapes, dtype, finiteness — applies); its ``config`` is an :class:`SO3ModelConfig`."""
-    from unittest import mock
-
-    from fvin_mpc.core import checkpoint
-
-    def config_from_dict(model: Mapping[str, Any], space: Any) -> SO3ModelConfig:
-        if space != CONFIGURATION_SPACE:
-            raise ValueError(f"configuration_space {space!r} is not {CONFIGURATION_SPACE!r}")
-        return SO3ModelConfig.from_dict(model)
-
-    with mock.patch.object(checkpoint, "_config_from_dict", config_from_dict), \
-            mock.patch.object(checkpoint, "check_weights", check_weights):
-        return checkpoint.load_checkpoint(name_or_path)

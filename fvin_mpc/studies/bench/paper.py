@@ -85,9 +85,8 @@ def train_model(model: PaperModel, data: Any, settings: Any, progress: bool = Fa
 def load_model(model: PaperModel) -> Any:
     """The checkpoint of ``model`` (a :class:`~fvin_mpc.core.checkpoint.Checkpoint`)."""
     from fvin_mpc.core.checkpoint import load_checkpoint
-    from fvin_mpc.core.networks_so3 import load_so3_checkpoint
 
-    return (load_checkpoint if model.space == "S3" else load_so3_checkpoint)(model.checkpoint)
+    return load_checkpoint(model.checkpoint)
 
 
 def reference_settings() -> Any:
@@ -112,9 +111,8 @@ def checkpoint_settings(model: PaperModel) -> Any:
 
 def train_missing_checkpoints(progress: bool = True) -> list[str]:
     """Train (with :func:`checkpoint_settings`) and save every checkpoint of :data:`MODELS` not there."""
-    from fvin_mpc.core.checkpoint import checkpoint_exists, save_checkpoint
+    from fvin_mpc.core.checkpoint import CHECKPOINT_DIR, checkpoint_exists, save_checkpoint
     from fvin_mpc.core.data import load_data
-    from fvin_mpc.core.networks_so3 import save_so3_checkpoint
     from fvin_mpc.learning.training import package_versions
 
     data = load_data(DATA)
@@ -124,14 +122,12 @@ def train_missing_checkpoints(progress: bool = True) -> list[str]:
             continue
         settings = checkpoint_settings(model)
         trained_model, report = train_model(model, data, settings, progress)
-        save = save_checkpoint if model.space == "S3" else save_so3_checkpoint
-        from fvin_mpc.core.checkpoint import CHECKPOINT_DIR
-
-        save(CHECKPOINT_DIR / model.checkpoint, trained_model.config, trained_model.numpy_weights(),
-             scene=data.metadata.get("scene"), body=data.metadata.get("body"),
-             data={"path": str(DATA), "trajectories": data.num_trajectories, "transitions": data.num_transitions,
-                   "seed": data.metadata.get("seed"), "control_period": data.control_period},
-             training=report, versions=package_versions())
+        save_checkpoint(CHECKPOINT_DIR / model.checkpoint, trained_model.config, trained_model.numpy_weights(),
+                        scene=data.metadata.get("scene"), body=data.metadata.get("body"),
+                        data={"path": str(DATA), "trajectories": data.num_trajectories,
+                              "transitions": data.num_transitions, "seed": data.metadata.get("seed"),
+                              "control_period": data.control_period},
+                        training=report, versions=package_versions())
         trained.append(model.checkpoint)
     return trained
 
