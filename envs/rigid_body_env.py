@@ -261,6 +261,11 @@ class RigidBodyEnv(gymnasium.Env):
         return self._rest_qpos.copy()
 
     @property
+    def goal_qpos(self) -> np.ndarray:
+        """The joint position of :attr:`goal` (a hinge: the angle about its axis nearest to it)."""
+        return self._qpos_of_orientation(self._goal)
+
+    @property
     def torque_low(self) -> np.ndarray:
         return self.action_space.low.copy()
 

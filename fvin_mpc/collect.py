@@ -35,6 +35,12 @@ def main(argv: list[str] | None = None) -> int:
                         help="seconds per step (default: the scene's; a whole multiple of its MJCF timestep)")
     parser.add_argument("--max-speed", type=float, default=None,
                         help="keep only trajectories with every |ω_i| ≤ this (rad/s) at every step (default: keep all)")
+    parser.add_argument("--near-goal-trajectories", type=int, default=0,
+                        help="this many more trajectories started near the goal (default: %(default)s)")
+    parser.add_argument("--near-goal-angle", type=float, default=1.0,
+                        help="their largest initial angle from the goal (rad; default: %(default)s)")
+    parser.add_argument("--near-goal-omega", type=float, default=2.0,
+                        help="their largest initial |ω_i| (rad/s; default: %(default)s)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, default=None, help="output .npz (default: data/<scene name>.npz, the MJCF's stem for a path)")
     parser.add_argument("--quiet", action="store_true")
@@ -53,7 +59,9 @@ def main(argv: list[str] | None = None) -> int:
     args.steps = args.steps or 20
     args.max_omega = 6.0 if args.max_omega is None else args.max_omega
     data = collect(args.scene, args.trajectories, args.steps, args.seed, args.max_omega, args.hold_steps,
-                   args.body, progress=not args.quiet, control_period=args.control_period, max_speed=args.max_speed)
+                   args.body, progress=not args.quiet, control_period=args.control_period, max_speed=args.max_speed,
+                   near_goal_trajectories=args.near_goal_trajectories, near_goal_angle=args.near_goal_angle,
+                   near_goal_omega=args.near_goal_omega)
     out = args.out or Path("data") / f"{resolve_scene(args.scene).name}.npz"
     save_data(out, data)
     print(json.dumps({"out": str(out), **{k: data.metadata[k] for k in ("scene", "trajectories", "transitions", "control_period")}}))

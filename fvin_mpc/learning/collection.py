@@ -18,6 +18,7 @@ import math
 
 import numpy as np
 
+from fvin_mpc.core import s3
 from fvin_mpc.core.data import TrajectoryData
 
 if TYPE_CHECKING:
@@ -35,6 +36,24 @@ def random_joint_state(env: Any, rng: np.random.Generator, max_omega: float) -> 
         direction = rng.normal(size=3)
         direction /= np.linalg.norm(direction)
         return quaternion, direction * max_omega * rng.uniform() ** (1 / 3)
+    raise ValueError(f"expected one hinge (nq=nv=1) or ball joint (nq=4, nv=3), got nq={model.nq}, nv={model.nv}")
+
+
+def near_goal_joint_state(env: Any, rng: np.random.Generator, max_angle: float,
+                          max_omega: float) -> tuple[np.ndarray, np.ndarray]:
+    """A random ``(qpos, qvel)`` within ``max_angle`` rad of the env's goal, each ``|ω_i| ≤ max_omega``."""
+    model = env.unwrapped.model
+    if model.nq == 4 and model.nv == 3:
+        axis = rng.normal(size=3)
+        axis /= np.linalg.norm(axis)
+        half = 0.5 * rng.uniform(0.0, max_angle)
+        offset = np.concatenate([[np.cos(half)], np.sin(half) * axis])
+        goal = np.asarray(env.unwrapped.goal_qpos, dtype=np.float64)
+        return np.asarray(s3.multiply(tuple(goal), tuple(offset)), dtype=np.float64), \
+            rng.uniform(-max_omega, max_omega, size=3)
+    if model.nq == 1 and model.nv == 1:
+        goal = float(np.asarray(env.unwrapped.goal_qpos, dtype=np.float64).ravel()[0])
+        return np.array([goal + rng.uniform(-max_angle, max_angle)]), rng.uniform(-max_omega, max_omega, size=1)
     raise ValueError(f"expected one hinge (nq=nv=1) or ball joint (nq=4, nv=3), got nq={model.nq}, nv={model.nv}")
 
 
@@ -57,7 +76,8 @@ SPEED_BOUNDED = "speed-bounded"
 def collect(scene: str = "pendulum", trajectories: int = 320, steps: int = 20, seed: int = 0,
             max_omega: float = 6.0, hold_steps: int = 4, body: str | None = None,
             progress: bool = True, control_period: float | None = None, max_speed: float | None = None,
-            max_attempts_factor: int = 50) -> TrajectoryData:
+            max_attempts_factor: int = 50, near_goal_trajectories: int = 0, near_goal_angle: float = 1.0,
+            near_goal_omega: float = 2.0) -> TrajectoryData:
     """Roll out ``trajectories`` seeded episodes of ``steps`` control periods in the scene.
 
     Each trajectory starts from a uniformly random joint state (|ω| ≤ ``max_omega``) under one
@@ -71,6 +91,11 @@ def collect(scene: str = "pendulum", trajectories: int = 320, steps: int = 20, s
             acceptance rate, ``collector = "speed-bounded"``). For bodies whose light axis spins up
             past the step's solvability limit ``h|ω| ≈ 1`` (docs/spherical.md). ``None``: keep all.
 
+        near_goal_trajectories: this many more trajectories (after the uniform ones) start within
+            ``near_goal_angle`` rad of the scene's goal with every ``|ω_i| ≤ near_goal_omega`` — the
+            states an MPC must predict well to catch and hold the body there, and which uniform
+            sampling of S³ visits rarely (docs/spherical.md). Same controls, same speed bound.
+
     Raises:
         RuntimeError: fewer than one in ``max_attempts_factor`` rollouts is accepted.
     """
@@ -80,6 +105,10 @@ def collect(scene: str = "pendulum", trajectories: int = 320, steps: int = 20, s
 
     if max_speed is not None and not (math.isfinite(max_speed) and max_speed > 0):
         raise ValueError(f"max_speed must be finite and > 0, got {max_speed!r}")
+    if near_goal_trajectories < 0 or not (0.0 < near_goal_angle <= math.pi and near_goal_omega >= 0.0):
+        raise ValueError("near_goal_trajectories must be >= 0, near_goal_angle in (0, π], near_goal_omega >= 0; got "
+                         f"{near_goal_trajectories}, {near_goal_angle}, {near_goal_omega}")
+    uniform_trajectories, trajectories = trajectories, trajectories + near_goal_trajectories
     env = RigidBodyEnv(scene=scene, body=body, control_period=control_period)
     rng = np.random.default_rng(seed)
     low, high = env.action_space.low.astype(np.float64), env.action_space.high.astype(np.float64)
@@ -97,7 +126,10 @@ def collect(scene: str = "pendulum", trajectories: int = 320, steps: int = 20, s
             attempts += 1
             if attempts > max_attempts_factor * trajectories:
                 raise RuntimeError(f"acceptance too low: {i} of {trajectories} trajectories after {attempts} attempts")
-            qpos, qvel = random_joint_state(env, rng, max_omega)
+            if i < uniform_trajectories:
+                qpos, qvel = random_joint_state(env, rng, max_omega)
+            else:
+                qpos, qvel = near_goal_joint_state(env, rng, near_goal_angle, near_goal_omega)
             observation, _ = env.reset(seed=int(rng.integers(2**31)), options={"qpos": qpos, "qvel": qvel})
             controls = control_sequence(rng, low, high, steps, mode, hold_steps)
             qs[i, 0], omegas[i, 0] = observation[:4], observation[4:]
@@ -117,6 +149,9 @@ def collect(scene: str = "pendulum", trajectories: int = 320, steps: int = 20, s
         "max_omega": max_omega, "hold_steps": hold_steps,
         "control_modes": {"constant": modes.count("constant"), "piecewise": modes.count("piecewise")},
     }
+    if near_goal_trajectories:
+        metadata.update(near_goal_trajectories=near_goal_trajectories, near_goal_angle=near_goal_angle,
+                        near_goal_omega=near_goal_omega)
     if max_speed is not None:
         metadata.update(max_speed=max_speed, attempts=attempts, acceptance_rate=trajectories / attempts,
                         collector=SPEED_BOUNDED)
