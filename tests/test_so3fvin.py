@@ -221,13 +221,14 @@ def test_train_and_checkpoint_round_trip(tmp_path):
     from helpers import synthetic_hinge_data
 
     from fvin_mpc.core.checkpoint import load_checkpoint, save_checkpoint
-    from fvin_mpc.learning.model_so3 import train_so3
-    from fvin_mpc.learning.training import TrainSettings
+    from fvin_mpc.learning.model_so3 import SO3FVIN
+    from fvin_mpc.learning.training import TrainSettings, train
 
     data = synthetic_hinge_data(PENDULUM, trajectories=24, steps=6)
     config = SO3ModelConfig(variant="so3-matrix", step_size=data.control_period)
-    model, report = train_so3(data, config, TrainSettings(iterations=3, window=4, jacobian_windows=32, threads=1,
-                                                          patience=0), progress=False)
+    model, report = train(data, config, TrainSettings(iterations=3, window=4, jacobian_windows=32, threads=1,
+                                                      patience=0), progress=False, model_factory=SO3FVIN)
+    assert isinstance(model, SO3FVIN)
     history = [h["train"] for h in report["history"]]
     assert history[-1] < history[0]
     stem = save_checkpoint(tmp_path / "so3", config, model.numpy_weights(), training=report)

@@ -3,7 +3,8 @@
 All math lives in :mod:`fvin_mpc.core.so3`, :mod:`fvin_mpc.core.fvin_so3` and
 :mod:`fvin_mpc.core.networks_so3`. The interface is :class:`fvin_mpc.learning.model.S3FVIN`'s
 (``weights``, ``config``, ``step``, ``rollout(q0, omega0, controls)``, ``energy``) so that
-:func:`fvin_mpc.learning.training.train` trains either on the same data, loss and early stopping:
+:func:`fvin_mpc.learning.training.train` (``model_factory=SO3FVIN``) trains either on the same
+data, loss and early stopping:
 states enter and leave as quaternions ``q (B, 4)`` (the data's convention); inside a rollout the
 model carries ``R (B, 3, 3)`` and returns a quaternion preimage of each ``R`` (the loss is sign
 invariant, so which preimage does not matter).
@@ -109,22 +110,6 @@ class SO3FVIN(nn.Module):
     def forward(self, q: torch.Tensor, omega: torch.Tensor, u: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         out = self.step(q, omega, u)
         return out.q, out.omega
-
-
-def train_so3(data: TrajectoryData, config: SO3ModelConfig, settings: Any, progress: bool = True) -> tuple[SO3FVIN, dict[str, Any]]:
-    """:func:`fvin_mpc.learning.training.train` on an :class:`SO3FVIN` — the same loop, loss, split
-    and early stopping.
-
-    ``train`` builds its model as ``fvin_mpc.learning.model.S3FVIN(config, seed=...)``; until it
-    takes the model class as an argument, this swaps that name for :class:`SO3FVIN` for the
-    duration of the call (nothing else of ``train`` depends on the model's kind)."""
-    from unittest import mock
-
-    from fvin_mpc.learning import model as s3_model
-    from fvin_mpc.learning.training import train
-
-    with mock.patch.object(s3_model, "S3FVIN", SO3FVIN):
-        return train(data, config, settings, progress)  # type: ignore[arg-type]
 
 
 def loss_and_gradient_cpu_s(so3: bool, config: Any, data: TrajectoryData, repeats: int, seed: int = 0) -> float:

@@ -1,4 +1,8 @@
-"""Train an S3FVIN on trajectory data (the library behind ``python -m fvin_mpc.train``).
+"""Train a learned model on trajectory data (the library behind ``python -m fvin_mpc.train``).
+
+One loop (:func:`train`) for every model: S3FVIN by default, the SO3FVIN baseline
+(:mod:`fvin_mpc.learning.model_so3`) and the free-body R³ × S³ model
+(:mod:`fvin_mpc.learning.training_r3s3`) through its ``model_factory`` and ``window_tensors``.
 
 Loss: multi-step rollout over windows of ``window`` steps, the sign-invariant
 orientation error ``4(1 − ⟨q̂, q⟩²)`` (≈ squared angle error in rad²) plus
@@ -28,7 +32,7 @@ import os
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any, Literal, Mapping
+from typing import Any, Callable, Literal, Mapping
 
 import numpy as np
 
@@ -202,7 +206,9 @@ def rollout_residuals(q_hat: Any, omega_hat: Any, q: Any, omega: Any, omega_weig
     return torch.cat([2.0 * orientation, velocity], dim=-1)
 
 
-def split_data(data: TrajectoryData, validation_fraction: float, seed: int) -> tuple[TrajectoryData, TrajectoryData]:
+def split_data(data: Any, validation_fraction: float, seed: int) -> tuple[Any, Any]:
+    """``(train, validation)`` subsets of whole trajectories of ``data`` (any data set with
+    ``subset`` and ``num_trajectories``), the validation share drawn with ``seed``."""
     order = np.random.default_rng(seed).permutation(data.num_trajectories)
     n_val = max(1, int(round(validation_fraction * data.num_trajectories)))
     return data.subset(np.sort(order[n_val:])), data.subset(np.sort(order[:n_val]))
@@ -370,12 +376,29 @@ def _rollout_module(model: Any) -> Any:
     return Rollout()
 
 
-def train(data: TrajectoryData, config: ModelConfig, settings: TrainSettings, progress: bool = True) -> tuple[Any, dict[str, Any]]:
-    """Train a model; returns ``(model, report)`` with losses, timings, threads and machine load."""
+def train(data: Any, config: Any, settings: TrainSettings, progress: bool = True,
+          model_factory: Callable[..., Any] | None = None,
+          window_tensors: Callable[[Any, Any, int], tuple[Any, ...]] | None = None) -> tuple[Any, dict[str, Any]]:
+    """Train a model; returns ``(model, report)`` with losses, timings, threads and machine load.
+
+    One loop for every model: ``data`` is anything with ``subset``, ``windows``, ``u``,
+    ``control_period`` and ``num_trajectories`` (:class:`~fvin_mpc.core.data.TrajectoryData`,
+    :class:`~fvin_mpc.core.free_body_data.FreeBodyData`), the model anything with ``weights``
+    (a ``ParameterDict``), ``parameters()`` and ``rollout(q0, rest0, controls, step=None) → (q, rest)``
+    scored by :func:`rollout_loss`.
+
+    Args:
+        data, config, settings, progress: what to train on, the architecture, the optimization,
+            whether to show a progress bar.
+        model_factory: called as ``model_factory(config, seed=settings.seed)`` for the model to
+            train (a model class will do); default :class:`~fvin_mpc.learning.model.S3FVIN`.
+        window_tensors: ``(model, subset, window) → tensors`` for :func:`rollout_loss` (``q``, the
+            rest of the state, ``u``) from a split of ``data``; default :func:`trajectory_windows`.
+    """
     threads = settings.threads if settings.threads is not None else safe_thread_count()
     load_before = os.getloadavg()
     with torch_threads(threads):
-        model, report = _train(data, config, settings, progress)
+        model, report = _train(data, config, settings, progress, model_factory, window_tensors or trajectory_windows)
     report["threads"] = threads
     report["threads_chosen"] = "given" if settings.threads is not None else "safe_thread_count"
     report["cpu_cores"] = available_cores()
@@ -384,23 +407,32 @@ def train(data: TrajectoryData, config: ModelConfig, settings: TrainSettings, pr
     return model, report
 
 
-def _train(data: TrajectoryData, config: ModelConfig, settings: TrainSettings, progress: bool) -> tuple[Any, dict[str, Any]]:
+def trajectory_windows(model: Any, data: TrajectoryData, window: int) -> tuple[Any, ...]:
+    """``data``'s windows of ``window`` steps as float64 tensors ``(q, ω, u)`` (any pivoted model)."""
+    import torch
+
+    from fvin_mpc.learning.model import DTYPE
+
+    return tuple(torch.as_tensor(a, dtype=DTYPE) for a in data.windows(window))
+
+
+def _train(data: Any, config: Any, settings: TrainSettings, progress: bool, model_factory: Callable[..., Any] | None,
+           window_tensors: Callable[[Any, Any, int], tuple[Any, ...]]) -> tuple[Any, dict[str, Any]]:
     import torch
     from tqdm.auto import tqdm
 
-    from fvin_mpc.learning.model import DTYPE, S3FVIN
+    from fvin_mpc.learning.model import S3FVIN
 
     if abs(data.control_period - config.step_size) > 1e-12:
         raise ValueError(f"model step {config.step_size} differs from the data's control period {data.control_period}")
     if data.u.shape[2] != config.control_dim:
         raise ValueError(f"data has {data.u.shape[2]} controls, the model config {config.control_dim}")
     torch.manual_seed(settings.seed)
+    model = (model_factory or S3FVIN)(config, seed=settings.seed)
     train_set, validation_set = split_data(data, settings.validation_fraction, settings.seed)
-    tensors = lambda arrays: tuple(torch.as_tensor(a, dtype=DTYPE) for a in arrays)  # noqa: E731
-    train_windows = tensors(train_set.windows(settings.window))
-    validation_windows = tensors(validation_set.windows(settings.window))
+    train_windows = window_tensors(model, train_set, settings.window)
+    validation_windows = window_tensors(model, validation_set, settings.window)
 
-    model = S3FVIN(config, seed=settings.seed)
     iterations, eval_every = settings.max_iterations, settings.evaluation_interval
     # One step is compiled (not the whole rollout): compile time grows steeply with graph size.
     step = torch.compile(model.step, dynamic=False) if settings.compile else None

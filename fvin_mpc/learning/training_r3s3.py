@@ -1,13 +1,11 @@
 """Train a learned R³ × S³ model on free-body data: ``python -m fvin_mpc.learning.training_r3s3``.
 
-Reuses :mod:`fvin_mpc.learning.training`: the split (:func:`~fvin_mpc.learning.training.split_data`),
-the multi-step loss (:func:`~fvin_mpc.learning.training.rollout_loss`), Levenberg–Marquardt and early
-stopping, the thread choice. The model's rollout speaks the training layout of
-:mod:`fvin_mpc.learning.model_r3s3` (orientation apart, ``(s_x x, s_v v, ω)`` as the second block),
-so the loss is ``4(1 − ⟨q̂, q⟩²) + omega_weight·(s_x²|x̂ − x|² + s_v²|v̂ − v|² + |ω̂ − ω|²)``.
-
-Only the outer loop is written here again (``training.train`` builds the pivoted model itself); it
-is the part to fold into ``training.train`` once that takes a model factory (docs/quadrotor.md).
+Trains with :func:`fvin_mpc.learning.training.train` itself (its split, multi-step loss,
+Levenberg–Marquardt, early stopping and thread choice), given the model and the windows: the
+model's rollout speaks the training layout of :mod:`fvin_mpc.learning.model_r3s3` (orientation
+apart, ``(s_x x, s_v v, ω)`` as the second block), so the loss is
+``4(1 − ⟨q̂, q⟩²) + omega_weight·(s_x²|x̂ − x|² + s_v²|v̂ − v|² + |ω̂ − ω|²)``.
+``python -m fvin_mpc.train`` on free-body data runs this module's command.
 
 Also here: the targets of issue 13 that are measured on the model alone — the held-out open-loop
 error over 1 s of the learned model against the closed-form model through the same integrator
@@ -18,10 +16,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
-import os
-import time
-from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -29,9 +23,7 @@ import numpy as np
 
 from fvin_mpc.core.free_body_data import FreeBodyData, load_free_body_data
 from fvin_mpc.core.networks_r3s3 import LearnedCombinedTerms, R3S3Config, physical_scale
-from fvin_mpc.learning.timing import torch_threads
-from fvin_mpc.learning.training import (TrainSettings, _EarlyStopping, _LevenbergMarquardt, available_cores,
-                                        package_versions, rollout_loss, safe_thread_count, split_data)
+from fvin_mpc.learning.training import TrainSettings, package_versions, train
 
 #: Position and velocity scales of the loss (1/m, s/m): 1 mm of position error weighs as 0.03 rad/s.
 POSITION_SCALE, VELOCITY_SCALE = 30.0, 10.0
@@ -41,76 +33,34 @@ DEFAULT_DATA = Path("data/quadrotor.npz")
 def train_r3s3(data: FreeBodyData, config: R3S3Config, settings: TrainSettings = TrainSettings(),
                position_scale: float = POSITION_SCALE, velocity_scale: float = VELOCITY_SCALE,
                progress: bool = True, initial_weights: Mapping[str, Any] | None = None) -> tuple[Any, dict[str, Any]]:
-    """Train an :class:`~fvin_mpc.learning.model_r3s3.R3S3FVIN` with Levenberg–Marquardt; returns
-    ``(model, report)`` like :func:`fvin_mpc.learning.training.train`. ``initial_weights`` continues
-    from a trained model (default: the seeded initialization)."""
+    """Train an :class:`~fvin_mpc.learning.model_r3s3.R3S3FVIN` with Levenberg–Marquardt through
+    :func:`fvin_mpc.learning.training.train`; returns ``(model, report)`` as it does, with the loss
+    scales added. ``initial_weights`` continues from a trained model (default: the seeded
+    initialization)."""
+    from fvin_mpc.learning.model_r3s3 import R3S3FVIN
+
     if settings.optimizer != "lm":
         raise ValueError("the R³ × S³ model trains with Levenberg–Marquardt only (settings.optimizer='lm')")
-    if abs(data.control_period - config.step_size) > 1e-12:
-        raise ValueError(f"model step {config.step_size} differs from the data's control period {data.control_period}")
-    if data.u.shape[2] != config.control_dim:
-        raise ValueError(f"data has {data.u.shape[2]} controls, the model config {config.control_dim}")
-    threads = settings.threads if settings.threads is not None else safe_thread_count()
-    load_before = os.getloadavg()
-    with torch_threads(threads):
-        model, report = _train(data, config, settings, position_scale, velocity_scale, progress, initial_weights)
-    report.update(threads=threads, cpu_cores=available_cores(), load_average_start=list(load_before),
-                  load_average_end=list(os.getloadavg()))
+
+    def model_factory(config: R3S3Config, seed: int) -> R3S3FVIN:
+        return R3S3FVIN(config, initial_weights, seed=seed, position_scale=position_scale,
+                        velocity_scale=velocity_scale)
+
+    model, report = train(data, config, settings, progress, model_factory=model_factory,
+                          window_tensors=free_body_windows)
+    report.update(position_scale=position_scale, velocity_scale=velocity_scale)
     return model, report
 
 
-def _train(data: FreeBodyData, config: R3S3Config, settings: TrainSettings, position_scale: float,
-           velocity_scale: float, progress: bool, initial_weights: Mapping[str, Any] | None) -> tuple[Any, dict[str, Any]]:
+def free_body_windows(model: Any, data: FreeBodyData, window: int) -> tuple[Any, ...]:
+    """``data``'s windows of ``window`` steps in ``model``'s training layout: ``(q, r, u)`` tensors
+    with ``r = (s_x x, s_v v, ω)`` (:meth:`~fvin_mpc.learning.model_r3s3.R3S3FVIN.pack`)."""
     import torch
-    from tqdm.auto import tqdm
 
-    from fvin_mpc.learning.model_r3s3 import DTYPE, R3S3FVIN
+    from fvin_mpc.learning.model_r3s3 import DTYPE
 
-    torch.manual_seed(settings.seed)
-    model = R3S3FVIN(config, initial_weights, seed=settings.seed, position_scale=position_scale,
-                     velocity_scale=velocity_scale)
-
-    def windows(subset: FreeBodyData) -> tuple[Any, ...]:
-        states, u = subset.windows(settings.window)
-        return (*model.pack(torch.as_tensor(states, dtype=DTYPE)), torch.as_tensor(u, dtype=DTYPE))
-
-    train_set, validation_set = split_data(data, settings.validation_fraction, settings.seed)  # type: ignore[arg-type]
-    train_windows, validation_windows = windows(train_set), windows(validation_set)
-    lm = _LevenbergMarquardt(model, train_windows, settings)
-    stopping = _EarlyStopping(settings)
-    history: list[dict[str, float]] = []
-    start, completed = time.perf_counter(), 0
-    cpu_start = time.process_time()
-    bar = tqdm(range(settings.max_iterations), desc=f"train R3xS3 {config.variant} (lm)", disable=not progress)
-    for iteration in bar:
-        loss = lm.step()
-        completed = iteration + 1
-        if math.isnan(loss):
-            stopping.reason = "no Levenberg–Marquardt step lowers the training loss (converged)"
-            break
-        with torch.no_grad():
-            validation = rollout_loss(model, *validation_windows, settings.omega_weight).item()
-        history.append({"iteration": completed, "train": loss, "validation": validation,
-                        "elapsed_s": time.perf_counter() - start})
-        bar.set_postfix(train=f"{loss:.2e}", val=f"{validation:.2e}")
-        if stopping.update(validation, model):
-            break
-        if settings.time_limit_s is not None and time.perf_counter() - start > settings.time_limit_s:
-            stopping.reason = f"time limit of {settings.time_limit_s:g} s"
-            break
-    stopping.restore(model)
-    bar.close()
-    seconds, cpu_seconds = time.perf_counter() - start, time.process_time() - cpu_start
-    with torch.no_grad():
-        final_train = rollout_loss(model, *train_windows, settings.omega_weight).item()
-        final_validation = rollout_loss(model, *validation_windows, settings.omega_weight).item()
-    return model, {
-        "optimizer": "lm", "iterations": completed, "stopped": stopping.reason, "settings": asdict(settings),
-        "position_scale": position_scale, "velocity_scale": velocity_scale,
-        "train_windows": int(train_windows[0].shape[0]), "validation_windows": int(validation_windows[0].shape[0]),
-        "final_train_loss": final_train, "final_validation_loss": final_validation,
-        "wall_clock_s": seconds, "cpu_s": cpu_seconds, "history": history,
-    }
+    states, u = data.windows(window)
+    return (*model.pack(torch.as_tensor(states, dtype=DTYPE)), torch.as_tensor(u, dtype=DTYPE))
 
 
 # ----------------------------------------------------------------------------- targets
@@ -252,7 +202,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--trajectories", type=int, default=None, help="train on the first N trajectories only")
     parser.add_argument("--window", type=int, default=8)
     parser.add_argument("--iterations", type=int, default=None)
-    parser.add_argument("--jacobian-windows", type=int, default=256)
+    parser.add_argument("--jacobian-windows", type=int, default=TrainSettings.jacobian_windows)
     parser.add_argument("--patience", type=int, default=6, help="validation evaluations without progress before stopping")
     parser.add_argument("--time-limit", type=float, default=None, help="seconds")
     parser.add_argument("--threads", type=int, default=1)
@@ -309,8 +259,6 @@ def main(argv: list[str] | None = None) -> int:
                                                                  scene_quadrotor(str(data.metadata.get("scene", "quadrotor"))))}
     if args.test_data is not None:
         test = load_free_body_data(args.test_data)
-        from fvin_mpc.core.backend import get_ops
-
         summary.update(compare_open_loop(weights, config, test, str(test.metadata.get("scene", "quadrotor"))))
     stem = args.out or Path("checkpoints") / f"{data.metadata.get('scene', 'quadrotor')}_{config.variant}"
     history = report.pop("history")

@@ -74,12 +74,13 @@ def model_config(model: PaperModel, data: Any, newton_iters: int = 2) -> Any:
 
 
 def train_model(model: PaperModel, data: Any, settings: Any, progress: bool = False) -> tuple[Any, dict[str, Any]]:
-    """``fvin_mpc.learning.training.train`` (through ``train_so3`` for SO3FVIN) on ``data``."""
-    from fvin_mpc.learning.model_so3 import train_so3
+    """``fvin_mpc.learning.training.train`` (with ``model_factory=SO3FVIN`` for SO3FVIN) on ``data``."""
+    from fvin_mpc.learning.model import S3FVIN
+    from fvin_mpc.learning.model_so3 import SO3FVIN
     from fvin_mpc.learning.training import train
 
-    trainer = train if model.space == "S3" else train_so3
-    return trainer(data, model_config(model, data), settings, progress)
+    return train(data, model_config(model, data), settings, progress,
+                 model_factory=S3FVIN if model.space == "S3" else SO3FVIN)
 
 
 def load_model(model: PaperModel) -> Any:
