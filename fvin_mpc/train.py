@@ -7,6 +7,10 @@ into train/validation sets before windowing. Default optimizer: Levenberg–Marq
 on the stacked residuals (tens of iterations, seconds); ``--optimizer adam`` is the
 former full-batch Adam. Training stops early once the validation loss stops improving.
 See docs/training.md.
+
+Free-body data (metadata ``configuration_space: R3xS3``, from ``python -m fvin_mpc.collect
+--scene quadrotor``) train the R³ × S³ model instead: the arguments then go to
+``python -m fvin_mpc.learning.training_r3s3`` (its options: ``--help`` there; docs/quadrotor.md).
 """
 
 from __future__ import annotations
@@ -20,6 +24,7 @@ from pathlib import Path
 _START = time.perf_counter()
 
 from fvin_mpc.core.data import load_data  # noqa: E402
+from fvin_mpc.core.free_body_data import is_free_body_data  # noqa: E402
 from fvin_mpc.core.networks import VARIANTS, ModelConfig  # noqa: E402
 from fvin_mpc.learning.training import (  # noqa: E402
     DEFAULT_DATA, DEFAULT_ITERATIONS, OPTIMIZERS, TrainSettings, default_checkpoint_stem, package_versions,
@@ -28,6 +33,13 @@ from fvin_mpc.learning.training import (  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:
+    # Which model the data call for decides which options apply: read --data alone first.
+    peek = argparse.ArgumentParser(add_help=False)
+    peek.add_argument("--data", type=Path, default=DEFAULT_DATA)
+    if is_free_body_data(peek.parse_known_args(argv)[0].data):
+        from fvin_mpc.learning import training_r3s3
+
+        return training_r3s3.main(argv)
     parser = argparse.ArgumentParser(prog="python -m fvin_mpc.train", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", type=Path, default=DEFAULT_DATA, help="data file from fvin_mpc.collect (default: %(default)s)")

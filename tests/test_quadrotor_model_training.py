@@ -48,3 +48,27 @@ def test_the_command_writes_a_checkpoint_that_exports(flights, tmp_path, capsys)
     exported = from_checkpoint(checkpoint)
     x_next, residual = exported(flights.state[0, 0], flights.u[0, 0])
     assert x_next.shape == (13,) and np.isfinite(residual)
+
+
+def test_the_training_command_trains_the_free_body_model_on_free_body_data(flights, tmp_path, capsys):
+    """``python -m fvin_mpc.train`` reads the data's configuration space: R³ × S³ data give an
+    R³ × S³ checkpoint (through the same loop), pivoted data are not mistaken for it."""
+    from fvin_mpc import train as train_command
+    from fvin_mpc.core.free_body_data import is_free_body_data
+
+    data = tmp_path / "q.npz"
+    save_free_body_data(data, flights)
+    stem = tmp_path / "quadrotor_via_train"
+    assert train_command.main(["--data", str(data), "--hidden-width", "3", "--window", "2", "--iterations", "1",
+                               "--jacobian-windows", "8", "--out", str(stem), "--quiet"]) == 0
+    capsys.readouterr()
+    checkpoint = load_checkpoint(stem)
+    assert checkpoint.configuration_space == "R3xS3" and checkpoint.config.hidden_width == 3
+    assert checkpoint.metadata["training"]["iterations"] == 1
+    from helpers import synthetic_hinge_data
+
+    from fvin_mpc.core.data import save_data
+    from fvin_mpc.core.rigid_body import PENDULUM
+
+    pivoted = save_data(tmp_path / "p.npz", synthetic_hinge_data(PENDULUM, trajectories=2, steps=3))
+    assert is_free_body_data(data) and not is_free_body_data(pivoted) and not is_free_body_data(tmp_path / "no.npz")

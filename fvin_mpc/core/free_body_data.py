@@ -66,6 +66,18 @@ def save_free_body_data(path: str | Path, data: FreeBodyData) -> Path:
     return path
 
 
+def is_free_body_data(path: str | Path) -> bool:
+    """Whether ``path`` is a data file whose metadata say ``configuration_space == "R3xS3"`` (what
+    :func:`save_free_body_data` writes); ``False`` for pivoted data and for a missing file."""
+    path = Path(path)
+    if not path.exists():
+        return False
+    with np.load(path, allow_pickle=False) as archive:
+        if "metadata" not in archive.files:
+            return False
+        return json.loads(str(archive["metadata"])).get("configuration_space") == CONFIGURATION_SPACE
+
+
 def load_free_body_data(path: str | Path) -> FreeBodyData:
     path = Path(path)
     if not path.exists():
