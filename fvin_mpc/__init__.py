@@ -19,8 +19,8 @@ imports and holds the line):
   (``studies.pool``) and one episode-start generator (``studies.starts``).
 
 The top-level modules are the commands, thin over the library: ``python -m fvin_mpc.swingup``,
-``collect``, ``train``, ``export``, ``evaluate``, ``pendulum_v1``, ``quality``, ``inertia``,
-``spherical_report`` and ``bench``.
+``fly`` (the quadrotor's recovery and figure-eight), ``collect``, ``train``, ``export``, ``evaluate``,
+``pendulum_v1``, ``quality``, ``inertia``, ``spherical_report``, ``sweep`` and ``bench``.
 """
 
 __version__ = "0.1.0"
