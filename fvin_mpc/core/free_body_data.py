@@ -2,9 +2,9 @@
 
 Arrays (``N`` trajectories of ``T`` steps, ``m`` controls): ``state (N, T+1, 13)`` in the layout of
 ``docs/r3s3.md`` (position and velocity world frame, ``q = (w, x, y, z)``, ω body frame),
-``u (N, T, m)``; ``metadata`` a JSON string (scene, control period, seed, counts, collector). The
-same interface as :class:`fvin_mpc.core.data.TrajectoryData` where training needs it
-(``subset``, ``num_trajectories``, ``num_transitions``, ``control_period``, ``windows``).
+``u (N, T, m)``; ``metadata`` a JSON string (scene, control period, seed, counts, collector). Counts,
+subsets, windows and the files are :class:`fvin_mpc.core.data.Trajectories`', shared with the
+pivoted :class:`~fvin_mpc.core.data.TrajectoryData`.
 """
 
 from __future__ import annotations
@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+from fvin_mpc.core.data import Trajectories, load_arrays, save_arrays
 from fvin_mpc.core.fvin_r3s3 import FREE_STATE_DIM
 
 #: ``metadata["configuration_space"]`` of free-body data (pivoted data has none).
@@ -23,7 +24,7 @@ CONFIGURATION_SPACE = "R3xS3"
 
 
 @dataclass(frozen=True)
-class FreeBodyData:
+class FreeBodyData(Trajectories):
     state: np.ndarray
     u: np.ndarray
     metadata: dict[str, Any]
@@ -33,37 +34,14 @@ class FreeBodyData:
         if self.state.shape != (n, t1, FREE_STATE_DIM) or self.u.shape[:2] != (n, t1 - 1) or self.u.ndim != 3:
             raise ValueError(f"inconsistent free-body trajectory shapes state {self.state.shape}, u {self.u.shape}")
 
-    @property
-    def num_trajectories(self) -> int:
-        return self.state.shape[0]
-
-    @property
-    def num_transitions(self) -> int:
-        return self.u.shape[0] * self.u.shape[1]
-
-    @property
-    def control_period(self) -> float:
-        return float(self.metadata["control_period"])
-
-    def subset(self, indices: np.ndarray) -> "FreeBodyData":
-        return FreeBodyData(self.state[indices], self.u[indices], dict(self.metadata))
-
-    def windows(self, length: int) -> tuple[np.ndarray, np.ndarray]:
+    def windows(self, length: int) -> tuple[np.ndarray, np.ndarray]:  # type: ignore[override]
         """All overlapping windows of ``length`` steps: ``state (W, length+1, 13)``, ``u (W, length, m)``."""
-        steps = self.u.shape[1]
-        if not 1 <= length <= steps:
-            raise ValueError(f"window length {length} must be in [1, {steps}]")
-        starts = range(steps - length + 1)
-        return (np.concatenate([self.state[:, s : s + length + 1] for s in starts]),
-                np.concatenate([self.u[:, s : s + length] for s in starts]))
+        return super().windows(length)  # type: ignore[return-value]
 
 
 def save_free_body_data(path: str | Path, data: FreeBodyData) -> Path:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    metadata = {**data.metadata, "configuration_space": CONFIGURATION_SPACE}
-    np.savez_compressed(path, state=data.state, u=data.u, metadata=json.dumps(metadata))
-    return path
+    return save_arrays(path, {"state": data.state, "u": data.u},
+                       {**data.metadata, "configuration_space": CONFIGURATION_SPACE})
 
 
 def is_free_body_data(path: str | Path) -> bool:
@@ -79,12 +57,6 @@ def is_free_body_data(path: str | Path) -> bool:
 
 
 def load_free_body_data(path: str | Path) -> FreeBodyData:
-    path = Path(path)
-    if not path.exists():
-        raise FileNotFoundError(f"data file not found: {path} (make one with `python -m fvin_mpc.collect --scene quadrotor`)")
-    with np.load(path, allow_pickle=False) as archive:
-        missing = {"state", "u", "metadata"} - set(archive.files)
-        if missing:
-            raise ValueError(f"{path}: not a free-body data file (missing {sorted(missing)})")
-        return FreeBodyData(state=archive["state"].astype(np.float64), u=archive["u"].astype(np.float64),
-                            metadata=json.loads(str(archive["metadata"])))
+    arrays, metadata = load_arrays(path, ("state", "u"), "free-body data",
+                                   "python -m fvin_mpc.collect --scene quadrotor")
+    return FreeBodyData(**arrays, metadata=metadata)

@@ -26,8 +26,49 @@ Variant = Literal["sign-invariant", "fixed-inertia", "plain"]
 VARIANTS: tuple[str, ...] = ("sign-invariant", "fixed-inertia", "plain")
 
 
+class DictConfig:
+    """``to_dict``/``from_dict`` of a frozen-dataclass model config (a checkpoint sidecar's ``model``),
+    shared by every configuration space; ``from_dict`` rejects fields the class does not have."""
+
+    #: Names the config in errors (``"unknown model config fields: …"``).
+    CONFIG_NAME = "model"
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)  # type: ignore[call-overload]
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> Any:
+        unknown = set(data) - set(cls.__dataclass_fields__)  # type: ignore[attr-defined]
+        if unknown:
+            raise ValueError(f"unknown {cls.CONFIG_NAME} config fields: {sorted(unknown)}")
+        return cls(**data)
+
+
+def add_mlp_shapes(shapes: dict[str, tuple[int, ...]], name: str, inputs: int, outputs: int, hidden_width: int,
+                   hidden_layers: int) -> None:
+    """Add the weights ``{name}_w{i}`` ``(out, in)`` and ``{name}_b{i}`` of a tanh MLP to ``shapes``."""
+    sizes = [inputs] + [hidden_width] * hidden_layers + [outputs]
+    for i in range(len(sizes) - 1):
+        shapes[f"{name}_w{i}"] = (sizes[i + 1], sizes[i])
+        shapes[f"{name}_b{i}"] = (sizes[i + 1],)
+
+
+def check_weight_shapes(weights: Mapping[str, Any], expected: Mapping[str, tuple[int, ...]],
+                        config_name: str = "model") -> None:
+    """Raise ``ValueError`` naming the first missing, unexpected or mis-shaped weight of ``weights``
+    against ``expected`` (name → shape) of a ``config_name`` config."""
+    missing = sorted(set(expected) - set(weights))
+    extra = sorted(set(weights) - set(expected))
+    if missing or extra:
+        raise ValueError(f"weights do not match the {config_name} config: missing {missing}, unexpected {extra}")
+    for name, shape in expected.items():
+        actual = tuple(weights[name].shape)
+        if actual != shape:
+            raise ValueError(f"weight {name!r} has shape {actual}, expected {shape}")
+
+
 @dataclass(frozen=True)
-class ModelConfig:
+class ModelConfig(DictConfig):
     """Architecture and integration settings of an S3FVIN model.
 
     Attributes:
@@ -74,27 +115,13 @@ class ModelConfig:
     def constant_inertia(self) -> bool:
         return self.variant == "fixed-inertia"
 
-    def to_dict(self) -> dict[str, Any]:
-        return asdict(self)
-
-    @classmethod
-    def from_dict(cls, data: Mapping[str, Any]) -> "ModelConfig":
-        known = set(cls.__dataclass_fields__)
-        unknown = set(data) - known
-        if unknown:
-            raise ValueError(f"unknown model config fields: {sorted(unknown)}")
-        return cls(**data)
-
 
 def weight_shapes(config: ModelConfig) -> dict[str, tuple[int, ...]]:
     """Name → shape of every weight of a model with this config."""
     shapes: dict[str, tuple[int, ...]] = {}
 
     def mlp(name: str, outputs: int) -> None:
-        sizes = [4] + [config.hidden_width] * config.hidden_layers + [outputs]
-        for i in range(len(sizes) - 1):
-            shapes[f"{name}_w{i}"] = (sizes[i + 1], sizes[i])
-            shapes[f"{name}_b{i}"] = (sizes[i + 1],)
+        add_mlp_shapes(shapes, name, 4, outputs, config.hidden_width, config.hidden_layers)
 
     mlp("potential", 1)
     if config.constant_inertia:
@@ -131,15 +158,7 @@ def init_weights(config: ModelConfig, seed: int, initial_inertia: float = 0.3) -
 
 def check_weights(weights: Mapping[str, Any], config: ModelConfig) -> None:
     """Raise ``ValueError`` naming the first missing, unexpected or mis-shaped weight."""
-    expected = weight_shapes(config)
-    missing = sorted(set(expected) - set(weights))
-    extra = sorted(set(weights) - set(expected))
-    if missing or extra:
-        raise ValueError(f"weights do not match the model config: missing {missing}, unexpected {extra}")
-    for name, shape in expected.items():
-        actual = tuple(weights[name].shape)
-        if actual != shape:
-            raise ValueError(f"weight {name!r} has shape {actual}, expected {shape}")
+    check_weight_shapes(weights, weight_shapes(config))
 
 
 def _mlp_hidden(weights: Mapping[str, Any], name: str, layers: int, x: Any, ops: Ops) -> list[Any]:

@@ -30,12 +30,12 @@ learned model's mass and inertia are compared with the truth after dividing by `
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from typing import Any, Mapping
 
 import numpy as np
 
-from fvin_mpc.core import s3
+from fvin_mpc.core import networks, s3
 from fvin_mpc.core.backend import Ops
 from fvin_mpc.core.networks import VARIANTS, Variant, mlp, scalar_mlp_value_and_gradient
 
@@ -44,7 +44,7 @@ CONFIGURATION_SPACE = "R3xS3"
 
 
 @dataclass(frozen=True)
-class R3S3Config:
+class R3S3Config(networks.DictConfig):
     """Architecture and integration settings of a learned R³ × S³ model.
 
     Attributes:
@@ -99,15 +99,7 @@ class R3S3Config:
     def constant_inertia(self) -> bool:
         return self.variant == "fixed-inertia"
 
-    def to_dict(self) -> dict[str, Any]:
-        return asdict(self)
-
-    @classmethod
-    def from_dict(cls, data: Mapping[str, Any]) -> "R3S3Config":
-        unknown = set(data) - set(cls.__dataclass_fields__)
-        if unknown:
-            raise ValueError(f"unknown R3xS3 model config fields: {sorted(unknown)}")
-        return cls(**data)
+    CONFIG_NAME = "R3xS3 model"
 
 
 def weight_shapes(config: R3S3Config) -> dict[str, tuple[int, ...]]:
@@ -116,10 +108,7 @@ def weight_shapes(config: R3S3Config) -> dict[str, tuple[int, ...]]:
     force_inputs = 7 if config.position_in_forces else 4
 
     def add_mlp(name: str, inputs: int, outputs: int) -> None:
-        sizes = [inputs] + [config.hidden_width] * config.hidden_layers + [outputs]
-        for i in range(len(sizes) - 1):
-            shapes[f"{name}_w{i}"] = (sizes[i + 1], sizes[i])
-            shapes[f"{name}_b{i}"] = (sizes[i + 1],)
+        networks.add_mlp_shapes(shapes, name, inputs, outputs, config.hidden_width, config.hidden_layers)
 
     if config.constant_inertia:
         shapes["inertia_cholesky"] = (6,)
@@ -133,13 +122,7 @@ def weight_shapes(config: R3S3Config) -> dict[str, tuple[int, ...]]:
 
 def check_weights(weights: Mapping[str, Any], config: R3S3Config) -> None:
     """``ValueError`` naming the first missing, unexpected or mis-shaped weight."""
-    expected = weight_shapes(config)
-    missing, extra = sorted(set(expected) - set(weights)), sorted(set(weights) - set(expected))
-    if missing or extra:
-        raise ValueError(f"weights do not match the R3xS3 model config: missing {missing}, unexpected {extra}")
-    for name, shape in expected.items():
-        if tuple(weights[name].shape) != shape:
-            raise ValueError(f"weight {name!r} has shape {tuple(weights[name].shape)}, expected {shape}")
+    networks.check_weight_shapes(weights, weight_shapes(config), R3S3Config.CONFIG_NAME)
 
 
 def init_weights(config: R3S3Config, seed: int, mass: float = 1.0, inertia: float = 0.01,

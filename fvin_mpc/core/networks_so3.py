@@ -16,7 +16,7 @@ Outputs: ``inertia`` (6, the lower triangle of ``L``, ``J = LLᵀ + εI``), ``po
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from typing import Any, Literal, Mapping
 
 import numpy as np
@@ -33,7 +33,7 @@ _NETS = ("potential", "inertia", "gain")
 
 
 @dataclass(frozen=True)
-class SO3ModelConfig:
+class SO3ModelConfig(networks.DictConfig):
     """Architecture and integration settings of an SO3FVIN model.
 
     Attributes:
@@ -62,6 +62,7 @@ class SO3ModelConfig:
         # The remaining fields mean what ModelConfig's mean: let it validate them.
         self.s3_equivalent()
 
+    CONFIG_NAME = "SO3 model"
     #: Never sign-averaged, never a constant inertia (the paper's SO3FVIN).
     sign_invariant = False
     constant_inertia = False
@@ -77,15 +78,6 @@ class SO3ModelConfig:
                                     hidden_layers=self.hidden_layers, step_size=self.step_size,
                                     newton_iters=self.newton_iters, inertia_epsilon=self.inertia_epsilon)
 
-    def to_dict(self) -> dict[str, Any]:
-        return asdict(self)
-
-    @classmethod
-    def from_dict(cls, data: Mapping[str, Any]) -> "SO3ModelConfig":
-        unknown = set(data) - set(cls.__dataclass_fields__)
-        if unknown:
-            raise ValueError(f"unknown SO3 model config fields: {sorted(unknown)}")
-        return cls(**data)
 
 
 def weight_shapes(config: SO3ModelConfig) -> dict[str, tuple[int, ...]]:
@@ -112,13 +104,7 @@ def init_weights(config: SO3ModelConfig, seed: int, initial_inertia: float = 0.3
 
 def check_weights(weights: Mapping[str, Any], config: SO3ModelConfig) -> None:
     """Raise ``ValueError`` naming the first missing, unexpected or mis-shaped weight."""
-    expected = weight_shapes(config)
-    missing, extra = sorted(set(expected) - set(weights)), sorted(set(weights) - set(expected))
-    if missing or extra:
-        raise ValueError(f"weights do not match the SO3 model config: missing {missing}, unexpected {extra}")
-    for name, shape in expected.items():
-        if tuple(weights[name].shape) != shape:
-            raise ValueError(f"weight {name!r} has shape {tuple(weights[name].shape)}, expected {shape}")
+    networks.check_weight_shapes(weights, weight_shapes(config), SO3ModelConfig.CONFIG_NAME)
 
 
 class LearnedSO3Terms:

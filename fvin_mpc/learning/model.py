@@ -17,7 +17,7 @@ step, tested against NumPy and CasADi):
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable, Mapping
+from typing import Any, Callable, Mapping
 
 import numpy as np
 import torch
@@ -124,7 +124,46 @@ class TorchStep:
     residual: torch.Tensor | None
 
 
-class S3FVIN(nn.Module):
+class LearnedModel(nn.Module):
+    """What every learned model (S³, SO(3), R³ × S³) owns: its ``config`` and ``weights``, an
+    ``nn.ParameterDict`` of float64 copies of a core weight dictionary (the names the core's terms
+    and the checkpoints use).
+
+    Args:
+        config: architecture and integration settings.
+        weights: initial weights (name → array); ``None``: ``init_weights(config, seed)``.
+        seed: seed of the default initialization.
+        init_weights, check_weights: the configuration space's functions from ``fvin_mpc.core``.
+    """
+
+    def __init__(self, config: Any, weights: Mapping[str, np.ndarray] | None, seed: int,
+                 init_weights: Callable[[Any, int], Mapping[str, np.ndarray]],
+                 check_weights: Callable[[Mapping[str, Any], Any], None]) -> None:
+        super().__init__()
+        self.config = config
+        weights = init_weights(config, seed) if weights is None else weights
+        check_weights(weights, config)
+        self.weights = nn.ParameterDict(
+            {name: nn.Parameter(torch.as_tensor(np.asarray(value), dtype=DTYPE).clone()) for name, value in weights.items()}
+        )
+
+    def numpy_weights(self) -> dict[str, np.ndarray]:
+        return {name: p.detach().cpu().numpy().copy() for name, p in self.weights.items()}
+
+
+def rollout_with_step(step: Callable[..., TorchStep], q0: torch.Tensor, omega0: torch.Tensor,
+                      controls: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``T`` calls of a step function on quaternions: ``controls (B, T, m)`` → ``q (B, T+1, 4)``,
+    ``omega (B, T+1, 3)`` (the rollout of a pivoted model whose step is replaced, e.g. compiled)."""
+    qs, omegas = [q0], [omega0]
+    for k in range(controls.shape[1]):
+        out = step(qs[-1], omegas[-1], controls[:, k])
+        qs.append(out.q)
+        omegas.append(out.omega)
+    return torch.stack(qs, dim=1), torch.stack(omegas, dim=1)
+
+
+class S3FVIN(LearnedModel):
     """Forced variational integrator network on S³ (float64).
 
     Args:
@@ -134,20 +173,11 @@ class S3FVIN(nn.Module):
     """
 
     def __init__(self, config: ModelConfig, weights: Mapping[str, np.ndarray] | None = None, seed: int = 0) -> None:
-        super().__init__()
-        self.config = config
-        weights = init_weights(config, seed) if weights is None else weights
-        check_weights(weights, config)
-        self.weights = nn.ParameterDict(
-            {name: nn.Parameter(torch.as_tensor(np.asarray(value), dtype=DTYPE).clone()) for name, value in weights.items()}
-        )
+        super().__init__(config, weights, seed, init_weights, check_weights)
         self._ops = _OPS
 
     def terms(self) -> LearnedTerms:
         return LearnedTerms(self.weights, self.config, self._ops)
-
-    def numpy_weights(self) -> dict[str, np.ndarray]:
-        return {name: p.detach().cpu().numpy().copy() for name, p in self.weights.items()}
 
     def step(self, q: torch.Tensor, omega: torch.Tensor, u: torch.Tensor, with_residual: bool = False,
              newton_iters: int | None = None) -> TorchStep:
@@ -164,12 +194,7 @@ class S3FVIN(nn.Module):
 
         ``step`` replaces :meth:`step` (e.g. a ``torch.compile``-d version of it)."""
         if step is not None:
-            qs, omegas = [q0], [omega0]
-            for k in range(controls.shape[1]):
-                out = step(qs[-1], omegas[-1], controls[:, k])
-                qs.append(out.q)
-                omegas.append(out.omega)
-            return torch.stack(qs, dim=1), torch.stack(omegas, dim=1)
+            return rollout_with_step(step, q0, omega0, controls)
         # Components stay components from step to step, so RolloutTerms can hand step k+1 what
         # step k computed at q_{k+1}.
         terms = RolloutTerms(self.terms())

@@ -1,7 +1,8 @@
 """The trainable torch R³ × S³ model (float64, batched) — a thin shell around the shared step.
 
 All math lives in :mod:`fvin_mpc.core.fvin_r3s3` and :mod:`fvin_mpc.core.networks_r3s3`; this
-module only owns the parameters and the tensor layout, like :mod:`fvin_mpc.learning.model`.
+module only owns the parameters (:class:`~fvin_mpc.learning.model.LearnedModel`) and the tensor
+layout, like :mod:`fvin_mpc.learning.model`.
 
 Training layout. :func:`fvin_mpc.learning.training`'s loss and Levenberg–Marquardt take a rollout
 ``(q0, ω0, u) → (q, ω)`` and score ``q`` by the sign-invariant orientation error and the second
@@ -18,13 +19,11 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 import torch
-from torch import nn
 
 from fvin_mpc.core import fvin_r3s3
 from fvin_mpc.core.backend import get_ops
 from fvin_mpc.core.networks_r3s3 import LearnedCombinedTerms, R3S3Config, check_weights, init_weights
-
-DTYPE = torch.float64
+from fvin_mpc.learning.model import LearnedModel
 
 
 @dataclass(frozen=True)
@@ -35,7 +34,7 @@ class TorchFreeStep:
     residual: torch.Tensor | None
 
 
-class R3S3FVIN(nn.Module):
+class R3S3FVIN(LearnedModel):
     """Forced variational integrator network on R³ × S³ (float64).
 
     Args:
@@ -47,21 +46,12 @@ class R3S3FVIN(nn.Module):
 
     def __init__(self, config: R3S3Config, weights: Mapping[str, np.ndarray] | None = None, seed: int = 0,
                  position_scale: float = 1.0, velocity_scale: float = 1.0) -> None:
-        super().__init__()
-        self.config = config
-        weights = init_weights(config, seed) if weights is None else weights
-        check_weights(weights, config)
-        self.weights = nn.ParameterDict(
-            {name: nn.Parameter(torch.as_tensor(np.asarray(value), dtype=DTYPE).clone()) for name, value in weights.items()}
-        )
+        super().__init__(config, weights, seed, init_weights, check_weights)
         self.position_scale, self.velocity_scale = float(position_scale), float(velocity_scale)
         self._ops = get_ops("torch")
 
     def terms(self) -> LearnedCombinedTerms:
         return LearnedCombinedTerms(self.weights, self.config, self._ops)
-
-    def numpy_weights(self) -> dict[str, np.ndarray]:
-        return {name: p.detach().cpu().numpy().copy() for name, p in self.weights.items()}
 
     def step_state(self, state: torch.Tensor, u: torch.Tensor, newton_iters: int | None = None) -> TorchFreeStep:
         """One step for a batch: ``state (B, 13)`` ``(x, q, v, ω)``, ``u (B, m)``."""

@@ -16,13 +16,12 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 import torch
-from torch import nn
 
 from fvin_mpc.core import fvin_so3, s3, so3
 from fvin_mpc.core.backend import get_ops
 from fvin_mpc.core.data import TrajectoryData
 from fvin_mpc.core.networks_so3 import LearnedSO3Terms, SO3ModelConfig, check_weights, init_weights
-from fvin_mpc.learning.model import DTYPE, TorchStep
+from fvin_mpc.learning.model import DTYPE, LearnedModel, TorchStep, rollout_with_step
 
 
 def matrix_components(r: torch.Tensor) -> so3.Mat3:
@@ -35,30 +34,17 @@ def matrix_tensor(r: so3.Mat3) -> torch.Tensor:
     return torch.stack([torch.stack(list(row), dim=-1) for row in r], dim=-2)
 
 
-class SO3FVIN(nn.Module):
+class SO3FVIN(LearnedModel):
     """Forced variational integrator network on SO(3) (float64), the paper's SO3FVIN baseline.
-
-    Args:
-        config: architecture and integration settings.
-        weights: initial weights (name → array); by default ``init_weights(config, seed)``.
-        seed: seed of the default initialization.
-    """
+    ``config``, ``weights``, ``seed``: as :class:`~fvin_mpc.learning.model.LearnedModel`'s, with
+    :mod:`fvin_mpc.core.networks_so3`'s initialization."""
 
     def __init__(self, config: SO3ModelConfig, weights: Mapping[str, np.ndarray] | None = None, seed: int = 0) -> None:
-        super().__init__()
-        self.config = config
-        weights = init_weights(config, seed) if weights is None else weights
-        check_weights(weights, config)
-        self.weights = nn.ParameterDict(
-            {name: nn.Parameter(torch.as_tensor(np.asarray(value), dtype=DTYPE).clone()) for name, value in weights.items()}
-        )
+        super().__init__(config, weights, seed, init_weights, check_weights)
         self._ops = get_ops("torch")
 
     def terms(self) -> LearnedSO3Terms:
         return LearnedSO3Terms(self.weights, self.config, self._ops)
-
-    def numpy_weights(self) -> dict[str, np.ndarray]:
-        return {name: p.detach().cpu().numpy().copy() for name, p in self.weights.items()}
 
     def step_rotation(self, rotation: torch.Tensor, omega: torch.Tensor, u: torch.Tensor, with_residual: bool = False,
                       newton_iters: int | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
@@ -88,12 +74,7 @@ class SO3FVIN(nn.Module):
         The rotation matrix is carried from step to step; ``step`` (e.g. a ``torch.compile``-d
         :meth:`step`) replaces that by steps on quaternions."""
         if step is not None:
-            qs, omegas = [q0], [omega0]
-            for k in range(controls.shape[1]):
-                out = step(qs[-1], omegas[-1], controls[:, k])
-                qs.append(out.q)
-                omegas.append(out.omega)
-            return torch.stack(qs, dim=1), torch.stack(omegas, dim=1)
+            return rollout_with_step(step, q0, omega0, controls)
         rotation = matrix_tensor(s3.rotation_matrix(self._ops.unstack(q0)))
         rotations, omegas = [], [omega0]
         for k in range(controls.shape[1]):

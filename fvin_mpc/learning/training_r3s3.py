@@ -57,7 +57,7 @@ def free_body_windows(model: Any, data: FreeBodyData, window: int) -> tuple[Any,
     with ``r = (s_x x, s_v v, ω)`` (:meth:`~fvin_mpc.learning.model_r3s3.R3S3FVIN.pack`)."""
     import torch
 
-    from fvin_mpc.learning.model_r3s3 import DTYPE
+    from fvin_mpc.learning.model import DTYPE
 
     states, u = data.windows(window)
     return (*model.pack(torch.as_tensor(states, dtype=DTYPE)), torch.as_tensor(u, dtype=DTYPE))
