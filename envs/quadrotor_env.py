@@ -19,8 +19,8 @@ from gymnasium import spaces
 
 from fvin_mpc.core.state import as_float_array, unit_quaternion
 
-from .rigid_body_env import _frame_skip, geodesic_angle
-from .scenes import MIN_CONTROL_PERIOD, SceneSpec, ScenePhysics, build_model, resolve_scene
+from .rigid_body_env import MujocoBodyEnv, geodesic_angle
+from .scenes import SceneSpec, ScenePhysics
 
 #: Size of the observation ``(x, q, v, ω)``.
 FREE_STATE_DIM = 13
@@ -32,7 +32,7 @@ COST_WEIGHTS = (1.0, 1.0, 0.1, 0.01, 0.01)
 _RESET_OPTIONS = frozenset({"qpos", "qvel", "hover", "max_omega", "max_speed", "max_offset"})
 
 
-class QuadrotorEnv(gymnasium.Env):
+class QuadrotorEnv(MujocoBodyEnv):
     """Bring a free-flying rotor craft to hover at a point.
 
     ## Description
@@ -121,19 +121,10 @@ class QuadrotorEnv(gymnasium.Env):
     def __init__(self, scene: str | Path | SceneSpec = "quadrotor", physics: ScenePhysics | None = None,
                  control_period: float | None = None, hover_point: Any = None, render_mode: str | None = None,
                  width: int = 480, height: int = 480) -> None:
-        spec = resolve_scene(scene)
-        self.scene_spec: SceneSpec = spec
-        self._model, self._physics = build_model(spec.xml_path, physics if physics is not None else spec.physics)
-        self._data = mujoco.MjData(self._model)
-        model = self._model
+        super().__init__(scene, physics, control_period, render_mode, width, height)
+        spec, model = self.scene_spec, self._model
         self._body_name = spec.body or "quadrotor"
         self._body_id, self._joint_id = _free_body(model, self._body_name)
-
-        timestep = float(model.opt.timestep)
-        if control_period is None:
-            control_period = spec.control_period or timestep * math.ceil(MIN_CONTROL_PERIOD / timestep - 1e-9)
-        self._frame_skip = _frame_skip(float(control_period), timestep)
-        self._dt = self._frame_skip * timestep
 
         qpos0 = np.asarray(model.qpos0, dtype=float)
         self._hover_point = (qpos0[:3].copy() if hover_point is None
@@ -144,54 +135,11 @@ class QuadrotorEnv(gymnasium.Env):
             weight = 0.0
         self._hover_thrust = np.full(model.nu, weight / max(model.nu, 1))
 
-        limited = self._physics.actuator_limits & model.actuator_ctrllimited.astype(bool)
-        low = np.where(limited, model.actuator_ctrlrange[:, 0], -np.inf)
-        high = np.where(limited, model.actuator_ctrlrange[:, 1], np.inf)
-        self.action_space = spaces.Box(low=low, high=high, dtype=np.float64)
         obs_high = np.array([np.inf] * 3 + [1.0] * 4 + [np.inf] * 6)
         self.observation_space = spaces.Box(low=-obs_high, high=obs_high, dtype=np.float64)
-
-        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
-            raise ValueError(f"render_mode must be None or one of {self.metadata['render_modes']}, got {render_mode!r}")
-        self.render_mode = render_mode
-        self.metadata = {**type(self).metadata, "render_fps": round(1.0 / self._dt)}
-        self._width, self._height = int(width), int(height)
-        self._renderer: mujoco.Renderer | None = None
-        self._camera: mujoco.MjvCamera | None = None
         self._set_joint_state(*self._hover_joint_state())
 
-    # ------------------------------------------------------------------ accessors
-    @property
-    def model(self) -> mujoco.MjModel:
-        return self._model
-
-    @property
-    def data(self) -> mujoco.MjData:
-        return self._data
-
-    @property
-    def physics(self) -> ScenePhysics:
-        """The physics declaration actually simulated."""
-        return self._physics
-
-    @property
-    def body_name(self) -> str:
-        return self._body_name
-
-    @property
-    def dt(self) -> float:
-        """Control period (s): ``frame_skip`` MuJoCo timesteps."""
-        return self._dt
-
-    @property
-    def frame_skip(self) -> int:
-        return self._frame_skip
-
-    @property
-    def goal(self) -> np.ndarray:
-        """Goal orientation (level), unit quaternion (w, x, y, z)."""
-        return self._goal.copy()
-
+    # ------------------------------------------------------------------ accessors (and MujocoBodyEnv's)
     @property
     def hover_point(self) -> np.ndarray:
         """Goal position (m), world frame."""
@@ -206,14 +154,6 @@ class QuadrotorEnv(gymnasium.Env):
     def hover_thrust(self) -> np.ndarray:
         """Per-rotor thrust that holds the level craft at rest, ``m g / nu`` each (N), ``(nu,)``."""
         return self._hover_thrust.copy()
-
-    @property
-    def torque_low(self) -> np.ndarray:
-        return self.action_space.low.copy()
-
-    @property
-    def torque_high(self) -> np.ndarray:
-        return self.action_space.high.copy()
 
     def state(self) -> np.ndarray:
         """The noise-free state ``(x, q, v, ω)`` ``(13,)`` (see the class docstring)."""
@@ -268,15 +208,7 @@ class QuadrotorEnv(gymnasium.Env):
         """One control period (``frame_skip`` MuJoCo sub-steps) under ``action``; ``substeps`` runs
         only that many sub-steps (a thrust that changes within a period, as a latency-aware closed
         loop delivers it: :func:`fvin_mpc.control.closed_loop.run_episode`)."""
-        u = as_float_array(action, (self._model.nu,), "action")
-        u = np.clip(u, self.action_space.low, self.action_space.high)
-        if substeps is not None and not 1 <= substeps <= self._frame_skip:
-            raise ValueError(f"substeps must be in [1, {self._frame_skip}], got {substeps}")
-        self._data.ctrl[:] = u
-        for _ in range(self._frame_skip if substeps is None else substeps):
-            mujoco.mj_step(self._model, self._data)
-        # mj_step leaves derived quantities (xpos, xquat, energy) at the state before the last sub-step.
-        mujoco.mj_forward(self._model, self._data)
+        u = self._advance(action, substeps)
         info = self._info()
         state = self.state()
         w_x, w_angle, w_v, w_omega, w_u = COST_WEIGHTS
@@ -286,23 +218,9 @@ class QuadrotorEnv(gymnasium.Env):
                    + w_u * float(du @ du))
         return self._observation(), reward, False, False, info
 
-    def render(self):
-        if self.render_mode is None:
-            gymnasium.logger.warn("render() called without a render_mode; create the env with render_mode='rgb_array'")
-            return None
-        if self._renderer is None:
-            self._renderer = mujoco.Renderer(self._model, height=self._height, width=self._width)
-            self._camera = mujoco.MjvCamera()
-            mujoco.mjv_defaultFreeCamera(self._model, self._camera)
-            self._camera.lookat[:] = self._hover_point
-            self._camera.azimuth, self._camera.elevation, self._camera.distance = 60.0, -20.0, 2.0
-        self._renderer.update_scene(self._data, camera=self._camera)
-        return self._renderer.render()
-
-    def close(self) -> None:
-        if self._renderer is not None:
-            self._renderer.close()
-            self._renderer = None
+    def _aim_camera(self, camera: mujoco.MjvCamera) -> None:
+        camera.lookat[:] = self._hover_point
+        camera.azimuth, camera.elevation, camera.distance = 60.0, -20.0, 2.0
 
     # ------------------------------------------------------------------ internals
     def _observation(self) -> np.ndarray:

@@ -37,7 +37,123 @@ def geodesic_angle(q: np.ndarray, p: np.ndarray) -> float:
     return 2.0 * math.atan2(math.sqrt(max(0.0, 1.0 - d * d)), d)
 
 
-class RigidBodyEnv(gymnasium.Env):
+class MujocoBodyEnv(gymnasium.Env):
+    """What the MuJoCo envs share (:class:`RigidBodyEnv`, :class:`envs.quadrotor_env.QuadrotorEnv`):
+    the scene's model built with exactly its declared physics, the control period as a whole number
+    of MuJoCo steps, the actuators as the action space, the accessors, stepping a whole or partial
+    period, rendering and closing. A subclass sets ``_body_name``, ``_body_id``, ``_goal`` and its
+    observation space, and aims the camera (:meth:`_aim_camera`)."""
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 20}
+
+    def __init__(self, scene: str | Path | SceneSpec, physics: ScenePhysics | None, control_period: float | None,
+                 render_mode: str | None, width: int, height: int) -> None:
+        spec = resolve_scene(scene)
+        self.scene_spec: SceneSpec = spec
+        self._model, self._physics = build_model(spec.xml_path, physics if physics is not None else spec.physics)
+        self._data = mujoco.MjData(self._model)
+        model = self._model
+
+        timestep = float(model.opt.timestep)
+        if control_period is None:
+            control_period = spec.control_period or timestep * math.ceil(MIN_CONTROL_PERIOD / timestep - 1e-9)
+        self._frame_skip = _frame_skip(float(control_period), timestep)
+        self._dt = self._frame_skip * timestep
+
+        limited = self._physics.actuator_limits & model.actuator_ctrllimited.astype(bool)
+        low = np.where(limited, model.actuator_ctrlrange[:, 0], -np.inf)
+        high = np.where(limited, model.actuator_ctrlrange[:, 1], np.inf)
+        self.action_space = spaces.Box(low=low, high=high, dtype=np.float64)
+
+        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
+            raise ValueError(f"render_mode must be None or one of {self.metadata['render_modes']}, got {render_mode!r}")
+        self.render_mode = render_mode
+        self.metadata = {**type(self).metadata, "render_fps": round(1.0 / self._dt)}
+        self._width, self._height = int(width), int(height)
+        self._renderer: mujoco.Renderer | None = None
+        self._camera: mujoco.MjvCamera | None = None
+
+    # ------------------------------------------------------------------ accessors
+    @property
+    def model(self) -> mujoco.MjModel:
+        return self._model
+
+    @property
+    def data(self) -> mujoco.MjData:
+        return self._data
+
+    @property
+    def physics(self) -> ScenePhysics:
+        """The physics declaration actually simulated."""
+        return self._physics
+
+    @property
+    def body_name(self) -> str:
+        return self._body_name
+
+    @property
+    def dt(self) -> float:
+        """Control period (s): ``frame_skip`` MuJoCo timesteps."""
+        return self._dt
+
+    @property
+    def frame_skip(self) -> int:
+        return self._frame_skip
+
+    @property
+    def goal(self) -> np.ndarray:
+        """Goal orientation, unit quaternion (w, x, y, z), shape ``(4,)``."""
+        return self._goal.copy()
+
+    @property
+    def torque_low(self) -> np.ndarray:
+        return self.action_space.low.copy()
+
+    @property
+    def torque_high(self) -> np.ndarray:
+        return self.action_space.high.copy()
+
+    # ------------------------------------------------------------------ stepping, rendering
+    def _advance(self, action: Any, substeps: int | None) -> np.ndarray:
+        """Apply ``action`` (clipped to the action space; returned) for one control period
+        (``frame_skip`` MuJoCo sub-steps) or for ``substeps`` of them."""
+        u = as_float_array(action, (self._model.nu,), "action")
+        u = np.clip(u, self.action_space.low, self.action_space.high)
+        if substeps is not None and not 1 <= substeps <= self._frame_skip:
+            raise ValueError(f"substeps must be in [1, {self._frame_skip}], got {substeps}")
+        self._data.ctrl[:] = u
+        for _ in range(self._frame_skip if substeps is None else substeps):
+            mujoco.mj_step(self._model, self._data)
+        # mj_step leaves positions/velocities-derived quantities (xpos, xquat, cvel, energy) at the
+        # state *before* the last substep; bring them up to date.
+        mujoco.mj_forward(self._model, self._data)
+        return u
+
+    def _aim_camera(self, camera: mujoco.MjvCamera) -> None:
+        """Point the free camera (MuJoCo's default one on entry) at the task."""
+        raise NotImplementedError
+
+    def render(self):
+        if self.render_mode is None:
+            gymnasium.logger.warn(
+                "render() called without a render_mode; create the env with render_mode='rgb_array'"
+            )
+            return None
+        if self._renderer is None:
+            self._renderer = mujoco.Renderer(self._model, height=self._height, width=self._width)
+            self._camera = mujoco.MjvCamera()
+            mujoco.mjv_defaultFreeCamera(self._model, self._camera)
+            self._aim_camera(self._camera)
+        self._renderer.update_scene(self._data, camera=self._camera)
+        return self._renderer.render()
+
+    def close(self) -> None:
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None
+
+
+class RigidBodyEnv(MujocoBodyEnv):
     """Bring a rigid body on an actuated hinge or ball joint to a goal orientation.
 
     ## Description
@@ -163,22 +279,13 @@ class RigidBodyEnv(gymnasium.Env):
         width: int = 480,
         height: int = 480,
     ) -> None:
-        spec = resolve_scene(scene)
-        self.scene_spec: SceneSpec = spec
-        self._model, self._physics = build_model(spec.xml_path, physics if physics is not None else spec.physics)
-        self._data = mujoco.MjData(self._model)
-        model = self._model
+        super().__init__(scene, physics, control_period, render_mode, width, height)
+        spec, model = self.scene_spec, self._model
 
         body = body or spec.body or _only_jointed_body(model)
         self._body_id, self._joint_id = _validate_body_and_joint(model, body)
         self._body_name = body
         self._joint_type = _JOINT_TYPES[int(model.jnt_type[self._joint_id])]
-
-        timestep = float(model.opt.timestep)
-        if control_period is None:
-            control_period = spec.control_period or timestep * math.ceil(MIN_CONTROL_PERIOD / timestep - 1e-9)
-        self._frame_skip = _frame_skip(float(control_period), timestep)
-        self._dt = self._frame_skip * timestep
 
         derived_goal, self._rest_qpos = self._task_from_potential()
         derived_goal = _canonical_sign(derived_goal)
@@ -189,57 +296,14 @@ class RigidBodyEnv(gymnasium.Env):
         self._set_joint_state(self._rest_qpos, np.zeros(model.nv))
         self._rest = self._data.xquat[self._body_id].copy()
 
-        limited = self._physics.actuator_limits & model.actuator_ctrllimited.astype(bool)
-        low = np.where(limited, model.actuator_ctrlrange[:, 0], -np.inf)
-        high = np.where(limited, model.actuator_ctrlrange[:, 1], np.inf)
-        self.action_space = spaces.Box(low=low, high=high, dtype=np.float64)
         obs_high = np.array([1.0] * 4 + [np.inf] * 3)
         self.observation_space = spaces.Box(low=-obs_high, high=obs_high, dtype=np.float64)
 
-        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
-            raise ValueError(f"render_mode must be None or one of {self.metadata['render_modes']}, got {render_mode!r}")
-        self.render_mode = render_mode
-        self.metadata = {**type(self).metadata, "render_fps": round(1.0 / self._dt)}
-        self._width, self._height = int(width), int(height)
-        self._renderer: mujoco.Renderer | None = None
-        self._camera: mujoco.MjvCamera | None = None
-
     # ------------------------------------------------------------------ accessors
-    @property
-    def model(self) -> mujoco.MjModel:
-        return self._model
-
-    @property
-    def data(self) -> mujoco.MjData:
-        return self._data
-
-    @property
-    def physics(self) -> ScenePhysics:
-        """The physics declaration actually simulated."""
-        return self._physics
-
-    @property
-    def body_name(self) -> str:
-        return self._body_name
-
     @property
     def joint_type(self) -> str:
         """``"hinge"`` or ``"ball"``."""
         return self._joint_type
-
-    @property
-    def dt(self) -> float:
-        """Control period (s): ``frame_skip`` MuJoCo timesteps."""
-        return self._dt
-
-    @property
-    def frame_skip(self) -> int:
-        return self._frame_skip
-
-    @property
-    def goal(self) -> np.ndarray:
-        """Goal orientation, unit quaternion (w, x, y, z), shape ``(4,)``."""
-        return self._goal.copy()
 
     @property
     def joint_axis(self) -> np.ndarray | None:
@@ -264,14 +328,6 @@ class RigidBodyEnv(gymnasium.Env):
     def goal_qpos(self) -> np.ndarray:
         """The joint position of :attr:`goal` (a hinge: the angle about its axis nearest to it)."""
         return self._qpos_of_orientation(self._goal)
-
-    @property
-    def torque_low(self) -> np.ndarray:
-        return self.action_space.low.copy()
-
-    @property
-    def torque_high(self) -> np.ndarray:
-        return self.action_space.high.copy()
 
     def state(self) -> np.ndarray:
         """The noise-free state ``x = (q, ω)`` ``(7,)``: body orientation (w, x, y, z), body-frame ω."""
@@ -373,42 +429,17 @@ class RigidBodyEnv(gymnasium.Env):
         """One control period (``frame_skip`` MuJoCo sub-steps) under ``action``; ``substeps`` runs
         only that many sub-steps (a torque that changes within a period, as a latency-aware closed
         loop delivers it: :func:`fvin_mpc.control.closed_loop.run_episode`)."""
-        u = as_float_array(action, (self._model.nu,), "action")
-        u = np.clip(u, self.action_space.low, self.action_space.high)
-        if substeps is not None and not 1 <= substeps <= self._frame_skip:
-            raise ValueError(f"substeps must be in [1, {self._frame_skip}], got {substeps}")
-        self._data.ctrl[:] = u
-        for _ in range(self._frame_skip if substeps is None else substeps):
-            mujoco.mj_step(self._model, self._data)
-        # mj_step leaves positions/velocities-derived quantities (xquat, cvel, energy) at the
-        # state *before* the last substep; bring them up to date.
-        mujoco.mj_forward(self._model, self._data)
+        u = self._advance(action, substeps)
         q, omega = split_state(self.state())
         angle = geodesic_angle(q, self._goal)
         w_angle, w_omega, w_u = COST_WEIGHTS
         reward = -(w_angle * angle**2 + w_omega * float(omega @ omega) + w_u * float(u @ u))
         return self._observation(), reward, False, False, self._info(angle)
 
-    def render(self):
-        if self.render_mode is None:
-            gymnasium.logger.warn(
-                "render() called without a render_mode; create the env with render_mode='rgb_array'"
-            )
-            return None
-        if self._renderer is None:
-            self._renderer = mujoco.Renderer(self._model, height=self._height, width=self._width)
-            self._camera = mujoco.MjvCamera()
-            mujoco.mjv_defaultFreeCamera(self._model, self._camera)
-            self._camera.lookat[:] = self._data.xpos[self._body_id]
-            self._camera.azimuth, self._camera.elevation = 90.0, -15.0
-            self._camera.distance = 1.5 * float(self._model.stat.extent)
-        self._renderer.update_scene(self._data, camera=self._camera)
-        return self._renderer.render()
-
-    def close(self) -> None:
-        if self._renderer is not None:
-            self._renderer.close()
-            self._renderer = None
+    def _aim_camera(self, camera: mujoco.MjvCamera) -> None:
+        camera.lookat[:] = self._data.xpos[self._body_id]
+        camera.azimuth, camera.elevation = 90.0, -15.0
+        camera.distance = 1.5 * float(self._model.stat.extent)
 
     # ------------------------------------------------------------------ internals
     def _observation(self) -> np.ndarray:
