@@ -421,7 +421,6 @@ def _claims(rows: list[dict], curves2: dict[str, Any]) -> list[dict[str, str]]:
         return "—" if x is None else f"{x:.3g}"
 
     ratio = si["gain_scaled_mean"] / so3m["gain_scaled_mean"]
-    s3_energy = {r["model"]: r["energy_err_max"] for r in (si, fi, pl)}
     learned_energy = {r["model"]: r["energy_err_max"] for r in (si, fi, pl, so3m, so3q)}
     iters = {r["model"]: r["lm_iterations_to_target"] for r in (si, fi, pl, so3m, so3q)}
     reached = {k: v for k, v in iters.items() if v is not None}
