@@ -110,13 +110,23 @@ def checkpoint_settings(model: PaperModel) -> Any:
     return reference_settings() if model.space == "S3" else TrainSettings(seed=0, threads=1)
 
 
+def pendulum_data(progress: bool = True) -> Any:
+    """:data:`DATA`, collected first (as ``python -m fvin_mpc.collect --seed 0`` does) if it is absent:
+    a fresh clone has no ``data/``."""
+    from fvin_mpc.core.data import load_data, save_data
+    from fvin_mpc.learning.collection import collect
+
+    if not DATA.exists():
+        save_data(DATA, collect("pendulum", seed=0, progress=progress))
+    return load_data(DATA)
+
+
 def train_missing_checkpoints(progress: bool = True) -> list[str]:
     """Train (with :func:`checkpoint_settings`) and save every checkpoint of :data:`MODELS` not there."""
     from fvin_mpc.core.checkpoint import CHECKPOINT_DIR, checkpoint_exists, save_checkpoint
-    from fvin_mpc.core.data import load_data
     from fvin_mpc.learning.training import package_versions
 
-    data = load_data(DATA)
+    data = pendulum_data(progress)
     trained = []
     for model in MODELS:
         if checkpoint_exists(model.checkpoint):
@@ -172,11 +182,10 @@ def training_curves(settings: CurveSettings, cache: Path | None, models: tuple[P
     (``cpu_s``) besides ``train``'s wall clock, and the load average around it."""
     from tqdm.auto import tqdm
 
-    from fvin_mpc.core.data import load_data
     from fvin_mpc.learning.training import TrainSettings
 
     stored: dict[str, dict[str, Any]] = json.loads(cache.read_text()) if cache is not None and cache.exists() else {}
-    data = curve_data(load_data(DATA), settings.trajectories)
+    data = curve_data(pendulum_data(progress), settings.trajectories)
     jobs = [(m, s) for m in models for s in settings.seeds]
     for model, seed in tqdm(jobs, desc="paper: training runs", disable=not progress):
         key = settings.key(model, seed)
@@ -549,7 +558,6 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 5, seeds: str = "0,1,
         iterations: int = 30, optimizer: str = "lm", curves: Path | None = None, train_missing: bool = False,
         horizon: float = 200.0, progress: bool = True, **_: Any) -> StudyResult:
     from fvin_mpc.core.checkpoint import checkpoint_exists
-    from fvin_mpc.core.data import load_data
 
     if train_missing:
         train_missing_checkpoints(progress)
@@ -568,7 +576,7 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 5, seeds: str = "0,1,
     rows, curves1 = _figure1_rows(theta, starts, steps, progress)
     curves1["starts"] = starts.tolist()
     runs = training_curves(settings, curves, progress=progress)
-    curves2 = _figure2(rows, runs, settings, curve_data(load_data(DATA), settings.trajectories), repeats)
+    curves2 = _figure2(rows, runs, settings, curve_data(pendulum_data(progress), settings.trajectories), repeats)
     claims = _claims(rows, curves2)
     from fvin_mpc.studies.report import markdown_table
 
