@@ -25,36 +25,39 @@ if TYPE_CHECKING:
     from fvin_mpc.core.free_body_data import FreeBodyData
 
 
-def random_joint_state(env: Any, rng: np.random.Generator, max_omega: float) -> tuple[np.ndarray, np.ndarray]:
-    """A uniformly random ``(qpos, qvel)`` for the env's single hinge or ball joint."""
+def _joint_kind(env: Any) -> str:
+    """``"hinge"`` or ``"ball"``: the env's single joint, the only kinds the collector samples."""
     model = env.unwrapped.model
     if model.nq == 1 and model.nv == 1:
-        return rng.uniform(-np.pi, np.pi, size=1), rng.uniform(-max_omega, max_omega, size=1)
+        return "hinge"
     if model.nq == 4 and model.nv == 3:
-        quaternion = rng.normal(size=4)
-        quaternion /= np.linalg.norm(quaternion)
-        direction = rng.normal(size=3)
-        direction /= np.linalg.norm(direction)
-        return quaternion, direction * max_omega * rng.uniform() ** (1 / 3)
+        return "ball"
     raise ValueError(f"expected one hinge (nq=nv=1) or ball joint (nq=4, nv=3), got nq={model.nq}, nv={model.nv}")
+
+
+def random_joint_state(env: Any, rng: np.random.Generator, max_omega: float) -> tuple[np.ndarray, np.ndarray]:
+    """A uniformly random ``(qpos, qvel)`` for the env's single hinge or ball joint."""
+    if _joint_kind(env) == "hinge":
+        return rng.uniform(-np.pi, np.pi, size=1), rng.uniform(-max_omega, max_omega, size=1)
+    quaternion = rng.normal(size=4)
+    quaternion /= np.linalg.norm(quaternion)
+    direction = rng.normal(size=3)
+    direction /= np.linalg.norm(direction)
+    return quaternion, direction * max_omega * rng.uniform() ** (1 / 3)
 
 
 def near_goal_joint_state(env: Any, rng: np.random.Generator, max_angle: float,
                           max_omega: float) -> tuple[np.ndarray, np.ndarray]:
     """A random ``(qpos, qvel)`` within ``max_angle`` rad of the env's goal, each ``|ω_i| ≤ max_omega``."""
-    model = env.unwrapped.model
-    if model.nq == 4 and model.nv == 3:
-        axis = rng.normal(size=3)
-        axis /= np.linalg.norm(axis)
-        half = 0.5 * rng.uniform(0.0, max_angle)
-        offset = np.concatenate([[np.cos(half)], np.sin(half) * axis])
-        goal = np.asarray(env.unwrapped.goal_qpos, dtype=np.float64)
-        return np.asarray(s3.multiply(tuple(goal), tuple(offset)), dtype=np.float64), \
-            rng.uniform(-max_omega, max_omega, size=3)
-    if model.nq == 1 and model.nv == 1:
-        goal = float(np.asarray(env.unwrapped.goal_qpos, dtype=np.float64).ravel()[0])
-        return np.array([goal + rng.uniform(-max_angle, max_angle)]), rng.uniform(-max_omega, max_omega, size=1)
-    raise ValueError(f"expected one hinge (nq=nv=1) or ball joint (nq=4, nv=3), got nq={model.nq}, nv={model.nv}")
+    goal = np.asarray(env.unwrapped.goal_qpos, dtype=np.float64)
+    if _joint_kind(env) == "hinge":
+        return np.array([goal[0] + rng.uniform(-max_angle, max_angle)]), rng.uniform(-max_omega, max_omega, size=1)
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    half = 0.5 * rng.uniform(0.0, max_angle)
+    offset = np.concatenate([[np.cos(half)], np.sin(half) * axis])
+    return np.asarray(s3.multiply(tuple(goal), tuple(offset)), dtype=np.float64), \
+        rng.uniform(-max_omega, max_omega, size=3)
 
 
 def control_sequence(rng: np.random.Generator, low: np.ndarray, high: np.ndarray, steps: int,
