@@ -131,13 +131,6 @@ class MPCSettings:
             linearization and the update on S³: one C call per iteration), ``"hpipm"`` (HPIPM through
             ``casadi.conic`` on the stage-wise sparse QP), ``"qrqp"`` or ``"osqp"`` (CasADi's, same QP).
         rti_qp_iterations: interior-point iterations of ``rti_qp_solver="riccati"``.
-        rti_leading_jacobians: ``solver="rti"``, ``rti_qp_solver="riccati"``: each preparation
-            re-evaluates the dynamics Jacobians of only the first this many stages and of the new
-            last one; every other stage keeps the Jacobian it had, shifted by one stage (inexact-
-            Jacobian RTI; the gaps, the cost terms and the first stages stay exact). ``0``: every
-            stage, every time (the exact Gauss–Newton RTI).
-        rti_rolling_jacobians: … and this many more stages in turn, so that no stage's Jacobian is
-            older than ``⌈(N − 1 − rti_leading_jacobians) / rti_rolling_jacobians⌉`` preparations.
         disturbance_gain: ``solver="rti"`` only: gain ``α`` of the offset-free estimator of a constant
             input disturbance ``d`` (``x⁺ = F(x, u + d)``); ``0`` switches it off.
         disturbance_region_rad: … updated only within this angle of the reference attitude (rad) …
@@ -189,8 +182,6 @@ class MPCSettings:
     rti_omega_penalty: float = 100.0
     rti_qp_solver: Literal["riccati", "hpipm", "qrqp", "osqp"] = "riccati"
     rti_qp_iterations: int = 10
-    rti_leading_jacobians: int = 0
-    rti_rolling_jacobians: int = 0
     disturbance_gain: float = 0.5
     disturbance_region_rad: float = 0.5
     disturbance_region_speed: float = 1.0
@@ -227,9 +218,6 @@ class MPCSettings:
             raise ValueError(f"unknown rti_cold_solver {self.rti_cold_solver!r}")
         if self.orientation_residual not in ("projector", "rotation-vector"):
             raise ValueError(f"unknown orientation_residual {self.orientation_residual!r}")
-        if self.rti_leading_jacobians < 0 or self.rti_rolling_jacobians < 0:
-            raise ValueError("rti_leading_jacobians and rti_rolling_jacobians must be >= 0, got "
-                             f"{self.rti_leading_jacobians}, {self.rti_rolling_jacobians}")
         if self.rti_qp_iterations < 1:
             raise ValueError(f"rti_qp_iterations must be >= 1, got {self.rti_qp_iterations}")
         if self.rti_qp_solver not in ("riccati", "hpipm", "qrqp", "osqp"):

@@ -62,6 +62,7 @@ from typing import Any, Protocol
 import casadi as ca
 import numpy as np
 
+from fvin_mpc.control.buffered import BufferedFunction
 from fvin_mpc.control.export import ExportedModel, compile_functions
 from fvin_mpc.control.mpc import MPC, MPCSettings, _Plan
 from fvin_mpc.core import s3
@@ -434,6 +435,8 @@ class RealTimeMPC(MPC):
             compiled, self.compile_report = compile_functions(
                 functions, prefix=re.sub(r"[^0-9A-Za-z_]", "_", f"rti_{self.model.name}"))
             functions = [compiled[function.name()] for function in functions]
+        if riccati:  # every argument of the Riccati path is dense: call through buffers, not DMs
+            functions = [BufferedFunction(function) for function in functions]
         self._linearize, self._predict = functions[:2]
         self._feedback = functions[2] if riccati else None
         self._qp = None if riccati else self._make_qp(hessian.sparsity(), constraints.sparsity())
@@ -494,15 +497,15 @@ class RealTimeMPC(MPC):
                 self._linearization = None
         self._time = float(t)
 
-    def _sample_reference(self) -> tuple[float, np.ndarray, np.ndarray, ca.DM]:
-        """``(time, states (N+1, n), scales (N,), states as the linearization's DM input)`` of the
-        reference over the horizon from now (cached; the DM spares a conversion per call)."""
+    def _sample_reference(self) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
+        """``(time, states (N+1, n), scales (N,), states as the linearization's input (n, N+1))`` of
+        the reference over the horizon from now (cached)."""
         cache = getattr(self, "_reference_cache", None)
         if cache is None or not (self._reference.constant or cache[0] == self._time):
             n = self.horizon
             states, scales = self._reference(self._time + self.model.step_size * np.arange(n + 1))
             states = np.asarray(states, dtype=float).reshape(n + 1, self.layout.state_dim)
-            cache = (self._time, states, np.asarray(scales, dtype=float).reshape(n + 1)[:n], ca.DM(states.T))
+            cache = (self._time, states, np.asarray(scales, dtype=float).reshape(n + 1)[:n], states.T)
             self._reference_cache = cache
         return cache
 
@@ -523,7 +526,7 @@ class RealTimeMPC(MPC):
         cached = getattr(self, "_targets_cache", None)
         if cached is None or cached[0] != key:  # u_s changes only with the time and d̂: convert once
             targets = np.clip(scales[:, None] * self._u_goal - self.disturbance, self.torque_low, self.torque_high)
-            cached = self._targets_cache = (key, ca.DM(targets.T))
+            cached = self._targets_cache = (key, targets.T)
         return self._linearize(plan.states.T, plan.controls.T, references, self.disturbance, cached[1])
 
     def _first_guess(self, x0: np.ndarray, start: str) -> _Plan:
