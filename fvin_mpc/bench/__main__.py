@@ -23,6 +23,7 @@ STUDIES = {
     "solver": "fvin_mpc.studies.bench.solver",
     "sim": "fvin_mpc.studies.bench.sim",
     "paper": "fvin_mpc.studies.bench.paper",
+    "data-efficiency": "fvin_mpc.studies.data_efficiency",
 }
 
 

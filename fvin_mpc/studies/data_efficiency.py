@@ -1,0 +1,535 @@
+"""``data-efficiency``: how much data does control need? (issue 14)
+
+Models are trained on growing numbers of transitions (``--sizes``), several draws each
+(``--seeds``), and every trained model is judged three ways:
+
+- **held-out rollout error** — open-loop rollouts of 1 s (``TEST_STEPS`` periods) from the
+  initial states of a test set collected with another seed, under its recorded controls; the
+  geodesic angle error at the end (rad, mean over trajectories) and the 8-step rollout loss the
+  training minimizes;
+- **closed loop** — the scene's IPOPT MPC (the evaluation's controller: scene settings, terminal
+  energy-deficit cost, multi-start cold solves) on the MuJoCo ``pendulum`` scene from the same
+  starts for every model (:func:`fvin_mpc.studies.starts.episode_starts`: hanging at rest, then
+  seeded random states, ``|ω₀| ≤ 2``), 10 s each; success and accumulated cost as
+  :func:`fvin_mpc.control.closed_loop.episode_metrics` defines them;
+- **Pendulum-v1** — the benchmark's MPC (:func:`fvin_mpc.studies.pendulum_v1.benchmark_settings`)
+  on ``gymnasium.make("Pendulum-v1")``, mean return over seeds ``0 … v1_episodes − 1``.
+
+The closed-form model (the rod read off the MJCF, same step, same MPC) runs on the same starts:
+costs are reported relative to it. Closed loops run in the *waiting* latency mode
+(``latency="none"``): these are model-quality figures, not real-time ones.
+
+Models: the S3FVIN variants (``sign-invariant``, ``fixed-inertia``, ``plain``) and ``mlp``, the
+unstructured baseline of :mod:`fvin_mpc.learning.mlp_baseline` (increment of ``(q, ω)``,
+sign-equivariant, hidden width 16: 535 parameters against the S3FVIN's 590), trained by the same
+loop on the same windows with the same settings. The MLP has no energy: its MPC's terminal
+energy-deficit term uses the closed-form energy (privileged information that favours it).
+
+Data: one pool of ``--pool`` transitions (default 20,000) in trajectories of 10 periods (seed
+``--seed``; the package's collector and its defaults otherwise), collected once; the training set of ``n`` transitions for draw ``r`` is the
+first ``n / steps`` *whole* trajectories of a permutation seeded by ``(seed, r)`` — whole
+trajectories keep every window valid, and the sets of one draw are nested. Draw ``r`` also seeds
+the training. Everything is cached per cell (model × size × draw) under ``--cache-dir``: a run
+that is stopped resumes where it was.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import time
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from fvin_mpc.studies.report import StudyResult
+
+S3FVIN_VARIANTS: tuple[str, ...] = ("sign-invariant", "fixed-inertia", "plain")
+MLP = "mlp"
+CLOSED_FORM = "closed-form"
+MODELS: tuple[str, ...] = (*S3FVIN_VARIANTS, MLP)
+DEFAULT_SIZES = "250,500,1000,2000,5000,10000,20000"
+DEFAULT_MODELS = "sign-invariant,mlp"
+#: Periods of the held-out rollouts (1 s at h = 0.05).
+TEST_STEPS = 20
+TEST_TRAJECTORIES = 100
+#: The test set's collection seed is the study's seed plus this (a different stream from the pool's).
+TEST_SEED_OFFSET = 10_000
+#: A learned model's closed-loop cost "matches" the closed form's within this relative excess.
+COST_TOLERANCE = 0.02
+#: Training settings shared by every model. Patience 5 (the package default is 2): the MLP's
+#: first Levenberg–Marquardt iterations often improve the validation loss by less than 1 %, and
+#: the default would stop it after three; the S3FVIN gets the same patience.
+PATIENCE = 5
+
+
+@dataclass(frozen=True)
+class StudyConfig:
+    """One study run (see the module docstring)."""
+
+    sizes: tuple[int, ...]
+    draws: tuple[int, ...]
+    models: tuple[str, ...]
+    seed: int = 0
+    episodes: int = 10
+    duration_s: float = 10.0
+    v1_episodes: int = 10
+    trajectory_steps: int = 10
+    pool_transitions: int | None = None  # None: max(sizes)
+    test_trajectories: int = TEST_TRAJECTORIES
+    compile: str = "cached"
+    horizon: int | None = None  # None: the scene's
+    iterations: int | None = None  # None: the optimizer's default bound (early stopping ends sooner)
+    jacobian_windows: int = 128
+    cache_dir: Path = Path("data/data-efficiency")
+    #: MPCSettings fields changed for both MPCs (the quick path caps IPOPT's iterations).
+    mpc_overrides: tuple[tuple[str, Any], ...] = ()
+
+    def __post_init__(self) -> None:
+        unknown = [m for m in self.models if m not in MODELS]
+        if unknown or not self.models:
+            raise ValueError(f"unknown models {unknown}; choose from {', '.join(MODELS)}")
+        if not self.sizes or not self.draws:
+            raise ValueError("need at least one size and one seed")
+        for size in self.sizes:
+            if size <= 0 or size % self.trajectory_steps:
+                raise ValueError(f"size {size} is not a positive multiple of the trajectory length "
+                                 f"{self.trajectory_steps} (training sets are whole trajectories)")
+        if self.pool_size < max(self.sizes) or self.pool_size % self.trajectory_steps:
+            raise ValueError(f"the pool ({self.pool_size} transitions) must hold the largest size and be whole trajectories")
+        if self.trajectory_steps < 8:
+            raise ValueError("trajectories need at least 8 periods (the training windows' length)")
+        if self.episodes < 1 or self.v1_episodes < 0 or self.duration_s <= 0:
+            raise ValueError("need episodes >= 1, v1_episodes >= 0 and a positive duration")
+        if self.compile not in ("cached", "none"):
+            raise ValueError(f"unknown compile mode {self.compile!r}")
+
+    @property
+    def pool_size(self) -> int:
+        return max(self.sizes) if self.pool_transitions is None else self.pool_transitions
+
+    def evaluation_fingerprint(self) -> dict[str, Any]:
+        """What a cached cell's closed-loop and Pendulum-v1 figures depend on (besides its model)."""
+        fingerprint = {"seed": self.seed, "episodes": self.episodes, "duration_s": self.duration_s,
+                       "v1_episodes": self.v1_episodes, "horizon": self.horizon,
+                       "test_trajectories": self.test_trajectories}
+        if self.mpc_overrides:
+            fingerprint["mpc_overrides"] = [list(pair) for pair in self.mpc_overrides]
+        return fingerprint
+
+    def training_fingerprint(self) -> dict[str, Any]:
+        return {"seed": self.seed, "trajectory_steps": self.trajectory_steps, "pool": self.pool_size,
+                "iterations": self.iterations, "jacobian_windows": self.jacobian_windows, "patience": PATIENCE}
+
+
+# ---------------------------------------------------------------------------- data
+def pool_path(config: StudyConfig) -> Path:
+    return config.cache_dir / f"pool_seed{config.seed}_{config.pool_size}x{config.trajectory_steps}.npz"
+
+
+def test_path(config: StudyConfig) -> Path:
+    return config.cache_dir / f"test_seed{config.seed + TEST_SEED_OFFSET}_{config.test_trajectories}x{TEST_STEPS}.npz"
+
+
+def _collected(path: Path, trajectories: int, steps: int, seed: int, progress: bool) -> Any:
+    """The data at ``path``, collected on the ``pendulum`` scene (the package's collector and its
+    defaults: uniform states, ``|ω₀| ≤ 6``, constant or piecewise-constant torques) if absent."""
+    from fvin_mpc.core.data import load_data, save_data
+    from fvin_mpc.learning.collection import collect
+
+    if not path.exists():
+        save_data(path, collect("pendulum", trajectories=trajectories, steps=steps, seed=seed, progress=progress))
+    return load_data(path)
+
+
+def training_pool(config: StudyConfig, progress: bool = True) -> Any:
+    return _collected(pool_path(config), config.pool_size // config.trajectory_steps, config.trajectory_steps,
+                      config.seed, progress)
+
+
+def test_set(config: StudyConfig, progress: bool = True) -> Any:
+    return _collected(test_path(config), config.test_trajectories, TEST_STEPS, config.seed + TEST_SEED_OFFSET, progress)
+
+
+def training_subset(pool: Any, transitions: int, draw: int, seed: int) -> Any:
+    """``transitions`` transitions of ``pool`` as whole trajectories: the first ``transitions / T``
+    of a permutation seeded by ``(seed, draw)`` (nested over sizes for one draw)."""
+    steps = pool.u.shape[1]
+    if transitions % steps or not 0 < transitions <= pool.num_transitions:
+        raise ValueError(f"{transitions} transitions are not whole trajectories of {steps} periods within the "
+                         f"pool's {pool.num_transitions}")
+    order = np.random.default_rng([seed, draw]).permutation(pool.num_trajectories)
+    return pool.subset(np.sort(order[: transitions // steps]))
+
+
+# ---------------------------------------------------------------------------- models
+def train_settings(config: StudyConfig, draw: int) -> Any:
+    from fvin_mpc.learning.training import TrainSettings
+
+    return TrainSettings(seed=draw, threads=1, patience=PATIENCE, iterations=config.iterations,
+                         jacobian_windows=config.jacobian_windows)
+
+
+def train_cell_model(model: str, data: Any, config: StudyConfig, draw: int, stem: Path,
+                     progress: bool = False) -> dict[str, Any]:
+    """Train ``model`` on ``data``, save it at ``stem`` (checkpoint, or the MLP's files); the training report."""
+    if model == MLP:
+        from fvin_mpc.learning.mlp_baseline import MLPConfig, save_mlp, train_mlp
+
+        trained, report = train_mlp(data, MLPConfig(hidden_width=16, step_size=data.control_period), train_settings(config, draw),
+                                    progress=progress)
+        save_mlp(stem, trained.config, trained.numpy_weights(), transitions=data.num_transitions)
+    else:
+        from fvin_mpc.core.checkpoint import save_checkpoint
+        from fvin_mpc.core.networks import ModelConfig
+        from fvin_mpc.learning.training import train
+
+        trained, report = train(data, ModelConfig(variant=model, step_size=data.control_period),
+                                train_settings(config, draw), progress=progress)
+        save_checkpoint(stem, trained.config, trained.numpy_weights(), scene="pendulum", body="pendulum",
+                        data={"transitions": data.num_transitions, "draw": draw})
+    return {key: report[key] for key in ("iterations", "stopped", "final_train_loss", "final_validation_loss",
+                                         "wall_clock_s", "train_windows", "validation_windows")}
+
+
+def export_cell_model(model: str, stem: Path | None, env: Any) -> Any:
+    """The :class:`~fvin_mpc.control.export.ExportedModel` of a cell (``closed-form``: the MJCF's rod)."""
+    from fvin_mpc.control.scene import scene_model
+
+    if model == CLOSED_FORM:
+        return scene_model(env, true_model=True)
+    if model == MLP:
+        from fvin_mpc.core.rigid_body import from_mujoco
+        from fvin_mpc.learning.mlp_baseline import export_mlp, load_mlp
+
+        mlp_config, weights = load_mlp(stem)
+        base = env.unwrapped
+        return export_mlp(weights, mlp_config, from_mujoco(base.model, base.body_name), name=stem.name)
+    from fvin_mpc.control.export import from_checkpoint
+
+    return from_checkpoint(stem)
+
+
+# ---------------------------------------------------------------------------- measurements
+def rollout_errors(model: Any, test: Any) -> dict[str, float]:
+    """Open-loop rollouts of ``model`` (an ExportedModel) over the test trajectories: the geodesic
+    angle error (rad) after all steps (mean, max over trajectories), the angular-velocity error
+    there (RMS, rad/s), and the training loss (8-step windows, ``ω`` weight 0.1) on the test set."""
+    finals, speeds, window_losses = [], [], []
+    states = np.concatenate([test.q, test.omega], axis=-1)
+    for x_true, controls in zip(states, test.u):
+        predicted = model.rollout(x_true[0], controls)
+        alignment = np.clip(np.abs(np.sum(predicted[:, :4] * x_true[:, :4], axis=-1)), 0.0, 1.0)
+        finals.append(2.0 * math.acos(alignment[-1]))
+        speeds.append(float(np.sum((predicted[-1, 4:] - x_true[-1, 4:]) ** 2)))
+        # the training loss on the windows of 8 steps starting every 4 periods
+        for start in range(0, controls.shape[0] - 8 + 1, 4):
+            window = model.rollout(x_true[start], controls[start:start + 8])
+            truth = x_true[start:start + 9]
+            cos = np.sum(window[1:, :4] * truth[1:, :4], axis=-1)
+            window_losses.append(float(np.mean(4.0 * (1.0 - cos**2) + 0.1 * np.sum((window[1:, 4:] - truth[1:, 4:]) ** 2, -1))))
+    finals_array = np.array(finals)
+    finite = np.isfinite(finals_array)
+    return {"angle_error_1s_mean_rad": float(finals_array[finite].mean()) if finite.any() else math.nan,
+            "angle_error_1s_max_rad": float(finals_array.max()),
+            "omega_error_1s_rms": float(math.sqrt(np.mean(speeds))),
+            "test_window_loss": float(np.mean(window_losses)) if window_losses else math.nan}
+
+
+def closed_loop(model: Any, env: Any, config: StudyConfig, progress: bool = False) -> dict[str, Any]:
+    """The scene's MPC on ``model`` over the study's starts (waiting latency mode)."""
+    from fvin_mpc.control.closed_loop import episode_metrics, run_episode
+    from fvin_mpc.control.scene import scene_mpc, scene_mpc_settings
+    from fvin_mpc.studies.evaluation import DEFAULT_MAX_OMEGA
+    from fvin_mpc.studies.starts import episode_starts
+
+    overrides = {"compile": config.compile, "horizon": config.horizon, **dict(config.mpc_overrides)}
+    start = time.perf_counter()
+    controller = scene_mpc(env, model, scene_mpc_settings(env, **overrides))
+    build_s = time.perf_counter() - start
+    episodes = []
+    for episode_start in episode_starts(config.episodes, config.seed, (DEFAULT_MAX_OMEGA,)):
+        episode, _ = run_episode(env, controller, config.duration_s, episode_start.reset_options,
+                                 seed=episode_start.seed, latency="none")
+        metrics = episode_metrics(episode)
+        episodes.append({"index": episode_start.index, "success": metrics["success"],
+                         "cost": metrics["accumulated_cost"], "time_to_upright_s": metrics["time_to_upright_s"],
+                         "failures": metrics["controller_failures"]})
+    costs = np.array([e["cost"] for e in episodes])
+    return {"build_s": build_s, "successes": int(sum(e["success"] for e in episodes)), "episodes": len(episodes),
+            "cost_mean": float(costs.mean()), "failures": int(sum(e["failures"] for e in episodes)),
+            "per_episode": episodes}
+
+
+def pendulum_v1_returns(model: Any, env: Any, config: StudyConfig) -> dict[str, Any]:
+    """The Pendulum-v1 benchmark's MPC on ``model`` on ``gymnasium.make("Pendulum-v1")``, seeds
+    ``0 … v1_episodes − 1``."""
+    if config.v1_episodes == 0:
+        return {"episodes": 0, "return_mean": None, "returns": []}
+    import gymnasium
+
+    from fvin_mpc.control.scene import scene_mpc
+    from fvin_mpc.studies.pendulum_v1 import benchmark_settings, run_v1_episode
+
+    settings = benchmark_settings() if config.horizon is None else benchmark_settings(config.horizon)
+    controller = scene_mpc(env, model, replace(settings, compile=config.compile, **dict(config.mpc_overrides)))
+    v1 = gymnasium.make("Pendulum-v1")
+    try:
+        returns = [run_v1_episode(v1, controller, seed)["return"] for seed in range(config.v1_episodes)]
+    finally:
+        v1.close()
+    return {"episodes": len(returns), "return_mean": float(np.mean(returns)), "returns": returns}
+
+
+# ---------------------------------------------------------------------------- cells
+def cell_name(model: str, size: int, draw: int) -> str:
+    return CLOSED_FORM if model == CLOSED_FORM else f"{model}_n{size}_r{draw}"
+
+
+def run_cell(model: str, size: int, draw: int, config: StudyConfig, pool: Any, test: Any, env: Any,
+             progress: bool = False) -> dict[str, Any]:
+    """One cell, from its cache when the cache was made with the same settings."""
+    name = cell_name(model, size, draw)
+    path = config.cache_dir / "cells" / f"{name}.json"
+    fingerprint = {"evaluation": config.evaluation_fingerprint(),
+                   "training": None if model == CLOSED_FORM else config.training_fingerprint()}
+    key = hashlib.sha256(json.dumps(fingerprint, sort_keys=True).encode()).hexdigest()[:16]
+    if path.exists():
+        cached = json.loads(path.read_text())
+        if cached.get("key") == key:
+            return cached
+    start = time.perf_counter()
+    record: dict[str, Any] = {"key": key, "model": model, "size": size, "draw": draw, "fingerprint": fingerprint}
+    stem = None
+    if model != CLOSED_FORM:
+        stem = config.cache_dir / "models" / name
+        data = training_subset(pool, size, draw, config.seed)
+        record["transitions"] = data.num_transitions
+        record["trajectories"] = data.num_trajectories
+        record["training"] = train_cell_model(model, data, config, draw, stem, progress=False)
+    exported = export_cell_model(model, stem, env)
+    record["rollout"] = rollout_errors(exported, test)
+    record["closed_loop"] = closed_loop(exported, env, config)
+    record["pendulum_v1"] = pendulum_v1_returns(exported, env, config)
+    record["cell_s"] = time.perf_counter() - start
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(record, indent=1, default=float) + "\n")
+    return record
+
+
+def run_cells(config: StudyConfig, progress: bool = True) -> tuple[dict[str, Any], list[dict[str, Any]]]:
+    """The closed-form cell, then every (draw, size, model) cell — draws outermost, so that a run
+    cut short still holds whole sweeps over the sizes."""
+    from tqdm.auto import tqdm
+
+    from fvin_mpc.control.scene import scene_env
+
+    pool, test = training_pool(config, progress), test_set(config, progress)
+    env = scene_env("pendulum", true_model=True)
+    try:
+        reference = run_cell(CLOSED_FORM, 0, 0, config, pool, test, env)
+        cells = [(model, size, draw) for draw in config.draws for size in config.sizes for model in config.models]
+        records = []
+        bar = tqdm(cells, desc="data-efficiency cells", disable=not progress)
+        for model, size, draw in bar:
+            bar.set_postfix(cell=cell_name(model, size, draw))
+            records.append(run_cell(model, size, draw, config, pool, test, env))
+    finally:
+        env.close()
+    return reference, records
+
+
+# ---------------------------------------------------------------------------- summary
+def summarize(reference: dict[str, Any], records: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """One row per (model, size) over its draws, then the closed form's row."""
+    reference_cost = reference["closed_loop"]["cost_mean"]
+    rows = []
+    for model in dict.fromkeys(r["model"] for r in records):
+        for size in sorted({r["size"] for r in records if r["model"] == model}):
+            mine = [r for r in records if r["model"] == model and r["size"] == size]
+            loops = [r["closed_loop"] for r in mine]
+            excess = [loop["cost_mean"] / reference_cost - 1.0 for loop in loops]
+            v1 = [r["pendulum_v1"]["return_mean"] for r in mine if r["pendulum_v1"]["return_mean"] is not None]
+            successes, episodes = sum(loop["successes"] for loop in loops), sum(loop["episodes"] for loop in loops)
+            rows.append({
+                "model": model, "transitions": size, "seeds": len(mine),
+                "angle_error_1s_rad": float(np.mean([r["rollout"]["angle_error_1s_mean_rad"] for r in mine])),
+                "test_loss": float(np.mean([r["rollout"]["test_window_loss"] for r in mine])),
+                "success": f"{successes}/{episodes}",
+                "success_rate": successes / episodes,
+                "all_succeed": successes == episodes,
+                "cost_mean": float(np.mean([loop["cost_mean"] for loop in loops])),
+                "cost_excess_pct_median": 100.0 * float(np.median(excess)),
+                "cost_excess_pct_max": 100.0 * float(np.max(excess)),
+                "cost_excess_pct_min": 100.0 * float(np.min(excess)),
+                "cost_within_2pct_all_seeds": bool(max(excess) <= COST_TOLERANCE),
+                "v1_return_mean": float(np.mean(v1)) if v1 else None,
+                "v1_return_worst_seed": float(np.min(v1)) if v1 else None,
+                "failed_solves": int(sum(loop["failures"] for loop in loops)),
+                "train_s_mean": float(np.mean([r["training"]["wall_clock_s"] for r in mine])),
+                "per_seed": [{"draw": r["draw"], "successes": r["closed_loop"]["successes"],
+                              "cost_mean": r["closed_loop"]["cost_mean"], "v1_return_mean": r["pendulum_v1"]["return_mean"],
+                              "angle_error_1s_rad": r["rollout"]["angle_error_1s_mean_rad"],
+                              "validation_loss": r["training"]["final_validation_loss"],
+                              "iterations": r["training"]["iterations"]} for r in mine],
+            })
+    loop = reference["closed_loop"]
+    rows.append({"model": CLOSED_FORM, "transitions": None, "seeds": None,
+                 "angle_error_1s_rad": reference["rollout"]["angle_error_1s_mean_rad"],
+                 "test_loss": reference["rollout"]["test_window_loss"],
+                 "success": f"{loop['successes']}/{loop['episodes']}", "success_rate": loop["successes"] / loop["episodes"],
+                 "all_succeed": loop["successes"] == loop["episodes"], "cost_mean": loop["cost_mean"],
+                 "cost_excess_pct_median": 0.0, "cost_excess_pct_max": 0.0, "cost_within_2pct_all_seeds": True,
+                 "v1_return_mean": reference["pendulum_v1"]["return_mean"],
+                 "v1_return_worst_seed": (float(np.min(reference["pendulum_v1"]["returns"]))
+                                          if reference["pendulum_v1"]["returns"] else None),
+                 "failed_solves": loop["failures"]})
+    return rows
+
+
+def smallest(rows: list[dict[str, Any]], model: str, key: str) -> int | None:
+    """The smallest size from which on ``key`` holds for ``model`` at every larger size too (``None``: never)."""
+    sizes = sorted((r["transitions"], bool(r[key])) for r in rows if r["model"] == model)
+    answer = None
+    for size, holds in reversed(sizes):
+        if not holds:
+            break
+        answer = size
+    return answer
+
+
+def headline(rows: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
+    """Per model: the smallest amount of data for full closed-loop success (every start, every
+    seed) and for a closed-loop cost within 2 % of the closed form's (every seed) — each counted
+    from where it holds at every larger size too — and the first size where it holds at all."""
+    out = {}
+    for model in dict.fromkeys(r["model"] for r in rows if r["model"] != CLOSED_FORM):
+        mine = sorted((r for r in rows if r["model"] == model), key=lambda r: r["transitions"])
+        out[model] = {
+            "full_success_from": smallest(rows, model, "all_succeed"),
+            "full_success_first": next((r["transitions"] for r in mine if r["all_succeed"]), None),
+            "cost_within_2pct_from": smallest(rows, model, "cost_within_2pct_all_seeds"),
+            "cost_within_2pct_first": next((r["transitions"] for r in mine if r["cost_within_2pct_all_seeds"]), None),
+        }
+    return out
+
+
+def plot(figure: Any, rows: list[dict[str, Any]]) -> None:
+    """Four panels against the number of transitions: rollout error, success, cost excess, Pendulum-v1."""
+    from fvin_mpc.studies.pendulum_v1 import ZOO_BEST
+
+    figure.set_size_inches(11, 7.5)
+    axes = figure.subplots(2, 2)
+    reference = next(r for r in rows if r["model"] == CLOSED_FORM)
+    learned = [r for r in rows if r["model"] != CLOSED_FORM]
+    for model in dict.fromkeys(r["model"] for r in learned):
+        mine = sorted((r for r in learned if r["model"] == model), key=lambda r: r["transitions"])
+        sizes = [r["transitions"] for r in mine]
+        style = dict(marker="o", label=model)
+        line = axes[0, 0].plot(sizes, [r["angle_error_1s_rad"] for r in mine], **style)[0]
+        color = line.get_color()
+        axes[0, 1].plot(sizes, [100 * r["success_rate"] for r in mine], color=color, **style)
+        axes[1, 0].plot(sizes, [max(r["cost_excess_pct_median"], 1e-2) for r in mine], color=color, **style)
+        axes[1, 0].vlines(sizes, [max(r["cost_excess_pct_min"], 1e-2) for r in mine],
+                          [max(r["cost_excess_pct_max"], 1e-2) for r in mine], color=color, alpha=0.5)
+        v1 = [(r["transitions"], r["v1_return_mean"]) for r in mine if r["v1_return_mean"] is not None]
+        if v1:
+            axes[1, 1].plot(*zip(*v1), color=color, **style)
+            for r in mine:
+                seeds = [p["v1_return_mean"] for p in r["per_seed"] if p["v1_return_mean"] is not None]
+                axes[1, 1].scatter([r["transitions"]] * len(seeds), seeds, color=color, s=10, alpha=0.5)
+    axes[0, 0].axhline(reference["angle_error_1s_rad"], color="k", ls=":", label="closed form (h = 0.05 step)")
+    axes[0, 0].set(xscale="log", yscale="log", ylabel="held-out angle error after 1 s (rad)",
+                   title="open-loop prediction (test set, mean over seeds)")
+    axes[0, 1].set(xscale="log", ylabel="closed-loop success (%)", ylim=(-5, 105), title="swing-up success (all seeds)")
+    axes[1, 0].axhline(100 * COST_TOLERANCE, color="k", ls="--", label="2 %")
+    axes[1, 0].set(xscale="log", yscale="log", ylabel="cost above the closed form (%)",
+                   title="closed-loop cost excess (median; bar: seed range)")
+    if reference["v1_return_mean"] is not None:
+        axes[1, 1].axhline(reference["v1_return_mean"], color="k", ls=":", label="closed-form model")
+    axes[1, 1].axhline(ZOO_BEST["mean"], color="tab:red", ls="--",
+                       label=f"rl-zoo {ZOO_BEST['algorithm']} (its 20k-step budget; 750 episodes)")
+    axes[1, 1].set(xscale="log", ylabel="Pendulum-v1 mean return", title="Pendulum-v1 (our seeds; dots: per draw)")
+    for axis in axes.flat:
+        axis.set_xlabel("training transitions")
+        axis.grid(alpha=0.3, which="both")
+        axis.legend(fontsize=7)
+
+
+COLUMNS = ("model", "transitions", "seeds", "angle_error_1s_rad", "test_loss", "success", "cost_mean",
+           "cost_excess_pct_median", "cost_excess_pct_max", "v1_return_mean", "v1_return_worst_seed",
+           "failed_solves", "train_s_mean")
+
+
+def _parse_ints(text: str, name: str) -> tuple[int, ...]:
+    try:
+        values = tuple(int(v) for v in str(text).split(",") if v.strip())
+    except ValueError:
+        raise ValueError(f"--{name} must be comma-separated integers, got {text!r}") from None
+    if not values:
+        raise ValueError(f"--{name} is empty")
+    return values
+
+
+def study_config(quick: bool, seed: int, sizes: str, seeds: str, models: str, episodes: int, v1_episodes: int,
+                 cache_dir: Path, compile: str, duration: float, pool: int | None = None) -> StudyConfig:
+    model_names = tuple(m.strip() for m in models.split(",") if m.strip())
+    if quick:  # the test suite's path: tiny sets, a short horizon, uncompiled functions, capped IPOPT, one Pendulum-v1 episode
+        return StudyConfig(sizes=_parse_ints(sizes, "sizes") if sizes != DEFAULT_SIZES else (40, 80), draws=(0,),
+                           models=model_names, seed=seed, episodes=1, duration_s=1.0, v1_episodes=min(v1_episodes, 1),
+                           trajectory_steps=10, test_trajectories=4, compile="none", horizon=10, iterations=2,
+                           jacobian_windows=8, cache_dir=cache_dir / "quick",
+                           mpc_overrides=(("max_iter", 10), ("cold_max_iter", 20), ("cold_starts", ("rollout+",))))
+    return StudyConfig(sizes=_parse_ints(sizes, "sizes"), draws=_parse_ints(seeds, "seeds"), models=model_names,
+                       seed=seed, episodes=episodes, duration_s=duration, v1_episodes=v1_episodes, compile=compile,
+                       cache_dir=cache_dir, pool_transitions=pool)
+
+
+def run(quick: bool = False, seed: int = 0, repeats: int = 1, sizes: str = DEFAULT_SIZES, seeds: str = "0,1",
+        models: str = DEFAULT_MODELS, episodes: int = 10, v1_episodes: int = 10,
+        cache_dir: Path = Path("data/data-efficiency"), compile: str = "cached", duration: float = 10.0,
+        pool: int | None = 20000, progress: bool = True, **_: Any) -> StudyResult:
+    """Run the study (``repeats`` is unused: nothing here is timed)."""
+    config = study_config(quick, seed, sizes, seeds, models, episodes, v1_episodes, Path(cache_dir), compile, duration,
+                          pool)
+    reference, records = run_cells(config, progress)
+    rows = summarize(reference, records)
+    best = headline(rows)
+    notes = [
+        f"Settings: {json.dumps({k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(config).items()})}. "
+        f"Closed loop: {config.episodes} starts (hanging at rest, then seeded random states), {config.duration_s:g} s "
+        "each, the scene's MPC, waiting latency mode (`latency=\"none\"`: model quality, not real time). "
+        f"Pendulum-v1: seeds 0–{config.v1_episodes - 1}, the benchmark's MPC. `cost_excess_pct`: the seeds' mean "
+        "closed-loop cost over the closed form's on the same starts, minus 1 (median and worst seed).",
+        "Smallest data (transitions; from there on at every larger size, and the first size where it holds): "
+        + "; ".join(f"**{model}**: full success from {v['full_success_from']} (first {v['full_success_first']}), "
+                    f"cost within 2 % from {v['cost_within_2pct_from']} (first {v['cost_within_2pct_first']})"
+                    for model, v in best.items()) + ". `None`: not at any size measured.",
+        "The MLP's MPC uses the closed-form energy in its terminal energy-deficit term (it has no energy of its "
+        "own); the S3FVIN's uses its learned energy.",
+    ]
+    return StudyResult(name="data-efficiency", rows=rows, columns=COLUMNS, plot=plot, notes=notes)
+
+
+def add_arguments(parser: Any) -> None:
+    parser.add_argument("--sizes", default=DEFAULT_SIZES,
+                        help="training-set sizes in transitions, comma-separated (default: %(default)s)")
+    parser.add_argument("--seeds", default="0,1",
+                        help="draws per size (data subset and training seed), comma-separated (default: %(default)s)")
+    parser.add_argument("--models", default=DEFAULT_MODELS,
+                        help=f"comma-separated from {', '.join(MODELS)} (default: %(default)s)")
+    parser.add_argument("--episodes", type=int, default=10,
+                        help="closed-loop starts per model, the same for all (default: %(default)s)")
+    parser.add_argument("--v1-episodes", type=int, default=10,
+                        help="Pendulum-v1 seeds 0..N-1 per model; 0 skips it (default: %(default)s)")
+    parser.add_argument("--duration", type=float, default=10.0, help="seconds per closed-loop episode (default: %(default)s)")
+    parser.add_argument("--compile", choices=("cached", "none"), default="cached",
+                        help="the MPC's functions compiled to C (cached on disk) or run in CasADi's VM (default: %(default)s)")
+    parser.add_argument("--pool", type=int, default=20000,
+                        help="transitions collected once; every training set is drawn from them, so runs with "
+                             "other --sizes share data and cells (default: %(default)s)")
+    parser.add_argument("--cache-dir", type=Path, default=Path("data/data-efficiency"),
+                        help="data, trained models and per-cell results; a rerun resumes from it (default: %(default)s)")
