@@ -102,3 +102,26 @@ def test_prepare_is_called_after_each_delivered_torque():
 def test_invalid_latency_raises(latency):
     with pytest.raises(ValueError):
         run_episode(RigidBodyEnv("pendulum"), ConstantController(0.0), 0.1, latency=latency)
+
+
+def test_feedback_time_is_the_call_alone_and_measured_delay_uses_it():
+    """The call sleeps 3 ms and the preparation 6 ms: the feedback time (the plant's delay) sees only
+    the call, the whole controller time both; skipped periods have neither."""
+    import time
+
+    class Slow(ConstantController):
+        def __call__(self, x):
+            time.sleep(0.003)
+            return super().__call__(x)
+
+        def prepare(self) -> None:
+            time.sleep(0.006)
+
+    for latency in ("none", "measured"):
+        episode, _ = run_episode(RigidBodyEnv("pendulum"), Slow(0.0), 0.5, START, latency=latency)
+        assert np.all(episode.feedback_s >= 0.003) and np.all(episode.controller_time_s >= 0.009)
+        assert np.all(episode.feedback_s < episode.controller_time_s - 0.005)
+        if latency == "measured":
+            np.testing.assert_array_equal(episode.compute_s, episode.feedback_s)
+    skipping, _ = run_episode(RigidBodyEnv("pendulum"), ConstantController(0.0), 1.0, START, latency=0.07)
+    assert np.isnan(skipping.feedback_s[1]) and np.isfinite(skipping.feedback_s[0])

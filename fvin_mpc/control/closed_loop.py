@@ -91,6 +91,8 @@ class Episode:
             time when measured, the fixed delay, or 0 in waiting mode); ``nan`` where the period's
             observation was skipped.
         busy_s: ``(T,)`` feedback plus preparation time per sampled period (``nan`` where skipped).
+        feedback_s: ``(T,)`` wall time of the controller call alone, from the observation to the
+            torque (``nan`` where skipped): the latency a real-time controller adds, in every mode.
         cpu_s: ``(T,)`` CPU time of the thread in the controller's call and preparation (``nan``
             where skipped): on a shared machine, wall time minus this is time spent waiting for a core.
         deadline_misses: periods whose busy time exceeded the control period.
@@ -114,6 +116,7 @@ class Episode:
     compute_s: np.ndarray | None = None
     busy_s: np.ndarray | None = None
     cpu_s: np.ndarray | None = None
+    feedback_s: np.ndarray | None = None
     deadline_misses: int = 0
     skipped: int = 0
     states: np.ndarray | None = None
@@ -155,7 +158,7 @@ def run_episode(env: Any, controller: Controller, duration_s: float, reset_optio
     observations = [observation]
     angle, energy, times = [info["angle_from_goal"]], [info["energy"]], [info["time"]]
     controls, rewards, wall, success, fallback, recorded = [], [], [], [], [], []
-    compute, busy, cpu = [], [], []
+    compute, busy, cpu, feedbacks = [], [], [], []
     applied = np.zeros(base.action_space.shape[0])  # the torque acting on the plant
     pending: tuple[int, np.ndarray] | None = None  # (global sub-step from which it acts, torque)
     free_at = 0  # global sub-step from which the controller can take an observation
@@ -176,6 +179,7 @@ def run_episode(env: Any, controller: Controller, duration_s: float, reset_optio
                 prepare()
                 preparation = time.perf_counter() - start
             cpu.append(time.thread_time() - cpu_start)
+            feedbacks.append(feedback)
             u = np.asarray(u, dtype=float)
             if latency == "none":
                 delay, busy_time = 0.0, 0.0
@@ -199,6 +203,7 @@ def run_episode(env: Any, controller: Controller, duration_s: float, reset_optio
             compute.append(np.nan)
             busy.append(np.nan)
             cpu.append(np.nan)
+            feedbacks.append(np.nan)
             success.append(True)
             fallback.append(None)
             recorded.append({"skipped": True})
@@ -230,7 +235,7 @@ def run_episode(env: Any, controller: Controller, duration_s: float, reset_optio
         angle_from_goal=np.array(angle), energy=np.array(energy), reward=np.array(rewards),
         controller_time_s=np.array(wall), controller_success=np.array(success), fallback=fallback,
         control_period=float(base.dt), controller_info=recorded, latency=latency,
-        compute_s=np.array(compute), busy_s=np.array(busy), cpu_s=np.array(cpu), deadline_misses=misses, skipped=skipped,
+        compute_s=np.array(compute), busy_s=np.array(busy), cpu_s=np.array(cpu), feedback_s=np.array(feedbacks), deadline_misses=misses, skipped=skipped,
         states=states,
     )
     return episode, frames

@@ -212,7 +212,8 @@ def run_task(name: str, start: EpisodeStart) -> dict[str, Any]:
     if axis is not None:
         trajectory = {"angle": signed_angle_from_goal(episode.q, goal, axis), "rate": episode.omega @ axis}
     return {"controller": name, "index": start.index, "metrics": metrics,
-            "controller_time_s": episode.controller_time_s, "trajectory": trajectory,
+            "controller_time_s": episode.controller_time_s, "feedback_time_s": episode.feedback_s,
+            "trajectory": trajectory,
             "initial": {"q": episode.q[0].tolist(), "omega": episode.omega[0].tolist()}}
 
 
@@ -250,6 +251,8 @@ def summarize(records: list[dict[str, Any]]) -> dict[str, Any]:
     costs = np.array([m["accumulated_cost"] for m in metrics])
     calls_ms = 1e3 * np.concatenate([r["controller_time_s"] for r in records])
     calls_ms = calls_ms[np.isfinite(calls_ms)]  # skipped observations (latency-aware runs) have none
+    feedback_ms = 1e3 * np.concatenate([r["feedback_time_s"] for r in records])
+    feedback_ms = feedback_ms[np.isfinite(feedback_ms)]
     return {
         "episodes": len(metrics),
         "successes": len(successes),
@@ -262,6 +265,10 @@ def summarize(records: list[dict[str, Any]]) -> dict[str, Any]:
         "controller_time_median_ms": float(np.median(calls_ms)),
         "controller_time_p95_ms": float(np.percentile(calls_ms, 95)),
         "controller_time_p99_ms": float(np.percentile(calls_ms, 99)),
+        # the call alone (observation → torque): the delay the plant sees; the time above adds the
+        # preparation a real-time iteration does after the torque is sent
+        "feedback_time_median_ms": float(np.median(feedback_ms)),
+        "feedback_time_p99_ms": float(np.percentile(feedback_ms, 99)),
         "deadline_misses": int(sum(m["deadline_misses"] for m in metrics)),
         "controller_failures": int(sum(m["controller_failures"] for m in metrics)),
         "episodes_with_failures": int(sum(m["controller_failures"] > 0 for m in metrics)),
@@ -328,15 +335,17 @@ def _fmt(value: Any, digits: int = 2) -> str:
 def summary_table(result: EvaluationResult) -> str:
     """Markdown table: one row per controller."""
     lines = ["| controller | success | time to upright median (s) | p90 (s) | cost mean | cost median "
-             "| max torque | controller ms median | p95 | failed solves |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+             "| max torque | controller ms median | p95 | p99 | feedback ms median | p99 | failed solves |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for name, s in result.summary.items():
         lines.append(
             f"| {name} | {100 * s['success_rate']:.0f} % ({s['successes']}/{s['episodes']}) "
             f"| {_fmt(s['time_to_upright_median_s'])} | {_fmt(s['time_to_upright_p90_s'])} "
             f"| {_fmt(s['accumulated_cost_mean'], 1)} | {_fmt(s['accumulated_cost_median'], 1)} "
             f"| {_fmt(s['max_abs_torque'])} | {_fmt(s['controller_time_median_ms'], 2)} "
-            f"| {_fmt(s['controller_time_p95_ms'], 2)} | {s['controller_failures']} |")
+            f"| {_fmt(s['controller_time_p95_ms'], 2)} | {_fmt(s['controller_time_p99_ms'], 2)} "
+            f"| {_fmt(s['feedback_time_median_ms'], 2)} | {_fmt(s['feedback_time_p99_ms'], 2)} "
+            f"| {s['controller_failures']} |")
     return "\n".join(lines)
 
 
@@ -449,8 +458,10 @@ the others from the env's seeded random reset (seed {config.seed} + i; |ω₀| �
 Learned model: `{config.checkpoint_name}`; MPC settings: {_settings_text(config)}; latency mode: `{config.latency}`
 (`none`: the simulator waits for the controller; `measured`: each torque acts from the first MuJoCo
 sub-step after the controller's measured compute time). Success: within 0.1 rad of upright from some time on
-to the end of the episode. Time to upright over the successful episodes; controller time per call
-(wall clock, median and p95 over all calls); failed solves = IPOPT did not accept the solve (the
+to the end of the episode. Time to upright over the successful episodes; controller ms = the whole
+controller time per period (wall clock: the call and, for the real-time iteration, its preparation after
+the torque is sent; median, p95, p99 over all periods); feedback ms = the call alone, observation to
+torque (the delay the plant sees); failed solves = the solver did not accept the solve (the
 controller then applied its fallback).{skipped}
 
 {summary_table(result)}

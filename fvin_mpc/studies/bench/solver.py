@@ -14,8 +14,8 @@ A second table (unless ``--no-realtime``; not in ``--quick``) puts the real-time
 settings (what the commands use): IPOPT in waiting mode (the reference: the simulator waits for it)
 and with measured latency, and the RTI with measured latency (``run_episode(latency="measured")``:
 each torque acts from the first MuJoCo sub-step after the controller's compute time). Per row: the
-whole controller call (feedback plus preparation; median, p99, max), its CPU time, iterations per
-call, deadline misses, and the swing-up from rest (time to upright, hold error over the last 3 s).
+whole controller call (feedback plus preparation; median, p99, max), its CPU time, the feedback
+alone (observation to torque), iterations per call, deadline misses, and the swing-up from rest (time to upright, hold error over the last 3 s).
 """
 
 from __future__ import annotations
@@ -95,7 +95,7 @@ REALTIME_CONFIGS: tuple[tuple[str, dict[str, Any], Any], ...] = (
 )
 REALTIME_SCENES = ("pendulum", "spherical_pendulum")
 REALTIME_COLUMNS = ["scene", "model", "controller", "latency", "call_ms_median", "call_ms_p99", "call_ms_max",
-                    "cpu_ms_median", "learned_vs_true", "iterations_mean", "deadline_misses", "failures",
+                    "cpu_ms_median", "learned_vs_true", "feedback_ms_median", "feedback_ms_p99", "feedback_learned_vs_true", "iterations_mean", "deadline_misses", "failures",
                     "time_to_upright_s", "hold_error_rad", "swung_up"]
 
 
@@ -117,11 +117,13 @@ def realtime_rows(duration: float = 10.0, seed: int = 0, scenes: tuple[str, ...]
                 episode, _ = run_episode(env, controller, duration, seed=seed, latency=latency)
                 metrics = episode_metrics(episode)
                 calls = 1e3 * episode.controller_time_s[np.isfinite(episode.controller_time_s)]
+                feedback = 1e3 * episode.feedback_s[np.isfinite(episode.feedback_s)]
                 iterations = [i["iterations"] for i in episode.controller_info if "iterations" in i]
                 rows.append({
                     "scene": scene, "model": "closed form" if true_model else "learned", "controller": label,
                     "latency": latency, "call_ms_median": float(np.median(calls)),
                     "call_ms_p99": float(np.percentile(calls, 99)), "call_ms_max": float(calls.max()),
+                    "feedback_ms_median": float(np.median(feedback)), "feedback_ms_p99": float(np.percentile(feedback, 99)),
                     "cpu_ms_median": float(np.nanmedian(1e3 * episode.cpu_s)) if episode.cpu_s is not None else None,
                     "iterations_mean": float(np.mean(iterations)) if iterations else None,
                     "deadline_misses": metrics["deadline_misses"], "failures": metrics["controller_failures"],
@@ -132,7 +134,10 @@ def realtime_rows(duration: float = 10.0, seed: int = 0, scenes: tuple[str, ...]
     for row in rows:
         true_row = next(r for r in rows if r["scene"] == row["scene"] and r["controller"] == row["controller"]
                         and r["model"] == "closed form")
-        row["learned_vs_true"] = row["call_ms_median"] / true_row["call_ms_median"] if row["model"] == "learned" else None
+        learned = row["model"] == "learned"
+        row["learned_vs_true"] = row["call_ms_median"] / true_row["call_ms_median"] if learned else None
+        row["feedback_learned_vs_true"] = (row["feedback_ms_median"] / true_row["feedback_ms_median"]
+                                           if learned else None)
     return rows
 
 
@@ -194,7 +199,9 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 5, model: str = "lear
             "observation (a deadline miss). `call_ms`: wall time of the whole controller call per sampled period "
             "(feedback plus the RTI's preparation); `cpu_ms`: its CPU time (the difference is time the shared "
             "machine gave to other jobs); `learned_vs_true`: median call time, learned over closed form, same "
-            "controller. `rti ≤4 it. in 10 ms`: further Gauss–Newton iterations while the call's wall time allows. "
+            "controller. `feedback_ms`: the call alone, observation to torque (the delay the plant sees; the "
+            "RTI prepares the next call after the torque is sent), and its learned / closed-form ratio. "
+            "`rti ≤4 it. in 10 ms`: further Gauss–Newton iterations while the call's wall time allows. "
             f"Load average (1, 5, 15 min) when the table started: {load[0]:.2f}, {load[1]:.2f}, {load[2]:.2f}.",
         ]
 
