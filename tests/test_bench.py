@@ -123,6 +123,22 @@ def test_horizon_quick(tmp_path):
     write_study(result, tmp_path, ["horizon", "--quick"])
 
 
+def test_rti_quick_pairs_learned_with_closed_form(tmp_path):
+    from fvin_mpc.studies.bench import rti
+
+    result = rti.run(quick=True)
+    assert [(r["config"], r["model"]) for r in result.rows] == [
+        (label, model) for label in rti.QUICK for model in ("learned", "closed form")]
+    for row in result.rows:
+        # the feedback is part of the whole time per period
+        assert 0 < row["feedback_ms_median"] <= row["call_ms_median"] + 1e-9, row
+        assert row["starts"] == 2 and np.isfinite(row["cost_mean"]) and row["cost_mean"] > 0
+    for learned, closed in zip(result.rows[::2], result.rows[1::2]):
+        assert learned["learned_vs_true"] == pytest.approx(learned["call_ms_median"] / closed["call_ms_median"])
+        assert closed["learned_vs_true"] is None
+    write_study(result, tmp_path, ["rti", "--quick"])
+
+
 def test_solver_quick(tmp_path):
     from fvin_mpc.studies.bench import solver
 

@@ -21,6 +21,7 @@ STUDIES = {
     "horizon": "fvin_mpc.studies.bench.horizon",
     "width": "fvin_mpc.studies.bench.width",
     "solver": "fvin_mpc.studies.bench.solver",
+    "rti": "fvin_mpc.studies.bench.rti",
     "sim": "fvin_mpc.studies.bench.sim",
     "paper": "fvin_mpc.studies.bench.paper",
     "data-efficiency": "fvin_mpc.studies.data_efficiency",
