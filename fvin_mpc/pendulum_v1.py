@@ -47,6 +47,12 @@ def build_parser() -> argparse.ArgumentParser:
                              "(default: %(default)s)")
     parser.add_argument("--single-start", action="store_true",
                         help="plain MPC: one first guess per episode instead of the multi-start")
+    parser.add_argument("--terminal-value", action="store_true",
+                        help="experimental: the terminal cost is the learned model's value function for Pendulum-v1's "
+                             "cost (DP on the model, fvin_mpc.studies.pendulum_v1_value) instead of the terminal "
+                             "orientation, speed and energy terms; worse on the seeds tried (docs/pendulum-v1.md)")
+    parser.add_argument("--value-grid", type=_grids, default=((256, 129),),
+                        help="with --terminal-value: its DP grid THETAxRATE (default: 256x129)")
     parser.add_argument("--no-reference", action="store_true", help="skip the per-seed global reference")
     parser.add_argument("--reference-grids", type=_grids, default=REFERENCE_GRIDS,
                         help="the reference's DP grids, coarse to fine, as THETAxRATE,... (at least two; default: "
@@ -68,7 +74,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                                  episodes=args.episodes, seed=args.seed, reference=not args.no_reference,
                                  multistart=not args.single_start, terminal_energy_weight=args.energy_weight,
                                  solver=args.solver, rti_cold_solver=args.rti_cold_solver,
-                                 reference_grids=args.reference_grids)
+                                 reference_grids=args.reference_grids, terminal_value=args.terminal_value,
+                                 value_grid=args.value_grid[0])
         previous = json.loads(args.previous.read_text()) if args.previous else None
         if not config.true_model:
             from fvin_mpc.core.checkpoint import load_checkpoint

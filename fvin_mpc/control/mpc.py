@@ -254,6 +254,10 @@ class MPC:
         rest: the orientation of the potential's minimum (hanging), which sets the energy
             scale of the terminal energy cost; needed only when ``terminal_energy_weight > 0``.
             :func:`fvin_mpc.control.scene.scene_mpc` passes the scene's.
+        terminal_cost: optional CasADi Function ``x_N (n,) -> scalar`` added to the objective at
+            the last stage (e.g. a value function: the cost of what follows the horizon). ``None``
+            (default) leaves the problem as it is. Its exact Hessian is added to the Gauss–Newton
+            one (it depends on ``x_N`` only: a small block). IPOPT and sqpmethod solvers only.
 
     Attributes:
         compile_report: how the compiled functions were obtained (``None`` if not compiled).
@@ -261,9 +265,16 @@ class MPC:
     """
 
     def __init__(self, model: ExportedModel, settings: MPCSettings, goal: Any, torque_low: Any, torque_high: Any,
-                 rest: Any = None) -> None:
+                 rest: Any = None, terminal_cost: ca.Function | None = None) -> None:
         self.model = model
         self.settings = settings
+        if terminal_cost is not None:
+            if terminal_cost.n_in() != 1 or terminal_cost.size_in(0) != (model.state_dim, 1) \
+                    or terminal_cost.n_out() != 1 or terminal_cost.size_out(0) != (1, 1):
+                raise ValueError(f"terminal_cost must map the state ({model.state_dim},) to a scalar, got {terminal_cost}")
+            if settings.solver not in ("ipopt", "sqpmethod"):
+                raise ValueError(f"terminal_cost needs solver 'ipopt' or 'sqpmethod', got {settings.solver!r}")
+        self.terminal_cost = terminal_cost
         self.goal = unit_quaternion(goal, "goal")
         m = model.control_dim
         self.torque_low = np.broadcast_to(np.asarray(torque_low, dtype=float), (m,)).copy()
@@ -330,6 +341,11 @@ class MPC:
             energy_span = ca.fabs(goal_energy - float(energy(np.concatenate([self.rest, np.zeros(3)]))))
             residuals = np.sqrt(s.terminal_energy_weight) * (energy(states[:, n]) - goal_energy) / energy_span
         objective = quadratic + ca.sumsqr(residuals)
+        # An optional terminal cost (constructor argument); its exact Hessian joins the Gauss–Newton one.
+        terminal = getattr(self, "terminal_cost", None)
+        terminal_term = None if terminal is None else terminal(states[:, n])
+        if terminal_term is not None:
+            objective = objective + terminal_term
         # --- dynamics
         defects = next_state.map(n)(states[:, :n], controls) - states[:, 1:]
         decision = ca.vertcat(ca.vec(states), ca.vec(controls))
@@ -357,6 +373,8 @@ class MPC:
             if residuals.numel() > 0:
                 residual_jacobian = ca.jacobian(residuals, decision)
                 cost_hessian = cost_hessian + 2.0 * ca.mtimes(residual_jacobian.T, residual_jacobian)
+            if terminal_term is not None:
+                cost_hessian = cost_hessian + ca.hessian(terminal_term, decision)[0]
             # IPOPT reads the upper triangle, sqpmethod the whole symmetric matrix.
             hessian, label = (ca.triu(lam_f * cost_hessian), "triu_hess_gamma_x_x") if s.solver == "ipopt" \
                 else (lam_f * cost_hessian, "hess_gamma_x_x")

@@ -1,0 +1,216 @@
+"""A value function of the *learned* model for Pendulum-v1's cost, the MPC's terminal cost.
+
+The MPC's horizon (30 steps, 1.5 s) is shorter than a swing-up from near hanging; with only a
+local terminal cost (orientation, speed, energy deficit) it cannot tell one pump swing from two,
+or the left swing from the right. This module gives it the cost of the rest of the episode:
+
+1. **Transitions** (:func:`learned_transitions`): the learned model's step ``F(x, u)`` (the MPC's own
+   exported step, no knowledge of Pendulum-v1's map) from every point of a grid ``θ_i`` (periodic,
+   ``n_theta`` points on ``[−π, π)``, θ = 0 upright as in Pendulum-v1) × ``θ̇_j`` (``n_rate`` points on
+   ``[−8, 8]``) under ``n_torque`` torques evenly on ``[−2, 2]``; the next rate clamped to ±8 (the
+   MPC's bound on its predictions, Pendulum-v1's clip).
+2. **Value iteration** (:func:`value_iteration`): ``V_0 = 0``,
+   ``V_τ(x) = min_u c(x, u) + V_{τ−1}(F(x, u))`` with ``V_{τ−1}`` interpolated bilinearly (θ periodic)
+   and ``c`` Pendulum-v1's stage cost ``angle² + 0.1 θ̇² + 0.001 u²`` — the benchmark's objective, the
+   cost the reference minimizes. ``τ = steps`` (default 200 − the MPC's horizon) time to go; the
+   swing-ups end long before, so the value has settled (the MPC uses one table at every step).
+3. **Terminal cost** (:func:`terminal_cost_function`): ``V_steps`` as a CasADi cubic B-spline
+   (``casadi.interpolant(…, "bspline")``, the grid tiled a few points beyond ±π so that the spline is
+   periodic where it is used) of the model state ``x = (q, ω)``: ``θ = atan2(sin θ, cos θ)`` from ``q``
+   (sign invariant, the branch cut at hanging, where the periodic spline is continuous) and
+   ``θ̇ = ω_y``. Smooth, so IPOPT can take its derivatives; C code generation works (the MPC's
+   functions are compiled).
+
+The MPC stays a local solver over its horizon on the learned model; the value only ranks the
+states where its plans end. Nothing here reads Pendulum-v1's own map.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass
+from typing import Any, Callable
+
+import numpy as np
+
+from fvin_mpc.studies.pendulum_v1 import EPISODE_STEPS, MAX_SPEED, MAX_TORQUE, v1_cost
+
+#: Grid of the learned model's value function: ``(n_theta, n_rate)`` and torques per state.
+VALUE_GRID: tuple[int, int] = (256, 129)
+VALUE_TORQUES = 21
+#: Points of the θ grid repeated beyond each end of ``[−π, π)`` for the spline (periodicity).
+SPLINE_PAD = 4
+
+
+def mpc_stage_cost(theta: Any, theta_dot: Any, u: Any) -> Any:
+    """The benchmark MPC's stage cost (:func:`~fvin_mpc.studies.pendulum_v1.benchmark_settings`) in
+    Pendulum-v1's angle: ``4 sin²(θ/2) + 0.1 θ̇² + 0.001 u²`` (``≈ θ²`` near upright, 4 hanging)."""
+    return 4.0 * np.sin(0.5 * theta) ** 2 + 0.1 * theta_dot**2 + 0.001 * u**2
+
+
+#: Stage costs of the value iteration: the MPC's own (consistent with its horizon's stage cost) or
+#: Pendulum-v1's (the benchmark's objective; ``angle²`` is 9.87 hanging where the MPC's stage pays 4).
+STAGE_COSTS: dict[str, Callable[[Any, Any, Any], Any]] = {"mpc": mpc_stage_cost, "v1": v1_cost}
+
+
+def grid_axes(n_theta: int, n_rate: int) -> tuple[np.ndarray, np.ndarray]:
+    """``θ_i = −π + 2πi/n_theta`` (periodic) and ``θ̇_j`` evenly on ``[−8, 8]``."""
+    if n_theta < 4 or n_rate < 3:
+        raise ValueError(f"need n_theta >= 4 and n_rate >= 3, got {n_theta}, {n_rate}")
+    return -np.pi + 2 * np.pi * np.arange(n_theta) / n_theta, np.linspace(-MAX_SPEED, MAX_SPEED, n_rate)
+
+
+def learned_transitions(model: Any, thetas: np.ndarray, rates: np.ndarray, torques: np.ndarray,
+                        chunk: int = 200_000) -> tuple[np.ndarray, np.ndarray]:
+    """The model's next ``(θ', θ̇')`` (Pendulum-v1 angles, θ' wrapped to ``[−π, π)``), each of shape
+    ``(n_theta, n_rate, n_torque)``, from every grid state under every torque (``model.step`` mapped)."""
+    from fvin_mpc.envs.pendulum_v1 import state_from_v1_observation, v1_observation_from_state
+
+    theta, rate, torque = np.meshgrid(thetas, rates, torques, indexing="ij")
+    observation = np.stack([np.cos(theta), np.sin(theta), rate], axis=-1).reshape(-1, 3)
+    states = state_from_v1_observation(observation)
+    controls = torque.reshape(-1, 1)
+    next_states = np.empty_like(states)
+    mapped = None
+    for start in range(0, len(states), chunk):
+        stop = min(start + chunk, len(states))
+        if mapped is None or stop - start != chunk:
+            mapped = model.step.map(stop - start)
+        next_states[start:stop] = np.asarray(mapped(states[start:stop].T, controls[start:stop].T)[0]).T
+    observed = v1_observation_from_state(next_states)
+    next_theta = np.arctan2(observed[:, 1], observed[:, 0])
+    shape = theta.shape
+    return next_theta.reshape(shape), observed[:, 2].reshape(shape)
+
+
+@dataclass(frozen=True)
+class _Stencil:
+    """Bilinear interpolation of a periodic-in-θ grid at fixed points: 4 flat indices and weights."""
+
+    index: np.ndarray  # (4, P) int64
+    weight: np.ndarray  # (4, P)
+
+
+def _stencil(n_theta: int, n_rate: int, theta: np.ndarray, rate: np.ndarray) -> _Stencil:
+    x = (np.asarray(theta, float).ravel() + np.pi) * (n_theta / (2 * np.pi))
+    i0 = np.floor(x)
+    fx = x - i0
+    i0 = i0.astype(np.int64) % n_theta
+    i1 = (i0 + 1) % n_theta
+    y = (np.clip(np.asarray(rate, float).ravel(), -MAX_SPEED, MAX_SPEED) + MAX_SPEED) * ((n_rate - 1) / (2 * MAX_SPEED))
+    j0 = np.minimum(np.floor(y).astype(np.int64), n_rate - 2)
+    fy = y - j0
+    index = np.stack([i0 * n_rate + j0, i0 * n_rate + j0 + 1, i1 * n_rate + j0, i1 * n_rate + j0 + 1])
+    weight = np.stack([(1 - fx) * (1 - fy), (1 - fx) * fy, fx * (1 - fy), fx * fy])
+    return _Stencil(index, weight)
+
+
+def interpolate(table: np.ndarray, theta: Any, rate: Any) -> np.ndarray:
+    """Bilinear interpolation of ``table (n_theta, n_rate)`` at ``(θ, θ̇)`` (θ periodic, θ̇ clamped to ±8)."""
+    theta, rate = np.broadcast_arrays(np.asarray(theta, float), np.asarray(rate, float))
+    stencil = _stencil(*table.shape, theta, rate)
+    flat = np.asarray(table, float).ravel()
+    return np.sum(stencil.weight * flat[stencil.index], axis=0).reshape(theta.shape)
+
+
+def value_iteration(next_theta: np.ndarray, next_rate: np.ndarray, torques: np.ndarray, steps: int,
+                    stage_cost: Callable[[Any, Any, Any], Any] = v1_cost,
+                    noise: tuple[float, float] = (0.0, 0.0)) -> np.ndarray:
+    """``V_steps`` on the grid whose transitions are ``next_theta, next_rate (n_theta, n_rate, n_torque)``
+    (module docstring, step 2): ``V_τ = min_u c(x, u) + E V_{τ−1}(F(x, u) + ε)``, bilinear, θ periodic.
+
+    ``noise = (σ_θ, σ_θ̇)``: the next state's error ``ε`` (normal, independent; rad and rad/s), the
+    expectation taken as a Gaussian filter of ``V_{τ−1}`` on the grid (periodic in θ, the rate's ends
+    repeated). The model is not the plant: without noise the optimal plans end on the edge of a cliff
+    of the value (just enough energy to go over the top, the next state one more pump swing away),
+    where the plant's first deviation costs a whole swing; with noise the value there is the average
+    of both sides and the plans keep a margin. ``(0, 0)``: the deterministic DP.
+    """
+    from scipy.ndimage import gaussian_filter1d
+
+    n_theta, n_rate, n_torque = next_theta.shape
+    if len(torques) != n_torque or steps < 0:
+        raise ValueError(f"need {n_torque} torques and steps >= 0, got {len(torques)} and {steps}")
+    if not (noise[0] >= 0 and noise[1] >= 0):
+        raise ValueError(f"noise must be >= 0, got {noise}")
+    thetas, rates = grid_axes(n_theta, n_rate)
+    sigma_cells = (noise[0] * n_theta / (2 * np.pi), noise[1] * (n_rate - 1) / (2 * MAX_SPEED))
+    cost = stage_cost(thetas[:, None, None], rates[None, :, None], np.asarray(torques, float)[None, None, :])
+    cost = np.broadcast_to(cost, next_theta.shape).reshape(-1)
+    stencil = _stencil(n_theta, n_rate, next_theta, next_rate)
+    value = np.zeros(n_theta * n_rate)
+    for _ in range(steps):
+        expected = value.reshape(n_theta, n_rate)
+        if sigma_cells[0] > 0:
+            expected = gaussian_filter1d(expected, sigma_cells[0], axis=0, mode="wrap")
+        if sigma_cells[1] > 0:
+            expected = gaussian_filter1d(expected, sigma_cells[1], axis=1, mode="nearest")
+        candidates = cost + np.sum(stencil.weight * expected.ravel()[stencil.index], axis=0)
+        value = candidates.reshape(n_theta * n_rate, n_torque).min(axis=1)
+    return value.reshape(n_theta, n_rate)
+
+
+def model_value_table(model: Any, grid: tuple[int, int] = VALUE_GRID, torques: int = VALUE_TORQUES,
+                      steps: int = EPISODE_STEPS - 30, noise: tuple[float, float] = (0.0, 0.0),
+                      stage_cost: str = "mpc", max_torque: float = MAX_TORQUE, cache: bool = True) -> np.ndarray:
+    """``V_steps`` of the learned ``model`` for Pendulum-v1's cost on ``grid``; cached on disk under the
+    MPC's compile cache (key: the step function's serialization, the grid, torques and steps)."""
+    from fvin_mpc.control.export import cache_dir
+
+    torque_values = np.linspace(-max_torque, max_torque, torques)
+    key = hashlib.sha256(model.step.serialize().encode() + repr((grid, torques, steps, tuple(noise), stage_cost, max_torque)).encode()).hexdigest()[:20]
+    path = cache_dir() / f"pendulum_v1_value_{key}.npy"
+    if cache and path.is_file():
+        return np.load(path)
+    transitions_path = cache_dir() / f"pendulum_v1_transitions_{key_transitions(model, grid, torques, max_torque)}.npz"
+    if cache and transitions_path.is_file():
+        with np.load(transitions_path) as data:
+            next_theta, next_rate = data["theta"], data["rate"]
+    else:
+        next_theta, next_rate = learned_transitions(model, *grid_axes(*grid), torque_values)
+        if cache:
+            transitions_path.parent.mkdir(parents=True, exist_ok=True)
+            np.savez(transitions_path.with_suffix(".tmp.npz"), theta=next_theta, rate=next_rate)
+            transitions_path.with_suffix(".tmp.npz").replace(transitions_path)
+    table = value_iteration(next_theta, next_rate, torque_values, steps, STAGE_COSTS[stage_cost], tuple(noise))
+    if cache:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        partial = path.with_suffix(".tmp.npy")
+        np.save(partial, table)
+        partial.replace(path)
+    return table
+
+
+def key_transitions(model: Any, grid: tuple[int, int], torques: int, max_torque: float) -> str:
+    return hashlib.sha256(model.step.serialize().encode() + repr((tuple(grid), torques, max_torque)).encode()).hexdigest()[:20]
+
+
+def value_spline(table: np.ndarray, pad: int = SPLINE_PAD) -> Any:
+    """``table (n_theta, n_rate)`` as a CasADi cubic B-spline of ``(θ, θ̇)``, the θ grid tiled ``pad``
+    points beyond each end so that the spline is (nearly) periodic on ``[−π, π]``."""
+    import casadi as ca
+
+    n_theta, n_rate = table.shape
+    thetas, rates = grid_axes(n_theta, n_rate)
+    d_theta = 2 * np.pi / n_theta
+    index = np.arange(-pad, n_theta + pad + 1)  # one more point: θ = π is the grid's first, wrapped
+    padded_thetas = -np.pi + d_theta * index
+    padded = np.asarray(table, float)[index % n_theta]
+    return ca.interpolant("pendulum_v1_value", "bspline", [padded_thetas, rates], padded.ravel(order="F"))
+
+
+def terminal_cost_function(table: np.ndarray, scale: float = 1.0) -> Any:
+    """``x = (q, ω) ↦ scale · V(θ, θ̇)``: the terminal cost for :class:`~fvin_mpc.control.mpc.MPC`
+    (module docstring, step 3), θ and θ̇ read as :func:`fvin_mpc.envs.pendulum_v1.v1_observation_from_state`."""
+    import casadi as ca
+
+    spline = value_spline(table)
+    x = ca.MX.sym("x", 7)
+    w, y = x[0], x[2]
+    theta = ca.atan2(-2 * w * y, -(w * w - y * y))  # Pendulum-v1's θ (0 upright); norm cancels
+    return ca.Function("pendulum_v1_terminal_value", [x], [scale * spline(ca.vertcat(theta, x[5]))], ["x"], ["V"])
+
+
+__all__ = ["VALUE_GRID", "VALUE_TORQUES", "grid_axes", "interpolate", "learned_transitions", "model_value_table",
+           "terminal_cost_function", "value_iteration", "value_spline"]
+
