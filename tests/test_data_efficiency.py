@@ -86,3 +86,32 @@ def test_quick_study_via_the_bench_cli_and_resumes_from_its_cache(tmp_path, monk
     assert main(argv) == 0  # everything from the cache: no cell is rewritten
     assert [c.stat().st_mtime_ns for c in cells] == stamps
     assert json.loads((tmp_path / "out" / "data-efficiency.json").read_text())["rows"] == rows
+    # --cached-only reports a partial grid: the uncached size is listed as not run, nothing is computed.
+    assert main([*argv[:3], "20,40,60", *argv[4:], "--cached-only"]) == 0
+    partial = json.loads((tmp_path / "out" / "data-efficiency.json").read_text())
+    assert partial["rows"] == rows
+    assert any("sign-invariant_n60_r0" in note and "mlp_n60_r0" in note for note in partial["notes"])
+    assert not (tmp_path / "cache" / "quick" / "cells" / "mlp_n60_r0.json").exists()
+
+
+def test_budgeted_controller_gives_up_with_zero_torque_once_its_budget_is_spent():
+    import time
+
+    class Slow:
+        resets = 0
+
+        def reset(self):
+            Slow.resets += 1
+
+        def __call__(self, x):
+            time.sleep(0.02)
+            return np.array([1.5]), {"success": True}
+
+    controller = study.BudgetedController(Slow(), control_dim=1, budget_s=0.05)
+    controller.reset()
+    outputs = [controller(np.zeros(7)) for _ in range(6)]
+    assert [float(u[0]) for u, _ in outputs[:3]] == [1.5, 1.5, 1.5]
+    u, info = outputs[-1]
+    assert float(u[0]) == 0.0 and info == {"success": False, "fallback": "budget"} and controller.exhausted
+    controller.reset()
+    assert not controller.exhausted and float(controller(np.zeros(7))[0][0]) == 1.5 and Slow.resets == 2

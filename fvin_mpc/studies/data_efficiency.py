@@ -60,6 +60,12 @@ TEST_TRAJECTORIES = 100
 TEST_SEED_OFFSET = 10_000
 #: A learned model's closed-loop cost "matches" the closed form's within this relative excess.
 COST_TOLERANCE = 0.02
+#: Controller compute (wall-clock seconds) one episode may spend before the controller is declared
+#: failed for the rest of it (zero torque; the episode still runs to its end and counts). A model
+#: whose NLPs IPOPT cannot solve makes every call a cold multi-start of up to 3 × 500 iterations —
+#: hours per episode; a good model's episode needs a few seconds here. Not binding for any episode
+#: of a good model (the cells record whether it bound).
+EPISODE_BUDGET_S = 20.0
 #: Training settings shared by every model. Patience 5 (the package default is 2): the MLP's
 #: first Levenberg–Marquardt iterations often improve the validation loss by less than 1 %, and
 #: the default would stop it after three; the S3FVIN gets the same patience.
@@ -87,6 +93,7 @@ class StudyConfig:
     cache_dir: Path = Path("data/data-efficiency")
     #: MPCSettings fields changed for both MPCs (the quick path caps IPOPT's iterations).
     mpc_overrides: tuple[tuple[str, Any], ...] = ()
+    episode_budget_s: float = EPISODE_BUDGET_S
 
     def __post_init__(self) -> None:
         unknown = [m for m in self.models if m not in MODELS]
@@ -118,6 +125,8 @@ class StudyConfig:
                        "test_trajectories": self.test_trajectories}
         if self.mpc_overrides:
             fingerprint["mpc_overrides"] = [list(pair) for pair in self.mpc_overrides]
+        if self.episode_budget_s != EPISODE_BUDGET_S:
+            fingerprint["episode_budget_s"] = self.episode_budget_s
         return fingerprint
 
     def training_fingerprint(self) -> dict[str, Any]:
@@ -239,6 +248,29 @@ def rollout_errors(model: Any, test: Any) -> dict[str, float]:
             "test_window_loss": float(np.mean(window_losses)) if window_losses else math.nan}
 
 
+class BudgetedController:
+    """Passes calls to ``controller`` until they have used ``budget_s`` seconds since ``reset()``;
+    from then on returns zero torque, marked as a failed call (``fallback = "budget"``)."""
+
+    def __init__(self, controller: Any, control_dim: int, budget_s: float) -> None:
+        self.controller, self.control_dim, self.budget_s = controller, control_dim, budget_s
+        self.spent_s, self.exhausted = 0.0, False
+
+    def reset(self) -> None:
+        self.controller.reset()
+        self.spent_s, self.exhausted = 0.0, False
+
+    def __call__(self, x: Any) -> tuple[np.ndarray, dict[str, Any]]:
+        if self.spent_s > self.budget_s:
+            self.exhausted = True
+            return np.zeros(self.control_dim), {"success": False, "fallback": "budget"}
+        start = time.perf_counter()
+        try:
+            return self.controller(x)
+        finally:
+            self.spent_s += time.perf_counter() - start
+
+
 def closed_loop(model: Any, env: Any, config: StudyConfig, progress: bool = False) -> dict[str, Any]:
     """The scene's MPC on ``model`` over the study's starts (waiting latency mode)."""
     from fvin_mpc.control.closed_loop import episode_metrics, run_episode
@@ -248,7 +280,8 @@ def closed_loop(model: Any, env: Any, config: StudyConfig, progress: bool = Fals
 
     overrides = {"compile": config.compile, "horizon": config.horizon, **dict(config.mpc_overrides)}
     start = time.perf_counter()
-    controller = scene_mpc(env, model, scene_mpc_settings(env, **overrides))
+    controller = BudgetedController(scene_mpc(env, model, scene_mpc_settings(env, **overrides)), model.control_dim,
+                                    config.episode_budget_s)
     build_s = time.perf_counter() - start
     episodes = []
     for episode_start in episode_starts(config.episodes, config.seed, (DEFAULT_MAX_OMEGA,)):
@@ -257,11 +290,12 @@ def closed_loop(model: Any, env: Any, config: StudyConfig, progress: bool = Fals
         metrics = episode_metrics(episode)
         episodes.append({"index": episode_start.index, "success": metrics["success"],
                          "cost": metrics["accumulated_cost"], "time_to_upright_s": metrics["time_to_upright_s"],
-                         "failures": metrics["controller_failures"]})
+                         "failures": metrics["controller_failures"], "controller_s": controller.spent_s,
+                         "budget_exhausted": controller.exhausted})
     costs = np.array([e["cost"] for e in episodes])
     return {"build_s": build_s, "successes": int(sum(e["success"] for e in episodes)), "episodes": len(episodes),
             "cost_mean": float(costs.mean()), "failures": int(sum(e["failures"] for e in episodes)),
-            "per_episode": episodes}
+            "budget_exhausted": int(sum(e["budget_exhausted"] for e in episodes)), "per_episode": episodes}
 
 
 def pendulum_v1_returns(model: Any, env: Any, config: StudyConfig) -> dict[str, Any]:
@@ -275,13 +309,19 @@ def pendulum_v1_returns(model: Any, env: Any, config: StudyConfig) -> dict[str, 
     from fvin_mpc.studies.pendulum_v1 import benchmark_settings, run_v1_episode
 
     settings = benchmark_settings() if config.horizon is None else benchmark_settings(config.horizon)
-    controller = scene_mpc(env, model, replace(settings, compile=config.compile, **dict(config.mpc_overrides)))
+    controller = BudgetedController(scene_mpc(env, model, replace(settings, compile=config.compile,
+                                                                  **dict(config.mpc_overrides))),
+                                    model.control_dim, config.episode_budget_s)
     v1 = gymnasium.make("Pendulum-v1")
+    returns, exhausted = [], 0
     try:
-        returns = [run_v1_episode(v1, controller, seed)["return"] for seed in range(config.v1_episodes)]
+        for seed in range(config.v1_episodes):
+            returns.append(run_v1_episode(v1, controller, seed)["return"])
+            exhausted += controller.exhausted
     finally:
         v1.close()
-    return {"episodes": len(returns), "return_mean": float(np.mean(returns)), "returns": returns}
+    return {"episodes": len(returns), "return_mean": float(np.mean(returns)), "returns": returns,
+            "budget_exhausted": exhausted}
 
 
 # ---------------------------------------------------------------------------- cells
@@ -290,8 +330,9 @@ def cell_name(model: str, size: int, draw: int) -> str:
 
 
 def run_cell(model: str, size: int, draw: int, config: StudyConfig, pool: Any, test: Any, env: Any,
-             progress: bool = False) -> dict[str, Any]:
-    """One cell, from its cache when the cache was made with the same settings."""
+             progress: bool = False, cached_only: bool = False) -> dict[str, Any] | None:
+    """One cell, from its cache when the cache was made with the same settings; with
+    ``cached_only``, ``None`` instead of computing a cell that is not cached."""
     name = cell_name(model, size, draw)
     path = config.cache_dir / "cells" / f"{name}.json"
     fingerprint = {"evaluation": config.evaluation_fingerprint(),
@@ -301,6 +342,8 @@ def run_cell(model: str, size: int, draw: int, config: StudyConfig, pool: Any, t
         cached = json.loads(path.read_text())
         if cached.get("key") == key:
             return cached
+    if cached_only:
+        return None
     start = time.perf_counter()
     record: dict[str, Any] = {"key": key, "model": model, "size": size, "draw": draw, "fingerprint": fingerprint}
     stem = None
@@ -320,9 +363,11 @@ def run_cell(model: str, size: int, draw: int, config: StudyConfig, pool: Any, t
     return record
 
 
-def run_cells(config: StudyConfig, progress: bool = True) -> tuple[dict[str, Any], list[dict[str, Any]]]:
+def run_cells(config: StudyConfig, progress: bool = True,
+              cached_only: bool = False) -> tuple[dict[str, Any], list[dict[str, Any]], list[str]]:
     """The closed-form cell, then every (draw, size, model) cell — draws outermost, so that a run
-    cut short still holds whole sweeps over the sizes."""
+    cut short still holds whole sweeps over the sizes. Returns the closed form's record, the
+    cells' records and (``cached_only``) the names of the cells left out because not cached."""
     from tqdm.auto import tqdm
 
     from fvin_mpc.control.scene import scene_env
@@ -332,14 +377,18 @@ def run_cells(config: StudyConfig, progress: bool = True) -> tuple[dict[str, Any
     try:
         reference = run_cell(CLOSED_FORM, 0, 0, config, pool, test, env)
         cells = [(model, size, draw) for draw in config.draws for size in config.sizes for model in config.models]
-        records = []
+        records, missing = [], []
         bar = tqdm(cells, desc="data-efficiency cells", disable=not progress)
         for model, size, draw in bar:
             bar.set_postfix(cell=cell_name(model, size, draw))
-            records.append(run_cell(model, size, draw, config, pool, test, env))
+            record = run_cell(model, size, draw, config, pool, test, env, cached_only=cached_only)
+            if record is None:
+                missing.append(cell_name(model, size, draw))
+            else:
+                records.append(record)
     finally:
         env.close()
-    return reference, records
+    return reference, records, missing
 
 
 # ---------------------------------------------------------------------------- summary
@@ -369,6 +418,8 @@ def summarize(reference: dict[str, Any], records: list[dict[str, Any]]) -> list[
                 "v1_return_mean": float(np.mean(v1)) if v1 else None,
                 "v1_return_worst_seed": float(np.min(v1)) if v1 else None,
                 "failed_solves": int(sum(loop["failures"] for loop in loops)),
+                "budget_exhausted": int(sum(loop.get("budget_exhausted", 0) for loop in loops)
+                                        + sum(r["pendulum_v1"].get("budget_exhausted", 0) for r in mine)),
                 "train_s_mean": float(np.mean([r["training"]["wall_clock_s"] for r in mine])),
                 "per_seed": [{"draw": r["draw"], "successes": r["closed_loop"]["successes"],
                               "cost_mean": r["closed_loop"]["cost_mean"], "v1_return_mean": r["pendulum_v1"]["return_mean"],
@@ -386,7 +437,8 @@ def summarize(reference: dict[str, Any], records: list[dict[str, Any]]) -> list[
                  "v1_return_mean": reference["pendulum_v1"]["return_mean"],
                  "v1_return_worst_seed": (float(np.min(reference["pendulum_v1"]["returns"]))
                                           if reference["pendulum_v1"]["returns"] else None),
-                 "failed_solves": loop["failures"]})
+                 "failed_solves": loop["failures"],
+                 "budget_exhausted": loop.get("budget_exhausted", 0) + reference["pendulum_v1"].get("budget_exhausted", 0)})
     return rows
 
 
@@ -461,7 +513,7 @@ def plot(figure: Any, rows: list[dict[str, Any]]) -> None:
 
 COLUMNS = ("model", "transitions", "seeds", "angle_error_1s_rad", "test_loss", "success", "cost_mean",
            "cost_excess_pct_median", "cost_excess_pct_max", "v1_return_mean", "v1_return_worst_seed",
-           "failed_solves", "train_s_mean")
+           "failed_solves", "budget_exhausted", "train_s_mean")
 
 
 def _parse_ints(text: str, name: str) -> tuple[int, ...]:
@@ -478,9 +530,11 @@ def study_config(quick: bool, seed: int, sizes: str, seeds: str, models: str, ep
                  cache_dir: Path, compile: str, duration: float, pool: int | None = None) -> StudyConfig:
     model_names = tuple(m.strip() for m in models.split(",") if m.strip())
     if quick:  # the test suite's path: tiny sets, a short horizon, uncompiled functions, capped IPOPT, one Pendulum-v1 episode
-        return StudyConfig(sizes=_parse_ints(sizes, "sizes") if sizes != DEFAULT_SIZES else (40, 80), draws=(0,),
-                           models=model_names, seed=seed, episodes=1, duration_s=1.0, v1_episodes=min(v1_episodes, 1),
-                           trajectory_steps=10, test_trajectories=4, compile="none", horizon=10, iterations=2,
+        quick_sizes = _parse_ints(sizes, "sizes") if sizes != DEFAULT_SIZES else (40, 80)
+        return StudyConfig(sizes=quick_sizes, draws=(0,), models=model_names, seed=seed, episodes=1, duration_s=1.0,
+                           v1_episodes=min(v1_episodes, 1), trajectory_steps=10, test_trajectories=4,
+                           # a fixed pool (not max(sizes)): runs with other sizes share its cells
+                           pool_transitions=max(100, *quick_sizes), compile="none", horizon=10, iterations=2,
                            jacobian_windows=8, cache_dir=cache_dir / "quick",
                            mpc_overrides=(("max_iter", 10), ("cold_max_iter", 20), ("cold_starts", ("rollout+",))))
     return StudyConfig(sizes=_parse_ints(sizes, "sizes"), draws=_parse_ints(seeds, "seeds"), models=model_names,
@@ -491,11 +545,11 @@ def study_config(quick: bool, seed: int, sizes: str, seeds: str, models: str, ep
 def run(quick: bool = False, seed: int = 0, repeats: int = 1, sizes: str = DEFAULT_SIZES, seeds: str = "0,1",
         models: str = DEFAULT_MODELS, episodes: int = 10, v1_episodes: int = 10,
         cache_dir: Path = Path("data/data-efficiency"), compile: str = "cached", duration: float = 10.0,
-        pool: int | None = 20000, progress: bool = True, **_: Any) -> StudyResult:
+        pool: int | None = 20000, cached_only: bool = False, progress: bool = True, **_: Any) -> StudyResult:
     """Run the study (``repeats`` is unused: nothing here is timed)."""
     config = study_config(quick, seed, sizes, seeds, models, episodes, v1_episodes, Path(cache_dir), compile, duration,
                           pool)
-    reference, records = run_cells(config, progress)
+    reference, records, missing = run_cells(config, progress, cached_only)
     rows = summarize(reference, records)
     best = headline(rows)
     notes = [
@@ -511,6 +565,9 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 1, sizes: str = DEFAU
         "The MLP's MPC uses the closed-form energy in its terminal energy-deficit term (it has no energy of its "
         "own); the S3FVIN's uses its learned energy.",
     ]
+    if missing:
+        notes.append(f"Not run (`--cached-only`; not in the cache): {', '.join(missing)}. The `seeds` column "
+                     "says how many draws each row has.")
     return StudyResult(name="data-efficiency", rows=rows, columns=COLUMNS, plot=plot, notes=notes)
 
 
@@ -528,6 +585,8 @@ def add_arguments(parser: Any) -> None:
     parser.add_argument("--duration", type=float, default=10.0, help="seconds per closed-loop episode (default: %(default)s)")
     parser.add_argument("--compile", choices=("cached", "none"), default="cached",
                         help="the MPC's functions compiled to C (cached on disk) or run in CasADi's VM (default: %(default)s)")
+    parser.add_argument("--cached-only", action="store_true",
+                        help="report only the cells already in the cache (a partial grid), list the others as not run")
     parser.add_argument("--pool", type=int, default=20000,
                         help="transitions collected once; every training set is drawn from them, so runs with "
                              "other --sizes share data and cells (default: %(default)s)")
