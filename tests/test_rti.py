@@ -146,3 +146,18 @@ def test_disturbance_estimate_converges_to_the_oracle_torque(scene, torque, requ
     plain, _ = run_episode(disturbed, rti(env, model, horizon=horizon, disturbance_gain=0.0), 4.0, near_goal,
                            latency=0.01)
     assert offset_free < 2e-3 < plain.angle_from_goal[-20:].max()
+
+
+@pytest.mark.parametrize("qp_iterations", [10, 40])
+def test_many_qp_iterations_stay_finite_and_hold_the_goal(pendulum, qp_iterations):
+    """Hard case: without a floor on the barrier parameter, 20 interior-point iterations drove it to
+    where λ/s swamps the Riccati recursion: μ turned NaN on the cold call and near-upright starts were
+    lost. With the floor, more iterations only re-solve the same barrier problem."""
+    env, model = pendulum
+    controller = rti(env, model, rti_qp_iterations=qp_iterations)
+    start = {"qpos": np.array([np.pi - 0.5]), "qvel": np.array([0.0])}  # 0.5 rad from upright
+    episode, _ = run_episode(env, controller, 3.0, start, latency="none")
+    assert np.isfinite(controller.qp_mu) and controller.qp_mu >= 1e-10
+    assert np.all(np.isfinite(controller._plan.states)) and np.all(np.isfinite(controller._plan.controls))
+    assert episode_metrics(episode)["success"]
+    assert episode.angle_from_goal[-1] < 0.01

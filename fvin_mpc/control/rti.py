@@ -86,6 +86,12 @@ STEP_LIMIT_VELOCITY = 2.0
 #: guess the iteration reached IPOPT's optimum on the ball joint in ~10 iterations, from the
 #: rollouts (ω clipped to the bound: large gaps) it diverged (docs/realtime.md).
 RTI_COLD_ORDER = ("goal", "rollout+", "rollout-")
+#: Smallest barrier parameter of the Riccati QP's interior-point iterations. Without a floor μ falls
+#: tenfold per iteration; past ~20 iterations the barrier curvature λ/s (~λ²/μ) swamps the Riccati
+#: recursion, the dual update cancels catastrophically and μ turned NaN (20 iterations: 11 of 20
+#: swing-ups lost, docs/bench/rti.md). At 1e-10 the iterations after the floor re-solve the same
+#: barrier problem.
+QP_MU_MIN = 1e-10
 #: Planned ``|ω_i|`` are kept below this fraction of ``1/h`` (the step's solvability limit).
 OMEGA_VALID_FRACTION = 0.9
 
@@ -165,7 +171,7 @@ def step_limits(layout: StateLayout, omega_step: float) -> np.ndarray:
 # ----------------------------------------------------------------------------- compiled QP + update
 def riccati_feedback_function(layout: StateLayout, n: int, m: int, low: np.ndarray, high: np.ndarray,
                               limits: np.ndarray, omega_valid: float, iterations: int, centering: float = 0.1,
-                              boundary: float = 0.995) -> ca.Function:
+                              boundary: float = 0.995, mu_min: float = QP_MU_MIN) -> ca.Function:
     """One feedback iteration as a single CasADi function (compiled with the linearization):
     ``(X̄ (n_x,N+1), Ū (m,N), x0 (n_x), H (s,sN), H_N (n_δ,n_δ), g (s,N), g_N (n_δ), [A B] (n_δ,sN),
     c (n_δ,N)) → (X (n_x,N+1), U (m,N), step, μ)``, ``s = n_δ + m``; ``n_x``, ``n_δ`` the ``layout``'s
@@ -176,8 +182,9 @@ def riccati_feedback_function(layout: StateLayout, n: int, m: int, low: np.ndarr
     solved by a primal–dual interior-point method on the input boxes with a fixed number of
     ``iterations``: each solves the barrier-modified LQ problem (``R + diag(λ/s)``) by a Riccati
     recursion (``O(N)``, backward ``mapaccum``), takes the fraction-to-boundary step and reduces
-    ``μ`` to ``centering ×`` the mean complementarity. Then the trust region (``limits``, per entry of
-    ``δ``: :func:`step_limits`), the update on S³ and ``|ω|`` within ``omega_valid`` (as
+    ``μ`` to ``centering ×`` the mean complementarity, not below ``mu_min`` (:data:`QP_MU_MIN`).
+    Then the trust region (``limits``, per entry of ``δ``: :func:`step_limits`), the update on S³
+    and ``|ω|`` within ``omega_valid`` (as
     :meth:`RealTimeMPC._iterate`). No Python between the stages: the whole iteration is one call.
     """
     ns, nd = layout.state_dim, layout.tangent_dim
@@ -242,7 +249,8 @@ def riccati_feedback_function(layout: StateLayout, n: int, m: int, low: np.ndarr
                             ca.vec(dual_low / ca.fmax(-d_low, 1e-300)), ca.vec(dual_up / ca.fmax(-d_up, 1e-300)))
         alpha = ca.fmin(1.0, boundary * ca.mmin(ratios))
         v, dual_low, dual_up = v + alpha * dv, dual_low + alpha * d_low, dual_up + alpha * d_up
-        mu = centering * (ca.sum1(ca.sum2(dual_low * (v - lower))) + ca.sum1(ca.sum2(dual_up * (upper - v)))) / (2 * m * n)
+        mu = ca.fmax(centering * (ca.sum1(ca.sum2(dual_low * (v - lower))) + ca.sum1(ca.sum2(dual_up * (upper - v))))
+                     / (2 * m * n), mu_min)
     # The states of the last Riccati solve (closed-loop forward pass, consistent with its controls to
     # within (1 − α)|Δu|): propagating the final controls open loop would amplify the interior-point
     # method's inexactness through the unstable upright dynamics (e^{λ·horizon} ≈ 10³–10⁴ here).
