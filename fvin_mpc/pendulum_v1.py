@@ -51,12 +51,19 @@ def build_parser() -> argparse.ArgumentParser:
                         help="experimental: the terminal cost is the learned model's value function for Pendulum-v1's "
                              "cost (DP on the model, fvin_mpc.studies.pendulum_v1_value) instead of the terminal "
                              "orientation, speed and energy terms; worse on the seeds tried (docs/pendulum-v1.md)")
+    parser.add_argument("--rank-cold-starts", action="store_true",
+                        help="the multi-start cold call keeps the plan with the lowest estimate of the episode's "
+                             "Pendulum-v1 cost (stage costs + the learned model's value after the horizon) instead "
+                             "of the lowest NLP cost")
     parser.add_argument("--value-grid", type=_grids, default=((256, 129),),
-                        help="with --terminal-value: its DP grid THETAxRATE (default: 256x129)")
+                        help="with --terminal-value or --rank-cold-starts: the value's DP grid THETAxRATE (default: 256x129)")
     parser.add_argument("--no-reference", action="store_true", help="skip the per-seed global reference")
     parser.add_argument("--reference-grids", type=_grids, default=REFERENCE_GRIDS,
                         help="the reference's DP grids, coarse to fine, as THETAxRATE,... (at least two; default: "
                              + ",".join(f"{a}x{b}" for a, b in REFERENCE_GRIDS) + ")")
+    parser.add_argument("--reference-from", type=Path, default=None,
+                        help="reuse an earlier run's JSON's reference search (same seeds and DP grids; it does not "
+                             "depend on the MPC) and polish only this run's MPC episodes")
     parser.add_argument("--previous", type=Path, default=None,
                         help="an earlier run's JSON: its MPC returns and references per seed go into the table")
     add_backend_arguments(parser)
@@ -75,14 +82,15 @@ def main(argv: Sequence[str] | None = None) -> int:
                                  multistart=not args.single_start, terminal_energy_weight=args.energy_weight,
                                  solver=args.solver, rti_cold_solver=args.rti_cold_solver,
                                  reference_grids=args.reference_grids, terminal_value=args.terminal_value,
-                                 value_grid=args.value_grid[0])
+                                 rank_cold_starts=args.rank_cold_starts, value_grid=args.value_grid[0])
         previous = json.loads(args.previous.read_text()) if args.previous else None
         if not config.true_model:
             from fvin_mpc.core.checkpoint import load_checkpoint
 
             load_checkpoint(config.checkpoint)  # a clear error before any worker starts
         backend = backend_options(args)
-        records = run_benchmark(config, args.workers, progress=not args.quiet, **backend)
+        reference_from = json.loads(args.reference_from.read_text()) if args.reference_from else None
+        records = run_benchmark(config, args.workers, progress=not args.quiet, reference_from=reference_from, **backend)
     except (ValueError, FileNotFoundError, TasksFailed) as error:
         return exit_status(error)
     summary = summarize(records)
@@ -90,7 +98,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     args.out.parent.mkdir(parents=True, exist_ok=True)
     label = "MPC (true model)" if config.true_model else "MPC (learned)"
     plot_returns(records, args.out.with_suffix(".png"), label)
-    write_markdown(summary, records, config, command.strip(), args.out, previous)
+    write_markdown(summary, records, config, command.strip(), args.out, previous,
+                   str(args.reference_from) if args.reference_from else None)
     print(json.dumps(summary, indent=2))
     print(f"wrote {args.out}, {args.out.with_suffix('.json')}, {args.out.with_suffix('.png')}", file=sys.stderr)
     return 0

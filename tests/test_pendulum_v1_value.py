@@ -124,3 +124,67 @@ def test_terminal_cost_hook_reproduces_the_terminal_speed_weight(true_model):
         MPC(true_model, settings, UPRIGHT, [-2.0], [2.0], terminal_cost=ca.Function("bad", [x], [x]))
     with pytest.raises(ValueError):
         MPC(true_model, replace(settings, solver="fatrop", hessian="exact"), UPRIGHT, [-2.0], [2.0], terminal_cost=speed)
+
+
+def test_cold_start_score_ranks_the_cold_plans(true_model):
+    """The default ranks the cold starts by the NLP's cost; a score hook picks its own favourite (here the
+    plan whose first torque is lowest), and the warm calls are untouched."""
+    from fvin_mpc.control.mpc import COLD_STARTS
+
+    settings = replace(MPCSettings(horizon=15), compile="none", cold_starts=COLD_STARTS)
+    default = MPC(true_model, settings, UPRIGHT, [-2.0], [2.0])
+    ranked = MPC(true_model, settings, UPRIGHT, [-2.0], [2.0], cold_start_score=lambda states, controls: controls[0, 0])
+    state = np.r_[hinge(0.3, 0.2)]  # near hanging: swinging left or right first are both plans
+    _, info = default(state)
+    costs = {k: v for k, v in info["cold_costs"].items() if np.isfinite(v)}
+    assert info["cold_start"] == min(costs, key=costs.get)
+    _, ranked_info = ranked(state)
+    assert ranked_info["cold_costs"] == pytest.approx(info["cold_costs"], nan_ok=True)
+    first_torques = {}
+    for start in costs:
+        solo = MPC(true_model, replace(settings, cold_starts=(start,)), UPRIGHT, [-2.0], [2.0])
+        first_torques[start] = solo(state)[1]["controls"][0, 0]
+    assert ranked_info["controls"][0, 0] == pytest.approx(min(first_torques.values()), abs=1e-6)
+    assert "cold_start" not in ranked(state)[1]  # a warm call
+
+
+def test_plan_score_is_the_stage_costs_plus_the_value():
+    thetas, rates = pv.grid_axes(32, 17)
+    table = 10.0 + np.cos(thetas)[:, None] + 0.0 * rates[None, :]
+    theta = np.array([2.0, 2.2, 2.5])
+    rate = np.array([1.0, 2.0, 3.0])
+    states = state_from_v1_observation(np.stack([np.cos(theta), np.sin(theta), rate], axis=1))
+    controls = np.array([[0.5], [-1.0]])
+    expected = float(np.sum(v1.v1_cost(theta[:2], rate[:2], controls[:, 0]))) + pv.interpolate(table, theta[2], rate[2])
+    assert pv.plan_score(table)(states, controls) == pytest.approx(expected, rel=1e-12)
+    assert pv.plan_score(table, "mpc")(states, controls) < pv.plan_score(table)(states, controls)  # 4 sin²(θ/2) < θ²
+
+
+def test_reused_reference_is_the_search_or_the_polished_mpc_episode():
+    """reuse_references: reference = max(the earlier search without its MPC, this MPC's polished episode); a
+    different grid or a missing seed is refused; the MPC never beats the reference."""
+    theta0, theta_dot0 = 0.8, -0.3
+    controls = np.zeros(v1.EPISODE_STEPS)
+    guess_return, states = v1.replay(theta0, theta_dot0, controls)
+    record = {"seed": 7, "theta0": theta0, "theta_dot0": theta_dot0, "return": guess_return,
+              "controls": controls.tolist(), "states": states.tolist()}
+    families = {"greedy": -200.0, "noisy-a": -150.0, "noisy-b": -150.0, "heuristic": -300.0, "mpc": -400.0}
+    stored = {"seed": 7, "theta0": theta0, "theta_dot0": theta_dot0, "search_return": -1e6,
+              "reference_source": "dp256x129 (polished)", "reference_grids": {"dp256x129": {}},
+              "reference_families": families}
+    previous = {"config": {"reference_grids": [[256, 129], [512, 257]]}, "episodes": [stored]}
+    records = [dict(record)]
+    v1.reuse_references(records, previous, ((256, 129), (512, 257)), progress=False)
+    polished = records[0]["reference_families"]["mpc"]
+    assert polished > guess_return + 1.0  # the zero-torque episode polished (to a local optimum)
+    assert records[0]["reference_return"] == polished >= records[0]["return"]
+    assert records[0]["reference_source"].startswith("mpc")
+    assert not records[0]["reference_converged"]  # the noisy halves (-150) are not at the reference
+    records = [dict(record)]
+    v1.reuse_references(records, {**previous, "episodes": [{**stored, "search_return": 0.0}]},
+                        ((256, 129), (512, 257)), progress=False)
+    assert records[0]["reference_return"] == 0.0 and records[0]["reference_source"] == "dp256x129 (polished)"
+    with pytest.raises(ValueError):
+        v1.reuse_references([dict(record)], previous, ((256, 129), (1024, 513)), progress=False)
+    with pytest.raises(ValueError):
+        v1.reuse_references([{**record, "seed": 8}], previous, ((256, 129), (512, 257)), progress=False)

@@ -258,6 +258,9 @@ class MPC:
             the last stage (e.g. a value function: the cost of what follows the horizon). ``None``
             (default) leaves the problem as it is. Its exact Hessian is added to the Gauss–Newton
             one (it depends on ``x_N`` only: a small block). IPOPT and sqpmethod solvers only.
+        cold_start_score: optional ``(states (N+1, n), controls (N, m)) -> float``: how a multi-start
+            cold call ranks its successful plans (lowest wins), e.g. by an estimate of the whole
+            task's cost; ``None`` (default) ranks them by the NLP's own cost, as before.
 
     Attributes:
         compile_report: how the compiled functions were obtained (``None`` if not compiled).
@@ -265,7 +268,8 @@ class MPC:
     """
 
     def __init__(self, model: ExportedModel, settings: MPCSettings, goal: Any, torque_low: Any, torque_high: Any,
-                 rest: Any = None, terminal_cost: ca.Function | None = None) -> None:
+                 rest: Any = None, terminal_cost: ca.Function | None = None,
+                 cold_start_score: Any = None) -> None:
         self.model = model
         self.settings = settings
         if terminal_cost is not None:
@@ -275,6 +279,7 @@ class MPC:
             if settings.solver not in ("ipopt", "sqpmethod"):
                 raise ValueError(f"terminal_cost needs solver 'ipopt' or 'sqpmethod', got {settings.solver!r}")
         self.terminal_cost = terminal_cost
+        self.cold_start_score = cold_start_score
         self.goal = unit_quaternion(goal, "goal")
         m = model.control_dim
         self.torque_low = np.broadcast_to(np.asarray(torque_low, dtype=float), (m,)).copy()
@@ -516,13 +521,17 @@ class MPC:
         costs: dict[str, float] = {}
         total_time = 0.0
         earlier_plan = self._previous  # what a failed solve falls back to (kept with warm_start="none")
+        score = getattr(self, "cold_start_score", None)
+        best_rank = np.inf
         for start in self.settings.cold_starts:
             self._previous = earlier_plan
             u, info = self._solve(x0, self._first_guess(x0, start), warm=False)
             total_time += info["solve_time_s"]
             costs[start] = info["cost"] if info["success"] else float("nan")
-            if info["success"] and (best is None or info["cost"] < best[1]["cost"]):
-                best = (u, {**info, "cold_start": start}, self._previous)
+            if info["success"]:
+                rank = info["cost"] if score is None else float(score(info["states"], info["controls"]))
+                if best is None or rank < best_rank:
+                    best, best_rank = (u, {**info, "cold_start": start}, self._previous), rank
         if best is None:  # every cold start failed: the last one's fallback stands
             return u, {**info, "solve_time_s": total_time, "cold_start": None, "cold_costs": costs}
         u, info, self._previous = best

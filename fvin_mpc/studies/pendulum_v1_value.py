@@ -211,6 +211,23 @@ def terminal_cost_function(table: np.ndarray, scale: float = 1.0) -> Any:
     return ca.Function("pendulum_v1_terminal_value", [x], [scale * spline(ca.vertcat(theta, x[5]))], ["x"], ["V"])
 
 
-__all__ = ["VALUE_GRID", "VALUE_TORQUES", "grid_axes", "interpolate", "learned_transitions", "model_value_table",
+def plan_score(table: np.ndarray, stage_cost: str = "v1") -> Callable[[np.ndarray, np.ndarray], float]:
+    """``(states (N+1, 7), controls (N, 1)) ↦ Σ_k c(x_k, u_k) + V(x_N)``: a plan's estimate of the whole
+    episode's cost (the stage cost over the horizon, the value ``table`` bilinear after it), to rank the
+    MPC's cold-start plans (:class:`~fvin_mpc.control.mpc.MPC`'s ``cold_start_score``)."""
+    from fvin_mpc.envs.pendulum_v1 import v1_observation_from_state
+
+    cost = STAGE_COSTS[stage_cost]
+
+    def score(states: np.ndarray, controls: np.ndarray) -> float:
+        observed = v1_observation_from_state(np.asarray(states, float))
+        theta = np.arctan2(observed[:, 1], observed[:, 0])
+        u = np.asarray(controls, float).reshape(len(theta) - 1, -1)[:, 0]
+        return float(np.sum(cost(theta[:-1], observed[:-1, 2], u)) + interpolate(table, theta[-1], observed[-1, 2]))
+
+    return score
+
+
+__all__ = ["VALUE_GRID", "VALUE_TORQUES", "grid_axes", "interpolate", "learned_transitions", "model_value_table", "plan_score", "plan_score",
            "terminal_cost_function", "value_iteration", "value_spline"]
 
