@@ -20,6 +20,12 @@ MPC's own episode and two energy-pumping heuristics polished by the episode NLP
 seed, so this is the best return an omniscient controller found; the report says how far the
 search's parts agree (its check of globality) and the gap is what the MPC leaves on the table.
 
+``--rank-cold-starts``: the cold call keeps the plan with the lowest estimate of the episode's
+Pendulum-v1 cost (stage costs over the horizon + the learned model's value after it,
+:mod:`fvin_mpc.studies.pendulum_v1_value`) instead of the lowest NLP cost. ``--reference-from``:
+reuse an earlier run's reference search (it does not depend on the MPC) and polish only this run's
+MPC episodes.
+
 Outputs ``--out`` (Markdown), ``<out>.json`` and ``<out>.png`` (returns per seed).
 """
 

@@ -1,8 +1,12 @@
-"""A value function of the *learned* model for Pendulum-v1's cost, the MPC's terminal cost.
+"""A value function of the *learned* model for Pendulum-v1's cost: what follows the MPC's horizon.
 
 The MPC's horizon (30 steps, 1.5 s) is shorter than a swing-up from near hanging; with only a
 local terminal cost (orientation, speed, energy deficit) it cannot tell one pump swing from two,
-or the left swing from the right. This module gives it the cost of the rest of the episode:
+or the left swing from the right. This module estimates the cost of the rest of the episode. Two
+uses, measured in ``docs/pendulum-v1.md``: ranking the cold call's multi-start plans
+(:func:`plan_score`, ``--rank-cold-starts``: seed 53 +41, no other seed changed) and, experimental
+and far worse, as the MPC's terminal cost (:func:`terminal_cost_function`, ``--terminal-value``:
+its plans end on knife edges that the model/plant mismatch breaks).
 
 1. **Transitions** (:func:`learned_transitions`): the learned model's step ``F(x, u)`` (the MPC's own
    exported step, no knowledge of Pendulum-v1's map) from every point of a grid ``θ_i`` (periodic,
