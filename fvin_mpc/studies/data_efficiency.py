@@ -49,8 +49,14 @@ from fvin_mpc.studies.report import StudyResult
 
 S3FVIN_VARIANTS: tuple[str, ...] = ("sign-invariant", "fixed-inertia", "plain")
 MLP = "mlp"
+#: The same trained MLP under the MPC with the exact Lagrangian Hessian instead of the Gauss–Newton
+#: one: IPOPT does not converge on the MLP with the Gauss–Newton Hessian (which leaves out the
+#: dynamics' second derivatives — harmless for the S3FVIN's step, not for this network).
+MLP_EXACT = "mlp-exact-hessian"
 CLOSED_FORM = "closed-form"
-MODELS: tuple[str, ...] = (*S3FVIN_VARIANTS, MLP)
+MODELS: tuple[str, ...] = (*S3FVIN_VARIANTS, MLP, MLP_EXACT)
+#: MPCSettings a model's MPCs get beyond the study's (both the scene's and the Pendulum-v1 one).
+MODEL_MPC_OVERRIDES: dict[str, dict[str, Any]] = {MLP_EXACT: {"hessian": "exact"}}
 DEFAULT_SIZES = "250,500,1000,2000,5000,10000,20000"
 DEFAULT_MODELS = "sign-invariant,mlp"
 #: Periods of the held-out rollouts (1 s at h = 0.05).
@@ -271,14 +277,16 @@ class BudgetedController:
             self.spent_s += time.perf_counter() - start
 
 
-def closed_loop(model: Any, env: Any, config: StudyConfig, progress: bool = False) -> dict[str, Any]:
-    """The scene's MPC on ``model`` over the study's starts (waiting latency mode)."""
+def closed_loop(model: Any, env: Any, config: StudyConfig, progress: bool = False,
+                overrides: dict[str, Any] | None = None) -> dict[str, Any]:
+    """The scene's MPC on ``model`` over the study's starts (waiting latency mode); ``overrides``:
+    MPCSettings fields of this model's MPC."""
     from fvin_mpc.control.closed_loop import episode_metrics, run_episode
     from fvin_mpc.control.scene import scene_mpc, scene_mpc_settings
     from fvin_mpc.studies.evaluation import DEFAULT_MAX_OMEGA
     from fvin_mpc.studies.starts import episode_starts
 
-    overrides = {"compile": config.compile, "horizon": config.horizon, **dict(config.mpc_overrides)}
+    overrides = {"compile": config.compile, "horizon": config.horizon, **dict(config.mpc_overrides), **(overrides or {})}
     start = time.perf_counter()
     controller = BudgetedController(scene_mpc(env, model, scene_mpc_settings(env, **overrides)), model.control_dim,
                                     config.episode_budget_s)
@@ -298,7 +306,7 @@ def closed_loop(model: Any, env: Any, config: StudyConfig, progress: bool = Fals
             "budget_exhausted": int(sum(e["budget_exhausted"] for e in episodes)), "per_episode": episodes}
 
 
-def pendulum_v1_returns(model: Any, env: Any, config: StudyConfig) -> dict[str, Any]:
+def pendulum_v1_returns(model: Any, env: Any, config: StudyConfig, overrides: dict[str, Any] | None = None) -> dict[str, Any]:
     """The Pendulum-v1 benchmark's MPC on ``model`` on ``gymnasium.make("Pendulum-v1")``, seeds
     ``0 … v1_episodes − 1``."""
     if config.v1_episodes == 0:
@@ -310,7 +318,7 @@ def pendulum_v1_returns(model: Any, env: Any, config: StudyConfig) -> dict[str, 
 
     settings = benchmark_settings() if config.horizon is None else benchmark_settings(config.horizon)
     controller = BudgetedController(scene_mpc(env, model, replace(settings, compile=config.compile,
-                                                                  **dict(config.mpc_overrides))),
+                                                                  **dict(config.mpc_overrides), **(overrides or {}))),
                                     model.control_dim, config.episode_budget_s)
     v1 = gymnasium.make("Pendulum-v1")
     returns, exhausted = [], 0
@@ -347,16 +355,23 @@ def run_cell(model: str, size: int, draw: int, config: StudyConfig, pool: Any, t
     start = time.perf_counter()
     record: dict[str, Any] = {"key": key, "model": model, "size": size, "draw": draw, "fingerprint": fingerprint}
     stem = None
+    trained_as = MLP if model == MLP_EXACT else model  # the same network, another MPC
     if model != CLOSED_FORM:
-        stem = config.cache_dir / "models" / name
+        stem = config.cache_dir / "models" / cell_name(trained_as, size, draw)
         data = training_subset(pool, size, draw, config.seed)
         record["transitions"] = data.num_transitions
         record["trajectories"] = data.num_trajectories
-        record["training"] = train_cell_model(model, data, config, draw, stem, progress=False)
-    exported = export_cell_model(model, stem, env)
+        twin = config.cache_dir / "cells" / f"{cell_name(trained_as, size, draw)}.json"
+        if trained_as != model and twin.exists() and json.loads(twin.read_text()).get("key") == key:
+            record["training"] = json.loads(twin.read_text())["training"]  # its weights are at ``stem``
+        else:
+            record["training"] = train_cell_model(trained_as, data, config, draw, stem, progress=False)
+    exported = export_cell_model(trained_as, stem, env)
+    overrides = MODEL_MPC_OVERRIDES.get(model, {})
+    record["mpc_overrides"] = overrides
     record["rollout"] = rollout_errors(exported, test)
-    record["closed_loop"] = closed_loop(exported, env, config)
-    record["pendulum_v1"] = pendulum_v1_returns(exported, env, config)
+    record["closed_loop"] = closed_loop(exported, env, config, overrides=overrides)
+    record["pendulum_v1"] = pendulum_v1_returns(exported, env, config, overrides=overrides)
     record["cell_s"] = time.perf_counter() - start
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(record, indent=1, default=float) + "\n")
@@ -503,7 +518,7 @@ def plot(figure: Any, rows: list[dict[str, Any]]) -> None:
     if reference["v1_return_mean"] is not None:
         axes[1, 1].axhline(reference["v1_return_mean"], color="k", ls=":", label="closed-form model")
     axes[1, 1].axhline(ZOO_BEST["mean"], color="tab:red", ls="--",
-                       label=f"rl-zoo {ZOO_BEST['algorithm']} (its 20k-step budget; 750 episodes)")
+                       label=f"rl-zoo {ZOO_BEST['algorithm']}, 20k steps (750 episodes, not our seeds)")
     axes[1, 1].set(xscale="log", ylabel="Pendulum-v1 mean return", title="Pendulum-v1 (our seeds; dots: per draw)")
     for axis in axes.flat:
         axis.set_xlabel("training transitions")
