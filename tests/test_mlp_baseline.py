@@ -8,8 +8,16 @@ import numpy as np
 import pytest
 import torch
 
-from fvin_mpc.learning.mlp_baseline import (IncrementMLP, MLPConfig, export_mlp, init_mlp_weights, load_mlp,
-                                            mlp_step_function, save_mlp, train_mlp)
+from fvin_mpc.learning.mlp_baseline import (
+    IncrementMLP,
+    MLPConfig,
+    init_mlp_weights,
+    load_mlp,
+    mlp_step_function,
+    save_mlp,
+    train_mlp,
+)
+from fvin_mpc.studies.data_efficiency import export_mlp
 
 
 def _lively_weights(config: MLPConfig, seed: int = 0) -> dict[str, np.ndarray]:
@@ -109,6 +117,6 @@ def test_the_package_mpc_runs_on_the_exported_mlp_with_the_closed_form_energy():
     settings = replace(scene_mpc_settings(env), compile="none", horizon=5, cold_max_iter=20, max_iter=10,
                        cold_starts=("rollout+",))
     controller = scene_mpc(env, model, settings)
-    u, info = controller(np.concatenate([base.rest, [0.0, 0.0, 0.0]]))
+    u, _ = controller(np.concatenate([base.rest, [0.0, 0.0, 0.0]]))
     assert np.all(np.isfinite(u)) and np.all(np.abs(u) <= base.torque_high + 1e-12)
     env.close()

@@ -32,9 +32,10 @@ Float64 throughout (the torch parameters are ``torch.float64``).
 from __future__ import annotations
 
 import json
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 import numpy as np
 
@@ -163,7 +164,7 @@ def _torch_model_class() -> Any:
     return IncrementMLP
 
 
-def IncrementMLP(config: MLPConfig, weights: Mapping[str, np.ndarray] | None = None, seed: int = 0) -> Any:  # noqa: N802
+def IncrementMLP(config: MLPConfig, weights: Mapping[str, np.ndarray] | None = None, seed: int = 0) -> Any:
     """A torch :class:`IncrementMLP` (a factory for ``train(model_factory=...)``)."""
     return _torch_model_class()(config, weights, seed)
 
@@ -221,20 +222,3 @@ def mlp_step_function(weights: Mapping[str, np.ndarray], config: MLPConfig, name
     p = q + config.step_size * a
     x_next = ca.vertcat(p / ca.sqrt(ca.sumsqr(p)), omega + config.step_size * config.omega_scale * b)
     return ca.Function(name, [x, u], [x_next, ca.SX(0)], ["x", "u"], ["x_next", "residual"])
-
-
-def export_mlp(weights: Mapping[str, np.ndarray], config: MLPConfig, energy_body: Any, name: str = "mlp") -> Any:
-    """The baseline as an :class:`~fvin_mpc.control.export.ExportedModel` (``newton_iters = 0``).
-
-    Args:
-        energy_body: a closed-form :class:`~fvin_mpc.core.rigid_body.PivotedRigidBody` (e.g.
-            ``from_mujoco`` of the scene) whose energy stands in for the model's own in the MPC's
-            terminal energy-deficit cost (the MLP has none; module docstring). The name gets a
-            ``+true-energy`` suffix so that no report can miss it.
-    """
-    from fvin_mpc.control.export import CA, NP, ExportedModel, energy_function
-
-    check_mlp_weights(weights, config)
-    return ExportedModel(step=mlp_step_function(weights, config), step_size=config.step_size, newton_iters=0,
-                         control_dim=config.control_dim, numpy_terms=energy_body.terms(NP),
-                         name=f"{name}+true-energy", energy_function=energy_function(energy_body.terms(CA)))

@@ -218,7 +218,7 @@ def export_cell_model(model: str, stem: Path | None, env: Any) -> Any:
         return scene_model(env, true_model=True)
     if model == MLP:
         from fvin_mpc.core.rigid_body import from_mujoco
-        from fvin_mpc.learning.mlp_baseline import export_mlp, load_mlp
+        from fvin_mpc.learning.mlp_baseline import load_mlp
 
         mlp_config, weights = load_mlp(stem)
         base = env.unwrapped
@@ -495,7 +495,7 @@ def plot(figure: Any, rows: list[dict[str, Any]]) -> None:
     for model in dict.fromkeys(r["model"] for r in learned):
         mine = sorted((r for r in learned if r["model"] == model), key=lambda r: r["transitions"])
         sizes = [r["transitions"] for r in mine]
-        style = dict(marker="o", label=model)
+        style = {"marker": "o", "label": model}
         line = axes[0, 0].plot(sizes, [r["angle_error_1s_rad"] for r in mine], **style)[0]
         color = line.get_color()
         axes[0, 1].plot(sizes, [100 * r["success_rate"] for r in mine], color=color, **style)
@@ -607,3 +607,21 @@ def add_arguments(parser: Any) -> None:
                              "other --sizes share data and cells (default: %(default)s)")
     parser.add_argument("--cache-dir", type=Path, default=Path("data/data-efficiency"),
                         help="data, trained models and per-cell results; a rerun resumes from it (default: %(default)s)")
+
+
+def export_mlp(weights: Any, config: Any, energy_body: Any, name: str = "mlp") -> Any:
+    """The MLP baseline (:mod:`fvin_mpc.learning.mlp_baseline`) as an :class:`~fvin_mpc.control.export.ExportedModel` (``newton_iters = 0``).
+
+    Args:
+        energy_body: a closed-form :class:`~fvin_mpc.core.rigid_body.PivotedRigidBody` (e.g.
+            ``from_mujoco`` of the scene) whose energy stands in for the model's own in the MPC's
+            terminal energy-deficit cost (the MLP has none; module docstring). The name gets a
+            ``+true-energy`` suffix so that no report can miss it.
+    """
+    from fvin_mpc.control.export import CA, NP, ExportedModel, energy_function
+    from fvin_mpc.learning.mlp_baseline import check_mlp_weights, mlp_step_function
+
+    check_mlp_weights(weights, config)
+    return ExportedModel(step=mlp_step_function(weights, config), step_size=config.step_size, newton_iters=0,
+                         control_dim=config.control_dim, numpy_terms=energy_body.terms(NP),
+                         name=f"{name}+true-energy", energy_function=energy_function(energy_body.terms(CA)))
