@@ -101,6 +101,8 @@ def run(quick: bool = False, seed: int = 0, starts: int = 20, duration: float = 
         "(the call and the preparation after the torque is sent); `feedback_ms`: the call alone, observation "
         "to torque; `learned_vs_true`: median whole time, learned over closed form, same configuration; "
         "`cost_mean`: the env's accumulated cost (angle² + 0.1 ω² + 0.001 u² per period).",
+        "The cold start's budget is wall clock (`rti_cold_budget_s`), so the first plans, and with them the "
+        "costs, differ from run to run (by ~10 % in the mean over 20 starts); compare rows within one run.",
         f"Load average (1, 5, 15 min) when the study started: {load[0]:.2f}, {load[1]:.2f}, {load[2]:.2f}.",
         NOISE_NOTE,
     ]
