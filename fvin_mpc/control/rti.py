@@ -28,8 +28,8 @@ an unbiased model). Solved differently (Diehl's real-time iteration, as in acado
   compiled with the linearization (:func:`fvin_mpc.control.export.compile_functions`): one C call
   per iteration, no Python between stages. The compiled functions are called through preallocated
   NumPy buffers (:class:`fvin_mpc.control.buffered.BufferedFunction`): CasADi's own call converts
-  every argument and result, which cost more than the arithmetic here (docs/realtime.md). ``"hpipm"`` sends the same QP to HPIPM through
-  ``casadi.conic`` (about 1 ms of interface overhead per call here, docs/realtime.md).
+  every argument and result, which cost more than the arithmetic here (docs/realtime.md).
+  ``"hpipm"`` sends the same QP to HPIPM through ``casadi.conic`` (about 1 ms of interface overhead per call here, docs/realtime.md).
   ``A_k, B_k, c_k``, Hessian blocks and gradients come from one compiled function.
 * **preparation / feedback** — after a torque is sent, :meth:`prepare` shifts the plan by one
   step (the last stage predicted by the model) and linearizes it; the next call only fixes
@@ -184,8 +184,8 @@ def riccati_feedback_function(layout: StateLayout, n: int, m: int, low: np.ndarr
     recursion (``O(N)``, backward ``mapaccum``), takes the fraction-to-boundary step and reduces
     ``μ`` to ``centering ×`` the mean complementarity, not below ``mu_min`` (:data:`QP_MU_MIN`).
     Then the trust region (``limits``, per entry of ``δ``: :func:`step_limits`), the update on S³
-    and ``|ω|`` within ``omega_valid`` (as
-    :meth:`RealTimeMPC._iterate`). No Python between the stages: the whole iteration is one call.
+    and ``|ω|`` within ``omega_valid`` (as :meth:`RealTimeMPC._iterate`). No Python between the
+    stages: the whole iteration is one call.
     """
     ns, nd = layout.state_dim, layout.tangent_dim
     size = nd + m
@@ -534,7 +534,7 @@ class RealTimeMPC(MPC):
         time_, _, scales, references = self._sample_reference()
         key = (time_, self.disturbance.tobytes())
         cached = getattr(self, "_targets_cache", None)
-        if cached is None or cached[0] != key:  # u_s changes only with the time and d̂: convert once
+        if cached is None or cached[0] != key:  # u_s changes only with the time and d̂: compute once
             targets = np.clip(scales[:, None] * self._u_goal - self.disturbance, self.torque_low, self.torque_high)
             cached = self._targets_cache = (key, targets.T)
         return self._linearize(plan.states.T, plan.controls.T, references, self.disturbance, cached[1])
