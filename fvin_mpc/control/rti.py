@@ -29,7 +29,8 @@ an unbiased model). Solved differently (Diehl's real-time iteration, as in acado
   per iteration, no Python between stages. The compiled functions are called through preallocated
   NumPy buffers (:class:`fvin_mpc.control.buffered.BufferedFunction`): CasADi's own call converts
   every argument and result, which cost more than the arithmetic here (docs/realtime.md).
-  ``"hpipm"`` sends the same QP to HPIPM through ``casadi.conic`` (about 1 ms of interface overhead per call here, docs/realtime.md).
+  ``"hpipm"`` sends the same QP to HPIPM through ``casadi.conic`` (about 1 ms of interface
+  overhead per call here, docs/realtime.md).
   ``A_k, B_k, c_k``, Hessian blocks and gradients come from one compiled function.
 * **preparation / feedback** — after a torque is sent, :meth:`prepare` shifts the plan by one
   step (the last stage predicted by the model) and linearizes it; the next call only fixes
