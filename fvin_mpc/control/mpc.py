@@ -347,8 +347,7 @@ class MPC:
             residuals = np.sqrt(s.terminal_energy_weight) * (energy(states[:, n]) - goal_energy) / energy_span
         objective = quadratic + ca.sumsqr(residuals)
         # An optional terminal cost (constructor argument); its exact Hessian joins the Gauss–Newton one.
-        terminal = getattr(self, "terminal_cost", None)
-        terminal_term = None if terminal is None else terminal(states[:, n])
+        terminal_term = None if self.terminal_cost is None else self.terminal_cost(states[:, n])
         if terminal_term is not None:
             objective = objective + terminal_term
         # --- dynamics
@@ -521,7 +520,7 @@ class MPC:
         costs: dict[str, float] = {}
         total_time = 0.0
         earlier_plan = self._previous  # what a failed solve falls back to (kept with warm_start="none")
-        score = getattr(self, "cold_start_score", None)
+        score = self.cold_start_score
         best_rank = np.inf
         for start in self.settings.cold_starts:
             self._previous = earlier_plan
