@@ -150,6 +150,19 @@ def test_solver_quick(tmp_path):
     write_study(result, tmp_path, ["solver", "--quick"])
 
 
+def test_realtime_rows_put_every_learned_checkpoint_beside_the_closed_form():
+    from fvin_mpc.studies.bench import solver
+
+    rows = solver.realtime_rows(duration=0.5, scenes=("pendulum",), configs=(("rti", {"solver": "rti", "compile": "none"}, 0.001),),
+                                extra_checkpoints={"pendulum": ("pendulum_fixed-inertia",)})
+    assert [r["model"] for r in rows] == ["learned", "closed form", "learned (fixed-inertia)"]
+    closed = rows[1]
+    assert closed["learned_vs_true"] is None
+    for row in (rows[0], rows[2]):
+        assert row["learned_vs_true"] == pytest.approx(row["call_ms_median"] / closed["call_ms_median"])
+        assert 0 < row["feedback_ms_median"] <= row["call_ms_median"] + 1e-9, row
+
+
 @pytest.mark.parametrize("overrides", [{"solver": "sqpmethod"}, {"solver": "sqpmethod", "hessian": "exact"},
                                        {"solver": "fatrop", "hessian": "exact", "compile": "none"}])
 def test_other_nlp_solvers_find_ipopts_plan(overrides):

@@ -94,14 +94,21 @@ REALTIME_CONFIGS: tuple[tuple[str, dict[str, Any], Any], ...] = (
     ("rti ≤4 it. in 10 ms", {"solver": "rti", "rti_max_iter": 4, "rti_budget_s": 0.01}, "measured"),
 )
 REALTIME_SCENES = ("pendulum", "spherical_pendulum")
+#: Further learned checkpoints per scene, beside the scene's own: what the model's structure costs in
+#: time. The fixed-inertia pendulum has one network for ``U`` and one for ``g``, each evaluated once
+#: per point; the sign-invariant default evaluates three networks (``J(q)`` too) at ``q`` and ``−q``,
+#: and ``J`` again at the step's end (docs/realtime.md).
+REALTIME_EXTRA_CHECKPOINTS: dict[str, tuple[str, ...]] = {"pendulum": ("pendulum_fixed-inertia",)}
 REALTIME_COLUMNS = ["scene", "model", "controller", "latency", "call_ms_median", "call_ms_p99", "call_ms_max",
                     "cpu_ms_median", "learned_vs_true", "feedback_ms_median", "feedback_ms_p99", "feedback_learned_vs_true", "iterations_mean", "deadline_misses", "failures",
                     "time_to_upright_s", "hold_error_rad", "swung_up"]
 
 
 def realtime_rows(duration: float = 10.0, seed: int = 0, scenes: tuple[str, ...] = REALTIME_SCENES,
-                  configs: tuple[tuple[str, dict[str, Any], Any], ...] = REALTIME_CONFIGS) -> list[dict[str, Any]]:
-    """One swing-up from rest per scene × model (learned, closed form) × configuration."""
+                  configs: tuple[tuple[str, dict[str, Any], Any], ...] = REALTIME_CONFIGS,
+                  extra_checkpoints: dict[str, tuple[str, ...]] = REALTIME_EXTRA_CHECKPOINTS) -> list[dict[str, Any]]:
+    """One swing-up from rest per scene × model (learned, closed form, and ``extra_checkpoints[scene]``,
+    labelled ``learned (<variant>)``) × configuration."""
     import numpy as np
 
     from fvin_mpc.control.closed_loop import episode_metrics, run_episode
@@ -109,9 +116,11 @@ def realtime_rows(duration: float = 10.0, seed: int = 0, scenes: tuple[str, ...]
 
     rows: list[dict[str, Any]] = []
     for scene in scenes:
-        for true_model in (False, True):
-            env = scene_env(scene, true_model=true_model)
-            exported = scene_model(env, true_model=true_model)
+        models = [("learned", None, False), ("closed form", None, True)]
+        models += [(f"learned ({_variant(name)})", name, False) for name in extra_checkpoints.get(scene, ())]
+        for model_label, checkpoint, true_model in models:
+            env = scene_env(scene, checkpoint=checkpoint, true_model=true_model)
+            exported = scene_model(env, checkpoint=checkpoint, true_model=true_model)
             for label, overrides, latency in configs:
                 controller = scene_mpc(env, exported, scene_mpc_settings(env, **overrides))
                 episode, _ = run_episode(env, controller, duration, seed=seed, latency=latency)
@@ -120,7 +129,7 @@ def realtime_rows(duration: float = 10.0, seed: int = 0, scenes: tuple[str, ...]
                 feedback = 1e3 * episode.feedback_s[np.isfinite(episode.feedback_s)]
                 iterations = [i["iterations"] for i in episode.controller_info if "iterations" in i]
                 rows.append({
-                    "scene": scene, "model": "closed form" if true_model else "learned", "controller": label,
+                    "scene": scene, "model": model_label, "controller": label,
                     "latency": latency, "call_ms_median": float(np.median(calls)),
                     "call_ms_p99": float(np.percentile(calls, 99)), "call_ms_max": float(calls.max()),
                     "feedback_ms_median": float(np.median(feedback)), "feedback_ms_p99": float(np.percentile(feedback, 99)),
@@ -134,11 +143,16 @@ def realtime_rows(duration: float = 10.0, seed: int = 0, scenes: tuple[str, ...]
     for row in rows:
         true_row = next(r for r in rows if r["scene"] == row["scene"] and r["controller"] == row["controller"]
                         and r["model"] == "closed form")
-        learned = row["model"] == "learned"
+        learned = row["model"].startswith("learned")
         row["learned_vs_true"] = row["call_ms_median"] / true_row["call_ms_median"] if learned else None
         row["feedback_learned_vs_true"] = (row["feedback_ms_median"] / true_row["feedback_ms_median"]
                                            if learned else None)
     return rows
+
+
+def _variant(checkpoint: str) -> str:
+    """``pendulum_fixed-inertia`` → ``fixed-inertia``: the shipped name's part after the scene."""
+    return checkpoint.rsplit("_", 1)[-1]
 
 
 def run(quick: bool = False, seed: int = 0, repeats: int = 5, model: str = "learned", horizon: int = 30,
@@ -202,6 +216,8 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 5, model: str = "lear
             "controller. `feedback_ms`: the call alone, observation to torque (the delay the plant sees; the "
             "RTI prepares the next call after the torque is sent), and its learned / closed-form ratio. "
             "`rti ≤4 it. in 10 ms`: further Gauss–Newton iterations while the call's wall time allows. "
+            "`learned (fixed-inertia)`: the scene's shipped fixed-inertia checkpoint beside its default "
+            "(sign-invariant) one — what the learned model's structure costs per call. "
             f"Load average (1, 5, 15 min) when the table started: {load[0]:.2f}, {load[1]:.2f}, {load[2]:.2f}.",
         ]
 
