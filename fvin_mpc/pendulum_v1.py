@@ -29,6 +29,16 @@ def _grids(text: str) -> tuple[tuple[int, int], ...]:
     return grids  # type: ignore[return-value]
 
 
+def _positive_ints(text: str) -> tuple[int, ...]:
+    try:
+        values = tuple(int(item) for item in text.split(","))
+    except ValueError:
+        values = ()
+    if not values or min(values) < 1:
+        raise argparse.ArgumentTypeError(f"expected positive integers N[,N...], e.g. 30 or 30,40; got {text!r}")
+    return values
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m fvin_mpc.pendulum_v1", description=pendulum_v1_module.__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -55,8 +65,22 @@ def build_parser() -> argparse.ArgumentParser:
                         help="the multi-start cold call keeps the plan with the lowest estimate of the episode's "
                              "Pendulum-v1 cost (stage costs + the learned model's value after the horizon) instead "
                              "of the lowest NLP cost")
+    parser.add_argument("--dp-swing-up", action="store_true",
+                        help="per episode, simulate on the learned model the plain MPC and a swing-up by the "
+                             "learned model's DP policy handing over to the MPC once the swing-up fits in the "
+                             "horizon; the swing-up runs if cheaper there by more than --dp-choice-margin, else "
+                             "the MPC (fvin_mpc.studies.pendulum_v1_plan; learned model only)")
+    parser.add_argument("--dp-lookahead", type=_positive_ints, default=None,
+                        help="with --dp-swing-up: the handover's greedy-rollout lookaheads, one candidate each, "
+                             "as N[,N...] (default: 30)")
+    parser.add_argument("--dp-simulated-steps", type=int, default=None,
+                        help="with --dp-swing-up: steps each candidate is simulated for the choice (default: 120)")
+    parser.add_argument("--dp-choice-margin", type=float, default=None,
+                        help="with --dp-swing-up: a swing-up runs only if its simulated cost is lower than the plain "
+                             "MPC's by more than this (default: 10)")
     parser.add_argument("--value-grid", type=_grids, default=((256, 129),),
-                        help="with --terminal-value or --rank-cold-starts: the value's DP grid THETAxRATE (default: 256x129)")
+                        help="with --terminal-value, --rank-cold-starts or --dp-swing-up: the value's DP grid THETAxRATE "
+                             "(default: 256x129)")
     parser.add_argument("--no-reference", action="store_true", help="skip the per-seed global reference")
     parser.add_argument("--reference-grids", type=_grids, default=REFERENCE_GRIDS,
                         help="the reference's DP grids, coarse to fine, as THETAxRATE,... (at least two; default: "
@@ -77,12 +101,22 @@ def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     args = build_parser().parse_args(argv)
     try:
-        config = BenchmarkConfig(checkpoint=args.checkpoint, true_model=args.true_model, horizon=args.horizon,
-                                 episodes=args.episodes, seed=args.seed, reference=not args.no_reference,
-                                 multistart=not args.single_start, terminal_energy_weight=args.energy_weight,
-                                 solver=args.solver, rti_cold_solver=args.rti_cold_solver,
-                                 reference_grids=args.reference_grids, terminal_value=args.terminal_value,
-                                 rank_cold_starts=args.rank_cold_starts, value_grid=args.value_grid[0])
+        options = dict(checkpoint=args.checkpoint, true_model=args.true_model, horizon=args.horizon,
+                       episodes=args.episodes, seed=args.seed, reference=not args.no_reference,
+                       multistart=not args.single_start, terminal_energy_weight=args.energy_weight,
+                       solver=args.solver, rti_cold_solver=args.rti_cold_solver,
+                       reference_grids=args.reference_grids, terminal_value=args.terminal_value,
+                       rank_cold_starts=args.rank_cold_starts, value_grid=args.value_grid[0])
+        swing_up = {"dp_lookaheads": args.dp_lookahead, "dp_simulated_steps": args.dp_simulated_steps,
+                    "dp_choice_margin": args.dp_choice_margin}
+        if not args.dp_swing_up and any(v is not None for v in swing_up.values()):
+            raise ValueError("--dp-lookahead, --dp-simulated-steps and --dp-choice-margin need --dp-swing-up")
+        if args.dp_swing_up:
+            from fvin_mpc.studies.pendulum_v1_plan import SwingUpConfig
+
+            config = SwingUpConfig(**options, **{k: v for k, v in swing_up.items() if v is not None})
+        else:
+            config = BenchmarkConfig(**options)
         previous = json.loads(args.previous.read_text()) if args.previous else None
         if not config.true_model:
             from fvin_mpc.core.checkpoint import load_checkpoint
@@ -90,7 +124,14 @@ def main(argv: Sequence[str] | None = None) -> int:
             load_checkpoint(config.checkpoint)  # a clear error before any worker starts
         backend = backend_options(args)
         reference_from = json.loads(args.reference_from.read_text()) if args.reference_from else None
-        records = run_benchmark(config, args.workers, progress=not args.quiet, reference_from=reference_from, **backend)
+        if args.dp_swing_up:
+            from fvin_mpc.studies.pendulum_v1_plan import run_swing_up_benchmark
+
+            records = run_swing_up_benchmark(config, args.workers, progress=not args.quiet,
+                                             reference_from=reference_from, **backend)
+        else:
+            records = run_benchmark(config, args.workers, progress=not args.quiet, reference_from=reference_from,
+                                    **backend)
     except (ValueError, FileNotFoundError, TasksFailed) as error:
         return exit_status(error)
     summary = summarize(records)
@@ -100,6 +141,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     plot_returns(records, args.out.with_suffix(".png"), label)
     write_markdown(summary, records, config, command.strip(), args.out, previous,
                    str(args.reference_from) if args.reference_from else None)
+    if args.dp_swing_up:
+        from fvin_mpc.studies.pendulum_v1_plan import describe_swing_up
+
+        describe_swing_up(args.out, config, records)
     print(json.dumps(summary, indent=2))
     print(f"wrote {args.out}, {args.out.with_suffix('.json')}, {args.out.with_suffix('.png')}", file=sys.stderr)
     return 0

@@ -2,11 +2,13 @@
 
 The MPC's horizon (30 steps, 1.5 s) is shorter than a swing-up from near hanging; with only a
 local terminal cost (orientation, speed, energy deficit) it cannot tell one pump swing from two,
-or the left swing from the right. This module estimates the cost of the rest of the episode. Two
+or the left swing from the right. This module estimates the cost of the rest of the episode. Three
 uses, measured in ``docs/pendulum-v1.md``: ranking the cold call's multi-start plans
-(:func:`plan_score`, ``--rank-cold-starts``: seed 53 +41, no other seed changed) and, experimental
-and far worse, as the MPC's terminal cost (:func:`terminal_cost_function`, ``--terminal-value``:
-its plans end on knife edges that the model/plant mismatch breaks).
+(:func:`plan_score`, ``--rank-cold-starts``: seed 53 +41, no other seed changed); its greedy policy
+as the swing-up before the MPC's catch, chosen per episode by simulation on the model
+(:mod:`fvin_mpc.studies.pendulum_v1_plan`, ``--dp-swing-up``); and, experimental and far worse, as
+the MPC's terminal cost (:func:`terminal_cost_function`, ``--terminal-value``: its plans end on
+knife edges that the model/plant mismatch breaks).
 
 1. **Transitions** (:func:`learned_transitions`): the learned model's step ``F(x, u)`` (the MPC's own
    exported step, no knowledge of Pendulum-v1's map) from every point of a grid ``θ_i`` (periodic,
@@ -232,6 +234,6 @@ def plan_score(table: np.ndarray, stage_cost: str = "v1") -> Callable[[np.ndarra
     return score
 
 
-__all__ = ["VALUE_GRID", "VALUE_TORQUES", "grid_axes", "interpolate", "learned_transitions", "model_value_table", "plan_score", "plan_score",
+__all__ = ["VALUE_GRID", "VALUE_TORQUES", "grid_axes", "interpolate", "learned_transitions", "model_value_table", "plan_score",
            "terminal_cost_function", "value_iteration", "value_spline"]
 
