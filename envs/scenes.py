@@ -162,16 +162,18 @@ SCENES: dict[str, SceneSpec] = {
         # period within 6 ms: with one, the learned model reached the top but often failed to catch
         # the body there (docs/realtime.md).
         # The RTI's stage ω weight is 0.06 instead of the scaled 0.129 (issue 12: late catches). Near
-        # the goal the plan glides in at ω ≈ −θ·√(w_q/4 / w_ω) (c(q) ≈ θ²/4): 2.8 rad/s at 0.129, so
-        # 0.1 → 0.005 rad took 1.05 s (median); at 0.06, 4.1 rad/s and 0.70 s. The same weight made
-        # the swing-up plans arrive slowly, with no energy to spare: the learned model then hovered
-        # under saturated torque short of the top and fell back (4 of 80 episodes, caught at
-        # 5.9–7.2 s). 20 seeded starts × latency none / 2 / 7 / 12 ms, learned: 77/80 → 80/80 held
+        # the goal the plan glides in at ω ≈ −θ·√(w_q/4 / w_ω) (c(q) ≈ θ²/4): 2.8 rad/s per rad at
+        # 0.129, so 0.1 → 0.005 rad took 1.05 s (median); at 0.06, 4.1 and 0.70 s. The same weight
+        # made the swing-up plans arrive slowly, with no energy to spare: the learned model then
+        # hovered under saturated torque short of the top and fell back (4 of 80 episodes, caught at
+        # 5.85–7.2 s). 20 seeded starts × latency none / 2 / 7 / 12 ms, learned: 77/80 → 80/80 held
         # within 0.005 rad, upright median 2.62 → 1.92 s, latest 7.2 → 5.2 s; closed form 79/80 →
-        # 80/80, 2.45 → 1.82 s; unseen starts (seed 100) 55/60 → 60/60. None of 460 learned episodes
-        # at 0.06 failed to swing up; 0.03–0.05 (and once 0.08) lost 1–2 in 80 (at 0.03 the body
-        # spun at 14 rad/s about the rod's axis, J_z = 0.017: the ω weight is what keeps the
-        # terminal energy term from being met by spin).
+        # 80/80, 2.45 → 1.82 s. Unseen starts, learned: seed 100 55/60 → 60/60, seed 200 73/80 →
+        # 80/80, seed 300 53/60 (2 never up) → 60/60; none of 600 learned episodes at 0.06 failed to
+        # swing up. The cost: the closed form lost 2 of 140 unseen starts to tumbling (energy pumped
+        # far past the goal's; 0 at 0.129). Lower (0.03–0.05) lost learned swing-ups (at 0.03 the
+        # body spun at 14 rad/s about the rod's axis, J_z = 0.017: the ω weight keeps the terminal
+        # energy term from being met by spin); a stiffer ω-bound penalty (1000) lost 11 of 240.
         _built_in("spherical_pendulum", _ACTUATED, mpc={"horizon": 50, "max_iter": 300},
                   mpc_per_solver={"ipopt": {"terminal_energy_weight": 0.0},
                                   "rti": {"rti_max_iter": 3, "rti_budget_s": 0.006, "omega_weight": 0.06}}),
