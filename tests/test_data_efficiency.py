@@ -5,6 +5,7 @@ through the bench CLI (resumable from its per-cell cache)."""
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -46,6 +47,19 @@ def test_config_rejects_unknown_models_and_partial_trajectories():
         study.StudyConfig(sizes=(100,), draws=(0,), models=("resnet",))
     with pytest.raises(ValueError):
         study.StudyConfig(sizes=(105,), draws=(0,), models=("mlp",))
+    with pytest.raises(ValueError):
+        study.StudyConfig(sizes=(100,), draws=(0,), models=("mlp",), episode_budget_s=0.0)
+
+
+def test_episode_budget_reaches_the_config_and_separates_the_cells(tmp_path):
+    def config(**budget):
+        return study.study_config(False, 0, "250", "3", "sign-invariant", 8, 0, tmp_path, "cached", 10.0, 20000, **budget)
+
+    default, unbounded = config(), config(episode_budget=1000.0)
+    assert default.episode_budget_s == study.EPISODE_BUDGET_S and unbounded.episode_budget_s == 1000.0
+    assert "episode_budget_s" not in default.evaluation_fingerprint()  # the cells cached before the option stay valid
+    assert unbounded.evaluation_fingerprint()["episode_budget_s"] == 1000.0
+    assert unbounded.training_fingerprint() == default.training_fingerprint()  # the same trained models
 
 
 def test_headline_counts_from_where_it_holds_at_every_larger_size():
@@ -92,6 +106,11 @@ def test_quick_study_via_the_bench_cli_and_resumes_from_its_cache(tmp_path, monk
     assert partial["rows"] == rows
     assert any("sign-invariant_n60_r0" in note and "mlp_n60_r0" in note for note in partial["notes"])
     assert not (tmp_path / "cache" / "quick" / "cells" / "mlp_n60_r0.json").exists()
+    # --report-suffix writes a report beside the main one
+    assert main([*argv, "--cached-only", "--report-suffix", "extra"]) == 0
+    assert json.loads((tmp_path / "out" / "data-efficiency.extra.json").read_text())["rows"] == rows
+    assert (tmp_path / "out" / "data-efficiency.extra.png").exists()
+    assert json.loads((tmp_path / "out" / "data-efficiency.json").read_text()) == partial
 
 
 def test_budgeted_controller_gives_up_with_zero_torque_once_its_budget_is_spent():
@@ -115,3 +134,84 @@ def test_budgeted_controller_gives_up_with_zero_torque_once_its_budget_is_spent(
     assert float(u[0]) == 0.0 and info == {"success": False, "fallback": "budget"} and controller.exhausted
     controller.reset()
     assert not controller.exhausted and float(controller(np.zeros(7))[0][0]) == 1.5 and Slow.resets == 2
+
+
+def test_headline_per_draw_claims_come_from_each_draw_alone():
+    def row(size, draws):  # draws: (draw, successes, episodes, cost excess %)
+        seeds = [{"draw": d, "successes": s, "episodes": e, "cost_excess_pct": x} for d, s, e, x in draws]
+        return {"model": "m", "transitions": size, "per_seed": seeds,
+                "all_succeed": all(s == e for _, s, e, _ in draws),
+                "cost_within_2pct_all_seeds": max(x for *_, x in draws) <= 2.0}
+
+    rows = [row(100, [(0, 7, 8, 50.0), (1, 8, 8, 1.5)]),
+            row(250, [(0, 8, 8, 0.4), (1, 8, 8, 19.9), (2, 8, 8, 2.5)]),
+            row(500, [(0, 8, 8, 0.05), (1, 8, 8, 0.09), (2, 8, 8, 1.0)]),
+            row(1000, [(0, 8, 8, 0.08), (1, 8, 8, 11.0)]),
+            {"model": study.CLOSED_FORM, "transitions": None}]
+    best = study.headline(rows)["m"]
+    assert best["full_success_from"] == 250 and best["cost_within_2pct_first"] == 500
+    assert best["per_draw"][0] == {"sizes": [100, 250, 500, 1000], "full_success_from": 250, "full_success_first": 250,
+                                   "cost_within_2pct_from": 250, "cost_within_2pct_first": 250}
+    assert best["per_draw"][1] == {"sizes": [100, 250, 500, 1000], "full_success_from": 100, "full_success_first": 100,
+                                   "cost_within_2pct_from": None, "cost_within_2pct_first": 100}
+    # draw 2 was run at 250 and 500 only: its claims count over those sizes
+    assert best["per_draw"][2] == {"sizes": [250, 500], "full_success_from": 250, "full_success_first": 250,
+                                   "cost_within_2pct_from": 500, "cost_within_2pct_first": 500}
+    # rows without per-draw figures (the closed form, older reports) give no per_draw entry
+    assert "per_draw" not in study.headline([{"model": "m", "transitions": 10, "all_succeed": True,
+                                              "cost_within_2pct_all_seeds": True}])["m"]
+
+
+def test_a_cell_made_with_other_settings_is_never_overwritten(tmp_path):
+    cells = tmp_path / "cells"
+    cells.mkdir()
+    assert study.cell_path(cells, "m_n250_r0", "aaaa") == cells / "m_n250_r0.json"  # nothing there yet
+    (cells / "m_n250_r0.json").write_text(json.dumps({"key": "aaaa"}))
+    assert study.cell_path(cells, "m_n250_r0", "aaaa") == cells / "m_n250_r0.json"
+    assert study.cell_path(cells, "m_n250_r0", "bbbb") == cells / "m_n250_r0@bbbb.json"
+
+
+def _fake_trained_cell(config, model, name, training, *, cell_name=None, write_cell_after_weights=True):
+    """Model files at ``models/<name>`` and a cached cell ``cells/<cell_name or name>.json`` recording ``training``."""
+    import os
+
+    stem = config.cache_dir / "models" / name
+    stem.parent.mkdir(parents=True, exist_ok=True)
+    weights, sidecar = study.model_files(model, stem)
+    weights.write_bytes(b"weights")
+    sidecar.write_text("{}")
+    cell = config.cache_dir / "cells" / f"{cell_name or name}.json"
+    cell.parent.mkdir(parents=True, exist_ok=True)
+    cell.write_text(json.dumps({"key": "k", "fingerprint": {"training": config.training_fingerprint()},
+                                "training": training}))
+    when = weights.stat().st_mtime + (10 if write_cell_after_weights else -10)
+    os.utime(cell, (when, when))
+    return stem
+
+
+def test_trained_models_are_reused_only_when_training_settings_and_weights_match(tmp_path):
+    config = study.StudyConfig(sizes=(250,), draws=(0,), models=("sign-invariant", "mlp"), cache_dir=tmp_path)
+    stem = _fake_trained_cell(config, "sign-invariant", "sign-invariant_n250_r0", {"iterations": 7})
+    assert study.trained_before("sign-invariant", 250, 0, config, stem) == {"iterations": 7}  # older cell: by date
+    assert study.trained_before("sign-invariant", 250, 0, replace(config, jacobian_windows=8), stem) is None
+    assert study.trained_before("sign-invariant", 500, 0, config, tmp_path / "models" / "sign-invariant_n500_r0") is None
+    # weights newer than the cell that recorded them (retrained since, say by an aborted run): not reused
+    stem = _fake_trained_cell(config, "sign-invariant", "sign-invariant_n250_r1", {"iterations": 3},
+                              write_cell_after_weights=False)
+    assert study.trained_before("sign-invariant", 250, 1, config, stem) is None
+    # a recorded digest decides, whatever the dates
+    digest = study.weights_digest("sign-invariant", stem)
+    stem = _fake_trained_cell(config, "sign-invariant", "sign-invariant_n250_r1", {"iterations": 3, "weights_sha256": digest},
+                              write_cell_after_weights=False)
+    assert study.trained_before("sign-invariant", 250, 1, config, stem)["iterations"] == 3
+    study.model_files("sign-invariant", stem)[0].write_bytes(b"other weights")
+    assert study.trained_before("sign-invariant", 250, 1, config, stem) is None
+    # the MLP's weights are found through its exact-Hessian twin's cell too
+    stem = _fake_trained_cell(config, "mlp", "mlp_n250_r0", {"iterations": 60}, cell_name="mlp-exact-hessian_n250_r0")
+    assert study.trained_before("mlp", 250, 0, config, stem) == {"iterations": 60}
+    assert study.trained_before("fixed-inertia", 250, 0, config, tmp_path / "models" / "fixed-inertia_n250_r0") is None
+
+
+def test_report_suffix_names_the_report_and_is_checked():
+    with pytest.raises(ValueError):
+        study.run(report_suffix="../x")

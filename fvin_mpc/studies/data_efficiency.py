@@ -30,7 +30,9 @@ Data: one pool of ``--pool`` transitions (default 20,000) in trajectories of 10 
 first ``n / steps`` *whole* trajectories of a permutation seeded by ``(seed, r)`` — whole
 trajectories keep every window valid, and the sets of one draw are nested. Draw ``r`` also seeds
 the training. Everything is cached per cell (model × size × draw) under ``--cache-dir``: a run
-that is stopped resumes where it was.
+that is stopped resumes where it was. A run with other evaluation settings (``--episodes``,
+``--v1-episodes``, ``--episode-budget``) caches its cells beside the others, never over them, and
+evaluates the same trained models; ``--report-suffix`` writes its report beside the main one.
 """
 
 from __future__ import annotations
@@ -38,6 +40,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import re
 import time
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
@@ -119,6 +122,8 @@ class StudyConfig:
             raise ValueError("need episodes >= 1, v1_episodes >= 0 and a positive duration")
         if self.compile not in ("cached", "none"):
             raise ValueError(f"unknown compile mode {self.compile!r}")
+        if not self.episode_budget_s > 0:
+            raise ValueError(f"the episode budget must be positive seconds, got {self.episode_budget_s}")
 
     @property
     def pool_size(self) -> int:
@@ -337,18 +342,72 @@ def cell_name(model: str, size: int, draw: int) -> str:
     return CLOSED_FORM if model == CLOSED_FORM else f"{model}_n{size}_r{draw}"
 
 
+def _read_record(path: Path) -> dict[str, Any] | None:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def cell_path(cells_dir: Path, name: str, key: str) -> Path:
+    """Where the cell ``name`` made with settings ``key`` is (or goes): ``<name>.json`` unless that
+    file holds the cell made with other settings (say, another number of starts), then
+    ``<name>@<key>.json`` — so a run with other evaluation settings never overwrites a cached cell."""
+    plain = cells_dir / f"{name}.json"
+    if plain.exists() and (_read_record(plain) or {}).get("key") != key:
+        return cells_dir / f"{name}@{key}.json"
+    return plain
+
+
+def model_files(model: str, stem: Path) -> tuple[Path, ...]:
+    """The files a trained cell model is saved in (the MLP's weights, or the S3FVIN checkpoint)."""
+    return (stem.parent / f"{stem.name}.npz" if model == MLP else stem.parent / f"{stem.name}.safetensors",
+            stem.parent / f"{stem.name}.json")
+
+
+def weights_digest(model: str, stem: Path) -> str:
+    return hashlib.sha256(model_files(model, stem)[0].read_bytes()).hexdigest()
+
+
+def trained_before(trained_as: str, size: int, draw: int, config: StudyConfig, stem: Path) -> dict[str, Any] | None:
+    """The training report of the model at ``stem`` if a cached cell (any evaluation settings, and
+    for the MLP either MPC) recorded training it with this run's training settings and the files on
+    disk are still those weights — then a run with other evaluation settings (more starts, say)
+    evaluates the *same* model instead of retraining it. The weights' digest is checked where the
+    cell recorded one; older cells did not, and count only if written after the weights."""
+    if not all(path.exists() for path in model_files(trained_as, stem)):
+        return None
+    names = [cell_name(trained_as, size, draw)] + ([cell_name(MLP_EXACT, size, draw)] if trained_as == MLP else [])
+    cells_dir = config.cache_dir / "cells"
+    for name in names:
+        for path in sorted(cells_dir.glob(f"{name}.json")) + sorted(cells_dir.glob(f"{name}@*.json")):
+            record = _read_record(path)
+            if not record or record.get("fingerprint", {}).get("training") != config.training_fingerprint():
+                continue
+            training = record.get("training")
+            if not training:
+                continue
+            digest = training.get("weights_sha256")
+            if digest is not None:
+                if digest == weights_digest(trained_as, stem):
+                    return training
+            elif path.stat().st_mtime >= model_files(trained_as, stem)[0].stat().st_mtime:
+                return training
+    return None
+
+
 def run_cell(model: str, size: int, draw: int, config: StudyConfig, pool: Any, test: Any, env: Any,
              progress: bool = False, cached_only: bool = False) -> dict[str, Any] | None:
     """One cell, from its cache when the cache was made with the same settings; with
     ``cached_only``, ``None`` instead of computing a cell that is not cached."""
     name = cell_name(model, size, draw)
-    path = config.cache_dir / "cells" / f"{name}.json"
     fingerprint = {"evaluation": config.evaluation_fingerprint(),
                    "training": None if model == CLOSED_FORM else config.training_fingerprint()}
     key = hashlib.sha256(json.dumps(fingerprint, sort_keys=True).encode()).hexdigest()[:16]
+    path = cell_path(config.cache_dir / "cells", name, key)
     if path.exists():
-        cached = json.loads(path.read_text())
-        if cached.get("key") == key:
+        cached = _read_record(path)
+        if cached is not None and cached.get("key") == key:
             return cached
     if cached_only:
         return None
@@ -361,11 +420,12 @@ def run_cell(model: str, size: int, draw: int, config: StudyConfig, pool: Any, t
         data = training_subset(pool, size, draw, config.seed)
         record["transitions"] = data.num_transitions
         record["trajectories"] = data.num_trajectories
-        twin = config.cache_dir / "cells" / f"{cell_name(trained_as, size, draw)}.json"
-        if trained_as != model and twin.exists() and json.loads(twin.read_text()).get("key") == key:
-            record["training"] = json.loads(twin.read_text())["training"]  # its weights are at ``stem``
+        earlier = trained_before(trained_as, size, draw, config, stem)
+        if earlier is not None:  # its weights are at ``stem``
+            record["training"] = {**earlier, "reused": True}
         else:
             record["training"] = train_cell_model(trained_as, data, config, draw, stem, progress=False)
+            record["training"]["weights_sha256"] = weights_digest(trained_as, stem)
     exported = export_cell_model(trained_as, stem, env)
     overrides = MODEL_MPC_OVERRIDES.get(model, {})
     record["mpc_overrides"] = overrides
@@ -437,7 +497,9 @@ def summarize(reference: dict[str, Any], records: list[dict[str, Any]]) -> list[
                                         + sum(r["pendulum_v1"].get("budget_exhausted", 0) for r in mine)),
                 "train_s_mean": float(np.mean([r["training"]["wall_clock_s"] for r in mine])),
                 "per_seed": [{"draw": r["draw"], "successes": r["closed_loop"]["successes"],
-                              "cost_mean": r["closed_loop"]["cost_mean"], "v1_return_mean": r["pendulum_v1"]["return_mean"],
+                              "episodes": r["closed_loop"]["episodes"], "cost_mean": r["closed_loop"]["cost_mean"],
+                              "cost_excess_pct": 100.0 * (r["closed_loop"]["cost_mean"] / reference_cost - 1.0),
+                              "v1_return_mean": r["pendulum_v1"]["return_mean"],
                               "angle_error_1s_rad": r["rollout"]["angle_error_1s_mean_rad"],
                               "validation_loss": r["training"]["final_validation_loss"],
                               "iterations": r["training"]["iterations"]} for r in mine],
@@ -468,19 +530,44 @@ def smallest(rows: list[dict[str, Any]], model: str, key: str) -> int | None:
     return answer
 
 
+def per_draw_rows(rows: list[dict[str, Any]], model: str) -> dict[int, list[dict[str, Any]]]:
+    """``model``'s rows split by draw: per draw, one row per size that draw was run at, with that
+    draw's ``all_succeed`` and ``cost_within_2pct_all_seeds`` (from the rows' ``per_seed``)."""
+    out: dict[int, list[dict[str, Any]]] = {}
+    for row in rows:
+        if row["model"] != model:
+            continue
+        for seed in row.get("per_seed", []):
+            out.setdefault(seed["draw"], []).append({
+                "model": model, "transitions": row["transitions"],
+                "all_succeed": seed["successes"] == seed["episodes"],
+                "cost_within_2pct_all_seeds": seed["cost_excess_pct"] <= 100.0 * COST_TOLERANCE})
+    return {draw: sorted(mine, key=lambda r: r["transitions"]) for draw, mine in sorted(out.items())}
+
+
+def _claims(rows: list[dict[str, Any]], model: str) -> dict[str, Any]:
+    mine = sorted((r for r in rows if r["model"] == model), key=lambda r: r["transitions"])
+    return {
+        "full_success_from": smallest(rows, model, "all_succeed"),
+        "full_success_first": next((r["transitions"] for r in mine if r["all_succeed"]), None),
+        "cost_within_2pct_from": smallest(rows, model, "cost_within_2pct_all_seeds"),
+        "cost_within_2pct_first": next((r["transitions"] for r in mine if r["cost_within_2pct_all_seeds"]), None),
+    }
+
+
 def headline(rows: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
     """Per model: the smallest amount of data for full closed-loop success (every start, every
     seed) and for a closed-loop cost within 2 % of the closed form's (every seed) — each counted
-    from where it holds at every larger size too — and the first size where it holds at all."""
+    from where it holds at every larger size too — and the first size where it holds at all; and
+    (``per_draw``, where the rows carry ``per_seed``) the same four figures for each draw alone,
+    over the sizes that draw was run at."""
     out = {}
     for model in dict.fromkeys(r["model"] for r in rows if r["model"] != CLOSED_FORM):
-        mine = sorted((r for r in rows if r["model"] == model), key=lambda r: r["transitions"])
-        out[model] = {
-            "full_success_from": smallest(rows, model, "all_succeed"),
-            "full_success_first": next((r["transitions"] for r in mine if r["all_succeed"]), None),
-            "cost_within_2pct_from": smallest(rows, model, "cost_within_2pct_all_seeds"),
-            "cost_within_2pct_first": next((r["transitions"] for r in mine if r["cost_within_2pct_all_seeds"]), None),
-        }
+        out[model] = _claims(rows, model)
+        draws = per_draw_rows(rows, model)
+        if draws:
+            out[model]["per_draw"] = {draw: {"sizes": [r["transitions"] for r in mine], **_claims(mine, model)}
+                                      for draw, mine in draws.items()}
     return out
 
 
@@ -542,7 +629,8 @@ def _parse_ints(text: str, name: str) -> tuple[int, ...]:
 
 
 def study_config(quick: bool, seed: int, sizes: str, seeds: str, models: str, episodes: int, v1_episodes: int,
-                 cache_dir: Path, compile: str, duration: float, pool: int | None = None) -> StudyConfig:
+                 cache_dir: Path, compile: str, duration: float, pool: int | None = None,
+                 episode_budget: float = EPISODE_BUDGET_S) -> StudyConfig:
     model_names = tuple(m.strip() for m in models.split(",") if m.strip())
     if quick:  # the test suite's path: tiny sets, a short horizon, uncompiled functions, capped IPOPT, one Pendulum-v1 episode
         quick_sizes = _parse_ints(sizes, "sizes") if sizes != DEFAULT_SIZES else (40, 80)
@@ -554,16 +642,21 @@ def study_config(quick: bool, seed: int, sizes: str, seeds: str, models: str, ep
                            mpc_overrides=(("max_iter", 10), ("cold_max_iter", 20), ("cold_starts", ("rollout+",))))
     return StudyConfig(sizes=_parse_ints(sizes, "sizes"), draws=_parse_ints(seeds, "seeds"), models=model_names,
                        seed=seed, episodes=episodes, duration_s=duration, v1_episodes=v1_episodes, compile=compile,
-                       cache_dir=cache_dir, pool_transitions=pool)
+                       cache_dir=cache_dir, pool_transitions=pool, episode_budget_s=episode_budget)
 
 
 def run(quick: bool = False, seed: int = 0, repeats: int = 1, sizes: str = DEFAULT_SIZES, seeds: str = "0,1",
         models: str = DEFAULT_MODELS, episodes: int = 10, v1_episodes: int = 10,
         cache_dir: Path = Path("data/data-efficiency"), compile: str = "cached", duration: float = 10.0,
-        pool: int | None = 20000, cached_only: bool = False, progress: bool = True, **_: Any) -> StudyResult:
-    """Run the study (``repeats`` is unused: nothing here is timed)."""
+        pool: int | None = 20000, cached_only: bool = False, progress: bool = True, report_suffix: str | None = None,
+        episode_budget: float = EPISODE_BUDGET_S, **_: Any) -> StudyResult:
+    """Run the study (``repeats`` is unused: nothing here is timed); ``report_suffix``: the report
+    is ``data-efficiency.<suffix>.{json,md,png}`` (a run with other evaluation settings beside the
+    main report)."""
+    if report_suffix is not None and not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9_-]*", report_suffix):
+        raise ValueError(f"--report-suffix must be letters, digits, '-' and '_', got {report_suffix!r}")
     config = study_config(quick, seed, sizes, seeds, models, episodes, v1_episodes, Path(cache_dir), compile, duration,
-                          pool)
+                          pool, episode_budget)
     reference, records, missing = run_cells(config, progress, cached_only)
     rows = summarize(reference, records)
     best = headline(rows)
@@ -571,7 +664,9 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 1, sizes: str = DEFAU
         f"Settings: {json.dumps({k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(config).items()})}. "
         f"Closed loop: {config.episodes} starts (hanging at rest, then seeded random states), {config.duration_s:g} s "
         "each, the scene's MPC, waiting latency mode (`latency=\"none\"`: model quality, not real time). "
-        f"Pendulum-v1: seeds 0–{config.v1_episodes - 1}, the benchmark's MPC. `cost_excess_pct`: the seeds' mean "
+        + (f"Pendulum-v1: seeds 0–{config.v1_episodes - 1}, the benchmark's MPC. " if config.v1_episodes
+           else "Pendulum-v1: not run (`--v1-episodes 0`). ")
+        + "`cost_excess_pct`: the seeds' mean "
         "closed-loop cost over the closed form's on the same starts, minus 1 (median and worst seed).",
         "Smallest data (transitions; from there on at every larger size, and the first size where it holds): "
         + "; ".join(f"**{model}**: full success from {v['full_success_from']} (first {v['full_success_first']}), "
@@ -580,10 +675,17 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 1, sizes: str = DEFAU
         "The MLP's MPC uses the closed-form energy in its terminal energy-deficit term (it has no energy of its "
         "own); the S3FVIN's uses its learned energy.",
     ]
+    per_draw = [f"**{model}** draw {draw} (sizes {', '.join(map(str, d['sizes']))}): full success from "
+                f"{d['full_success_from']} (first {d['full_success_first']}), cost within 2 % from "
+                f"{d['cost_within_2pct_from']} (first {d['cost_within_2pct_first']})"
+                for model, v in best.items() for draw, d in v.get("per_draw", {}).items()]
+    if per_draw:
+        notes.insert(2, "Per draw (each over the sizes that draw was run at; same definitions): " + "; ".join(per_draw) + ".")
     if missing:
         notes.append(f"Not run (`--cached-only`; not in the cache): {', '.join(missing)}. The `seeds` column "
                      "says how many draws each row has.")
-    return StudyResult(name="data-efficiency", rows=rows, columns=COLUMNS, plot=plot, notes=notes)
+    name = f"data-efficiency.{report_suffix}" if report_suffix else "data-efficiency"
+    return StudyResult(name=name, rows=rows, columns=COLUMNS, plot=plot, notes=notes)
 
 
 def add_arguments(parser: Any) -> None:
@@ -607,6 +709,13 @@ def add_arguments(parser: Any) -> None:
                              "other --sizes share data and cells (default: %(default)s)")
     parser.add_argument("--cache-dir", type=Path, default=Path("data/data-efficiency"),
                         help="data, trained models and per-cell results; a rerun resumes from it (default: %(default)s)")
+    parser.add_argument("--episode-budget", type=float, default=EPISODE_BUDGET_S,
+                        help="controller compute (wall-clock s) per episode before it is declared failed (zero torque "
+                             "for the rest); another value evaluates beside the default's cells (default: %(default)s)")
+    parser.add_argument("--report-suffix", default=None,
+                        help="write data-efficiency.<suffix>.{json,md,png} instead of data-efficiency.*: for a run "
+                             "with other evaluation settings (e.g. more --episodes) beside the main report. Its cells "
+                             "are cached beside the others (never over them) and evaluate the same trained models")
 
 
 def export_mlp(weights: Any, config: Any, energy_body: Any, name: str = "mlp") -> Any:
