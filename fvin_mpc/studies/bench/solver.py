@@ -151,8 +151,10 @@ def realtime_rows(duration: float = 10.0, seed: int = 0, scenes: tuple[str, ...]
 
 
 def _variant(checkpoint: str) -> str:
-    """``pendulum_fixed-inertia`` → ``fixed-inertia``: the shipped name's part after the scene."""
-    return checkpoint.rsplit("_", 1)[-1]
+    """The checkpoint's variant, from its metadata (``pendulum_fixed-inertia`` → ``fixed-inertia``)."""
+    from fvin_mpc.core.checkpoint import load_checkpoint
+
+    return load_checkpoint(checkpoint).config.variant
 
 
 def run(quick: bool = False, seed: int = 0, repeats: int = 5, model: str = "learned", horizon: int = 30,
