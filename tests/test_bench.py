@@ -139,6 +139,19 @@ def test_rti_quick_pairs_learned_with_closed_form(tmp_path):
     write_study(result, tmp_path, ["rti", "--quick"])
 
 
+def test_ops_counts_order_the_structures(tmp_path):
+    """Fewer networks, fewer evaluations of each, a constant inertia: fewer operations per stage."""
+    from fvin_mpc.studies.bench import ops
+
+    result = ops.run(quick=True)
+    by_model = {r["model"]: r["step_jacobian_ops"] for r in result.rows}
+    assert (by_model["closed form"] < by_model["prototype, even features, constant J"]
+            < by_model["prototype, even features"] < by_model["pendulum_sign-invariant"])
+    for row in result.rows:
+        assert 0 < row["step_ops"] < row["step_jacobian_ops"], row
+    write_study(result, tmp_path, ["ops", "--quick"])
+
+
 def test_solver_quick(tmp_path):
     from fvin_mpc.studies.bench import solver
 

@@ -22,6 +22,7 @@ STUDIES = {
     "width": "fvin_mpc.studies.bench.width",
     "solver": "fvin_mpc.studies.bench.solver",
     "rti": "fvin_mpc.studies.bench.rti",
+    "ops": "fvin_mpc.studies.bench.ops",
     "sim": "fvin_mpc.studies.bench.sim",
     "paper": "fvin_mpc.studies.bench.paper",
     "data-efficiency": "fvin_mpc.studies.data_efficiency",
