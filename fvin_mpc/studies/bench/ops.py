@@ -16,11 +16,20 @@ from typing import Any
 
 import numpy as np
 
+from fvin_mpc.core.backend import get_ops
 from fvin_mpc.studies.report import StudyResult
 
 #: Shipped planar checkpoints counted, beside the closed form.
 CHECKPOINTS = ("pendulum_sign-invariant", "pendulum_fixed-inertia", "pendulum_plain")
 COLUMNS = ["model", "structure", "step_ops", "step_jacobian_ops", "vs_closed_form"]
+#: The prototypes' even features ``q_i q_j``, ``i ≤ j``, and their networks' hidden layers (the shipped models').
+FEATURE_PAIRS = tuple((i, j) for i in range(4) for j in range(i, 4))
+HIDDEN_LAYERS = 2
+CA = get_ops("casadi")
+
+
+def _features(q: Any) -> Any:
+    return CA.stack([q[i] * q[j] for i, j in FEATURE_PAIRS])
 
 
 class EvenFeatureTerms:
@@ -33,24 +42,18 @@ class EvenFeatureTerms:
     def __init__(self, constant_inertia: bool, seed: int = 0, width: int = 10) -> None:
         rng = np.random.default_rng(seed)
         self.constant_inertia = constant_inertia
+        self._weights: dict[str, np.ndarray] = {}
+        for name, outputs in (("inertia", 6), ("potential", 1), ("gain", 3)):
+            sizes = [len(FEATURE_PAIRS), width, width, outputs]
+            for i, (n_in, n_out) in enumerate(zip(sizes[:-1], sizes[1:])):
+                self._weights[f"{name}_w{i}"] = 0.3 * rng.normal(size=(n_out, n_in))
+                self._weights[f"{name}_b{i}"] = 0.1 * rng.normal(size=n_out)
 
-        def network(outputs: int) -> list[tuple[np.ndarray, np.ndarray]]:
-            sizes = [10, width, width, outputs]
-            return [(0.3 * rng.normal(size=(n_out, n_in)), 0.1 * rng.normal(size=n_out))
-                    for n_in, n_out in zip(sizes[:-1], sizes[1:])]
+    def _network(self, name: str, q: Any) -> tuple[Any, ...]:
+        """The package's own MLP (:func:`fvin_mpc.core.networks.mlp`) on the even features."""
+        from fvin_mpc.core.networks import mlp
 
-        self._inertia, self._potential, self._gain = network(6), network(1), network(3)
-
-    @staticmethod
-    def _evaluate(layers: list[tuple[np.ndarray, np.ndarray]], q: Any) -> Any:
-        import casadi as ca
-
-        x = ca.vertcat(*[q[i] * q[j] for i in range(4) for j in range(i, 4)])
-        for index, (weight, bias) in enumerate(layers):
-            x = ca.mtimes(ca.DM(weight), x) + ca.DM(bias)
-            if index < len(layers) - 1:
-                x = ca.tanh(x)
-        return x
+        return CA.unstack(mlp(self._weights, name, HIDDEN_LAYERS, _features(q), CA))
 
     def inertia(self, q: Any) -> Any:
         from fvin_mpc.core import s3
@@ -58,19 +61,21 @@ class EvenFeatureTerms:
         zero = 0.0 * q[0]
         if self.constant_inertia:
             return s3.symmetric_from_cholesky(tuple(zero + v for v in (1.0, 0.0, 1.0, 0.0, 0.0, 1.0)), 1e-3)
-        factor = self._evaluate(self._inertia, q)
-        return s3.symmetric_from_cholesky(tuple(factor[i] for i in range(6)), 1e-3)
+        return s3.symmetric_from_cholesky(self._network("inertia", q), 1e-3)
 
     def potential_gradient(self, q: Any) -> Any:
-        import casadi as ca
+        """``∂U/∂q`` by the package's hand-written backpropagation to the features, then ``∂(q_i q_j)/∂q``."""
+        from fvin_mpc.core.networks import scalar_mlp_value_and_gradient
 
-        point = ca.SX.sym("q", 4)
-        gradient = ca.substitute(ca.gradient(self._evaluate(self._potential, point), point), point, ca.vertcat(*q))
-        return tuple(gradient[i] for i in range(4))
+        _, feature_gradient = scalar_mlp_value_and_gradient(self._weights, "potential", HIDDEN_LAYERS, _features(q), CA)
+        gradient = [0.0 * q[0]] * 4
+        for g, (i, j) in zip(CA.unstack(feature_gradient), FEATURE_PAIRS):
+            gradient[i] = gradient[i] + g * q[j]
+            gradient[j] = gradient[j] + g * q[i]
+        return tuple(gradient)
 
     def control_gain(self, q: Any) -> Any:
-        gain = self._evaluate(self._gain, q)
-        return tuple((gain[i],) for i in range(3))
+        return tuple((gain,) for gain in self._network("gain", q))
 
     def dissipation(self, q: Any) -> None:
         return None
