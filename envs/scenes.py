@@ -146,7 +146,12 @@ SCENES: dict[str, SceneSpec] = {
         # plans 1 s: one Gauss–Newton step per period follows a shorter plan more closely — over 50
         # starts (waiting mode) the learned model's mean cost was 148.6 at N = 20 against 176.1 at
         # N = 30 (closed form 147.7 and 152.1), at two thirds of the time per period (docs/bench/rti.md).
-        _built_in("pendulum", _ACTUATED, mpc_per_solver={"rti": {"horizon": 20}}),
+        # Its RTI imposes the step's equations between plan nodes (`rti_dynamics="implicit"`): the
+        # learned terms once per node instead of twice per stage in every direction of the step's
+        # Jacobian (fvin_mpc/control/implicit_dynamics.py; docs/realtime.md has the periods and
+        # outcomes of both). The ball joint keeps the unrolled step: from its inconsistent cold plans
+        # the implicit form's Newton gaps diverged (J_z = 0.017 magnifies them), 1/20 swung up.
+        _built_in("pendulum", _ACTUATED, mpc_per_solver={"rti": {"horizon": 20, "rti_dynamics": "implicit"}}),
         # At horizons 30 and 40 the plan settles on a local optimum that never swings up, with the
         # learned and the closed-form model alike; 2.5 s escapes it (docs/scenes.md). Tuned for IPOPT
         # without the terminal energy cost; the real-time iteration keeps it (below).

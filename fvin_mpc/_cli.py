@@ -43,6 +43,10 @@ def add_mpc_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--solver", choices=["ipopt", "sqpmethod", "fatrop", "rti"], default=None,
                        help="ipopt: solved to convergence every period (the reference); rti: one Gauss–Newton "
                             "SQP iteration per period (real-time iteration, bounded compute)")
+    group.add_argument("--rti-dynamics", choices=["unrolled", "implicit"], default=None,
+                       help="rti only: the dynamics constraint — unrolled: the exported step x⁺ = F(x, u) "
+                            "linearized per stage; implicit: the step's equations between plan nodes, the "
+                            "learned terms once per node (default: the scene's)")
 
 
 def parse_latency(text: str) -> Any:
@@ -77,6 +81,7 @@ def mpc_overrides(args: argparse.Namespace) -> dict[str, Any]:
     overrides = {field: getattr(args, option[2:].replace("-", "_")) for option, (field, _, _) in MPC_OPTIONS.items()}
     overrides["hessian"] = args.hessian
     overrides["solver"] = args.solver
+    overrides["rti_dynamics"] = args.rti_dynamics
     if args.single_start:
         overrides["cold_starts"] = ("rollout+",)
     return overrides

@@ -55,6 +55,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--rti-cold-solver", choices=["rti", "ipopt"], default="rti",
                         help="with --solver rti: the first call's plan from budgeted RTI iterations or from IPOPT "
                              "(default: %(default)s)")
+    parser.add_argument("--rti-dynamics", choices=["unrolled", "implicit"], default=None,
+                        help="with --solver rti: the dynamics constraint (fvin_mpc.control.implicit_dynamics; "
+                             "default: MPCSettings')")
     parser.add_argument("--single-start", action="store_true",
                         help="plain MPC: one first guess per episode instead of the multi-start")
     parser.add_argument("--terminal-value", action="store_true",
@@ -104,7 +107,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         options = dict(checkpoint=args.checkpoint, true_model=args.true_model, horizon=args.horizon,
                        episodes=args.episodes, seed=args.seed, reference=not args.no_reference,
                        multistart=not args.single_start, terminal_energy_weight=args.energy_weight,
-                       solver=args.solver, rti_cold_solver=args.rti_cold_solver,
+                       solver=args.solver, rti_cold_solver=args.rti_cold_solver, rti_dynamics=args.rti_dynamics,
                        reference_grids=args.reference_grids, terminal_value=args.terminal_value,
                        rank_cold_starts=args.rank_cold_starts, value_grid=args.value_grid[0])
         swing_up = {"dp_lookaheads": args.dp_lookahead, "dp_simulated_steps": args.dp_simulated_steps,

@@ -241,3 +241,39 @@ def test_true_pendulum_potential_gradient_matches_finite_differences():
     grad = np.array(TRUE.potential_gradient(tuple(q)), dtype=float)
     numeric = np.array([(TRUE.potential(tuple(q + e)) - TRUE.potential(tuple(q - e))) / 2e-6 for e in 1e-6 * np.eye(4)])
     np.testing.assert_allclose(grad, numeric, atol=1e-8)
+
+
+@pytest.mark.parametrize("variant, dissipation", [("sign-invariant", False), ("plain", True)])
+def test_step_residual_vanishes_at_the_converged_step_only(variant, dissipation):
+    """``step_residual`` is the step's equations with both ends free: ~0 at the converged step
+    (K = 8), at the Newton error at K = 2, O(1) off it — and, for sign-invariant terms, the same
+    for ``±q_{k+1}`` (the plain variant's terms differ at ``−q``)."""
+    config = ModelConfig(variant=variant, control_dim=3, dissipation=dissipation)
+    terms = LearnedTerms(init_weights(config, seed=5), config, NP)
+    rng = np.random.default_rng(6)
+    q = rng.normal(size=(16, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    omega, u = 3.0 * rng.normal(size=(16, 3)), rng.normal(size=(16, 3))
+    comps = lambda a: tuple(a[:, i] for i in range(a.shape[1]))  # noqa: E731
+    args = (comps(q), comps(omega), comps(u))
+
+    def residual(step, q_sign=1.0, omega_offset=0.0):
+        return np.abs(np.stack(fvin.step_residual(*args, tuple(q_sign * c for c in step.q),
+                                                  tuple(c + omega_offset for c in step.omega), terms, 0.05, NP)))
+
+    converged = fvin.fvin_step(*args, terms, 0.05, 8, NP)
+    assert residual(converged).max() < 1e-12
+    flipped = residual(converged, q_sign=-1.0).max()
+    assert flipped < 1e-12 if variant == "sign-invariant" else flipped > 1e-6
+    two = residual(fvin.fvin_step(*args, terms, 0.05, 2, NP)).max()
+    assert 1e-12 < two < 1e-2
+    assert residual(converged, omega_offset=0.1).max() > 1e-3
+
+
+def test_step_residual_of_the_closed_form_damped_pendulum_matches_its_step():
+    terms = PENDULUM_DAMPED.terms(NP)
+    q, omega = hinge_state(np.linspace(-3.0, 3.0, 7), np.linspace(-6.0, 6.0, 7))
+    u = (np.linspace(-1.0, 1.0, 7),)
+    step = fvin.fvin_step(q, omega, u, terms, 0.05, 8, NP)
+    residual = np.stack(fvin.step_residual(q, omega, u, step.q, step.omega, terms, 0.05, NP))
+    assert np.abs(residual).max() < 1e-12

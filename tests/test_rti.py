@@ -56,14 +56,17 @@ def test_scene_mpc_dispatches_on_the_solver_setting(pendulum):
     assert type(scene_mpc(env, model, scene_mpc_settings(env, cold_starts=("rollout+",)))) is MPC
 
 
-def test_iterations_reach_the_ipopt_optimum_on_a_fixed_problem(spherical):
+@pytest.mark.parametrize("scene, dynamics", [("spherical", "unrolled"), ("pendulum", "implicit")])
+def test_iterations_reach_the_ipopt_optimum_on_a_fixed_problem(scene, dynamics, request):
     """From rest, the same first guess: IPOPT solved to convergence, and RTI iterations with the
-    measured state fixed. The Gauss–Newton SQP converges to the same plan's cost."""
-    env, model = spherical
-    settings = scene_mpc_settings(env, cold_starts=("goal",), solver="rti", terminal_energy_weight=0.0, **DETERMINISTIC)
-    # the same problem: the scene's RTI settings may change cost weights (its ω weight) from IPOPT's
+    measured state fixed. The Gauss–Newton SQP converges to the same plan's cost — with the implicit
+    dynamics too, whose converged step differs from IPOPT's K = 2 one by the Newton error only."""
+    env, model = request.getfixturevalue(scene)
+    settings = scene_mpc_settings(env, cold_starts=("goal",), solver="rti", terminal_energy_weight=0.0,
+                                  rti_dynamics=dynamics, **DETERMINISTIC)
+    # the same problem: the scene's RTI settings may change its horizon and weights (the ω weight)
     reference = scene_mpc(env, model, scene_mpc_settings(env, cold_starts=("goal",), terminal_energy_weight=0.0,
-                                                         omega_weight=settings.omega_weight))
+                                                         omega_weight=settings.omega_weight, horizon=settings.horizon))
     x0, _ = env.reset()
     _, info = reference(x0)
     assert info["success"]

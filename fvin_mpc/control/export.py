@@ -114,6 +114,9 @@ class ExportedModel:
             costs on the model's energy (the MPC's ``terminal_energy_weight``).
         configuration_space: ``"S3"`` (a pivoted body, ``x = (q, ω)``, n = 7) or ``"R3xS3"``
             (a free body, ``x = (x, q, v, ω)``, n = 13).
+        casadi_terms: the terms ``step`` was built from, on the CasADi backend, for controllers that
+            impose the step's equations themselves (:mod:`fvin_mpc.control.implicit_dynamics`);
+            ``None`` for a model with no rigid-body terms (e.g. an unstructured baseline).
     """
 
     step: ca.Function
@@ -124,6 +127,7 @@ class ExportedModel:
     name: str
     energy_function: ca.Function
     configuration_space: str = "S3"
+    casadi_terms: Any = None
 
     @property
     def state_dim(self) -> int:
@@ -169,7 +173,7 @@ def from_checkpoint(checkpoint: Checkpoint | str | Path, newton_iters: int | Non
     return ExportedModel(
         step=step_function(terms, config.step_size, k), step_size=config.step_size, newton_iters=k,
         control_dim=config.control_dim, numpy_terms=LearnedTerms(checkpoint.weights, config, NP), name=label,
-        energy_function=energy_function(terms),
+        energy_function=energy_function(terms), casadi_terms=terms,
     )
 
 
@@ -179,6 +183,7 @@ def from_rigid_body(body: Any, step_size: float, newton_iters: int = 2, name: st
     return ExportedModel(
         step=step_function(terms, step_size, newton_iters), step_size=step_size, newton_iters=newton_iters,
         control_dim=body.control_dim, numpy_terms=body.terms(NP), name=name, energy_function=energy_function(terms),
+        casadi_terms=terms,
     )
 
 
@@ -194,7 +199,7 @@ def _free_body_model(terms: Any, numpy_terms: Any, step_size: float, newton_iter
     return ExportedModel(
         step=free_body_step_function(terms, step_size, newton_iters, force_rule), step_size=step_size,
         newton_iters=newton_iters, control_dim=terms.control_dim, numpy_terms=numpy_terms, name=name,
-        energy_function=free_body_energy_function(terms), configuration_space=R3S3,
+        energy_function=free_body_energy_function(terms), configuration_space=R3S3, casadi_terms=terms,
     )
 
 

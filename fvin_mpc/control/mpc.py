@@ -131,6 +131,10 @@ class MPCSettings:
             linearization and the update on S³: one C call per iteration), ``"hpipm"`` (HPIPM through
             ``casadi.conic`` on the stage-wise sparse QP), ``"qrqp"`` or ``"osqp"`` (CasADi's, same QP).
         rti_qp_iterations: interior-point iterations of ``rti_qp_solver="riccati"``.
+        rti_dynamics: the dynamics constraint of ``solver="rti"``: ``"unrolled"`` (the exported step
+            ``x_{k+1} = F(x_k, u_k)``, K Newton iterations, linearized per stage) or ``"implicit"`` (the
+            step's own equations between consecutive plan nodes, the learned terms evaluated once per
+            node; pivoted bodies only; :mod:`fvin_mpc.control.implicit_dynamics`).
         disturbance_gain: ``solver="rti"`` only: gain ``α`` of the offset-free estimator of a constant
             input disturbance ``d`` (``x⁺ = F(x, u + d)``); ``0`` switches it off.
         disturbance_region_rad: … updated only within this angle of the reference attitude (rad) …
@@ -182,6 +186,7 @@ class MPCSettings:
     rti_omega_penalty: float = 100.0
     rti_qp_solver: Literal["riccati", "hpipm", "qrqp", "osqp"] = "riccati"
     rti_qp_iterations: int = 10
+    rti_dynamics: Literal["unrolled", "implicit"] = "unrolled"
     disturbance_gain: float = 0.5
     disturbance_region_rad: float = 0.5
     disturbance_region_speed: float = 1.0
@@ -222,6 +227,8 @@ class MPCSettings:
             raise ValueError(f"rti_qp_iterations must be >= 1, got {self.rti_qp_iterations}")
         if self.rti_qp_solver not in ("riccati", "hpipm", "qrqp", "osqp"):
             raise ValueError(f"unknown rti_qp_solver {self.rti_qp_solver!r}")
+        if self.rti_dynamics not in ("unrolled", "implicit"):
+            raise ValueError(f"unknown rti_dynamics {self.rti_dynamics!r}")
         if not 0.0 <= self.disturbance_gain <= 1.0:
             raise ValueError(f"disturbance_gain must be in [0, 1], got {self.disturbance_gain}")
         if self.solver == "fatrop" and (self.hessian != "exact" or self.compile != "none"):

@@ -16,7 +16,9 @@ an unbiased model). Solved differently (Diehl's real-time iteration, as in acado
   exactly; no norm constraint, no 7th direction.
 * **QP per iteration** — the dynamics linearized per stage,
   ``δ_{k+1} = A_k δ_k + B_k Δu_k + c_k`` (``c_k`` the gap between ``F(x̄_k, ū_k + d)`` and
-  ``x̄_{k+1}``, measured in ``x̄_{k+1}``'s chart); the cost's Gauss–Newton model (every term of the
+  ``x̄_{k+1}``, measured in ``x̄_{k+1}``'s chart; with ``rti_dynamics="implicit"`` the step's own
+  equations between the nodes give ``A_k, B_k, c_k`` instead, the learned terms evaluated once per
+  node: :mod:`fvin_mpc.control.implicit_dynamics`); the cost's Gauss–Newton model (every term of the
   MPC's cost is a sum of squares: ``c(q) = |q|² − ⟨q, g⟩² = |(I − ggᵀ)q|²``, the energy deficit,
   ``ω``, ``u − u_s``), so the Hessian needs first derivatives only; bounds on ``u`` as
   boxes, the bound on ``ω`` as a stiff penalty on its excess (``rti_omega_penalty``: a hard bound
@@ -65,6 +67,7 @@ from typing import Any, Protocol
 import casadi as ca
 import numpy as np
 
+from fvin_mpc.control import implicit_dynamics
 from fvin_mpc.control.buffered import BufferedFunction
 from fvin_mpc.control.export import ExportedModel, compile_functions
 from fvin_mpc.control.mpc import MPC, MPCSettings, _Plan
@@ -170,6 +173,19 @@ def step_limits(layout: StateLayout, omega_step: float) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------- compiled QP + update
+def unrolled_stage_function(step: ca.Function, layout: StateLayout, m: int) -> ca.Function:
+    """``stage(x̄_k, ū_k, x̄_{k+1}, d) -> (c, [A B])`` of the unrolled dynamics: ``c`` the gap between
+    ``F(x̄_k, ū_k + d)`` and ``x̄_{k+1}`` in ``x̄_{k+1}``'s chart, ``[A B]`` its derivatives in ``(δ_k, Δu_k)``."""
+    x_bar, x_next_bar = ca.SX.sym("x_bar", layout.state_dim), ca.SX.sym("x_next_bar", layout.state_dim)
+    u_bar, d = ca.SX.sym("u_bar", m), ca.SX.sym("d", m)
+    delta, du = ca.SX.sym("delta", layout.tangent_dim), ca.SX.sym("du", m)
+    gap = local_state(layout, x_next_bar, step(retract_state(layout, x_bar, delta), u_bar + du + d)[0])
+    c, jacobian = ca.substitute([gap, ca.jacobian(gap, ca.vertcat(delta, du))], [delta, du],
+                                [ca.DM.zeros(layout.tangent_dim), ca.DM.zeros(m)])
+    return ca.Function("rti_dynamics", [x_bar, u_bar, x_next_bar, d], [c, jacobian],
+                       ["x_bar", "u_bar", "x_next_bar", "d"], ["c", "AB"])
+
+
 def riccati_feedback_function(layout: StateLayout, n: int, m: int, low: np.ndarray, high: np.ndarray,
                               limits: np.ndarray, omega_valid: float, iterations: int, centering: float = 0.1,
                               boundary: float = 0.995, mu_min: float = QP_MU_MIN) -> ca.Function:
@@ -347,10 +363,16 @@ class RealTimeMPC(MPC):
             return ca.substitute(expressions, [delta, du], zero)
 
         # --- dynamics: e(δ, Δu) = F(x, u + d) in x̄_{k+1}'s chart
-        y = self.model.step(x, u + d)[0]
-        gap = local_state(layout, x_next_bar, y)
-        c, jac = at_zero([gap, ca.jacobian(gap, ca.vertcat(delta, du))])
-        stage_dynamics = ca.Function("rti_dynamics", [x_bar, u_bar, x_next_bar, d], [c, jac])
+        implicit = s.rti_dynamics == "implicit"
+        if implicit:
+            if layout is not PIVOTED or self.model.casadi_terms is None:
+                raise ValueError("rti_dynamics='implicit' needs a pivoted body with rigid-body terms "
+                                 f"(model {self.model.name!r}); use rti_dynamics='unrolled'")
+            node_terms, term_layout = implicit_dynamics.node_terms_function(self.model.casadi_terms, retract)
+            implicit_stage = implicit_dynamics.implicit_stage_function(self.model.casadi_terms, term_layout,
+                                                                       self.model.step_size, retract)
+        else:
+            stage_dynamics = unrolled_stage_function(self.model.step, layout, m)
 
         # --- cost: sums of squares, Gauss–Newton
         projector = ca.SX.eye(4) - ca.mtimes(goal, goal.T)
@@ -402,7 +424,12 @@ class RealTimeMPC(MPC):
         # gradient of Δu_0.
         states, controls = ca.MX.sym("X", ns, n + 1), ca.MX.sym("U", m, n)
         references, d_mx, u_s_mx = ca.MX.sym("R", ns, n + 1), ca.MX.sym("d", m), ca.MX.sym("u_s", m, n)
-        gaps, jacobians = stage_dynamics.map(n)(states[:, :n], controls, states[:, 1:], ca.repmat(d_mx, 1, n))
+        if implicit:  # the terms once per node, each stage reads its two nodes'
+            values, slopes = node_terms.map(n + 1)(states[qs, :])
+            gaps, jacobians = implicit_stage.map(n)(states[:, :n], controls, states[:, 1:], ca.repmat(d_mx, 1, n),
+                                                    values[:, :n], slopes[:, :3 * n], values[:, 1:], slopes[:, 3:])
+        else:
+            gaps, jacobians = stage_dynamics.map(n)(states[:, :n], controls, states[:, 1:], ca.repmat(d_mx, 1, n))
         hessians, gradients, costs = stage_cost.map(n)(states[:, :n], controls, references[:, :n], u_s_mx)
         terminal_hessian, terminal_gradient, terminal_value = terminal_cost(states[:, n], references[:, n])
         size = stage_size * n
@@ -431,6 +458,7 @@ class RealTimeMPC(MPC):
         predict = ca.Function("rti_predict", [x_sym, u_sym],
                               [stepped, b, residual, ca.solve(ca.mtimes(b.T, b), b.T)])
 
+        self._implicit = implicit
         self._omega_valid = OMEGA_VALID_FRACTION / self.model.step_size
         self._step_limits = step_limits(layout, STEP_LIMIT_OMEGA * self.omega_bound)
         riccati = s.rti_qp_solver == "riccati"
@@ -532,6 +560,14 @@ class RealTimeMPC(MPC):
         return self.reference_window()[1][0]
 
     def _linearize_at(self, plan: _Plan) -> tuple[Any, ...]:
+        if self._implicit:
+            # Both ends of a stage on one sheet of S³, as the exported step continues q_k: a model
+            # whose terms are not sign-invariant reads them at each node's own sign (the measured
+            # state's sign can differ from the plan's). The same rotations, the same charts.
+            quaternions = plan.states[:, self.layout.quaternion]
+            signs = np.cumprod(np.concatenate([[1.0], np.where(
+                np.einsum("ij,ij->i", quaternions[:-1], quaternions[1:]) < 0.0, -1.0, 1.0)]))
+            quaternions *= signs[:, None]
         time_, _, scales, references = self._sample_reference()
         key = (time_, self.disturbance.tobytes())
         cached = getattr(self, "_targets_cache", None)

@@ -206,19 +206,12 @@ def finish_step(q: s3.Quat, xi: s3.Vec3, problem: ImplicitProblem, terms: RigidB
     h, inertia = step_size, problem.inertia
     increment = s3.exp(xi, ops)
     q_next = s3.multiply(q, increment)
-    gravity_next = s3.H_apply(q_next, terms.potential_gradient(q_next))
-    kinetic = s3.G_apply(increment, s3.matvec(inertia, s3.imaginary(increment)))
-    # π_{k+1} + (h/2) D ω_{k+1}: everything in step 5 but the end-of-step damping.
-    momentum_next = s3.add(s3.sub(s3.scale(4.0 / h, kinetic), s3.scale(h / 2.0, gravity_next)), problem.control_force)
-    inertia_next = inertia if terms.constant_inertia else terms.inertia(q_next)
-    damping_next = terms.dissipation(q_next)
+    momentum_next = _end_momentum(q_next, increment, problem, terms, h)
+    inertia_next, damping_next = _end_inertia_and_damping(q_next, problem, terms)
     if damping_next is None:
         omega_next = s3.scale(0.5, s3.solve3(inertia_next, momentum_next))
-    else:
-        # (2 J + (h/2) D) ω_{k+1} = π_{k+1} + (h/2) D ω_{k+1}  — SPD, so always solvable.
-        system = tuple(tuple(2.0 * inertia_next[i][j] + (h / 2.0) * damping_next[i][j] for j in range(3))
-                       for i in range(3))
-        omega_next = s3.solve3(system, momentum_next)  # type: ignore[arg-type]
+    else:  # (2 J + (h/2) D) ω_{k+1} = π_{k+1} + (h/2) D ω_{k+1}  — SPD, so always solvable.
+        omega_next = s3.solve3(_end_momentum_map(inertia_next, damping_next, h), momentum_next)
 
     residual = None
     if with_residual:
@@ -232,6 +225,55 @@ def finish_step(q: s3.Quat, xi: s3.Vec3, problem: ImplicitProblem, terms: RigidB
         norm = ops.where(nonzero, ops.sqrt(ops.where(nonzero, squared, 1.0 + 0.0 * squared)), 0.0 * squared)
         residual = norm * (2.0 / h) / inertia_scale
     return StepResult(q=q_next, omega=omega_next, residual=residual)  # type: ignore[arg-type]
+
+
+def _end_momentum(q_next: s3.Quat, increment: s3.Quat, problem: ImplicitProblem, terms: RigidBodyTerms,
+                  step_size: float) -> s3.Vec3:
+    """``π_{k+1} + (h/2) D(q_{k+1}) ω_{k+1}``: everything in step 5 but the end-of-step damping."""
+    h = step_size
+    gravity_next = s3.H_apply(q_next, terms.potential_gradient(q_next))
+    kinetic = s3.G_apply(increment, s3.matvec(problem.inertia, s3.imaginary(increment)))
+    return s3.add(s3.sub(s3.scale(4.0 / h, kinetic), s3.scale(h / 2.0, gravity_next)), problem.control_force)
+
+
+def _end_inertia_and_damping(q_next: s3.Quat, problem: ImplicitProblem,
+                             terms: RigidBodyTerms) -> tuple[s3.Mat3, s3.Mat3 | None]:
+    """``J(q_{k+1})`` of the Legendre map (``J(q_k)`` again when constant) and ``D(q_{k+1})`` or ``None``."""
+    inertia_next = problem.inertia if terms.constant_inertia else terms.inertia(q_next)
+    return inertia_next, terms.dissipation(q_next)
+
+
+def _end_momentum_map(inertia_next: s3.Mat3, damping_next: s3.Mat3 | None, step_size: float) -> s3.Mat3:
+    """``2 J + (h/2) D``: what :func:`_end_momentum` is of ``ω_{k+1}`` (SPD)."""
+    if damping_next is None:
+        return tuple(tuple(2.0 * inertia_next[i][j] for j in range(3)) for i in range(3))  # type: ignore[return-value]
+    return tuple(tuple(2.0 * inertia_next[i][j] + (step_size / 2.0) * damping_next[i][j] for j in range(3))
+                 for i in range(3))  # type: ignore[return-value]
+
+
+def step_residual(q: s3.Quat, omega: s3.Vec3, u: tuple[Any, ...], q_next: s3.Quat, omega_next: s3.Vec3,
+                  terms: RigidBodyTerms, step_size: float, ops: Ops,
+                  terms_next: RigidBodyTerms | None = None) -> tuple[Any, ...]:
+    """The step's equations as a residual of both of its ends: 0 exactly when ``(q_next, ω_next)``
+    is the converged step from ``(q, ω, u)`` (K → ∞ in :func:`fvin_step`), for ``±q_next`` alike.
+
+    Six components: ``Φ(ξ) − C`` (step 3, in the units of ``C``) with ``ξ = log(q* ⊗ q_next)``
+    of the sign-aligned relative rotation, then step 5 as ``π_{k+1} + (h/2) D ω_{k+1}`` minus
+    ``(2 J + (h/2) D) ω_{k+1}`` at ``q_next`` (momentum units). No Newton solve: this is the form
+    an optimizer that treats both ends as unknowns enforces (the discrete Euler–Lagrange equations
+    as constraints, as in discrete mechanics and optimal control). ``terms_next`` evaluates the
+    terms at ``q_next`` (default: ``terms``) — a caller may give each end its own evaluation.
+    """
+    terms_next = terms if terms_next is None else terms_next
+    problem = implicit_problem(q, omega, u, terms, step_size)
+    relative = s3.multiply(s3.conjugate(q), q_next)
+    increment = s3.scale(ops.where(relative[0] >= 0.0, 1.0, -1.0), relative)  # = exp(ξ), |ξ| ≤ π/2
+    xi = s3.log(increment, ops)
+    kinematic = s3.sub(implicit_lhs(xi, problem.inertia, ops), problem.rhs)
+    momentum = _end_momentum(q_next, increment, problem, terms_next, step_size)
+    momentum_map = _end_momentum_map(*_end_inertia_and_damping(q_next, problem, terms_next), step_size)
+    dynamic = s3.sub(momentum, s3.matvec(momentum_map, omega_next))
+    return (*kinematic, *dynamic)
 
 
 def fvin_step(

@@ -214,6 +214,7 @@ class BenchmarkConfig:
     terminal_energy_weight: float | None = None
     solver: str = "ipopt"
     rti_cold_solver: str = "rti"
+    rti_dynamics: str | None = None  # None: MPCSettings' default
     reference_grids: tuple[tuple[int, int], ...] = REFERENCE_GRIDS
     #: Experimental (off by default; on a seed subset it is far worse, docs/pendulum-v1.md): the terminal
     #: cost is the learned model's value function for Pendulum-v1's cost
@@ -247,6 +248,8 @@ def build_mpc(config: BenchmarkConfig) -> Any:
         raise ValueError(f"{config.checkpoint}: needs h = {DT} s, got h = {model.step_size}")
     settings = benchmark_settings(config.horizon, config.terminal_energy_weight, config.multistart)
     settings = replace(settings, solver=config.solver, rti_cold_solver=config.rti_cold_solver)
+    if config.rti_dynamics is not None:
+        settings = replace(settings, rti_dynamics=config.rti_dynamics)
     if not (config.terminal_value or config.rank_cold_starts):
         return scene_mpc(env, model, settings)
     from fvin_mpc.control.mpc import MPC

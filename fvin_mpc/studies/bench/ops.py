@@ -8,6 +8,12 @@ prototypes that make the networks sign-invariant by reading the even features ``
 evaluation) instead of averaging over ``±q`` (two) — with a configuration-dependent inertia network
 and with a constant inertia. The prototypes' weights are random: an operation count depends on the
 structure (widths, which terms depend on ``q``), not on the weights' values.
+
+Two further columns count what the real-time iteration evaluates per stage with each of its dynamics
+constraints (``MPCSettings.rti_dynamics``): ``unrolled`` — the gap of ``F`` and its Jacobian in the
+7 chart directions ``(δ_k, Δu_k)`` (:func:`fvin_mpc.control.rti.unrolled_stage_function`);
+``implicit`` — the terms and their 3 chart derivatives once per node plus the stage's
+implicit-function solve (:mod:`fvin_mpc.control.implicit_dynamics`).
 """
 
 from __future__ import annotations
@@ -21,7 +27,8 @@ from fvin_mpc.studies.report import StudyResult
 
 #: Shipped planar checkpoints counted, beside the closed form.
 CHECKPOINTS = ("pendulum_sign-invariant", "pendulum_fixed-inertia", "pendulum_plain")
-COLUMNS = ["model", "structure", "step_ops", "step_jacobian_ops", "vs_closed_form"]
+COLUMNS = ["model", "structure", "step_ops", "step_jacobian_ops", "vs_closed_form", "rti_unrolled_ops",
+           "rti_implicit_ops", "implicit_vs_closed_form"]
 #: The prototypes' even features ``q_i q_j``, ``i ≤ j``, and their networks' hidden layers (the shipped models').
 FEATURE_PAIRS = tuple((i, j) for i in range(4) for j in range(i, 4))
 HIDDEN_LAYERS = 2
@@ -91,6 +98,18 @@ def count(step: Any) -> tuple[int, int]:
     return int(ca.Function("f", [x, u], [x_next]).n_instructions()), int(with_jacobian.n_instructions())
 
 
+def rti_stage_counts(step: Any, terms: Any, step_size: float) -> tuple[int, int]:
+    """Instructions per stage of the RTI's unrolled dynamics and of its implicit ones (node + stage)."""
+    from fvin_mpc.control import implicit_dynamics
+    from fvin_mpc.control.rti import retract, unrolled_stage_function
+    from fvin_mpc.control.state_layout import PIVOTED
+
+    unrolled = unrolled_stage_function(step, PIVOTED, terms.control_dim)
+    node, layout = implicit_dynamics.node_terms_function(terms, retract)
+    stage = implicit_dynamics.implicit_stage_function(terms, layout, step_size, retract)
+    return int(unrolled.n_instructions()), int(node.n_instructions() + stage.n_instructions())
+
+
 def run(quick: bool = False, seed: int = 0, **_: Any) -> StudyResult:
     from fvin_mpc.control import export
     from fvin_mpc.core.checkpoint import load_checkpoint
@@ -105,41 +124,50 @@ def run(quick: bool = False, seed: int = 0, **_: Any) -> StudyResult:
     env = scene_env("pendulum", true_model=True)
     closed = scene_model(env, true_model=True)  # the rod read off the MJCF, as the controllers use it
     env.close()
-    rows.append({"model": "closed form", "structure": "the rod's `J`, `U`, `g`", **_counts(closed.step)})
+    rows.append({"model": "closed form", "structure": "the rod's `J`, `U`, `g`",
+                 **_counts(closed.step, closed.casadi_terms, closed.step_size)})
     for name in CHECKPOINTS[:1] if quick else CHECKPOINTS:
         checkpoint = load_checkpoint(name)
+        model = export.from_checkpoint(checkpoint)
         rows.append({"model": name, "structure": structures.get(checkpoint.config.variant, checkpoint.config.variant),
-                     **_counts(export.from_checkpoint(checkpoint).step)})
+                     **_counts(model.step, model.casadi_terms, model.step_size)})
     for constant, label in ((False, "`J(q)`, `U`, `g` of `q qᵀ`"), (True, "constant `J`; `U`, `g` of `q qᵀ`")):
         terms = EvenFeatureTerms(constant, seed=seed)
         step = export.step_function(terms, 0.05, 2)
         rows.append({"model": "prototype, even features" + (", constant J" if constant else ""),
-                     "structure": label + " (untrained, random weights)", **_counts(step)})
+                     "structure": label + " (untrained, random weights)", **_counts(step, terms, 0.05)})
     for row in rows:
         row["vs_closed_form"] = row["step_jacobian_ops"] / rows[0]["step_jacobian_ops"]
+        row["implicit_vs_closed_form"] = row["rti_implicit_ops"] / rows[0]["rti_implicit_ops"]
     notes = [
         "`step_ops`: instructions of the exported step `F(x, u)` (K = 2, h = 0.05); `step_jacobian_ops`: of "
         "`[F, ∂F/∂(x, u)]`, what the real-time iteration evaluates per stage and period; `vs_closed_form`: "
         "its ratio to the closed form's. Counts, not timings: they do not depend on the machine.",
         "The configuration-dependent inertia network is the expensive part (its value and derivatives at both "
-        "ends of the step); averaging over `±q` doubles every network. The measured periods are in "
-        "docs/realtime.md (the fixed-inertia checkpoint's RTI period is 1.27× the closed form's, the "
-        "sign-invariant one's 1.81×).",
+        "ends of the step); averaging over `±q` doubles every network.",
+        "`rti_unrolled_ops`: the RTI's stage with the unrolled step (its gap and Jacobian in the 7 chart "
+        "directions); `rti_implicit_ops`: with the implicit dynamics, the terms and their 3 chart derivatives "
+        "once per node plus the stage's implicit-function solve; `implicit_vs_closed_form`: its ratio to the "
+        "closed form's. Measured periods of both are in docs/realtime.md.",
     ]
     return StudyResult("ops", rows, COLUMNS, plot, notes)
 
 
-def _counts(step: Any) -> dict[str, int]:
+def _counts(step: Any, terms: Any, step_size: float) -> dict[str, int]:
     step_ops, jacobian_ops = count(step)
-    return {"step_ops": step_ops, "step_jacobian_ops": jacobian_ops}
+    unrolled_ops, implicit_ops = rti_stage_counts(step, terms, step_size)
+    return {"step_ops": step_ops, "step_jacobian_ops": jacobian_ops, "rti_unrolled_ops": unrolled_ops,
+            "rti_implicit_ops": implicit_ops}
 
 
 def plot(figure: Any, rows: list[dict[str, Any]]) -> None:
-    """Operations per stage, step and step with its Jacobian, one bar pair per model."""
+    """Operations per stage — the step, the RTI's unrolled and implicit stages — one bar group per model."""
     axes = figure.subplots()
     positions = np.arange(len(rows))
-    axes.barh(positions + 0.2, [r["step_jacobian_ops"] for r in rows], height=0.4, label="step + Jacobian")
-    axes.barh(positions - 0.2, [r["step_ops"] for r in rows], height=0.4, label="step")
+    axes.barh(positions - 0.27, [r["step_ops"] for r in rows], height=0.27, label="step")
+    axes.barh(positions, [r["rti_unrolled_ops"] for r in rows], height=0.27, label="RTI stage, unrolled step")
+    axes.barh(positions + 0.27, [r["rti_implicit_ops"] for r in rows], height=0.27,
+              label="RTI stage, implicit (node + stage)")
     axes.set_yticks(positions, [r["model"] for r in rows], fontsize=7)
     axes.invert_yaxis()
     axes.set_xlabel("CasADi instructions per stage")

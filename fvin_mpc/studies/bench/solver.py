@@ -91,6 +91,8 @@ REALTIME_CONFIGS: tuple[tuple[str, dict[str, Any], Any], ...] = (
     ("ipopt (waiting)", {}, "none"),
     ("ipopt", {}, "measured"),
     ("rti", {"solver": "rti"}, "measured"),
+    ("rti, unrolled step", {"solver": "rti", "rti_dynamics": "unrolled"}, "measured"),
+    ("rti, implicit", {"solver": "rti", "rti_dynamics": "implicit"}, "measured"),
     ("rti ≤4 it. in 10 ms", {"solver": "rti", "rti_max_iter": 4, "rti_budget_s": 0.01}, "measured"),
 )
 REALTIME_SCENES = ("pendulum", "spherical_pendulum")
@@ -217,6 +219,9 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 5, model: str = "lear
             "machine gave to other jobs); `learned_vs_true`: median call time, learned over closed form, same "
             "controller. `feedback_ms`: the call alone, observation to torque (the delay the plant sees; the "
             "RTI prepares the next call after the torque is sent), and its learned / closed-form ratio. "
+            "`rti`: the scene's RTI settings (its dynamics constraint: `implicit` on `pendulum`, `unrolled` on "
+            "`spherical_pendulum`); `rti, unrolled step` / `rti, implicit`: the same with that constraint "
+            "(fvin_mpc/control/implicit_dynamics.py). "
             "`rti ≤4 it. in 10 ms`: further Gauss–Newton iterations while the call's wall time allows. "
             "`learned (fixed-inertia)`: the scene's shipped fixed-inertia checkpoint beside its default "
             "(sign-invariant) one — what the learned model's structure costs per call. "
