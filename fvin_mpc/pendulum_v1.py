@@ -57,7 +57,7 @@ def build_parser() -> argparse.ArgumentParser:
                              "(default: %(default)s)")
     parser.add_argument("--rti-dynamics", choices=["unrolled", "implicit"], default=None,
                         help="with --solver rti: the dynamics constraint (fvin_mpc.control.implicit_dynamics; "
-                             "default: MPCSettings')")
+                             "default: the pendulum scene's RTI setting)")
     parser.add_argument("--single-start", action="store_true",
                         help="plain MPC: one first guess per episode instead of the multi-start")
     parser.add_argument("--terminal-value", action="store_true",

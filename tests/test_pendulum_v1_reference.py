@@ -97,3 +97,17 @@ def test_mpc_never_beats_the_search():
         assert record["return"] <= record["search_return"] + 1e-3
         assert record["reference_return"] >= record["search_return"]
         assert record["reference_return"] >= record["return"] - 1e-3
+
+
+def test_rti_benchmark_takes_the_pendulum_scenes_dynamics_unless_told():
+    """The benchmark is the ``pendulum`` scene's task: its RTI uses the scene's dynamics constraint
+    (``rti_dynamics``) by default, and an explicit choice wins; either way the label says which."""
+    from fvin_mpc.envs.scenes import resolve_scene
+
+    scene_choice = resolve_scene("pendulum").mpc_per_solver["rti"]["rti_dynamics"]
+    default = v1.BenchmarkConfig(episodes=1, reference=False, solver="rti")
+    assert v1.rti_dynamics(default) == scene_choice
+    assert v1.build_mpc(default).settings.rti_dynamics == scene_choice
+    other = "unrolled" if scene_choice == "implicit" else "implicit"
+    assert v1.build_mpc(v1.BenchmarkConfig(episodes=1, reference=False, solver="rti",
+                                           rti_dynamics=other)).settings.rti_dynamics == other

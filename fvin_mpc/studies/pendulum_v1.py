@@ -214,7 +214,7 @@ class BenchmarkConfig:
     terminal_energy_weight: float | None = None
     solver: str = "ipopt"
     rti_cold_solver: str = "rti"
-    rti_dynamics: str | None = None  # None: MPCSettings' default
+    rti_dynamics: str | None = None  # None: the pendulum scene's (its RTI settings)
     reference_grids: tuple[tuple[int, int], ...] = REFERENCE_GRIDS
     #: Experimental (off by default; on a seed subset it is far worse, docs/pendulum-v1.md): the terminal
     #: cost is the learned model's value function for Pendulum-v1's cost
@@ -237,6 +237,13 @@ class BenchmarkConfig:
             raise ValueError(f"horizon must be >= 1, got {self.horizon}")
 
 
+def rti_dynamics(config: BenchmarkConfig) -> str:
+    """The RTI's dynamics constraint: the config's, else the ``pendulum`` scene's RTI setting."""
+    if config.rti_dynamics is not None:
+        return config.rti_dynamics
+    return resolve_scene("pendulum").mpc_per_solver.get("rti", {}).get("rti_dynamics", MPCSettings.rti_dynamics)
+
+
 def build_mpc(config: BenchmarkConfig) -> Any:
     """The MPC on the learned model (or the closed-form pendulum) with :func:`benchmark_settings`, on
     the ``pendulum`` scene's task (Pendulum-v1's physics; its goal, rest and torque bounds)."""
@@ -247,9 +254,8 @@ def build_mpc(config: BenchmarkConfig) -> Any:
     if abs(model.step_size - DT) > 1e-12:
         raise ValueError(f"{config.checkpoint}: needs h = {DT} s, got h = {model.step_size}")
     settings = benchmark_settings(config.horizon, config.terminal_energy_weight, config.multistart)
-    settings = replace(settings, solver=config.solver, rti_cold_solver=config.rti_cold_solver)
-    if config.rti_dynamics is not None:
-        settings = replace(settings, rti_dynamics=config.rti_dynamics)
+    settings = replace(settings, solver=config.solver, rti_cold_solver=config.rti_cold_solver,
+                       rti_dynamics=rti_dynamics(config))
     if not (config.terminal_value or config.rank_cold_starts):
         return scene_mpc(env, model, settings)
     from fvin_mpc.control.mpc import MPC
@@ -509,7 +515,7 @@ def write_markdown(summary: dict[str, Any], records: list[dict[str, Any]], confi
     lines = [
              "| controller | episodes | mean return ± std | median | worst | upright at end | failed solves "
              "| controller ms median / p95 |", "|---|---|---|---|---|---|---|---|",
-             f"| MPC ({config.solver}) on {model}, N = {config.horizon}{', multi-start' if config.multistart else ''}{' ranked by the value' if config.rank_cold_starts else ''}{', terminal value' if config.terminal_value else ''} | {summary['episodes']} | {summary['return_mean']:.1f} ± "
+             f"| MPC ({config.solver}{', ' + rti_dynamics(config) + ' dynamics' if config.solver == 'rti' else ''}) on {model}, N = {config.horizon}{', multi-start' if config.multistart else ''}{' ranked by the value' if config.rank_cold_starts else ''}{', terminal value' if config.terminal_value else ''} | {summary['episodes']} | {summary['return_mean']:.1f} ± "
              f"{summary['return_std']:.1f} | {summary['return_median']:.1f} | {summary['return_min']:.1f} "
              f"| {summary['upright_at_end']}/{summary['episodes']} | {summary['failed_solves']} "
              f"| {summary['controller_time_median_ms']:.1f} / {summary['controller_time_p95_ms']:.1f} |"]
