@@ -101,3 +101,28 @@ def test_implicit_rti_refuses_a_model_without_rigid_body_terms(pendulum):
                                 energy_function=model.energy_function)
     with pytest.raises(ValueError, match="rti_dynamics='implicit'"):
         scene_mpc(env, bare, scene_mpc_settings(env, solver="rti", rti_dynamics="implicit"))
+
+
+def test_implicit_gap_agrees_with_the_exact_gap_to_second_order_off_the_nodes():
+    """Off consistent nodes (the next node's orientation and rate both off) the gap is one Newton step
+    on the step's equations: it matches the exact gap of the converged step up to O(ε²)."""
+    from fvin_mpc.control.rti import retract_state_np
+
+    config = ModelConfig(variant="sign-invariant", control_dim=3)
+    terms = LearnedTerms(init_weights(config, seed=2), config, CA)
+    node, layout = implicit_dynamics.node_terms_function(terms, retract)
+    stage = implicit_dynamics.implicit_stage_function(terms, layout, 0.05, retract)
+    reference, step = unrolled_stage(terms, 0.05, newton_iters=8)
+    rng = np.random.default_rng(5)
+    q = rng.normal(size=4)
+    x, u, d = np.concatenate([q / np.linalg.norm(q), 3.0 * rng.normal(size=3)]), rng.normal(size=3), np.zeros(3)
+    x_next = np.asarray(step(x, u)[0]).ravel()
+    direction = rng.normal(size=6)
+    errors = []
+    for eps in (1e-2, 1e-3):
+        x_next_bar = retract_state_np(PIVOTED, x_next[None], eps * direction[None])[0]
+        gap = np.asarray(stage(x, u, x_next_bar, d, *node(x[:4]), *node(x_next_bar[:4]))[0])
+        exact = np.asarray(reference(x, u, x_next_bar, d)[0])
+        assert np.abs(exact).max() > 0.5 * eps  # the nodes are off by O(ε) …
+        errors.append(np.abs(gap - exact).max())
+    assert errors[1] < 3e-2 * errors[0]  # … and the gaps agree to O(ε²): ÷100 for ε ÷ 10
