@@ -255,7 +255,8 @@ def step_residual(q: s3.Quat, omega: s3.Vec3, u: tuple[Any, ...], q_next: s3.Qua
                   terms: RigidBodyTerms, step_size: float, ops: Ops,
                   terms_next: RigidBodyTerms | None = None) -> tuple[Any, ...]:
     """The step's equations as a residual of both of its ends: 0 exactly when ``(q_next, ω_next)``
-    is the converged step from ``(q, ω, u)`` (K → ∞ in :func:`fvin_step`), for ``±q_next`` alike.
+    is the converged step from ``(q, ω, u)`` (K → ∞ in :func:`fvin_step`); for sign-invariant terms
+    the same for ``±q_next`` (other terms are read at ``q_next``'s own sign).
 
     Six components: ``Φ(ξ) − C`` (step 3, in the units of ``C``) with ``ξ = log(q* ⊗ q_next)``
     of the sign-aligned relative rotation, then step 5 as ``π_{k+1} + (h/2) D ω_{k+1}`` minus
