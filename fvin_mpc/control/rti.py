@@ -565,9 +565,9 @@ class RealTimeMPC(MPC):
             # whose terms are not sign-invariant reads them at each node's own sign (the measured
             # state's sign can differ from the plan's). The same rotations, the same charts.
             quaternions = plan.states[:, self.layout.quaternion]
-            signs = np.cumprod(np.concatenate([[1.0], np.where(
-                np.einsum("ij,ij->i", quaternions[:-1], quaternions[1:]) < 0.0, -1.0, 1.0)]))
-            quaternions *= signs[:, None]
+            turns = np.einsum("ij,ij->i", quaternions[:-1], quaternions[1:])
+            if turns.min() < 0.0:  # rare (the measured state's sign): flip every node after a sign change
+                quaternions *= np.cumprod(np.concatenate([[1.0], np.where(turns < 0.0, -1.0, 1.0)]))[:, None]
         time_, _, scales, references = self._sample_reference()
         key = (time_, self.disturbance.tobytes())
         cached = getattr(self, "_targets_cache", None)
