@@ -24,6 +24,8 @@ from fvin_mpc.studies.report import StudyResult
 #: (label, overrides of the scene's RTI settings); the first is the scene's own.
 CONFIGS: tuple[tuple[str, dict[str, Any]], ...] = (
     ("scene default", {}),
+    ("unrolled step", {"rti_dynamics": "unrolled"}),
+    ("implicit", {"rti_dynamics": "implicit"}),
     ("3 QP it.", {"rti_qp_iterations": 3}),
     ("5 QP it.", {"rti_qp_iterations": 5}),
     ("20 QP it.", {"rti_qp_iterations": 20}),
@@ -94,7 +96,8 @@ def run(quick: bool = False, seed: int = 0, starts: int = 20, duration: float = 
     notes = [
         f"`{scene}` scene, {starts} starts of {duration:g} s (episode 0 hanging at rest, then seeded random starts "
         f"with |ω₀| ≤ 2 rad/s, seed {seed}), the scene's RTI settings (N = {default.horizon}, "
-        f"{default.rti_qp_iterations} QP iterations, {default.rti_max_iter} Gauss–Newton iteration per period) with "
+        f"{default.rti_qp_iterations} QP iterations, {default.rti_max_iter} Gauss–Newton iteration per period, "
+        f"{default.rti_dynamics} dynamics) with "
         "one knob changed per row, in the "
         "waiting mode (the simulator waits for the controller; quality, not real-time closed-loop behaviour — "
         "the per-call wall times are measured all the same). `call_ms`: the whole controller time per period "
