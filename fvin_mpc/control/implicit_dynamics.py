@@ -53,7 +53,7 @@ class _ExpandedTerms:
     its derivative times the node's chart step ``δ`` — exact in value and first derivative at
     ``δ = 0``, which is all a linearization there reads. A constant ``J`` comes from ``terms``."""
 
-    def __init__(self, terms: Any, layout: "TermLayout", values: Any, derivatives: Any, delta: Any) -> None:
+    def __init__(self, terms: Any, layout: TermLayout, values: Any, derivatives: Any, delta: Any) -> None:
         self._terms, self._layout = terms, layout
         self._entries = values + ca.mtimes(derivatives, delta)
         self.control_dim = terms.control_dim

@@ -350,8 +350,8 @@ class RealTimeMPC(MPC):
         qs, ws = layout.quaternion, layout.omega
         stage_size = nd + m
 
-        x_bar, x_next_bar = ca.SX.sym("x_bar", ns), ca.SX.sym("x_next_bar", ns)
-        u_bar, d, u_s = ca.SX.sym("u_bar", m), ca.SX.sym("d", m), ca.SX.sym("u_s", m)
+        x_bar = ca.SX.sym("x_bar", ns)
+        u_bar, u_s = ca.SX.sym("u_bar", m), ca.SX.sym("u_s", m)
         reference = ca.SX.sym("reference", ns)  # the stage's reference state
         goal = reference[qs]
         delta, du = ca.SX.sym("delta", nd), ca.SX.sym("du", m)
