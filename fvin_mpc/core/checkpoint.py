@@ -158,10 +158,10 @@ def load_checkpoint(name_or_path: str | Path) -> Checkpoint:
         config = _config_from_dict(sidecar["model"], sidecar.get("configuration_space"))
     except (KeyError, TypeError, ValueError) as error:
         raise CheckpointError(f"{sidecar_path}: invalid model config ({error})") from None
-    try:
-        from safetensors import SafetensorError
-        from safetensors.numpy import load_file
+    from safetensors import SafetensorError
+    from safetensors.numpy import load_file
 
+    try:
         weights = load_file(str(weights_path))
     except (SafetensorError, OSError, ValueError) as error:
         raise CheckpointError(f"{weights_path}: unreadable or truncated safetensors file ({error})") from None
