@@ -17,6 +17,9 @@ MPC_OPTIONS: dict[str, tuple[str, type, str]] = {
     "--terminal-omega-weight": ("terminal_omega_weight", float, "terminal weight on |ω|²"),
     "--max-iter": ("max_iter", int, "solver iterations per warm-started solve"),
     "--cold-max-iter": ("cold_max_iter", int, "solver iterations per cold solve"),
+    "--torque-reserve": ("torque_reserve", float,
+                         "fraction of the torque range the plan keeps in reserve after its first control "
+                         "(ipopt, sqpmethod, fatrop)"),
 }
 
 

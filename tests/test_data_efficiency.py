@@ -62,6 +62,19 @@ def test_episode_budget_reaches_the_config_and_separates_the_cells(tmp_path):
     assert unbounded.training_fingerprint() == default.training_fingerprint()  # the same trained models
 
 
+def test_torque_reserve_reaches_both_mpcs_and_separates_the_cells(tmp_path):
+    def config(**reserve):
+        return study.study_config(False, 0, "250", "3", "sign-invariant", 8, 0, tmp_path, "cached", 10.0, 20000, **reserve)
+
+    default, reserved = config(), config(torque_reserve=0.05)
+    assert "mpc_overrides" not in default.evaluation_fingerprint()  # the cells cached before the option stay valid
+    assert reserved.evaluation_fingerprint()["mpc_overrides"] == [["torque_reserve", 0.05]]
+    assert reserved.training_fingerprint() == default.training_fingerprint()
+    assert dict(reserved.mpc_overrides)["torque_reserve"] == 0.05  # closed_loop and pendulum_v1_returns apply these
+    with pytest.raises(ValueError, match="torque-reserve"):
+        study.run(torque_reserve=1.5, cache_dir=tmp_path)
+
+
 def test_headline_counts_from_where_it_holds_at_every_larger_size():
     def row(size, succeed, within):
         return {"model": "m", "transitions": size, "all_succeed": succeed, "cost_within_2pct_all_seeds": within}

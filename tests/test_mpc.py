@@ -159,6 +159,29 @@ def test_settings_are_validated():
         MPCSettings(initial_torque_fraction=0.0)
     with pytest.raises(ValueError, match="omega_bound_fraction"):
         MPCSettings(omega_bound_fraction=1.5)
+    for reserve in (-0.1, 1.0):
+        with pytest.raises(ValueError, match="torque_reserve"):
+            MPCSettings(torque_reserve=reserve)
+    with pytest.raises(ValueError, match="not for solver='rti'"):
+        MPCSettings(torque_reserve=0.05, solver="rti")
+
+
+def test_torque_reserve_bounds_the_plan_after_its_first_control(true_model):
+    """The first control keeps the whole range; the later ones the middle (1 − r) of it — also for
+    asymmetric bounds. From hanging with a little speed the swing-up saturates, so the bounds bind."""
+    reserve, low, high = 0.2, -1.0, 3.0
+    mpc = MPC(true_model, MPCSettings(torque_reserve=reserve, compile="none"), UPRIGHT, [low], [high])
+    q, omega = hinge(0.3, 1.0)
+    u, info = mpc(np.r_[q, omega])
+    assert info["success"]
+    controls = info["controls"][:, 0]
+    middle, half_range = 0.5 * (high + low), 0.5 * (high - low)
+    inner_low, inner_high = middle - (1 - reserve) * half_range, middle + (1 - reserve) * half_range
+    assert np.all(controls[1:] >= inner_low - 1e-6) and np.all(controls[1:] <= inner_high + 1e-6)
+    assert np.isclose(controls[1:].max(), inner_high, atol=1e-4) or np.isclose(controls[1:].min(), inner_low, atol=1e-4)
+    assert low - 1e-9 <= u[0] <= high + 1e-9
+    # the first control may leave the inner band (the reserve is there for it)
+    assert u[0] > inner_high + 1e-3 or u[0] < inner_low - 1e-3
 
 
 # ---------------------------------------------------------------------- terminal energy cost

@@ -630,7 +630,7 @@ def _parse_ints(text: str, name: str) -> tuple[int, ...]:
 
 def study_config(quick: bool, seed: int, sizes: str, seeds: str, models: str, episodes: int, v1_episodes: int,
                  cache_dir: Path, compile: str, duration: float, pool: int | None = None,
-                 episode_budget: float = EPISODE_BUDGET_S) -> StudyConfig:
+                 episode_budget: float = EPISODE_BUDGET_S, torque_reserve: float = 0.0) -> StudyConfig:
     model_names = tuple(m.strip() for m in models.split(",") if m.strip())
     if quick:  # the test suite's path: tiny sets, a short horizon, uncompiled functions, capped IPOPT, one Pendulum-v1 episode
         quick_sizes = _parse_ints(sizes, "sizes") if sizes != DEFAULT_SIZES else (40, 80)
@@ -639,24 +639,29 @@ def study_config(quick: bool, seed: int, sizes: str, seeds: str, models: str, ep
                            # a fixed pool (not max(sizes)): runs with other sizes share its cells
                            pool_transitions=max(100, *quick_sizes), compile="none", horizon=10, iterations=2,
                            jacobian_windows=8, cache_dir=cache_dir / "quick",
-                           mpc_overrides=(("max_iter", 10), ("cold_max_iter", 20), ("cold_starts", ("rollout+",))))
+                           mpc_overrides=(("max_iter", 10), ("cold_max_iter", 20), ("cold_starts", ("rollout+",)))
+                           + ((("torque_reserve", torque_reserve),) if torque_reserve else ()))
     return StudyConfig(sizes=_parse_ints(sizes, "sizes"), draws=_parse_ints(seeds, "seeds"), models=model_names,
                        seed=seed, episodes=episodes, duration_s=duration, v1_episodes=v1_episodes, compile=compile,
-                       cache_dir=cache_dir, pool_transitions=pool, episode_budget_s=episode_budget)
+                       cache_dir=cache_dir, pool_transitions=pool, episode_budget_s=episode_budget,
+                       # only when set: the default's cells keep their fingerprint (and their cache)
+                       mpc_overrides=(("torque_reserve", torque_reserve),) if torque_reserve else ())
 
 
 def run(quick: bool = False, seed: int = 0, repeats: int = 1, sizes: str = DEFAULT_SIZES, seeds: str = "0,1",
         models: str = DEFAULT_MODELS, episodes: int = 10, v1_episodes: int = 10,
         cache_dir: Path = Path("data/data-efficiency"), compile: str = "cached", duration: float = 10.0,
         pool: int | None = 20000, cached_only: bool = False, progress: bool = True, report_suffix: str | None = None,
-        episode_budget: float = EPISODE_BUDGET_S, **_: Any) -> StudyResult:
+        episode_budget: float = EPISODE_BUDGET_S, torque_reserve: float = 0.0, **_: Any) -> StudyResult:
     """Run the study (``repeats`` is unused: nothing here is timed); ``report_suffix``: the report
     is ``data-efficiency.<suffix>.{json,md,png}`` (a run with other evaluation settings beside the
     main report)."""
     if report_suffix is not None and not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9_-]*", report_suffix):
         raise ValueError(f"--report-suffix must be letters, digits, '-' and '_', got {report_suffix!r}")
+    if not 0.0 <= torque_reserve < 1.0:
+        raise ValueError(f"--torque-reserve must be in [0, 1), got {torque_reserve}")
     config = study_config(quick, seed, sizes, seeds, models, episodes, v1_episodes, Path(cache_dir), compile, duration,
-                          pool, episode_budget)
+                          pool, episode_budget, torque_reserve)
     reference, records, missing = run_cells(config, progress, cached_only)
     rows = summarize(reference, records)
     best = headline(rows)
@@ -712,6 +717,10 @@ def add_arguments(parser: Any) -> None:
     parser.add_argument("--episode-budget", type=float, default=EPISODE_BUDGET_S,
                         help="controller compute (wall-clock s) per episode before it is declared failed (zero torque "
                              "for the rest); another value evaluates beside the default's cells (default: %(default)s)")
+    parser.add_argument("--torque-reserve", type=float, default=0.0,
+                        help="MPCSettings.torque_reserve of every model's MPC (and the closed form's): the plan's "
+                             "controls after the first keep this fraction of the torque range in reserve; cells "
+                             "evaluated with it are cached beside the default's (default: %(default)s)")
     parser.add_argument("--report-suffix", default=None,
                         help="write data-efficiency.<suffix>.{json,md,png} instead of data-efficiency.*: for a run "
                              "with other evaluation settings (e.g. more --episodes) beside the main report. Its cells "
