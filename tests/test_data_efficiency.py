@@ -124,6 +124,23 @@ def test_quick_study_via_the_bench_cli_and_resumes_from_its_cache(tmp_path, monk
     assert json.loads((tmp_path / "out" / "data-efficiency.extra.json").read_text())["rows"] == rows
     assert (tmp_path / "out" / "data-efficiency.extra.png").exists()
     assert json.loads((tmp_path / "out" / "data-efficiency.json").read_text()) == partial
+    # data-efficiency-terms reads the same cells (and one plain cell more) without computing any
+    assert main(["data-efficiency", "--quick", "--sizes", "20", "--models", "plain", "--out-dir", "out",
+                 "--cache-dir", "cache"]) == 0
+    assert main(["data-efficiency-terms", "--quick", "--sizes", "20,40", "--out-dir", "out", "--cache-dir", "cache"]) == 0
+    terms = json.loads((tmp_path / "out" / "data-efficiency-terms.json").read_text())
+    by_cell = {(r["model"], r["transitions"]): r for r in terms["rows"]}
+    assert set(by_cell) == {("sign-invariant", 20), ("sign-invariant", 40), ("plain", 20)}
+    assert any("plain_n40_r0" in note and "fixed-inertia_n20_r0" in note for note in terms["notes"])
+    for key in ("potential", "inertia", "gain"):
+        for size in (20, 40):  # averaged over ±q: the two hemispheres agree by construction
+            row = by_cell[("sign-invariant", size)]
+            assert row[f"{key}_err_minus_q"] == pytest.approx(row[f"{key}_err_q"], rel=1e-9, abs=1e-12)
+    plain = by_cell[("plain", 20)]
+    assert plain["potential_err_minus_q"] != pytest.approx(plain["potential_err_q"], rel=1e-6)
+    for row in terms["rows"]:
+        assert 0.0 <= row["other_hemisphere_share"] <= 1.0 and row["scale"] != 0.0
+        assert all(0 <= start < 1 for start in row["costly_starts"])  # the quick path runs one start
 
 
 def test_budgeted_controller_gives_up_with_zero_torque_once_its_budget_is_spent():

@@ -26,6 +26,7 @@ STUDIES = {
     "sim": "fvin_mpc.studies.bench.sim",
     "paper": "fvin_mpc.studies.bench.paper",
     "data-efficiency": "fvin_mpc.studies.data_efficiency",
+    "data-efficiency-terms": "fvin_mpc.studies.data_efficiency_terms",
 }
 
 
