@@ -37,8 +37,14 @@ HINGE_ANGLES = np.linspace(-np.pi, np.pi, 181)
 def hemisphere_errors(variant: str, stem: Path) -> dict[str, float]:
     """The scale-fixed term errors of the checkpoint at ``stem`` at ``q`` and ``−q`` (module docstring)."""
     from fvin_mpc.core.checkpoint import load_checkpoint
-    from fvin_mpc.studies.bench.paper import (MODELS, TRUE_INERTIA, TRUE_TORQUE_PER_CONTROL, learned_profiles,
-                                              scale_from_potential, true_potential)
+    from fvin_mpc.studies.bench.paper import (
+        MODELS,
+        TRUE_INERTIA,
+        TRUE_TORQUE_PER_CONTROL,
+        learned_profiles,
+        scale_from_potential,
+        true_potential,
+    )
 
     paper_model = next(m for m in MODELS if m.space == "S3" and m.variant == variant)
     checkpoint = load_checkpoint(stem)
@@ -128,12 +134,12 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 1, sizes: str = study
     if not rows:
         raise ValueError(f"none of the cells is in {config.cache_dir}: run `python -m fvin_mpc.bench data-efficiency` "
                          "with the same options first")
-    notes = [
+    notes = [(
         "Errors after fixing the scale λ on the w ≥ 0 hemisphere: `potential_err_*` as a fraction of the energy "
         "span, `inertia_err_*` and `gain_err_*` relative; `_q` on w ≥ 0, `_minus_q` at −q (the same rotations). "
         f"`costly_starts`: the starts costing more than {COSTLY_FACTOR:g}× the closed form's on the same start. "
-        "`other_hemisphere_share`: the training states with w < 0.",
-    ]
+        "`other_hemisphere_share`: the training states with w < 0."
+    )]
     if missing:
         notes.append(f"Not in the cache (not analysed): {', '.join(missing)}.")
     return StudyResult(name="data-efficiency-terms", rows=rows, columns=COLUMNS, plot=plot, notes=notes)
