@@ -87,10 +87,11 @@ class MPCSettings:
             the first are bounded to the middle ``(1 − r)`` of ``[torque_low, torque_high]``, the
             first (the one applied) keeps the whole range. A swing-up that is torque-limited to the
             top rides the bound; when the model predicts the climb a little too easily, the body
-            falls short and takes one more swing (on the pendulum: +60–120 % on such a start).
+            falls short and takes one more swing (on the pendulum: +50–120 % on such a start).
             With a reserve the re-planned first control has torque left to correct it
-            (constraint tightening, as in tube MPC). ``0`` (default) plans on the whole range.
-            Not with ``solver="rti"``.
+            (constraint tightening, as in tube MPC; docs/data-efficiency.md measures what it fixes
+            and what it does not). ``0`` (default) plans on the whole range. Not with
+            ``solver="rti"``.
         hessian: ``"gauss-newton"`` (constant cost Hessian, default), ``"exact"`` (with the
             dynamics' second derivatives) or ``"limited-memory"`` (IPOPT's L-BFGS).
         compile: ``"cached"`` compiles the NLP's functions to C once (cached on disk);

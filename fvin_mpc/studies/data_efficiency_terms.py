@@ -20,6 +20,7 @@ the rod's, on both hemispheres of S³:
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -79,7 +80,7 @@ def term_rows(config: study.StudyConfig, progress: bool = True) -> tuple[list[di
     if not variants:
         raise ValueError(f"no S3FVIN variant among --models {','.join(config.models)}: choose from "
                          f"{', '.join(study.S3FVIN_VARIANTS)}")
-    config = study.StudyConfig(**{**config.__dict__, "models": tuple(variants)})
+    config = replace(config, models=tuple(variants))
     reference, records, missing = study.run_cells(config, progress=progress, cached_only=True)
     pool = study.training_pool(config, progress)
     reference_cost = reference["closed_loop"]["cost_mean"]
