@@ -141,6 +141,19 @@ def test_quick_study_via_the_bench_cli_and_resumes_from_its_cache(tmp_path, monk
     for row in terms["rows"]:
         assert 0.0 <= row["other_hemisphere_share"] <= 1.0 and row["scale"] != 0.0
         assert all(0 <= start < 1 for start in row["costly_starts"])  # the quick path runs one start
+    # --trace replays an episode: per period the angle, the torque and the plan's closest approach,
+    # which can be no farther than the measured state (the plan's first state)
+    assert main(["data-efficiency-terms", "--quick", "--trace", "sign-invariant_n20_r0:0,closed-form:0",
+                 "--out-dir", "out", "--cache-dir", "cache"]) == 0
+    trace = json.loads((tmp_path / "out" / "data-efficiency-trace.json").read_text())["rows"]
+    assert {r["cell"] for r in trace} == {"sign-invariant_n20_r0", "closed-form"}
+    assert sum(r["cell"] == "closed-form" for r in trace) == 20  # the quick episode: 1 s of 0.05 s periods
+    for r in trace:
+        assert 0.0 <= r["plan_closest_rad"] <= r["angle_from_upright_rad"] + 1e-9 <= np.pi + 1e-9
+        assert abs(r["u"]) <= 2.0 + 1e-9
+    # a name that is no trained model, or no CELL:START: refused with the reason (exit status 2)
+    assert main(["data-efficiency-terms", "--quick", "--trace", "plain_n99_r0:0", "--cache-dir", "cache"]) == 2
+    assert main(["data-efficiency-terms", "--quick", "--trace", "closed-form", "--cache-dir", "cache"]) == 2
 
 
 def test_budgeted_controller_gives_up_with_zero_torque_once_its_budget_is_spent():

@@ -16,6 +16,12 @@ the rod's, on both hemispheres of S³:
 - the training's iterations and final validation loss (a run stuck in a poor basin shows here);
 - the closed loop's success and which starts cost more than ``COSTLY_FACTOR`` × the closed form's
   on the same start (the costly swing-ups: an extra swing, docs/data-efficiency.md).
+
+``--trace CELL:START[,CELL:START…]`` (e.g. ``sign-invariant_n2000_r0:1,closed-form:1``) instead runs
+those episodes again (the study's MPC, waiting latency mode) and tabulates, per control period,
+the angle from upright, the applied torque and the **closest approach to upright that the plan
+made at that period predicts** — whether the MPC still expects to arrive, or already plans to
+fall back and swing again.
 """
 
 from __future__ import annotations
@@ -101,6 +107,75 @@ def term_rows(config: study.StudyConfig, progress: bool = True) -> tuple[list[di
     return rows, missing
 
 
+def climb_trace(cell: str, start_index: int, config: study.StudyConfig) -> list[dict[str, Any]]:
+    """One episode of ``cell`` (a cached model, or ``closed-form``) from the study's start
+    ``start_index``: per control period, the angle from upright, ``u`` and the plan's closest approach."""
+    from fvin_mpc.control.closed_loop import run_episode
+    from fvin_mpc.control.scene import scene_env, scene_mpc, scene_mpc_settings
+    from fvin_mpc.core import s3
+    from fvin_mpc.core.backend import get_ops
+    from fvin_mpc.studies.evaluation import DEFAULT_MAX_OMEGA
+    from fvin_mpc.studies.starts import episode_starts
+
+    model = study.CLOSED_FORM if cell == study.CLOSED_FORM else cell.split("_n")[0]
+    stem = None if model == study.CLOSED_FORM else config.cache_dir / "models" / cell
+    if stem is not None and (model not in study.MODELS or not stem.with_suffix(".json").exists()):
+        raise ValueError(f"no trained model {cell!r} in {config.cache_dir / 'models'} (names as <model>_n<size>_r<draw>)")
+    start = episode_starts(start_index + 1, config.seed, (DEFAULT_MAX_OMEGA,))[start_index]
+    env = scene_env("pendulum", true_model=True)
+    try:
+        exported = study.export_cell_model(model, stem, env)
+        overrides = {"compile": config.compile, "horizon": config.horizon, **dict(config.mpc_overrides)}
+        recorder = _PlanRecorder(scene_mpc(env, exported, scene_mpc_settings(env, **overrides)))
+        run_episode(env, recorder, config.duration_s, start.reset_options, seed=start.seed, latency="none")
+        goal, period = tuple(env.unwrapped.goal), float(env.unwrapped.dt)
+    finally:
+        env.close()
+    ops = get_ops("numpy")
+
+    def from_upright(state: np.ndarray) -> float:
+        return float(s3.geodesic_angle(goal, tuple(state[:4]), ops))
+
+    return [{"cell": cell, "start": start_index, "t_s": k * period, "angle_from_upright_rad": from_upright(x),
+             "omega": float(np.linalg.norm(x[4:7])), "u": float(u[0]),
+             "plan_closest_rad": min(from_upright(state) for state in plan)}
+            for k, (x, u, plan) in enumerate(recorder.calls)]
+
+
+class _PlanRecorder:
+    """Passes calls to ``controller`` and keeps each call's state, control and planned states."""
+
+    def __init__(self, controller: Any) -> None:
+        self.controller, self.calls = controller, []
+
+    def reset(self) -> None:
+        self.controller.reset()
+        self.calls = []
+
+    def __call__(self, x: Any) -> tuple[np.ndarray, dict[str, Any]]:
+        u, info = self.controller(x)
+        self.calls.append((np.asarray(x, float), np.asarray(u, float), np.asarray(info["states"], float)))
+        return u, info
+
+
+def plot_trace(figure: Any, rows: list[dict[str, Any]]) -> None:
+    """Angle from upright (solid) and the plan's predicted closest approach (dashed) against time."""
+    figure.set_size_inches(11, 4.2)
+    angle_axis, torque_axis = figure.subplots(1, 2)
+    for key in dict.fromkeys((r["cell"], r["start"]) for r in rows):
+        mine = [r for r in rows if (r["cell"], r["start"]) == key]
+        t = [r["t_s"] for r in mine]
+        line = angle_axis.plot(t, [r["angle_from_upright_rad"] for r in mine], label=f"{key[0]}, start {key[1]}")[0]
+        angle_axis.plot(t, [r["plan_closest_rad"] for r in mine], ls="--", color=line.get_color())
+        torque_axis.plot(t, [r["u"] for r in mine], color=line.get_color(), label=f"{key[0]}, start {key[1]}")
+    angle_axis.set(xlabel="t (s)", ylabel="angle from upright (rad)",
+                   title="measured (solid) and the plan's closest approach (dashed)")
+    torque_axis.set(xlabel="t (s)", ylabel="u (applied)", title="torque")
+    for axis in (angle_axis, torque_axis):
+        axis.grid(alpha=0.3)
+        axis.legend(fontsize=7)
+
+
 def plot(figure: Any, rows: list[dict[str, Any]]) -> None:
     """Success against the potential's error on the other hemisphere, and against the validation loss."""
     figure.set_size_inches(11, 4.2)
@@ -127,10 +202,22 @@ COLUMNS = ("model", "transitions", "draw", "success", "cost_excess_pct", "costly
 def run(quick: bool = False, seed: int = 0, repeats: int = 1, sizes: str = study.DEFAULT_SIZES, seeds: str = "0,1",
         models: str = ",".join(study.S3FVIN_VARIANTS), episodes: int = 10, v1_episodes: int = 10,
         cache_dir: Path = Path("data/data-efficiency"), pool: int | None = 20000, progress: bool = True,
-        **_: Any) -> StudyResult:
-    """The table of :func:`term_rows` (``repeats`` is unused: nothing here is timed)."""
+        trace: str | None = None, **_: Any) -> StudyResult:
+    """The table of :func:`term_rows`, or with ``trace`` the episodes it names (:func:`climb_trace`);
+    ``repeats`` is unused: nothing here is timed."""
     config = study.study_config(quick, seed, sizes, seeds, models, episodes, v1_episodes, Path(cache_dir), "cached",
                                 10.0, pool)
+    if trace:
+        rows = []
+        for item in trace.split(","):
+            cell, _, start = item.strip().rpartition(":")
+            if not cell or not start.isdigit():
+                raise ValueError(f"--trace wants CELL:START items (e.g. sign-invariant_n2000_r0:1), got {item!r}")
+            rows += climb_trace(cell, int(start), config)
+        return StudyResult(name="data-efficiency-trace", rows=rows, plot=plot_trace, columns=(
+            "cell", "start", "t_s", "angle_from_upright_rad", "omega", "u", "plan_closest_rad"), notes=[(
+            "Waiting latency mode (model quality). `plan_closest_rad`: the smallest angle from upright along the "
+            "plan made at that period (its first state is the measured one).")])
     rows, missing = term_rows(config, progress)
     if not rows:
         raise ValueError(f"none of the cells is in {config.cache_dir}: run `python -m fvin_mpc.bench data-efficiency` "
@@ -158,3 +245,7 @@ def add_arguments(parser: Any) -> None:
     parser.add_argument("--pool", type=int, default=20000, help="the data-efficiency run's pool (default: %(default)s)")
     parser.add_argument("--cache-dir", type=Path, default=Path("data/data-efficiency"),
                         help="the data-efficiency run's cache (default: %(default)s)")
+    parser.add_argument("--trace", default=None,
+                        help="CELL:START[,CELL:START...]: run these episodes again instead (e.g. "
+                             "sign-invariant_n2000_r0:1,closed-form:1) and report, per period, the angle from upright, "
+                             "the torque and the plan's predicted closest approach (data-efficiency-trace.*)")
