@@ -282,22 +282,36 @@ class BudgetedController:
             self.spent_s += time.perf_counter() - start
 
 
+def scene_settings(env: Any, config: StudyConfig, overrides: dict[str, Any] | None = None) -> Any:
+    """The MPCSettings of the study's closed loops on ``env``: the scene's, with the study's
+    compile mode, horizon and ``mpc_overrides``, then ``overrides`` (a model's own)."""
+    from fvin_mpc.control.scene import scene_mpc_settings
+
+    return scene_mpc_settings(env, **{"compile": config.compile, "horizon": config.horizon,
+                                      **dict(config.mpc_overrides), **(overrides or {})})
+
+
+def study_starts(config: StudyConfig, count: int | None = None) -> list[Any]:
+    """The study's first ``count`` (default ``config.episodes``) closed-loop starts."""
+    from fvin_mpc.studies.evaluation import DEFAULT_MAX_OMEGA
+    from fvin_mpc.studies.starts import episode_starts
+
+    return episode_starts(config.episodes if count is None else count, config.seed, (DEFAULT_MAX_OMEGA,))
+
+
 def closed_loop(model: Any, env: Any, config: StudyConfig, progress: bool = False,
                 overrides: dict[str, Any] | None = None) -> dict[str, Any]:
     """The scene's MPC on ``model`` over the study's starts (waiting latency mode); ``overrides``:
     MPCSettings fields of this model's MPC."""
     from fvin_mpc.control.closed_loop import episode_metrics, run_episode
-    from fvin_mpc.control.scene import scene_mpc, scene_mpc_settings
-    from fvin_mpc.studies.evaluation import DEFAULT_MAX_OMEGA
-    from fvin_mpc.studies.starts import episode_starts
+    from fvin_mpc.control.scene import scene_mpc
 
-    overrides = {"compile": config.compile, "horizon": config.horizon, **dict(config.mpc_overrides), **(overrides or {})}
     start = time.perf_counter()
-    controller = BudgetedController(scene_mpc(env, model, scene_mpc_settings(env, **overrides)), model.control_dim,
+    controller = BudgetedController(scene_mpc(env, model, scene_settings(env, config, overrides)), model.control_dim,
                                     config.episode_budget_s)
     build_s = time.perf_counter() - start
     episodes = []
-    for episode_start in episode_starts(config.episodes, config.seed, (DEFAULT_MAX_OMEGA,)):
+    for episode_start in study_starts(config):
         episode, _ = run_episode(env, controller, config.duration_s, episode_start.reset_options,
                                  seed=episode_start.seed, latency="none")
         metrics = episode_metrics(episode)

@@ -111,22 +111,21 @@ def climb_trace(cell: str, start_index: int, config: study.StudyConfig) -> list[
     """One episode of ``cell`` (a cached model, or ``closed-form``) from the study's start
     ``start_index``: per control period, the angle from upright, ``u`` and the plan's closest approach."""
     from fvin_mpc.control.closed_loop import run_episode
-    from fvin_mpc.control.scene import scene_env, scene_mpc, scene_mpc_settings
+    from fvin_mpc.control.scene import scene_env, scene_mpc
     from fvin_mpc.core import s3
     from fvin_mpc.core.backend import get_ops
-    from fvin_mpc.studies.evaluation import DEFAULT_MAX_OMEGA
-    from fvin_mpc.studies.starts import episode_starts
 
     model = study.CLOSED_FORM if cell == study.CLOSED_FORM else cell.split("_n")[0]
-    stem = None if model == study.CLOSED_FORM else config.cache_dir / "models" / cell
+    trained_as = study.MLP if model == study.MLP_EXACT else model  # as run_cell: the same network, another MPC
+    stem = None if model == study.CLOSED_FORM else config.cache_dir / "models" / (trained_as + cell[len(model):])
     if stem is not None and (model not in study.MODELS or not stem.with_suffix(".json").exists()):
         raise ValueError(f"no trained model {cell!r} in {config.cache_dir / 'models'} (names as <model>_n<size>_r<draw>)")
-    start = episode_starts(start_index + 1, config.seed, (DEFAULT_MAX_OMEGA,))[start_index]
+    start = study.study_starts(config, start_index + 1)[start_index]
     env = scene_env("pendulum", true_model=True)
     try:
-        exported = study.export_cell_model(model, stem, env)
-        overrides = {"compile": config.compile, "horizon": config.horizon, **dict(config.mpc_overrides)}
-        recorder = _PlanRecorder(scene_mpc(env, exported, scene_mpc_settings(env, **overrides)))
+        exported = study.export_cell_model(trained_as, stem, env)
+        settings = study.scene_settings(env, config, study.MODEL_MPC_OVERRIDES.get(model))
+        recorder = _PlanRecorder(scene_mpc(env, exported, settings))
         run_episode(env, recorder, config.duration_s, start.reset_options, seed=start.seed, latency="none")
         goal, period = tuple(env.unwrapped.goal), float(env.unwrapped.dt)
     finally:
