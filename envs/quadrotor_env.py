@@ -17,13 +17,12 @@ import mujoco
 import numpy as np
 from gymnasium import spaces
 
+from fvin_mpc.core.space import R3S3, ConfigurationSpace
 from fvin_mpc.core.state import as_float_array, unit_quaternion
 
 from .rigid_body_env import MujocoBodyEnv, geodesic_angle
 from .scenes import SceneSpec, ScenePhysics
 
-#: Size of the observation ``(x, q, v, ω)``.
-FREE_STATE_DIM = 13
 #: Largest initial |ω| (rad/s) of a default reset: a tumbling craft (issue 13's recovery task).
 DEFAULT_RESET_MAX_OMEGA = 10.0
 #: Weights of the quadratic cost: |x − x*|², angle², |v|², |ω|², |u − u_hover|².
@@ -117,6 +116,8 @@ class QuadrotorEnv(MujocoBodyEnv):
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 50}
+    #: The configuration space of the observations (:mod:`fvin_mpc.core.space`).
+    space: ConfigurationSpace = R3S3
 
     def __init__(self, scene: str | Path | SceneSpec = "quadrotor", physics: ScenePhysics | None = None,
                  control_period: float | None = None, hover_point: Any = None, render_mode: str | None = None,
@@ -227,7 +228,7 @@ class QuadrotorEnv(MujocoBodyEnv):
         observation = self.state()
         noise_std = self._physics.sensor_noise_std
         if noise_std > 0.0:
-            observation = observation + self.np_random.normal(0.0, noise_std, size=FREE_STATE_DIM)
+            observation = observation + self.np_random.normal(0.0, noise_std, size=self.space.state_dim)
             observation[3:7] /= np.linalg.norm(observation[3:7])
         observation[3:7] = np.clip(observation[3:7], -1.0, 1.0)
         return observation

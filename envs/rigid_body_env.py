@@ -16,6 +16,7 @@ import mujoco
 import numpy as np
 from gymnasium import spaces
 
+from fvin_mpc.core.space import S3, ConfigurationSpace
 from fvin_mpc.core.state import as_float_array, split_state, unit_quaternion
 
 from .scenes import MIN_CONTROL_PERIOD, SceneSpec, ScenePhysics, build_model, resolve_scene
@@ -49,6 +50,9 @@ class MujocoBodyEnv(gymnasium.Env):
     def __init__(self, scene: str | Path | SceneSpec, physics: ScenePhysics | None, control_period: float | None,
                  render_mode: str | None, width: int, height: int) -> None:
         spec = resolve_scene(scene)
+        if spec.space is not self.space:
+            raise ValueError(f"scene {spec.name!r} is on {spec.space.description}; {type(self).__name__} observes "
+                             f"{self.space.description}")
         self.scene_spec: SceneSpec = spec
         self._model, self._physics = build_model(spec.xml_path, physics if physics is not None else spec.physics)
         self._data = mujoco.MjData(self._model)
@@ -267,6 +271,8 @@ class RigidBodyEnv(MujocoBodyEnv):
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 20}
+    #: The configuration space of the observations (:mod:`fvin_mpc.core.space`).
+    space: ConfigurationSpace = S3
 
     def __init__(
         self,

@@ -31,6 +31,8 @@ from typing import Any, Mapping
 import mujoco
 import numpy as np
 
+from fvin_mpc.core.space import R3S3, S3, ConfigurationSpace
+
 SCENE_DIR = Path(__file__).resolve().parent / "scenes"
 
 _DSBL = mujoco.mjtDisableBit
@@ -106,6 +108,8 @@ class SceneSpec:
             applied after ``mpc`` when the settings use that solver.
         checkpoint: the default model; ``None``: ``<name>_sign-invariant``, which is also where
             ``python -m fvin_mpc.train`` writes a model of this scene by default.
+        space: the configuration space of the observed body's state (:mod:`fvin_mpc.core.space`):
+            S³ for a body on a hinge or ball joint, R³ × S³ for a free body.
     """
 
     name: str
@@ -118,6 +122,7 @@ class SceneSpec:
     mpc: Mapping[str, Any] = field(default_factory=dict)
     mpc_per_solver: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
     checkpoint: str | None = None
+    space: ConfigurationSpace = S3
 
     @property
     def default_checkpoint(self) -> str:
@@ -199,7 +204,7 @@ FREE_BODY_SCENES: dict[str, SceneSpec] = {
     for spec in (
         SceneSpec(name="quadrotor", xml_path=SCENE_DIR / "quadrotor.xml", body="quadrotor", control_period=0.02,
                   physics=_ACTUATED, goal=(1.0, 0.0, 0.0, 0.0), rest=(1.0, 0.0, 0.0, 0.0),
-                  checkpoint="quadrotor_fixed-inertia"),
+                  checkpoint="quadrotor_fixed-inertia", space=R3S3),
     )
 }
 
@@ -222,7 +227,8 @@ def resolve_scene(scene: str | Path | SceneSpec) -> SceneSpec:
     """The declaration of a built-in scene name, an MJCF path, or a :class:`SceneSpec` itself.
 
     A path to a built-in scene's MJCF gives that scene (its settings included); any other path
-    gives ``SceneSpec(name=<stem>, xml_path=<path>)``, whose fields are read off the file.
+    gives ``SceneSpec(name=<stem>, xml_path=<path>)``, whose fields are read off the file — its
+    configuration space too: R³ × S³ when the MJCF's body hangs on a free joint, else S³.
 
     Raises:
         ValueError: neither a built-in name nor something that looks like a path.
@@ -236,8 +242,18 @@ def resolve_scene(scene: str | Path | SceneSpec) -> SceneSpec:
         for spec in _all_scenes().values():
             if path.exists() and path.resolve() == spec.xml_path.resolve():
                 return spec
-        return SceneSpec(name=path.stem, xml_path=path)  # build_model reports a missing or invalid file
+        return SceneSpec(name=path.stem, xml_path=path, space=_space_of_mjcf(path))
     return get_scene(str(scene))
+
+
+def _space_of_mjcf(path: Path) -> ConfigurationSpace:
+    """The configuration space of the body an MJCF file describes: a free joint makes it a free body.
+    A file that is missing or does not load is S³ here: :func:`build_model` reports it."""
+    try:
+        model = mujoco.MjModel.from_xml_path(str(path))
+    except (ValueError, OSError):
+        return S3
+    return R3S3 if np.any(model.jnt_type == mujoco.mjtJoint.mjJNT_FREE) else S3
 
 
 def _disabled(model: mujoco.MjModel, bit: int) -> bool:

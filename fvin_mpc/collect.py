@@ -17,8 +17,7 @@ import argparse
 import json
 from pathlib import Path
 from fvin_mpc.core.data import save_data
-from fvin_mpc.core.free_body_data import save_free_body_data
-from fvin_mpc.envs.scenes import FREE_BODY_SCENES, resolve_scene
+from fvin_mpc.envs.scenes import resolve_scene
 from fvin_mpc.learning.collection import collect, collect_quadrotor
 
 
@@ -46,12 +45,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--quiet", action="store_true")
     args = parser.parse_args(argv)
     spec = resolve_scene(args.scene)
-    if spec.name in FREE_BODY_SCENES:
+    if not spec.space.pivoted:
         free = collect_quadrotor(args.scene, trajectories=args.trajectories or 300, steps=args.steps or 50,
                                  seed=args.seed, max_omega=10.0 if args.max_omega is None else args.max_omega,
                                  progress=not args.quiet)
         out = args.out or Path("data") / f"{spec.name}.npz"
-        save_free_body_data(out, free)
+        save_data(out, free)
         print(json.dumps({"out": str(out), **{k: free.metadata[k] for k in ("scene", "trajectories", "transitions",
                                                                            "control_period", "coverage")}}))
         return 0

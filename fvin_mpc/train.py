@@ -1,16 +1,16 @@
-"""Train an S3FVIN on trajectory data: ``python -m fvin_mpc.train``.
+"""Train a learned model on trajectory data of any configuration space: ``python -m fvin_mpc.train``.
+
+The data say their configuration space (``python -m fvin_mpc.collect`` writes it): a body on a
+pivot (S³; ``--variant so3-matrix`` or ``so3-quaternion`` trains the paper's SO(3) baseline on the
+same data) or a free body (R³ × S³). One loop trains them all.
 
 Loss: multi-step rollout over windows of ``--window`` steps, the sign-invariant
 orientation error ``4(1 − ⟨q̂, q⟩²)`` (≈ squared angle error in rad²) plus
-``--omega-weight``·‖ω̂ − ω‖², averaged over windows and steps. Trajectories are split
-into train/validation sets before windowing. Default optimizer: Levenberg–Marquardt
-on the stacked residuals (tens of iterations, seconds); ``--optimizer adam`` is the
-former full-batch Adam. Training stops early once the validation loss stops improving.
-See docs/training.md.
-
-Free-body data (metadata ``configuration_space: R3xS3``, from ``python -m fvin_mpc.collect
---scene quadrotor``) train the R³ × S³ model instead: the arguments then go to
-``python -m fvin_mpc.learning.training_r3s3`` (its options: ``--help`` there; docs/quadrotor.md).
+``--omega-weight``·‖ω̂ − ω‖² (a free body: its position, velocity and angular velocity errors,
+scaled), averaged over windows and steps. Trajectories are split into train/validation sets before
+windowing. Default optimizer: Levenberg–Marquardt on the stacked residuals (tens of iterations,
+seconds); ``--optimizer adam`` is full-batch Adam. Training stops early once the validation loss
+stops improving. See docs/training.md (free bodies: docs/quadrotor.md).
 """
 
 from __future__ import annotations
@@ -19,108 +19,189 @@ import argparse
 import json
 import sys
 import time
+from dataclasses import fields
 from pathlib import Path
+from typing import Any
 
 _START = time.perf_counter()
 
+import numpy as np  # noqa: E402
+
 from fvin_mpc.core.data import load_data  # noqa: E402
-from fvin_mpc.core.free_body_data import is_free_body_data  # noqa: E402
-from fvin_mpc.core.networks import VARIANTS, ModelConfig  # noqa: E402
+from fvin_mpc.core.space import space_for_variant, space_of_config, spaces  # noqa: E402
+from fvin_mpc.learning.space_training import train_model, training_for  # noqa: E402
 from fvin_mpc.learning.training import (  # noqa: E402
-    DEFAULT_DATA, DEFAULT_ITERATIONS, OPTIMIZERS, TrainSettings, default_checkpoint_stem, package_versions,
-    safe_thread_count, scene_has_joint_damping, train,
+    DEFAULT_DATA,
+    DEFAULT_ITERATIONS,
+    OPTIMIZERS,
+    TrainSettings,
+    default_checkpoint_stem,
+    package_versions,
+    safe_thread_count,
+    scene_has_joint_damping,
 )
 
+#: Every model variant of every registered space.
+ALL_VARIANTS = tuple(dict.fromkeys(variant for space in spaces() for variant in space.variants))
 
-def main(argv: list[str] | None = None) -> int:
-    # Which model the data call for decides which options apply: read --data alone first.
-    peek = argparse.ArgumentParser(add_help=False)
-    peek.add_argument("--data", type=Path, default=DEFAULT_DATA)
-    if is_free_body_data(peek.parse_known_args(argv)[0].data):
-        from fvin_mpc.learning import training_r3s3
 
-        return training_r3s3.main(argv)
+def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m fvin_mpc.train", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", type=Path, default=DEFAULT_DATA, help="data file from fvin_mpc.collect (default: %(default)s)")
+    parser.add_argument("--test-data", type=Path, default=None,
+                        help="held-out data for the space's report (a free body: the 1 s open-loop error)")
     parser.add_argument("--out", type=Path, default=None,
                         help="checkpoint stem (default: checkpoints/<scene stem>_<variant>, e.g. checkpoints/arm_sign-invariant "
                              "for data collected from /any/path/arm.xml)")
-    parser.add_argument("--variant", choices=VARIANTS, default="sign-invariant", help="model variant (default: %(default)s)")
-    parser.add_argument("--hidden-width", type=int, default=ModelConfig.hidden_width, help="width of every hidden layer (default: %(default)s)")
-    parser.add_argument("--hidden-layers", type=int, default=ModelConfig.hidden_layers, help="hidden layers per MLP (default: %(default)s)")
-    parser.add_argument("--newton-iters", type=int, default=ModelConfig.newton_iters, help="Newton iterations K per step (default: %(default)s)")
+    parser.add_argument("--variant", choices=ALL_VARIANTS, default=None,
+                        help="model variant (default: the data's space's first: sign-invariant on a pivot, "
+                             "fixed-inertia for a free body; so3-matrix/so3-quaternion: the SO(3) baseline)")
+    parser.add_argument("--hidden-width", type=int, default=None, help="width of every hidden layer (default: the config's)")
+    parser.add_argument("--hidden-layers", type=int, default=None, help="hidden layers per MLP (default: the config's)")
+    parser.add_argument("--newton-iters", type=int, default=None, help="Newton iterations K per step (default: the config's)")
     parser.add_argument("--dissipation", action=argparse.BooleanOptionalAction, default=None,
-                        help="learn a damping term −Dω (default: on when the data's scene declares joint damping)")
-    parser.add_argument("--optimizer", choices=OPTIMIZERS, default=TrainSettings.optimizer,
+                        help="learn a damping term −Dω (S³ models; default: on when the data's scene declares joint damping)")
+    parser.add_argument("--trajectories", type=int, default=None, help="train on the first N trajectories only")
+    parser.add_argument("--init", default=None, metavar="CHECKPOINT",
+                        help="continue training from this checkpoint (its architecture; --variant and the widths are ignored)")
+    parser.add_argument("--evaluate", default=None, metavar="CHECKPOINT",
+                        help="no training: the space's evaluation of this checkpoint on --test-data (free bodies: open "
+                             "loop over 0.2, 0.5 and 1 s, learned beside closed form; recovered mass, inertia, hover thrust)")
+    parser.add_argument("--optimizer", choices=OPTIMIZERS, default=None,
                         help="lm: Levenberg–Marquardt (default), lbfgs: full-batch L-BFGS, adam: full-batch Adam")
     parser.add_argument("--iterations", type=int, default=None,
                         help="most iterations (default: " + ", ".join(f"{k} {v}" for k, v in DEFAULT_ITERATIONS.items())
                              + "); early stopping usually ends sooner")
-    parser.add_argument("--patience", type=int, default=TrainSettings.patience,
+    parser.add_argument("--patience", type=int, default=None,
                         help="stop after this many validation evaluations without a relative improvement of "
-                             "--min-improvement; 0: never stop early (default: %(default)s)")
-    parser.add_argument("--min-improvement", type=float, default=TrainSettings.min_improvement,
-                        help="relative validation-loss decrease that counts as progress (default: %(default)s)")
+                             f"--min-improvement; 0: never stop early (default: {TrainSettings.patience}; free bodies 6)")
+    parser.add_argument("--min-improvement", type=float, default=None,
+                        help=f"relative validation-loss decrease that counts as progress (default: {TrainSettings.min_improvement})")
     parser.add_argument("--target-loss", type=float, default=None, help="stop once the validation loss is at most this")
     parser.add_argument("--time-limit", type=float, default=None, help="stop after this many seconds of training")
     parser.add_argument("--eval-every", type=int, default=None, help="iterations between validation evaluations (default: lm/lbfgs 1, adam 25)")
-    parser.add_argument("--jacobian-windows", type=int, default=TrainSettings.jacobian_windows,
-                        help="windows sampled per LM iteration for the Gauss–Newton matrix (default: %(default)s)")
-    parser.add_argument("--lr", type=float, default=TrainSettings.learning_rate, help="Adam learning rate (default: %(default)s)")
-    parser.add_argument("--window", type=int, default=TrainSettings.window, help="rollout steps per training window (default: %(default)s)")
-    parser.add_argument("--omega-weight", type=float, default=TrainSettings.omega_weight,
-                        help="weight of the angular-velocity error (default: %(default)s)")
+    parser.add_argument("--jacobian-windows", type=int, default=None,
+                        help=f"windows sampled per LM iteration for the Gauss–Newton matrix (default: {TrainSettings.jacobian_windows})")
+    parser.add_argument("--lr", type=float, default=None, help=f"Adam learning rate (default: {TrainSettings.learning_rate})")
+    parser.add_argument("--window", type=int, default=None, help=f"rollout steps per training window (default: {TrainSettings.window})")
+    parser.add_argument("--omega-weight", type=float, default=None,
+                        help=f"weight of the angular-velocity error (default: {TrainSettings.omega_weight})")
     parser.add_argument("--threads", type=int, default=None,
-                        help="torch intra-op threads (default: the cores the 1-minute load average leaves at least half free, "
-                             "at least 1; "
-                             f"now {safe_thread_count()})")
+                        help="torch intra-op threads (default: free bodies 1; else the cores the 1-minute load average leaves "
+                             f"at least half free, at least 1; now {safe_thread_count()})")
     parser.add_argument("--compile", action="store_true",
                         help="torch.compile the step (adam/lbfgs only): ≈75–200 s of compilation, then ≈3× faster iterations")
     parser.add_argument("--seed", type=int, default=0, help="seed of the initialization, split and LM samples (default: %(default)s)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    return parser
+
+
+#: Command-line options that are TrainSettings fields (option dest → field).
+_SETTINGS_OPTIONS = {"optimizer": "optimizer", "iterations": "iterations", "lr": "learning_rate", "window": "window",
+                     "omega_weight": "omega_weight", "eval_every": "eval_every", "patience": "patience",
+                     "min_improvement": "min_improvement", "target_loss": "target_loss",
+                     "jacobian_windows": "jacobian_windows", "threads": "threads", "time_limit": "time_limit_s"}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
     args = parser.parse_args(argv)
 
-    from fvin_mpc.core.checkpoint import save_checkpoint
+    from fvin_mpc.core.checkpoint import load_checkpoint, save_checkpoint
+
+    if args.evaluate is not None:
+        if args.test_data is None:
+            parser.error("--evaluate needs --test-data")
+        checkpoint = load_checkpoint(args.evaluate)
+        evaluate = training_for(checkpoint.space).evaluate
+        if evaluate is None:
+            parser.error(f"--evaluate: models on {checkpoint.space.description} have no evaluation here")
+        print(json.dumps({**evaluate(checkpoint, load_data(args.test_data)), "test_data": str(args.test_data)}, indent=2))
+        return 0
 
     data = load_data(args.data)
-    dissipation = args.dissipation
-    if dissipation is None:
-        dissipation = bool(scene_has_joint_damping(data.metadata))
-    config = ModelConfig(
-        variant=args.variant, control_dim=int(data.u.shape[2]), hidden_width=args.hidden_width,
-        hidden_layers=args.hidden_layers, step_size=data.control_period, newton_iters=args.newton_iters,
-        dissipation=dissipation,
-    )
+    if args.trajectories is not None:
+        data = data.subset(np.arange(min(args.trajectories, data.num_trajectories)))
+    initial, previous = None, None
+    if args.init is not None:
+        start = load_checkpoint(args.init)
+        if start.space.layout != data.space.layout:
+            parser.error(f"--init {args.init}: a model on {start.space.description}, the data are on {data.space.description}")
+        config, initial = start.config, {name: np.array(value) for name, value in start.weights.items()}
+        previous = dict(start.metadata.get("training", {}))
+    else:
+        try:
+            space = space_for_variant(data.space, args.variant or data.space.variants[0])
+        except ValueError as error:
+            parser.error(str(error))
+        config = _model_config(parser, args, space, data)
+    space = space_of_config(config)
+    preset = training_for(space)
+    given = {field: getattr(args, option) for option, field in _SETTINGS_OPTIONS.items() if getattr(args, option) is not None}
     try:
-        settings = TrainSettings(
-            optimizer=args.optimizer, iterations=args.iterations, learning_rate=args.lr, window=args.window,
-            omega_weight=args.omega_weight, seed=args.seed, eval_every=args.eval_every, patience=args.patience,
-            min_improvement=args.min_improvement, target_loss=args.target_loss, jacobian_windows=args.jacobian_windows,
-            threads=args.threads, compile=args.compile, time_limit_s=args.time_limit,
-        )
+        settings = TrainSettings(**{**preset.settings, **given, "seed": args.seed, "compile": args.compile})
     except ValueError as error:
         parser.error(str(error))
-    model, report = train(data, config, settings, progress=not args.quiet)
-    scene = data.metadata.get("scene", "unknown")
-    out = args.out or default_checkpoint_stem(data, args.variant)
-    report["dissipation_chosen"] = "given" if args.dissipation is not None else "scene joint damping"
+
+    if preset.optimizers is not None and settings.optimizer not in preset.optimizers:
+        parser.error(f"models on {space.description} train with {', '.join(preset.optimizers)} only")
+    model, report = train_model(data, config, settings, progress=not args.quiet, initial_weights=initial)
+    if previous is not None:
+        report["continued_from"] = {"checkpoint": str(args.init), "iterations": previous.get("iterations"),
+                                    "wall_clock_s": previous.get("wall_clock_s"), "cpu_s": previous.get("cpu_s"),
+                                    "continued_from": previous.get("continued_from")}
+    if "dissipation" in _field_names(config) and initial is None:
+        report["dissipation_chosen"] = "given" if args.dissipation is not None else "scene joint damping"
     report["process_to_train_end_s"] = time.perf_counter() - _START
     report["process_cpu_to_train_end_s"] = time.process_time()  # CPU seconds since the process started
+    weights = model.numpy_weights()
+    evaluation: dict[str, Any] = {}
+    if preset.report is not None:
+        evaluation = preset.report(weights, config, data, None if args.test_data is None else load_data(args.test_data))
+    out = args.out or default_checkpoint_stem(data, config.variant)
     stem = save_checkpoint(
-        out, config, model.numpy_weights(), scene=scene, body=data.metadata.get("body"),
+        out, config, weights, scene=data.metadata.get("scene", "unknown"), body=data.metadata.get("body"),
         data={"path": str(args.data), "trajectories": data.num_trajectories, "transitions": data.num_transitions,
-              "seed": data.metadata.get("seed"), "control_period": data.control_period},
-        training=report, versions=package_versions(),
+              **{key: data.metadata[key] for key in ("seed", "collector") if key in data.metadata},
+              "control_period": data.control_period},
+        training=report, **({"evaluation": evaluation} if evaluation else {}), versions=package_versions(),
     )
-    print(json.dumps({"checkpoint": str(stem), "optimizer": report["optimizer"], "iterations": report["iterations"],
-                      "stopped": report["stopped"], "dissipation": dissipation, "threads": report["threads"],
-                      "final_train_loss": report["final_train_loss"],
-                      "final_validation_loss": report["final_validation_loss"],
-                      "wall_clock_s": round(report["wall_clock_s"], 1),
-                      "process_s": round(time.perf_counter() - _START, 1)}, indent=2))
+    summary = {"checkpoint": str(stem), "space": space.name, "variant": config.variant, "optimizer": report["optimizer"],
+               "iterations": report["iterations"], "stopped": report["stopped"], "threads": report["threads"],
+               "final_train_loss": report["final_train_loss"], "final_validation_loss": report["final_validation_loss"],
+               "wall_clock_s": round(report["wall_clock_s"], 1), "cpu_s": report.get("cpu_s"),
+               "process_s": round(time.perf_counter() - _START, 1)}
+    if "dissipation" in _field_names(config):
+        summary["dissipation"] = config.dissipation
+    print(json.dumps({**summary, **evaluation}, indent=2))
     sys.stdout.flush()
     return 0
+
+
+def _field_names(config: Any) -> set[str]:
+    return {field.name for field in fields(config)}
+
+
+def _model_config(parser: argparse.ArgumentParser, args: argparse.Namespace, space: Any, data: Any) -> Any:
+    """The model config of ``space`` from the data and the options; an option the space's config
+    has no field for is refused."""
+    names = {field.name for field in fields(space.config_type)}
+    chosen = {"variant": args.variant or space.variants[0], "control_dim": int(data.u.shape[2]),
+              "step_size": data.control_period}
+    for option in ("hidden_width", "hidden_layers", "newton_iters", "dissipation"):
+        value = getattr(args, option)
+        if value is None:
+            continue
+        if option not in names:
+            parser.error(f"--{option.replace('_', '-')} does not apply to models on {space.description}")
+        chosen[option] = value
+    if "dissipation" in names and args.dissipation is None:
+        chosen["dissipation"] = bool(scene_has_joint_damping(data.metadata))
+    try:
+        return space.config_type(**chosen)
+    except ValueError as error:
+        parser.error(str(error))
 
 
 if __name__ == "__main__":

@@ -8,7 +8,7 @@ import numpy as np
 
 from fvin_mpc.core import fvin
 from fvin_mpc.core.backend import get_ops
-from fvin_mpc.core.data import TrajectoryData
+from fvin_mpc.core.data import Trajectories
 
 NP = get_ops("numpy")
 
@@ -66,4 +66,4 @@ def synthetic_hinge_data(body, trajectories=48, steps=10, seed=0):
             q, omega = out.q, out.omega
         qs.append(np.stack(q, -1))
         omegas.append(np.stack(omega, -1))
-    return TrajectoryData(np.stack(qs, 1), np.stack(omegas, 1), u, {"control_period": 0.05, "scene": "synthetic"})
+    return Trajectories.from_parts(np.stack(qs, 1), np.stack(omegas, 1), u, {"control_period": 0.05, "scene": "synthetic"})

@@ -6,6 +6,7 @@ import json
 import numpy as np
 
 from fvin_mpc.bench.__main__ import main
+from fvin_mpc.core.space import S3
 from fvin_mpc.studies.bench import paper
 
 
@@ -54,7 +55,7 @@ def test_quick_run_writes_figures_table_and_claims(tmp_path):
     for model in paper.MODELS:
         row = rows[model.label]
         # The S³ gain is twice the SO(3) torque (DESIGN.md): what each is compared with.
-        assert row["gain_true"] == (2.0 if model.space == "S3" else 1.0)
+        assert row["gain_true"] == (2.0 if model.space is S3 else 1.0)
         assert row["lambda"] > 0, row  # a trained model's potential has the true one's shape and sign
         assert np.isfinite(row["loss_grad_cpu_s"]) and row["loss_grad_cpu_s"] > 0
     claims = saved["rows"][0]["claims"]

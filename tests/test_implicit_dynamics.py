@@ -13,7 +13,7 @@ from fvin_mpc.control import export, implicit_dynamics
 from fvin_mpc.control.closed_loop import episode_metrics, run_episode
 from fvin_mpc.control.rti import local_state, retract, retract_state
 from fvin_mpc.control.scene import scene_env, scene_model, scene_mpc, scene_mpc_settings
-from fvin_mpc.control.state_layout import PIVOTED
+from fvin_mpc.core.space import PIVOTED
 from fvin_mpc.core.backend import get_ops
 from fvin_mpc.core.networks import LearnedTerms, ModelConfig, init_weights
 from fvin_mpc.core.rigid_body import PENDULUM_DAMPED
@@ -106,8 +106,6 @@ def test_implicit_rti_refuses_a_model_without_rigid_body_terms(pendulum):
 def test_implicit_gap_agrees_with_the_exact_gap_to_second_order_off_the_nodes():
     """Off consistent nodes (the next node's orientation and rate both off) the gap is one Newton step
     on the step's equations: it matches the exact gap of the converged step up to O(ε²)."""
-    from fvin_mpc.control.rti import retract_state_np
-
     config = ModelConfig(variant="sign-invariant", control_dim=3)
     terms = LearnedTerms(init_weights(config, seed=2), config, CA)
     node, layout = implicit_dynamics.node_terms_function(terms, retract)
@@ -120,7 +118,7 @@ def test_implicit_gap_agrees_with_the_exact_gap_to_second_order_off_the_nodes():
     direction = rng.normal(size=6)
     errors = []
     for eps in (1e-2, 1e-3):
-        x_next_bar = retract_state_np(PIVOTED, x_next[None], eps * direction[None])[0]
+        x_next_bar = PIVOTED.retract(x_next[None], eps * direction[None])[0]
         gap = np.asarray(stage(x, u, x_next_bar, d, *node(x[:4]), *node(x_next_bar[:4]))[0])
         exact = np.asarray(reference(x, u, x_next_bar, d)[0])
         assert np.abs(exact).max() > 0.5 * eps  # the nodes are off by O(ε) …

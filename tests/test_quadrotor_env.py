@@ -153,7 +153,7 @@ def test_partial_periods_add_up_to_a_period():
 
 def test_collected_flights_are_seeded_stay_in_range_and_round_trip(tmp_path):
     from fvin_mpc import collect
-    from fvin_mpc.core.free_body_data import load_free_body_data
+    from fvin_mpc.core.data import load_data
     from fvin_mpc.learning.collection import collect_quadrotor
 
     data = collect_quadrotor(trajectories=6, steps=12, seed=3, tumbling_fraction=0.5, progress=False)
@@ -170,5 +170,5 @@ def test_collected_flights_are_seeded_stay_in_range_and_round_trip(tmp_path):
         np.testing.assert_allclose(env.step(data.u[0, k])[0], data.state[0, k + 1], rtol=0, atol=1e-12)
     out = tmp_path / "q.npz"
     assert collect.main(["--scene", "quadrotor", "--trajectories", "3", "--steps", "5", "--out", str(out), "--quiet"]) == 0
-    loaded = load_free_body_data(out)
+    loaded = load_data(out)
     assert loaded.state.shape == (3, 6, 13) and loaded.metadata["configuration_space"] == "R3xS3"

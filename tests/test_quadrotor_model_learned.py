@@ -15,7 +15,7 @@ from fvin_mpc.core.backend import get_ops
 from fvin_mpc.core.checkpoint import load_checkpoint, save_checkpoint
 from fvin_mpc.core.networks_r3s3 import LearnedCombinedTerms, R3S3Config, init_weights, physical_scale
 from fvin_mpc.core.quadrotor import QUADROTOR
-from fvin_mpc.learning.model_r3s3 import R3S3FVIN
+from fvin_mpc.learning.model import FVINModel
 
 NP, CA = get_ops("numpy"), get_ops("casadi")
 H = 0.02
@@ -81,15 +81,15 @@ def test_numpy_torch_and_casadi_take_the_same_step(config):
     expected, residual = fvin_r3s3.step_state(states, controls, LearnedCombinedTerms(weights, config, NP), H,
                                               config.newton_iters, NP, config.force_rule)
     assert np.all(np.abs(expected - states) > 0)  # every entry moves
-    model = R3S3FVIN(config, weights)
+    model = FVINModel(config, weights)
     with torch.no_grad():
-        out = model.step_state(torch.as_tensor(states), torch.as_tensor(controls))
-    np.testing.assert_allclose(out.state.numpy(), expected, rtol=0, atol=1e-12)
-    np.testing.assert_allclose(out.residual.numpy(), residual, rtol=0, atol=1e-12)
+        out_state, out_residual = model.step_state(torch.as_tensor(states), torch.as_tensor(controls))
+    np.testing.assert_allclose(out_state.numpy(), expected, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(out_residual.numpy(), residual, rtol=0, atol=1e-12)
     # The training layout round-trips.
+    scaled = FVINModel(config, weights, rest_scale=(30.0,) * 3 + (10.0,) * 3 + (1.0,) * 3)
     with torch.no_grad():
-        model.position_scale, model.velocity_scale = 30.0, 10.0
-        rolled = model.rollout_states(torch.as_tensor(states), torch.as_tensor(controls[:, None]))
+        rolled = scaled.rollout_states(torch.as_tensor(states), torch.as_tensor(controls[:, None]))
     np.testing.assert_allclose(rolled[:, 1].numpy(), expected, rtol=0, atol=1e-12)
     # CasADi: value and Jacobian against central differences.
     x, u = ca.SX.sym("x", 13), ca.SX.sym("u", 4)

@@ -1,4 +1,4 @@
-"""Training the learned R³ × S³ model (:mod:`fvin_mpc.learning.training_r3s3`) end to end on a few
+"""Training the learned R³ × S³ model (``python -m fvin_mpc.train`` on free-body data) end to end on a few
 seconds of quadrotor flight: the loss falls, the checkpoint records the configuration space and
 exports to CasADi, the evaluation reports the learned and the closed-form model side by side."""
 
@@ -11,10 +11,13 @@ import pytest
 
 from fvin_mpc.control.export import from_checkpoint
 from fvin_mpc.core.checkpoint import load_checkpoint
-from fvin_mpc.core.free_body_data import save_free_body_data
+from fvin_mpc.core.data import load_data, save_data
+from fvin_mpc.core.networks_r3s3 import R3S3Config
+from fvin_mpc.core.space import R3S3, S3
 from fvin_mpc.learning.collection import collect_quadrotor
+from fvin_mpc.learning.space_training import train_model
 from fvin_mpc.learning.training import TrainSettings
-from fvin_mpc.learning.training_r3s3 import R3S3Config, main, train_r3s3
+from fvin_mpc.train import main
 
 
 @pytest.fixture(scope="module")
@@ -24,7 +27,7 @@ def flights():
 
 def test_levenberg_marquardt_lowers_the_loss(flights):
     config = R3S3Config(hidden_width=4, step_size=flights.control_period)
-    model, report = train_r3s3(flights, config, TrainSettings(iterations=4, window=3, jacobian_windows=16,
+    model, report = train_model(flights, config, TrainSettings(iterations=4, window=3, jacobian_windows=16,
                                                               threads=1, validation_fraction=0.25, patience=0),
                                progress=False)
     history = report["history"]
@@ -34,8 +37,8 @@ def test_levenberg_marquardt_lowers_the_loss(flights):
 
 def test_the_command_writes_a_checkpoint_that_exports(flights, tmp_path, capsys):
     data, test = tmp_path / "q.npz", tmp_path / "q_test.npz"
-    save_free_body_data(data, flights)
-    save_free_body_data(test, flights.subset(np.arange(2)))
+    save_data(data, flights)
+    save_data(test, flights.subset(np.arange(2)))
     stem = tmp_path / "quadrotor_tiny"
     assert main(["--data", str(data), "--test-data", str(test), "--hidden-width", "3", "--window", "2",
                  "--iterations", "2", "--jacobian-windows", "8", "--out", str(stem), "--quiet"]) == 0
@@ -53,13 +56,10 @@ def test_the_command_writes_a_checkpoint_that_exports(flights, tmp_path, capsys)
 def test_the_training_command_trains_the_free_body_model_on_free_body_data(flights, tmp_path, capsys):
     """``python -m fvin_mpc.train`` reads the data's configuration space: R³ × S³ data give an
     R³ × S³ checkpoint (through the same loop), pivoted data are not mistaken for it."""
-    from fvin_mpc import train as train_command
-    from fvin_mpc.core.free_body_data import is_free_body_data
-
     data = tmp_path / "q.npz"
-    save_free_body_data(data, flights)
+    save_data(data, flights)
     stem = tmp_path / "quadrotor_via_train"
-    assert train_command.main(["--data", str(data), "--hidden-width", "3", "--window", "2", "--iterations", "1",
+    assert main(["--data", str(data), "--hidden-width", "3", "--window", "2", "--iterations", "1",
                                "--jacobian-windows", "8", "--out", str(stem), "--quiet"]) == 0
     capsys.readouterr()
     checkpoint = load_checkpoint(stem)
@@ -67,8 +67,7 @@ def test_the_training_command_trains_the_free_body_model_on_free_body_data(fligh
     assert checkpoint.metadata["training"]["iterations"] == 1
     from helpers import synthetic_hinge_data
 
-    from fvin_mpc.core.data import save_data
     from fvin_mpc.core.rigid_body import PENDULUM
 
     pivoted = save_data(tmp_path / "p.npz", synthetic_hinge_data(PENDULUM, trajectories=2, steps=3))
-    assert is_free_body_data(data) and not is_free_body_data(pivoted) and not is_free_body_data(tmp_path / "no.npz")
+    assert load_data(data).space is R3S3 and load_data(pivoted).space is S3

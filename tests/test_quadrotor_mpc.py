@@ -8,7 +8,6 @@ from __future__ import annotations
 
 from dataclasses import replace
 
-import casadi as ca
 import numpy as np
 import pytest
 
@@ -16,8 +15,7 @@ from fvin_mpc.control import export
 from fvin_mpc.control.closed_loop import run_episode
 from fvin_mpc.control.quadrotor import (FigureEight, flight_metrics, hover_reference, quadrotor_model, quadrotor_mpc,
                                         quadrotor_mpc_settings, recovery_starts)
-from fvin_mpc.control.rti import local_state, local_state_np, retract_state, retract_state_np
-from fvin_mpc.control.state_layout import FREE_BODY, PIVOTED, layout_of
+from fvin_mpc.core.space import FREE_BODY, PIVOTED, R3S3, S3
 from fvin_mpc.core.quadrotor import from_mujoco
 from fvin_mpc.envs.quadrotor_env import QuadrotorEnv
 
@@ -40,31 +38,9 @@ def tilted(env, angle=1.0, offset=(0.3, -0.2, 0.1), omega=(2.0, -1.0, 0.5)):
 
 
 def test_layouts():
-    assert layout_of(7) is PIVOTED and layout_of(13) is FREE_BODY
+    assert S3.layout is PIVOTED and R3S3.layout is FREE_BODY
+    assert (PIVOTED.state_dim, PIVOTED.tangent_dim) == (7, 6)
     assert (FREE_BODY.state_dim, FREE_BODY.tangent_dim) == (13, 12)
-    with pytest.raises(ValueError):
-        layout_of(8)
-
-
-def test_free_body_chart_inverts_and_ignores_the_quaternion_sign():
-    rng = np.random.default_rng(1)
-    x_bar = rng.normal(size=(6, 13))
-    x_bar[:, 3:7] /= np.linalg.norm(x_bar[:, 3:7], axis=1, keepdims=True)
-    delta = rng.normal(size=(6, 12))
-    delta[:, 3:6] *= 0.4
-    x = retract_state_np(FREE_BODY, x_bar, delta)
-    np.testing.assert_allclose(np.linalg.norm(x[:, 3:7], axis=1), 1.0, atol=1e-15)
-    np.testing.assert_allclose(local_state_np(FREE_BODY, x_bar, x), delta, atol=1e-12)
-    flipped, bar_flipped = x.copy(), x_bar.copy()
-    flipped[:, 3:7] *= -1
-    bar_flipped[:, 3:7] *= -1
-    np.testing.assert_allclose(local_state_np(FREE_BODY, x_bar, flipped), delta, atol=1e-12)
-    np.testing.assert_allclose(local_state_np(FREE_BODY, bar_flipped, x), delta, atol=1e-12)
-    for i in range(6):  # the CasADi versions the QP is built from agree
-        np.testing.assert_allclose(np.asarray(retract_state(FREE_BODY, ca.DM(x_bar[i]), ca.DM(delta[i]))).ravel(), x[i],
-                                   atol=1e-14)
-        np.testing.assert_allclose(np.asarray(local_state(FREE_BODY, ca.DM(x_bar[i]), ca.DM(x[i]))).ravel(), delta[i],
-                                   atol=1e-12)
 
 
 def test_recovers_to_hover_from_a_tilted_start(craft):

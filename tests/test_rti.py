@@ -11,7 +11,7 @@ import pytest
 
 from fvin_mpc.control.closed_loop import episode_metrics, run_episode
 from fvin_mpc.control.mpc import MPC, _Plan
-from fvin_mpc.control.rti import RealTimeMPC, local, local_np, retract, retract_np
+from fvin_mpc.control.rti import RealTimeMPC
 from fvin_mpc.control.scene import scene_env, scene_model, scene_mpc, scene_mpc_settings
 from fvin_mpc.envs.disturbance import ConstantTorqueDisturbance
 
@@ -33,21 +33,6 @@ def spherical():
 
 def rti(env, model, **overrides):
     return scene_mpc(env, model, scene_mpc_settings(env, solver="rti", **{**DETERMINISTIC, **overrides}))
-
-
-def test_chart_inverts_and_ignores_the_quaternion_sign():
-    rng = np.random.default_rng(0)
-    q_bar = rng.normal(size=(5, 4))
-    q_bar /= np.linalg.norm(q_bar, axis=1, keepdims=True)
-    theta = 0.4 * rng.normal(size=(5, 3))
-    q = retract_np(q_bar, theta)
-    np.testing.assert_allclose(np.linalg.norm(q, axis=1), 1.0, atol=1e-15)
-    np.testing.assert_allclose(local_np(q_bar, q), theta, atol=1e-12)
-    np.testing.assert_allclose(local_np(q_bar, -q), theta, atol=1e-12)
-    np.testing.assert_allclose(local_np(-q_bar, q), theta, atol=1e-12)
-    for i in range(5):  # the CasADi versions the QP is built from agree
-        np.testing.assert_allclose(np.asarray(retract(ca.DM(q_bar[i]), ca.DM(theta[i]))).ravel(), q[i], atol=1e-14)
-        np.testing.assert_allclose(np.asarray(local(ca.DM(q_bar[i]), ca.DM(q[i]))).ravel(), theta[i], atol=1e-12)
 
 
 def test_scene_mpc_dispatches_on_the_solver_setting(pendulum):

@@ -19,7 +19,7 @@ from scipy.integrate import solve_ivp
 from fvin_mpc.envs import SCENES, RigidBodyEnv, ScenePhysics
 from fvin_mpc.envs.scenes import ALWAYS_DISABLED, build_model, infer_physics
 from fvin_mpc.core.backend import get_ops
-from fvin_mpc.core.data import TrajectoryData
+from fvin_mpc.core.data import Trajectories
 from fvin_mpc.core.networks import ModelConfig
 from fvin_mpc.core.rigid_body import PENDULUM_DAMPED, from_mujoco
 from helpers import synthetic_hinge_data
@@ -272,7 +272,7 @@ def test_inferred_physics_follows_the_files_own_flags(tmp_path):
 
 
 # --------------------------------------------------------------------------- learning the damping
-def synthetic_damped_data(trajectories: int, steps: int, seed: int) -> TrajectoryData:
+def synthetic_damped_data(trajectories: int, steps: int, seed: int) -> Trajectories:
     return synthetic_hinge_data(PENDULUM_DAMPED, trajectories, steps, seed)
 
 

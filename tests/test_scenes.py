@@ -19,6 +19,7 @@ from fvin_mpc.control.scene import (
     scene_mpc_settings,
     scene_scales,
 )
+from fvin_mpc.core.space import S3
 from fvin_mpc.envs import SCENES, RigidBodyEnv
 from fvin_mpc.envs.scenes import SCENE_DIR, resolve_scene
 from helpers import assert_same_rotation, hinge_quaternion
@@ -81,7 +82,8 @@ def test_a_user_mjcf_is_declared_by_its_path_alone():
     spec = resolve_scene(str(WEAK_PENDULUM))
     assert (spec.name, spec.xml_path, spec.default_checkpoint) == ("weak_pendulum", WEAK_PENDULUM,
                                                                    "weak_pendulum_sign-invariant")
-    assert all(getattr(spec, f.name) in (None, {}) for f in fields(spec) if f.name not in ("name", "xml_path"))
+    assert all(getattr(spec, f.name) in (None, {}) for f in fields(spec) if f.name not in ("name", "xml_path", "space"))
+    assert spec.space is S3  # read off the file: a hinge, not a free joint
     with pytest.raises(ValueError, match="unknown scene"):
         resolve_scene("no_such_scene")
 

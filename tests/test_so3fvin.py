@@ -192,7 +192,7 @@ def test_learned_torque_is_minus_the_derivative_of_the_potential(variant):
 @pytest.mark.parametrize("variant", SO3_VARIANTS)
 def test_torch_and_numpy_backends_agree(variant):
     torch = pytest.importorskip("torch")
-    from fvin_mpc.learning.model_so3 import SO3FVIN
+    from fvin_mpc.learning.model import SO3FVIN
 
     config = SO3ModelConfig(variant=variant, control_dim=2, newton_iters=3)
     weights = init_weights(config, seed=1)
@@ -221,13 +221,13 @@ def test_train_and_checkpoint_round_trip(tmp_path):
     from helpers import synthetic_hinge_data
 
     from fvin_mpc.core.checkpoint import load_checkpoint, save_checkpoint
-    from fvin_mpc.learning.model_so3 import SO3FVIN
+    from fvin_mpc.learning.model import SO3FVIN
     from fvin_mpc.learning.training import TrainSettings, train
 
     data = synthetic_hinge_data(PENDULUM, trajectories=24, steps=6)
     config = SO3ModelConfig(variant="so3-matrix", step_size=data.control_period)
     model, report = train(data, config, TrainSettings(iterations=3, window=4, jacobian_windows=32, threads=1,
-                                                      patience=0), progress=False, model_factory=SO3FVIN)
+                                                      patience=0), progress=False)
     assert isinstance(model, SO3FVIN)
     history = [h["train"] for h in report["history"]]
     assert history[-1] < history[0]
@@ -237,34 +237,3 @@ def test_train_and_checkpoint_round_trip(tmp_path):
     assert loaded.config == config
     assert all(np.array_equal(loaded.weights[k], v) for k, v in model.numpy_weights().items())
 
-
-@pytest.mark.parametrize("variant", [None, *SO3_VARIANTS])
-def test_casadi_step_matches_numpy(variant):
-    """The step is written once: as a CasADi SX function (closed-form top, or learned terms) it
-    gives NumPy's numbers."""
-    ca = pytest.importorskip("casadi")
-    cas = get_ops("casadi")
-    if variant is None:
-        body, m = TOP, 2
-        terms_ca, terms_np = fvin_so3.PivotedRigidBodySO3Terms(body, cas), fvin_so3.PivotedRigidBodySO3Terms(body, NP)
-    else:
-        config = SO3ModelConfig(variant=variant, control_dim=2)
-        weights = init_weights(config, seed=2)
-        m, terms_ca, terms_np = 2, LearnedSO3Terms(weights, config, cas), LearnedSO3Terms(weights, config, NP)
-    r_sym, omega_sym, u_sym = ca.SX.sym("r", 3, 3), ca.SX.sym("omega", 3), ca.SX.sym("u", m)
-    rotation = tuple(tuple(r_sym[i, j] for j in range(3)) for i in range(3))
-    out = fvin_so3.so3_step(rotation, tuple(omega_sym[i] for i in range(3)), tuple(u_sym[i] for i in range(m)),
-                            terms_ca, 0.05, 3, cas, with_residual=True)
-    step = ca.Function("so3_step", [r_sym, omega_sym, u_sym],
-                       [ca.vertcat(*[out.rotation[i][j] for i in range(3) for j in range(3)]), ca.vertcat(*out.omega),
-                        out.residual])
-    q, omega = random_states(4, seed=9)
-    u = np.random.default_rng(10).normal(size=(4, m))
-    reference = fvin_so3.so3_step(s3.rotation_matrix(components(q)), components(omega), components(u), terms_np,
-                                  0.05, 3, NP, with_residual=True)
-    for k in range(4):
-        r_k = matrix(s3.rotation_matrix(tuple(q[k])))
-        rotation_k, omega_k, residual_k = step(r_k, omega[k], u[k])
-        np.testing.assert_allclose(np.array(rotation_k).reshape(3, 3), matrix(reference.rotation)[k], atol=1e-14)
-        np.testing.assert_allclose(np.array(omega_k).ravel(), np.array(reference.omega)[:, k], atol=1e-12)
-        np.testing.assert_allclose(float(residual_k), reference.residual[k], atol=1e-12)

@@ -6,7 +6,7 @@ import json
 import numpy as np
 import pytest
 
-from fvin_mpc.core.data import TrajectoryData, save_data
+from fvin_mpc.core.data import Trajectories, save_data
 from fvin_mpc.core.networks import ModelConfig
 from fvin_mpc.core.rigid_body import PENDULUM
 from helpers import synthetic_hinge_data
@@ -26,8 +26,8 @@ def data():
     return synthetic_hinge_data(PENDULUM, trajectories=24, steps=6, seed=0)
 
 
-def with_scene(data: TrajectoryData, **metadata) -> TrajectoryData:
-    return TrajectoryData(data.q, data.omega, data.u, {**data.metadata, **metadata})
+def with_scene(data: Trajectories, **metadata) -> Trajectories:
+    return Trajectories(data.state, data.u, {**data.metadata, **metadata})
 
 
 def test_residual_squares_sum_to_the_rollout_loss(data):

@@ -30,8 +30,6 @@ from typing import Any, Literal, Protocol, Union
 
 import numpy as np
 
-from fvin_mpc.control.state_layout import layout_of
-
 #: Upright means within this angle of the goal (rad) …
 UPRIGHT_TOLERANCE = 0.1
 #: … and holding means staying within this angle over the last :data:`HOLD_WINDOW_S` seconds.
@@ -154,7 +152,7 @@ def run_episode(env: Any, controller: Controller, duration_s: float, reset_optio
     prepare = getattr(controller, "prepare", None)
     set_time = getattr(controller, "set_time", None)
     frames = [env.render()] if render else []
-    layout = layout_of(len(observation))
+    layout = base.space.layout
     observations = [observation]
     angle, energy, times = [info["angle_from_goal"]], [info["energy"]], [info["time"]]
     controls, rewards, wall, success, fallback, recorded = [], [], [], [], [], []

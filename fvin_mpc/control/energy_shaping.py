@@ -32,7 +32,8 @@ import scipy.linalg
 
 from fvin_mpc.core import fvin, s3
 from fvin_mpc.core.backend import get_ops
-from fvin_mpc.core.state import check_state, split_state, unit_quaternion
+from fvin_mpc.core.space import S3
+from fvin_mpc.core.state import split_state, unit_quaternion
 
 NP = get_ops("numpy")
 
@@ -117,7 +118,8 @@ class EnergyShapingController:
     def from_model(cls, model: Any, goal: Any, torque_low: Any, torque_high: Any, rest: Any,
                    settings: EnergyShapingSettings = EnergyShapingSettings()) -> "EnergyShapingController":
         """From an :class:`~fvin_mpc.control.export.ExportedModel` — learned or closed form — using
-        its NumPy ``J``, ``U``, ``g``, its ``h`` and ``K``; no torch."""
+        its NumPy ``J``, ``U``, ``g``, its ``h`` and ``K``; no torch. The law is written on S³ terms."""
+        model.require(S3, by="energy shaping")
         return cls(model.numpy_terms, model.step_size, model.newton_iters, goal, torque_low, torque_high, rest,
                    settings)
 
@@ -140,7 +142,7 @@ class EnergyShapingController:
 
     def reduced_state(self, x: np.ndarray) -> np.ndarray:
         """The LQR's coordinates of a state ``x = (q, ω)`` ``(7,)`` (see :class:`LQRDesign`)."""
-        return self._reduced_state(*split_state(check_state(x)))
+        return self._reduced_state(*split_state(S3.check(x)))
 
     def _lqr(self) -> LQRDesign:
         r = self.actuated_basis.shape[1]
@@ -170,8 +172,8 @@ class EnergyShapingController:
     # ------------------------------------------------------------------ control
     def __call__(self, x: Any) -> tuple[np.ndarray, dict[str, Any]]:
         """The control for the measured state ``x = (q, ω)`` ``(7,)`` (validated by
-        :func:`~fvin_mpc.core.state.check_state`, the controllers' shared input policy)."""
-        x = check_state(x)
+        ``StateLayout.check``, the controllers' shared input policy)."""
+        x = S3.check(x)
         q, omega = split_state(x)
         angle = float(s3.geodesic_angle(tuple(self.goal), tuple(q), NP))
         threshold = self.settings.release_angle if self.catching else self.settings.catch_angle

@@ -1,10 +1,10 @@
 """A trained S3FVIN as a symbolic CasADi function, and compiled code cached on disk.
 
-:func:`step_function` builds ``F(x, u) -> x_next`` (``x = [q (w,x,y,z), ω]``, 7 entries)
-with ``K`` Newton iterations unrolled, by calling the same :func:`fvin_mpc.core.fvin.fvin_step`
-and :class:`fvin_mpc.core.networks.LearnedTerms` code the torch model trains with — only the
-leaf operations (:class:`fvin_mpc.core.backend.CasadiOps`) differ. Tests prove the two agree
-to 1e-12 in value and 1e-8 in Jacobian.
+:func:`step_function` builds ``F(x, u) -> x_next`` of a configuration space's step
+(:class:`fvin_mpc.core.space.ConfigurationSpace`; S³: ``x = [q (w,x,y,z), ω]``, 7 entries) with ``K``
+Newton iterations unrolled, by calling the same step and learned-terms code the torch model trains
+with — only the leaf operations (:class:`fvin_mpc.core.backend.CasadiOps`) differ. Tests prove the
+two agree to 1e-12 in value and 1e-8 in Jacobian, for every registered space.
 
 :class:`ExportedModel` bundles the function with what a controller needs (step size,
 control dimension, a NumPy evaluation of ``J``, ``U``, ``g`` for energies) and is made by
@@ -16,11 +16,9 @@ named by the SHA-256 of the generated C source (which spells out the weights, ``
 every option baked into the functions), so a second run with the same model and
 settings does not compile again.
 
-Free bodies (R³ × S³, ``docs/r3s3.md``): :func:`free_body_step_function` builds
-``F(x[13], u[m]) -> (x_next[13], residual)`` with ``x = [x, q (w,x,y,z), v (world), ω (body)]``
-from :func:`fvin_mpc.core.fvin_r3s3.step_state`; :func:`from_quadrotor` (closed form, read off the
-MJCF by :func:`fvin_mpc.core.quadrotor.from_mujoco`) and :func:`from_checkpoint` (a learned R³ × S³
-checkpoint) give the same :class:`ExportedModel` with the same call signature.
+Every model carries its space: :func:`from_checkpoint` reads it from the checkpoint (S³, SO(3) or
+R³ × S³ — a free body's ``x = [x, q (w,x,y,z), v (world), ω (body)]``, 13 entries) and
+:func:`from_closed_form` takes it with a closed-form body; both go through :func:`from_terms`.
 
 No torch here: the control runtime reads weights with safetensors/NumPy.
 """
@@ -40,62 +38,38 @@ from typing import Any, Sequence
 import casadi as ca
 import numpy as np
 
-from fvin_mpc.core import fvin, fvin_r3s3
 from fvin_mpc.core.backend import get_ops
 from fvin_mpc.core.checkpoint import Checkpoint, load_checkpoint
-from fvin_mpc.core.networks import LearnedTerms, ModelConfig
-from fvin_mpc.core.networks_r3s3 import CONFIGURATION_SPACE as R3S3, LearnedCombinedTerms, R3S3Config
-from fvin_mpc.core.state import STATE_DIM, split_state
+from fvin_mpc.core.space import R3S3, S3, ConfigurationSpace, get_space, require
 
 CA = get_ops("casadi")
 NP = get_ops("numpy")
 
 
+def step_function(terms: Any, step_size: float, newton_iters: int, name: str = "fvin_step",
+                  space: ConfigurationSpace = S3, **options: Any) -> ca.Function:
+    """``F(x[n], u[m]) -> (x_next[n], residual)`` of ``space``'s step as an SX function.
 
-def step_function(terms: Any, step_size: float, newton_iters: int, name: str = "fvin_step") -> ca.Function:
-    """``F(x[7], u[m]) -> (x_next[7], residual)`` as an SX function.
-
-    ``residual`` is the final Newton residual in rad/s (:attr:`fvin_mpc.core.fvin.StepResult.residual`);
-    it is large past the solvability limit ``h|ω| ≈ 1`` where ``x_next`` means nothing.
+    ``residual`` is the final Newton residual in rad/s (:meth:`ConfigurationSpace.step`); it is
+    large past the solvability limit ``h|ω| ≈ 1`` where ``x_next`` means nothing.
 
     Args:
-        terms: :class:`~fvin_mpc.core.fvin.RigidBodyTerms` built on the CasADi backend.
+        terms: the space's terms built on the CasADi backend.
         step_size: ``h`` (s).
         newton_iters: ``K`` Newton iterations, unrolled.
+        space: the configuration space (default S³, ``x = (q, ω)``).
+        options: the space's step options (R³ × S³: ``force_rule``).
     """
-    x = ca.SX.sym("x", STATE_DIM)
+    x = ca.SX.sym("x", space.state_dim)
     u = ca.SX.sym("u", terms.control_dim)
-    result = fvin.fvin_step(
-        tuple(x[i] for i in range(4)), tuple(x[4 + i] for i in range(3)),
-        tuple(u[i] for i in range(terms.control_dim)), terms, step_size, newton_iters, CA, with_residual=True,
-    )
-    x_next = ca.vertcat(*result.q, *result.omega)
-    return ca.Function(name, [x, u], [x_next, result.residual], ["x", "u"], ["x_next", "residual"])
-
-
-def free_body_step_function(terms: Any, step_size: float, newton_iters: int, force_rule: str = "trapezoid",
-                            name: str = "fvin_r3s3_step") -> ca.Function:
-    """``F(x[13], u[m]) -> (x_next[13], residual)`` of a free body (R³ × S³) as an SX function:
-    :func:`fvin_mpc.core.fvin_r3s3.step_state` on :class:`~fvin_mpc.core.fvin_r3s3.CombinedTerms`
-    built on the CasADi backend; ``residual`` as in :func:`step_function`."""
-    x = ca.SX.sym("x", fvin_r3s3.FREE_STATE_DIM)
-    u = ca.SX.sym("u", terms.control_dim)
-    x_next, residual = fvin_r3s3.step_state(x, u, terms, step_size, newton_iters, CA, force_rule)
+    x_next, residual = space.step(x, u, terms, step_size, newton_iters, CA, **options)
     return ca.Function(name, [x, u], [x_next, residual], ["x", "u"], ["x_next", "residual"])
 
 
-def free_body_energy_function(terms: Any, name: str = "fvin_r3s3_energy") -> ca.Function:
-    """``E(x[13]) -> ½vᵀMv + ½ωᵀJω + U(x, q)`` as an SX function, from the same terms as the step."""
-    x = ca.SX.sym("x", fvin_r3s3.FREE_STATE_DIM)
-    energy = fvin_r3s3.total_energy(*fvin_r3s3.split_free_state(x, CA), terms)
-    return ca.Function(name, [x], [energy], ["x"], ["energy"])
-
-
-def energy_function(terms: Any, name: str = "fvin_energy") -> ca.Function:
-    """``E(x[7]) -> ½ωᵀJ(q)ω + U(q)`` as an SX function, from the same terms as the step."""
-    x = ca.SX.sym("x", STATE_DIM)
-    energy = fvin.total_energy(tuple(x[i] for i in range(4)), tuple(x[4 + i] for i in range(3)), terms)
-    return ca.Function(name, [x], [energy], ["x"], ["energy"])
+def energy_function(terms: Any, name: str = "fvin_energy", space: ConfigurationSpace = S3) -> ca.Function:
+    """``E(x[n]) -> energy`` (``½ωᵀJ(q)ω + U(q)`` on S³) as an SX function, from the same terms as the step."""
+    x = ca.SX.sym("x", space.state_dim)
+    return ca.Function(name, [x], [space.energy(x, terms, CA)], ["x"], ["energy"])
 
 
 @dataclass(frozen=True)
@@ -103,17 +77,15 @@ class ExportedModel:
     """A discrete-time model ``x_{k+1} = F(x_k, u_k)`` ready for a controller.
 
     Attributes:
-        step: ``F(x[n], u[m]) -> (x_next[n], residual)`` (see :func:`step_function`, and
-            :func:`free_body_step_function` for ``n = 13``).
+        step: ``F(x[n], u[m]) -> (x_next[n], residual)`` (see :func:`step_function`).
         step_size: ``h`` (s), the control period the model was trained at.
         newton_iters: ``K`` unrolled in ``step``.
         control_dim: ``m``.
-        numpy_terms: the same ``J``, ``U``, ``g`` evaluated with NumPy (energies, LQR).
+        numpy_terms: the same terms evaluated with NumPy (energies, LQR).
         name: a short label (checkpoint stem or ``"true:<body>"``).
         energy_function: ``E(x[n]) -> energy`` symbolic (see :func:`energy_function`), for
             costs on the model's energy (the MPC's ``terminal_energy_weight``).
-        configuration_space: ``"S3"`` (a pivoted body, ``x = (q, ω)``, n = 7) or ``"R3xS3"``
-            (a free body, ``x = (x, q, v, ω)``, n = 13).
+        space: the configuration space whose states ``step`` maps (:mod:`fvin_mpc.core.space`).
         casadi_terms: the terms ``step`` was built from, on the CasADi backend, for controllers that
             impose the step's equations themselves (:mod:`fvin_mpc.control.implicit_dynamics`);
             ``None`` for a model with no rigid-body terms (e.g. an unstructured baseline).
@@ -126,13 +98,18 @@ class ExportedModel:
     numpy_terms: Any
     name: str
     energy_function: ca.Function
-    configuration_space: str = "S3"
+    space: ConfigurationSpace = S3
     casadi_terms: Any = None
 
     @property
     def state_dim(self) -> int:
-        """``n``: 7 for ``"S3"``, 13 for ``"R3xS3"``."""
-        return fvin_r3s3.FREE_STATE_DIM if self.configuration_space == R3S3 else STATE_DIM
+        """``n``, the space's state size (7 for ``(q, ω)``, 13 for ``(x, q, v, ω)``)."""
+        return self.space.state_dim
+
+    @property
+    def configuration_space(self) -> str:
+        """The space's name (the tag in checkpoints)."""
+        return self.space.name
 
     def __call__(self, x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, float]:
         """One numeric step: ``(x_next (n,), residual)``."""
@@ -148,59 +125,57 @@ class ExportedModel:
         return np.array(states)
 
     def energy(self, x: np.ndarray) -> float:
-        """``½ωᵀJω + U(q)`` of the state ``x = (q, ω)`` ``(7,)`` (free body: ``½vᵀMv + ½ωᵀJω + U(x, q)``
-        of ``(x, q, v, ω)`` ``(13,)``), in the model's own scale."""
-        if self.configuration_space == R3S3:
-            return float(fvin_r3s3.total_energy(*fvin_r3s3.split_free_state(np.asarray(x, dtype=float), NP),
-                                                self.numpy_terms))
-        q, omega = split_state(np.asarray(x, dtype=float))
-        return float(fvin.total_energy(tuple(q), tuple(omega), self.numpy_terms))
+        """The model's energy of a state ``x (n,)`` (``½ωᵀJω + U(q)`` of ``(q, ω)``; free body:
+        ``½vᵀMv + ½ωᵀJω + U(x, q)`` of ``(x, q, v, ω)``), in the model's own scale."""
+        return float(self.space.energy(np.asarray(x, dtype=float), self.numpy_terms, NP))
+
+    def require(self, *supported: ConfigurationSpace, by: str) -> None:
+        """``ValueError`` unless this model's space is one of ``supported`` — how a controller that
+        is written for some spaces refuses the others, instead of running them as something else."""
+        require(self.space, supported, by, f"model {self.name!r}")
+
+
+def from_terms(space: ConfigurationSpace, casadi_terms: Any, numpy_terms: Any, step_size: float, newton_iters: int,
+               name: str, **options: Any) -> ExportedModel:
+    """An :class:`ExportedModel` of ``space``'s step on given terms (learned or closed form): the one
+    place every model a controller gets is made."""
+    return ExportedModel(
+        step=step_function(casadi_terms, step_size, newton_iters, space=space, **options), step_size=step_size,
+        newton_iters=newton_iters, control_dim=casadi_terms.control_dim, numpy_terms=numpy_terms, name=name,
+        energy_function=energy_function(casadi_terms, space=space), space=space, casadi_terms=casadi_terms,
+    )
 
 
 def from_checkpoint(checkpoint: Checkpoint | str | Path, newton_iters: int | None = None) -> ExportedModel:
-    """Export a checkpoint (object, shipped name or path) with ``K = newton_iters`` (default: the checkpoint's)."""
+    """Export a checkpoint (object, shipped name or path) of any registered configuration space
+    with ``K = newton_iters`` (default: the checkpoint's)."""
     if not isinstance(checkpoint, Checkpoint):
         checkpoint = load_checkpoint(checkpoint)
     label = checkpoint.path.name if checkpoint.path is not None else "checkpoint"
-    if isinstance(checkpoint.config, R3S3Config):
-        free: R3S3Config = checkpoint.config
-        k = newton_iters or free.newton_iters
-        return _free_body_model(LearnedCombinedTerms(checkpoint.weights, free, CA),
-                                LearnedCombinedTerms(checkpoint.weights, free, NP), free.step_size, k, free.force_rule, label)
-    config: ModelConfig = checkpoint.config
-    k = newton_iters or config.newton_iters
-    terms = LearnedTerms(checkpoint.weights, config, CA)
-    return ExportedModel(
-        step=step_function(terms, config.step_size, k), step_size=config.step_size, newton_iters=k,
-        control_dim=config.control_dim, numpy_terms=LearnedTerms(checkpoint.weights, config, NP), name=label,
-        energy_function=energy_function(terms), casadi_terms=terms,
-    )
+    space, config = checkpoint.space, checkpoint.config
+    return from_terms(space, space.learned_terms(checkpoint.weights, config, CA),
+                      space.learned_terms(checkpoint.weights, config, NP), config.step_size,
+                      newton_iters or config.newton_iters, label, **space.step_options(config))
+
+
+def from_closed_form(space: ConfigurationSpace | str, body: Any, step_size: float, newton_iters: int = 2,
+                     name: str = "true", **options: Any) -> ExportedModel:
+    """Export a closed-form body of ``space`` (what :meth:`ConfigurationSpace.closed_form` reads off
+    an MJCF: it has ``terms(ops)``) through the same step as a learned model."""
+    space = get_space(space)
+    return from_terms(space, body.terms(CA), body.terms(NP), step_size, newton_iters, name, **options)
 
 
 def from_rigid_body(body: Any, step_size: float, newton_iters: int = 2, name: str = "true") -> ExportedModel:
-    """Export a closed-form :class:`~fvin_mpc.core.rigid_body.PivotedRigidBody` through the same step."""
-    terms = body.terms(CA)
-    return ExportedModel(
-        step=step_function(terms, step_size, newton_iters), step_size=step_size, newton_iters=newton_iters,
-        control_dim=body.control_dim, numpy_terms=body.terms(NP), name=name, energy_function=energy_function(terms),
-        casadi_terms=terms,
-    )
+    """Export a closed-form :class:`~fvin_mpc.core.rigid_body.PivotedRigidBody` through the S³ step."""
+    return from_closed_form(S3, body, step_size, newton_iters, name)
 
 
 def from_quadrotor(body: Any, step_size: float, newton_iters: int = 2, force_rule: str = "trapezoid",
                    name: str = "true:quadrotor") -> ExportedModel:
-    """Export a closed-form :class:`~fvin_mpc.core.quadrotor.Quadrotor` through the same R³ × S³ step
+    """Export a closed-form :class:`~fvin_mpc.core.quadrotor.Quadrotor` through the R³ × S³ step
     (same signature as a learned R³ × S³ checkpoint's :func:`from_checkpoint`)."""
-    return _free_body_model(body.terms(CA), body.terms(NP), step_size, newton_iters, force_rule, name)
-
-
-def _free_body_model(terms: Any, numpy_terms: Any, step_size: float, newton_iters: int, force_rule: str,
-                     name: str) -> ExportedModel:
-    return ExportedModel(
-        step=free_body_step_function(terms, step_size, newton_iters, force_rule), step_size=step_size,
-        newton_iters=newton_iters, control_dim=terms.control_dim, numpy_terms=numpy_terms, name=name,
-        energy_function=free_body_energy_function(terms), configuration_space=R3S3, casadi_terms=terms,
-    )
+    return from_closed_form(R3S3, body, step_size, newton_iters, name, force_rule=force_rule)
 
 
 def save_function(function: ca.Function, path: str | Path) -> Path:

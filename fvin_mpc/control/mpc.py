@@ -56,7 +56,8 @@ import casadi as ca
 import numpy as np
 
 from fvin_mpc.control.export import CompileReport, ExportedModel, compile_functions
-from fvin_mpc.core.state import STATE_DIM, check_state, unit_quaternion
+from fvin_mpc.core.space import spaces
+from fvin_mpc.core.state import unit_quaternion
 
 #: IPOPT return statuses accepted as a solution.
 SUCCESS_STATUSES = frozenset({"Solve_Succeeded", "Solved_To_Acceptable_Level"})
@@ -331,9 +332,10 @@ class MPC:
 
     def _unpack(self, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         n, m = self.horizon, self.model.control_dim
-        split = STATE_DIM * (n + 1)
+        nx = self.model.state_dim
+        split = nx * (n + 1)
         # CasADi vectorizes column-major: column k of X (state k) is contiguous.
-        return w[:split].reshape(n + 1, STATE_DIM), w[split:].reshape(n, m)
+        return w[:split].reshape(n + 1, nx), w[split:].reshape(n, m)
 
     @staticmethod
     def _pack(states: np.ndarray, controls: np.ndarray) -> np.ndarray:
@@ -341,11 +343,13 @@ class MPC:
 
     # ------------------------------------------------------------------ problem
     def _build(self) -> None:
-        s, n, m = self.settings, self.horizon, self.model.control_dim
-        states = ca.MX.sym("X", STATE_DIM, n + 1)
+        # The cost below (orientation to a goal, ω, the energy at rest) is written for a body on a pivot.
+        self.model.require(*(space for space in spaces() if space.pivoted), by=f"the {self.settings.solver} MPC")
+        s, n, m, nx = self.settings, self.horizon, self.model.control_dim, self.model.state_dim
+        states = ca.MX.sym("X", nx, n + 1)
         controls = ca.MX.sym("U", m, n)
         goal = ca.MX.sym("goal", 4)
-        x_sym, u_sym = ca.SX.sym("x", STATE_DIM), ca.SX.sym("u", m)
+        x_sym, u_sym = ca.SX.sym("x", nx), ca.SX.sym("u", m)
         next_state = ca.Function("next_state", [x_sym, u_sym], [self.model.step(x_sym, u_sym)[0]])
 
         # --- objective
@@ -376,7 +380,7 @@ class MPC:
         defects = next_state.map(n)(states[:, :n], controls) - states[:, 1:]
         decision = ca.vertcat(ca.vec(states), ca.vec(controls))
         nlp = {"x": decision, "p": goal, "f": objective, "g": ca.vec(defects)}
-        self._num_constraints = STATE_DIM * n
+        self._num_constraints = nx * n
 
         # --- bounds (x_0 is fixed per call)
         lower = np.full(decision.shape[0], -np.inf)
@@ -441,16 +445,16 @@ class MPC:
         """The same NLP for fatrop: variables stage by stage ``(x_0, u_0, x_1, …, x_N)`` and the
         dynamics as gap-closing constraints ``x_{k+1} − F(x_k, u_k) = 0``, the form its structure
         detection requires. ``self._order`` maps the stage-wise vector to the default layout."""
-        n, m = self.horizon, self.model.control_dim
+        n, m, nx = self.horizon, self.model.control_dim, self.model.state_dim
         problem = ca.Function("mpc_problem", [states, controls, goal], [objective, -ca.vec(defects)])
-        index = np.arange(STATE_DIM * (n + 1) + m * n)
+        index = np.arange(nx * (n + 1) + m * n)
         state_index, control_index = self._unpack(index)
         order = np.concatenate([np.concatenate([state_index[k], control_index[k]]) if k < n else state_index[k]
                                 for k in range(n + 1)])
         self._order = order  # stage-wise vector v = w[order]
         v, p = ca.MX.sym("v", order.size), ca.MX.sym("p", 4)
         w = v[np.argsort(order).tolist()]  # default layout from the stage-wise one
-        w_states, w_controls = ca.reshape(w[: STATE_DIM * (n + 1)], STATE_DIM, n + 1), ca.reshape(w[STATE_DIM * (n + 1):], m, n)
+        w_states, w_controls = ca.reshape(w[: nx * (n + 1)], nx, n + 1), ca.reshape(w[nx * (n + 1):], m, n)
         f, g = problem(w_states, w_controls, p)
         self._nlp = {"x": v, "p": p, "f": f, "g": g}
         self._oracle_options = {}
@@ -514,7 +518,7 @@ class MPC:
         lam_g = lam_x = None
         if plan.lam_g is not None and plan.lam_x is not None:
             m = self.model.control_dim
-            defects = plan.lam_g.reshape(self.horizon, STATE_DIM)
+            defects = plan.lam_g.reshape(self.horizon, self.model.state_dim)
             lam_g = np.vstack([defects[1:], defects[-1:]]).ravel()
             state_mult, control_mult = self._unpack(plan.lam_x)
             lam_x = self._pack(np.vstack([state_mult[1:], state_mult[-1:]]),
@@ -539,7 +543,7 @@ class MPC:
         Raises:
             ValueError: non-finite or wrongly shaped state, or ``q`` not of unit norm.
         """
-        x0 = check_state(x)
+        x0 = self.model.space.check(x)
         if self._previous is not None and self.settings.warm_start != "none":
             return self._solve(x0, self._shifted(self._previous, x0), warm=True)
         best: tuple[np.ndarray, dict[str, Any], _Plan | None] | None = None
@@ -565,7 +569,7 @@ class MPC:
     def _solve(self, x0: np.ndarray, guess: _Plan, warm: bool) -> tuple[np.ndarray, dict[str, Any]]:
         """One NLP solve from ``guess``; keeps the plan (or falls back) and returns the control."""
         lower, upper = self._lower.copy(), self._upper.copy()
-        lower[:STATE_DIM] = upper[:STATE_DIM] = x0
+        lower[:x0.size] = upper[:x0.size] = x0
         arguments: dict[str, Any] = {"x0": self._pack(guess.states, guess.controls), "p": self.goal,
                                      "lbx": lower, "ubx": upper, "lbg": 0.0, "ubg": 0.0}
         use_duals = warm and self.settings.warm_start == "primal-dual" and guess.lam_g is not None

@@ -1,7 +1,7 @@
 """The quadrotor's tasks for the real-time MPC: recovery to hover and figure-eight tracking.
 
 The controller is :class:`fvin_mpc.control.rti.RealTimeMPC` on a free-body model
-``F(x[13], u[4]) -> x[13]`` (``x = (x, q, v, ω)``, :mod:`fvin_mpc.control.state_layout`) — the same
+``F(x[13], u[4]) -> x[13]`` (``x = (x, q, v, ω)``, the R³ × S³ layout of :mod:`fvin_mpc.core.space`) — the same
 class, QP and failure semantics as the pendulums', with the translational block in its chart and its
 cost. This module holds what is particular to the craft:
 
@@ -31,7 +31,7 @@ import numpy as np
 from fvin_mpc.control.export import ExportedModel
 from fvin_mpc.control.mpc import MPCSettings
 from fvin_mpc.control.rti import ConstantReference, RealTimeMPC
-from fvin_mpc.control.state_layout import FREE_BODY
+from fvin_mpc.core.space import R3S3
 
 #: Recovered: within this distance of the hover point (m) …
 RECOVERY_POSITION_TOLERANCE = 0.1
@@ -76,14 +76,11 @@ def quadrotor_model(env: Any, checkpoint: Any = None, true_model: bool = False, 
 
     base = env.unwrapped
     if true_model:
-        from fvin_mpc.core.quadrotor import from_mujoco
-
-        craft = from_mujoco(base.model, base.body_name)
-        model = export.from_quadrotor(craft, base.dt, newton_iters or 2, name=f"true_{base.scene_spec.name}")
+        craft = base.space.closed_form(base.model, base.body_name)
+        model = export.from_closed_form(base.space, craft, base.dt, newton_iters or 2, name=f"true_{base.scene_spec.name}")
     else:
         model = export.from_checkpoint(checkpoint or base.scene_spec.default_checkpoint, newton_iters)
-    if int(model.step.size1_in(0)) != FREE_BODY.state_dim:
-        raise ValueError(f"{model.name} is not a free-body model (its states have {model.step.size1_in(0)} entries)")
+    model.require(base.space, by=f"scene {base.scene_spec.name!r}")
     if abs(model.step_size - base.dt) > 1e-9:
         raise ValueError(f"the model's step {model.step_size} s differs from the env's control period {base.dt} s")
     return model
@@ -209,7 +206,7 @@ def flight_metrics(episode: Any, reference: Any, settle_s: float = 0.0,
     from fvin_mpc.control.closed_loop import episode_metrics
 
     states = episode.states
-    layout = FREE_BODY
+    layout = R3S3.layout
     wanted, _ = reference(episode.time)
     position_error = np.linalg.norm(states[:, :3] - wanted[:, :3], axis=1)
     cosine = np.clip(np.abs(np.sum(states[:, layout.quaternion] * wanted[:, layout.quaternion], axis=1)), 0.0, 1.0)

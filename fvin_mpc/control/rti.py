@@ -72,8 +72,8 @@ from fvin_mpc.control.buffered import BufferedFunction
 from fvin_mpc.control.export import ExportedModel, compile_functions
 from fvin_mpc.control.mpc import MPC, MPCSettings, _Plan
 from fvin_mpc.core import s3
-from fvin_mpc.core.backend import Ops, get_ops
-from fvin_mpc.control.state_layout import FREE_BODY, PIVOTED, StateLayout, layout_of
+from fvin_mpc.core.backend import get_ops
+from fvin_mpc.core.space import StateLayout, chart_local, chart_retract
 from fvin_mpc.core.state import unit_quaternion
 
 CA, NP = get_ops("casadi"), get_ops("numpy")
@@ -100,41 +100,22 @@ QP_MU_MIN = 1e-10
 OMEGA_VALID_FRACTION = 0.9
 
 
-# ----------------------------------------------------------------------------- S³ chart
-def chart_retract(q_bar: s3.Quat, theta: s3.Vec3, ops: Ops) -> s3.Quat:
-    """``q̄ ⊗ (1, θ)/√(1 + |θ|²)`` on components (:mod:`fvin_mpc.core.s3`, any backend)."""
-    return s3.scale(1.0 / ops.sqrt(1.0 + s3.dot(theta, theta)), s3.multiply(q_bar, (1.0, *theta)))
-
-
-def chart_local(q_bar: s3.Quat, q: s3.Quat) -> s3.Vec3:
-    """``Im(p)/Re(p)`` with ``p = q̄* ⊗ q`` — the inverse of :func:`chart_retract`, the same for ``±q``."""
-    p = s3.multiply(s3.conjugate(q_bar), q)
-    return tuple(component / p[0] for component in p[1:])
-
-
+# ----------------------------------------------------------------------------- S³ chart, symbolic
+# The chart itself (and its NumPy form on whole states, ``StateLayout.retract``/``local``) is the
+# configuration space's (:mod:`fvin_mpc.core.space`); these wrap it for CasADi columns.
 def retract(q_bar: Any, theta: Any) -> Any:
-    """:func:`chart_retract` for CasADi column vectors."""
+    """:func:`~fvin_mpc.core.space.chart_retract` for CasADi column vectors."""
     return ca.vertcat(*chart_retract(tuple(q_bar[i] for i in range(4)), tuple(theta[i] for i in range(3)), CA))
 
 
 def local(q_bar: Any, q: Any) -> Any:
-    """:func:`chart_local` for CasADi column vectors."""
+    """:func:`~fvin_mpc.core.space.chart_local` for CasADi column vectors."""
     return ca.vertcat(*chart_local(tuple(q_bar[i] for i in range(4)), tuple(q[i] for i in range(4))))
-
-
-def retract_np(q_bar: np.ndarray, theta: np.ndarray) -> np.ndarray:
-    """:func:`chart_retract` for arrays ``q̄ (…, 4)``, ``θ (…, 3)``."""
-    return np.stack(chart_retract(tuple(np.moveaxis(q_bar, -1, 0)), tuple(np.moveaxis(theta, -1, 0)), NP), axis=-1)
-
-
-def local_np(q_bar: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """:func:`chart_local` for arrays ``(…, 4)``."""
-    return np.stack(chart_local(tuple(np.moveaxis(q_bar, -1, 0)), tuple(np.moveaxis(q, -1, 0))), axis=-1)
 
 
 def retract_state(layout: StateLayout, x_bar: Any, delta: Any) -> Any:
     """A state from its linearization point ``x̄`` and local coordinates ``δ`` (CasADi columns): the
-    quaternion by :func:`retract`, every other entry by addition."""
+    quaternion by :func:`retract`, every other entry by addition (:meth:`StateLayout.retract`)."""
     a, qs = layout.before, layout.quaternion
     parts = [x_bar[:a] + delta[:a]] if a else []
     return ca.vertcat(*parts, retract(x_bar[qs], delta[layout.chart]), x_bar[qs.stop:] + delta[a + 3:])
@@ -145,20 +126,6 @@ def local_state(layout: StateLayout, x_bar: Any, x: Any) -> Any:
     a, qs = layout.before, layout.quaternion
     parts = [x[:a] - x_bar[:a]] if a else []
     return ca.vertcat(*parts, local(x_bar[qs], x[qs]), x[qs.stop:] - x_bar[qs.stop:])
-
-
-def retract_state_np(layout: StateLayout, x_bar: np.ndarray, delta: np.ndarray) -> np.ndarray:
-    """:func:`retract_state` for arrays ``x̄ (…, n)``, ``δ (…, n − 1)``."""
-    a, qs = layout.before, layout.quaternion
-    return np.concatenate([x_bar[..., :a] + delta[..., :a], retract_np(x_bar[..., qs], delta[..., layout.chart]),
-                           x_bar[..., qs.stop:] + delta[..., a + 3:]], axis=-1)
-
-
-def local_state_np(layout: StateLayout, x_bar: np.ndarray, x: np.ndarray) -> np.ndarray:
-    """:func:`local_state` for arrays ``(…, n)``."""
-    a, qs = layout.before, layout.quaternion
-    return np.concatenate([x[..., :a] - x_bar[..., :a], local_np(x_bar[..., qs], x[..., qs]),
-                           x[..., qs.stop:] - x_bar[..., qs.stop:]], axis=-1)
 
 
 def step_limits(layout: StateLayout, omega_step: float) -> np.ndarray:
@@ -325,8 +292,8 @@ class RealTimeMPC(MPC):
         if settings.solver != "rti":
             settings = MPCSettings(**{**settings.__dict__, "solver": "rti"})
         #: where the quaternion sits in the model's states (pivoted ``(q, ω)`` or free ``(x, q, v, ω)``)
-        self.layout = layout_of(int(model.step.size1_in(0)))
-        if self.layout is PIVOTED:  # the goal is an orientation, at rest
+        self.layout = model.space.layout
+        if model.space.pivoted:  # the goal is an orientation, at rest
             goal_state = np.concatenate([unit_quaternion(goal, "goal"), np.zeros(3)])
         else:  # the goal is a state: hover there
             goal_state = self.layout.check(goal)
@@ -365,8 +332,9 @@ class RealTimeMPC(MPC):
         # --- dynamics: e(δ, Δu) = F(x, u + d) in x̄_{k+1}'s chart
         implicit = s.rti_dynamics == "implicit"
         if implicit:
-            if layout is not PIVOTED or self.model.casadi_terms is None:
-                raise ValueError("rti_dynamics='implicit' needs a pivoted body with rigid-body terms "
+            if self.model.space.step_residual is None or self.model.casadi_terms is None:
+                raise ValueError(f"rti_dynamics='implicit' needs the step's own equations, which the "
+                                 f"{self.model.space.description} space does not provide, and rigid-body terms "
                                  f"(model {self.model.name!r}); use rti_dynamics='unrolled'")
             node_terms, term_layout = implicit_dynamics.node_terms_function(self.model.casadi_terms, retract)
             implicit_stage = implicit_dynamics.implicit_stage_function(self.model.casadi_terms, term_layout,
@@ -582,7 +550,7 @@ class RealTimeMPC(MPC):
         along the geodesic over the first third of the horizon, the reference's target controls;
         ``"rollout±"`` — the model rolled out under ``±f·u_max`` (clipped; for a quadrotor with a
         2 g thrust range ``+`` is about hover thrust, ``−`` free fall), ``ω`` clipped to its bound."""
-        if self.layout is PIVOTED:
+        if self.model.space.pivoted:
             return super()._first_guess(x0, start)
         n, layout = self.horizon, self.layout
         if start == "goal":
@@ -613,7 +581,7 @@ class RealTimeMPC(MPC):
         h, g, a, gaps, _, a0, s0 = linearization
         n, m, size, layout = self.horizon, self.model.control_dim, self._stage_size, self.layout
         nd = layout.tangent_dim
-        delta0 = local_state_np(layout, plan.states[0], x0)
+        delta0 = layout.local(plan.states[0], x0)
         gaps = -np.asarray(gaps, dtype=float).ravel()
         gaps[:nd] -= np.asarray(a0, dtype=float) @ delta0
         g = np.asarray(g, dtype=float).ravel()
@@ -637,7 +605,7 @@ class RealTimeMPC(MPC):
         steps = stages[:, m:]
         clipped = np.clip(steps, -self._step_limits, self._step_limits)
         deltas = np.vstack([delta0[None, :], clipped])
-        states = retract_state_np(layout, plan.states, deltas)
+        states = layout.retract(plan.states, deltas)
         states[:, layout.omega] = np.clip(states[:, layout.omega], -self._omega_valid, self._omega_valid)
         states[0] = x0
         controls = np.clip(plan.controls + stages[:, :m], self.torque_low, self.torque_high)

@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 
 from fvin_mpc.control.energy_shaping import EnergyShapingController, EnergyShapingNotApplicable, EnergyShapingSettings
-from fvin_mpc.control.export import ExportedModel, from_checkpoint, from_rigid_body
+from fvin_mpc.control.export import ExportedModel, from_checkpoint, from_closed_form
 from fvin_mpc.control.mpc import COLD_STARTS, MPC, MPCSettings
 from fvin_mpc.core.checkpoint import Checkpoint, load_checkpoint
 
@@ -154,16 +154,18 @@ def scene_model(env: Any, checkpoint: Any = None, true_model: bool = False,
     the env's control period.
 
     Raises:
-        ValueError: the model's step differs from the env's control period, or its number of
-            controls from the env's actuators.
+        ValueError: the model's states are not the env's (another configuration space's layout), its
+            step differs from the env's control period, or its number of controls from the env's
+            actuators.
     """
-    from fvin_mpc.core.rigid_body import from_mujoco
-
     base = env.unwrapped
     if true_model:
-        body = from_mujoco(base.model, base.body_name)
-        return from_rigid_body(body, base.dt, newton_iters or 2, name=f"true_{base.scene_spec.name}")
+        body = base.space.closed_form(base.model, base.body_name)
+        return from_closed_form(base.space, body, base.dt, newton_iters or 2, name=f"true_{base.scene_spec.name}")
     model = from_checkpoint(_checkpoint(checkpoint or base.scene_spec.default_checkpoint), newton_iters)
+    if model.space.layout != base.space.layout:
+        raise ValueError(f"model {model.name!r} is on {model.space.description}, states {model.space.layout.name}; "
+                         f"scene {base.scene_spec.name!r} observes {base.space.layout.name}")
     if abs(model.step_size - base.dt) > 1e-9:
         raise ValueError(f"the model's step {model.step_size} s differs from the scene's control period {base.dt} s; "
                          "make the env with scene_env(..., checkpoint=...) or pass a matching control period")

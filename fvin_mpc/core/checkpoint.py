@@ -7,11 +7,10 @@ A checkpoint ``name`` is two files: ``name.safetensors`` (float64 tensors, read 
      "configuration_space": "S3", "scene": "pendulum", "body": "pole", "data": {...},
      "training": {...}, "versions": {...}}
 
-``configuration_space`` says which model the weights belong to: ``"S3"`` (a pivoted body,
-:class:`~fvin_mpc.core.networks.ModelConfig`; also what a sidecar without the field means),
-``"R3xS3"`` (a free body, :class:`~fvin_mpc.core.networks_r3s3.R3S3Config`, whose ``model`` fields
-repeat it) or ``"SO3"`` (the paper's SO3FVIN baseline on a pivoted body,
-:class:`~fvin_mpc.core.networks_so3.SO3ModelConfig`).
+``configuration_space`` names the registered space the weights belong to
+(:func:`fvin_mpc.core.space.get_space`), which gives the config type: ``"S3"`` (a pivoted body; also
+what a sidecar without the field means), ``"SO3"`` (the paper's SO3FVIN baseline) or ``"R3xS3"`` (a
+free body). Sidecars written before the field existed for free bodies carry it inside ``model``.
 
 Every problem (missing file, truncated or malformed weights, bad JSON, weights that do
 not match the config) raises :class:`CheckpointError` with a one-line message naming it.
@@ -27,11 +26,10 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from fvin_mpc.core import networks, networks_r3s3, networks_so3
-from fvin_mpc.core.networks import ModelConfig
+from fvin_mpc.core.space import ConfigurationSpace, get_space, require, space_of_config
 
-#: A checkpoint's model configuration: pivoted (S³), free body (R³ × S³) or the SO(3) baseline.
-AnyConfig = ModelConfig | networks_r3s3.R3S3Config | networks_so3.SO3ModelConfig
+#: A checkpoint's model configuration: the config type of one registered configuration space.
+AnyConfig = Any
 
 FORMAT = "fvin_mpc.checkpoint/1"
 #: Where the shipped checkpoints live (next to the package in a source checkout or
@@ -57,37 +55,31 @@ class Checkpoint:
         return self.metadata.get("scene")
 
     @property
+    def space(self) -> ConfigurationSpace:
+        """The configuration space of the model (the config's)."""
+        return space_of_config(self.config)
+
+    @property
     def configuration_space(self) -> str:
-        """``"S3"``, ``"R3xS3"`` or ``"SO3"``."""
-        return configuration_space(self.config)
+        """The space's name, as written in the sidecar."""
+        return self.space.name
+
+    def require(self, *supported: ConfigurationSpace, by: str) -> None:
+        """``ValueError`` unless the model is on one of ``supported`` (code written for some spaces
+        refuses the others' checkpoints this way)."""
+        require(self.space, supported, by, f"checkpoint {self.path.name if self.path else '(unsaved)'!r}")
 
 
 def configuration_space(config: AnyConfig) -> str:
-    """``"R3xS3"`` for a free-body config, ``"SO3"`` for an SO3FVIN one, ``"S3"`` for a pivoted one."""
-    if isinstance(config, networks_r3s3.R3S3Config):
-        return networks_r3s3.CONFIGURATION_SPACE
-    if isinstance(config, networks_so3.SO3ModelConfig):
-        return networks_so3.CONFIGURATION_SPACE
-    return "S3"
+    """The name of ``config``'s configuration space."""
+    return space_of_config(config).name
 
 
-def _check_weights(weights: Mapping[str, Any], config: AnyConfig) -> None:
-    if isinstance(config, networks_r3s3.R3S3Config):
-        networks_r3s3.check_weights(weights, config)
-    elif isinstance(config, networks_so3.SO3ModelConfig):
-        networks_so3.check_weights(weights, config)
-    else:
-        networks.check_weights(weights, config)
-
-
-def _config_from_dict(model: Mapping[str, Any], space: Any) -> AnyConfig:
-    if space == networks_r3s3.CONFIGURATION_SPACE or model.get("configuration_space") == networks_r3s3.CONFIGURATION_SPACE:
-        return networks_r3s3.R3S3Config.from_dict(model)
-    if space == networks_so3.CONFIGURATION_SPACE:
-        return networks_so3.SO3ModelConfig.from_dict(model)
-    if space not in (None, "S3"):
-        raise ValueError(f"unknown configuration_space {space!r}")
-    return ModelConfig.from_dict(model)
+def _config_from_dict(model: Mapping[str, Any], space_name: Any) -> AnyConfig:
+    # R³ × S³ configs once carried the space among their own fields too; it is the sidecar's now.
+    fields = dict(model)
+    inner = fields.pop("configuration_space", None)
+    return get_space(space_name if space_name is not None else inner).config_from_dict(fields)
 
 
 _SUFFIXES = (".safetensors", ".json")
@@ -129,7 +121,7 @@ def save_checkpoint(path: str | Path, config: AnyConfig, weights: Mapping[str, n
     """Write ``path.safetensors`` and ``path.json``; returns the stem."""
     from safetensors.numpy import save_file
 
-    _check_weights(weights, config)
+    space_of_config(config).check_weights(weights, config)
     stem = _stem(path)
     stem.parent.mkdir(parents=True, exist_ok=True)
     arrays = {name: np.ascontiguousarray(np.asarray(value, dtype=np.float64)) for name, value in weights.items()}
@@ -169,7 +161,7 @@ def load_checkpoint(name_or_path: str | Path) -> Checkpoint:
     if expected_digest is not None and expected_digest != weights_digest(weights_path):
         raise CheckpointError(f"{weights_path}: SHA-256 differs from the sidecar's weights_sha256 (corrupted or replaced)")
     try:
-        _check_weights(weights, config)
+        space_of_config(config).check_weights(weights, config)
     except ValueError as error:
         raise CheckpointError(f"{weights_path}: {error}") from None
     for name, value in weights.items():

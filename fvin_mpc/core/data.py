@@ -1,34 +1,78 @@
-"""Trajectory data sets: ``.npz`` files of ``(q, ω, u)`` with their metadata.
+"""Trajectory data sets of any configuration space: ``.npz`` files of states and controls with metadata.
 
-Arrays (``N`` trajectories of ``T`` steps, ``m`` controls):
-``q (N, T+1, 4)``, ``omega (N, T+1, 3)``, ``u (N, T, m)``; ``metadata`` is a JSON
-string (scene, body, control period, seed, counts, control modes).
+Arrays (``N`` trajectories of ``T`` steps, ``m`` controls, states of ``n`` entries in the layout of
+the data's configuration space, :mod:`fvin_mpc.core.space`): ``state (N, T+1, n)`` and
+``u (N, T, m)``; ``metadata`` is a JSON string (scene, body, control period, seed, counts, control
+modes, and ``configuration_space``: the space's name — files without it are S³ data).
 
-:class:`Trajectories` is what every layout shares (counts, control period, subsets, windows, the
-``.npz`` files); the free-body layout is :class:`fvin_mpc.core.free_body_data.FreeBodyData`.
+Files written before states were stored whole hold a pivoted body's ``q (N, T+1, 4)`` and
+``omega (N, T+1, 3)`` instead of ``state``; :func:`load_data` reads both.
 """
 
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping
 
 import numpy as np
 
+from fvin_mpc.core.space import ConfigurationSpace, get_space
 
+#: The command that makes a data file (named in the error for a missing one).
+HOW_TO_MAKE = "python -m fvin_mpc.collect"
+
+
+@dataclass(frozen=True)
 class Trajectories:
-    """Base of the trajectory data sets (frozen dataclasses): per-trajectory arrays whose first
-    axis counts trajectories — states ``(N, T+1, …)`` and the controls ``u (N, T, m)`` — and
-    ``metadata`` (``control_period`` at least)."""
+    """``N`` trajectories of one configuration space: ``state (N, T+1, n)``, ``u (N, T, m)`` and
+    ``metadata`` (``control_period`` at least; ``configuration_space`` names the space, default S³).
 
+    The *training layout* splits a state into its quaternion ``q`` and the ``rest`` (every other
+    entry, in state order: ``ω`` for a pivoted body, ``(x, v, ω)`` for a free one):
+    :meth:`windows` yields it and :meth:`from_parts` builds data from it.
+    """
+
+    state: np.ndarray
     u: np.ndarray
     metadata: dict[str, Any]
 
-    def _state_arrays(self) -> tuple[np.ndarray, ...]:
-        """The state arrays ``(N, T+1, …)`` in field order."""
-        return tuple(getattr(self, f.name) for f in fields(self) if f.name not in ("u", "metadata"))  # type: ignore[arg-type]
+    def __post_init__(self) -> None:
+        n = self.space.state_dim
+        if self.state.ndim != 3 or self.state.shape[2] != n or self.u.ndim != 3 \
+                or self.u.shape[:2] != (self.state.shape[0], self.state.shape[1] - 1):
+            raise ValueError(f"inconsistent trajectory shapes for {self.space.description}: state {self.state.shape} "
+                             f"(expected (N, T+1, {n})), u {self.u.shape} (expected (N, T, m))")
+
+    @classmethod
+    def from_parts(cls, q: np.ndarray, rest: np.ndarray, u: np.ndarray, metadata: Mapping[str, Any],
+                   space: ConfigurationSpace | str | None = None) -> "Trajectories":
+        """Data from the training layout ``q (N, T+1, 4)``, ``rest (N, T+1, n − 4)`` (a pivoted body's
+        ``rest`` is ``ω``); ``space`` defaults to the metadata's (S³ if it names none)."""
+        space = get_space(space if space is not None else metadata.get("configuration_space"))
+        q, rest = np.asarray(q, dtype=np.float64), np.asarray(rest, dtype=np.float64)
+        return cls(space.layout.join(q, rest), np.asarray(u, dtype=np.float64),
+                   {**metadata, "configuration_space": space.name})
+
+    @property
+    def space(self) -> ConfigurationSpace:
+        return get_space(self.metadata.get("configuration_space"))
+
+    @property
+    def q(self) -> np.ndarray:
+        """The orientations ``(N, T+1, 4)``."""
+        return self.state[..., self.space.layout.quaternion]
+
+    @property
+    def omega(self) -> np.ndarray:
+        """The body angular velocities ``(N, T+1, 3)``."""
+        return self.state[..., self.space.layout.omega]
+
+    @property
+    def rest(self) -> np.ndarray:
+        """Every entry but the quaternion ``(N, T+1, n − 4)`` (the training layout)."""
+        return self.space.layout.split(self.state)[1]
 
     @property
     def num_trajectories(self) -> int:
@@ -42,67 +86,47 @@ class Trajectories:
     def control_period(self) -> float:
         return float(self.metadata["control_period"])
 
-    def subset(self, indices: np.ndarray) -> Any:
-        """The trajectories ``indices`` (same type, a copy of the metadata)."""
-        arrays = {f.name: getattr(self, f.name)[indices] for f in fields(self) if f.name != "metadata"}  # type: ignore[arg-type]
-        return type(self)(**arrays, metadata=dict(self.metadata))
+    def subset(self, indices: np.ndarray) -> "Trajectories":
+        """The trajectories ``indices`` (a copy of the metadata)."""
+        return Trajectories(self.state[indices], self.u[indices], dict(self.metadata))
 
-    def windows(self, length: int) -> tuple[np.ndarray, ...]:
-        """All overlapping windows of ``length`` steps: each state array ``(W, length+1, …)`` in field
-        order, then ``u (W, length, m)``."""
+    def windows(self, length: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """All overlapping windows of ``length`` steps in the training layout: ``q (W, length+1, 4)``,
+        ``rest (W, length+1, n − 4)`` and ``u (W, length, m)``."""
         steps = self.u.shape[1]
         if not 1 <= length <= steps:
             raise ValueError(f"window length {length} must be in [1, {steps}]")
         starts = range(steps - length + 1)
-        states = tuple(np.concatenate([a[:, s : s + length + 1] for s in starts]) for a in self._state_arrays())
-        return (*states, np.concatenate([self.u[:, s : s + length] for s in starts]))
+        states = np.concatenate([self.state[:, s : s + length + 1] for s in starts])
+        q, rest = self.space.layout.split(states)
+        return q, rest, np.concatenate([self.u[:, s : s + length] for s in starts])
 
 
-def save_arrays(path: str | Path, arrays: Mapping[str, np.ndarray], metadata: Mapping[str, Any]) -> Path:
-    """Write ``arrays`` and ``metadata`` (as a JSON string) to a compressed ``.npz``."""
+def save_data(path: str | Path, data: Trajectories) -> Path:
+    """Write ``data`` to a compressed ``.npz`` (the metadata as a JSON string, naming the space)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    np.savez_compressed(path, **arrays, metadata=json.dumps(metadata))
+    metadata = {**data.metadata, "configuration_space": data.space.name}
+    np.savez_compressed(path, state=data.state, u=data.u, metadata=json.dumps(metadata))
     return path
 
 
-def load_arrays(path: str | Path, names: tuple[str, ...], kind: str, how_to_make: str) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
-    """The float64 arrays ``names`` and the metadata of a file written by :func:`save_arrays`;
-    ``FileNotFoundError`` saying ``how_to_make`` one, ``ValueError`` when one is missing."""
+def load_data(path: str | Path) -> Trajectories:
+    """Read a file written by :func:`save_data` (or an older pivoted ``q``/``omega`` file).
+
+    Raises:
+        FileNotFoundError: no such file (the message says how to make one).
+        ValueError: not a data file, or arrays inconsistent with the named space.
+    """
     path = Path(path)
     if not path.exists():
-        raise FileNotFoundError(f"data file not found: {path} (make one with `{how_to_make}`)")
+        raise FileNotFoundError(f"data file not found: {path} (make one with `{HOW_TO_MAKE}`)")
     with np.load(path, allow_pickle=False) as archive:
-        missing = {*names, "metadata"} - set(archive.files)
-        if missing:
-            raise ValueError(f"{path}: not a {kind} file (missing {sorted(missing)})")
-        return ({name: archive[name].astype(np.float64) for name in names},
-                json.loads(str(archive["metadata"])))
-
-
-@dataclass(frozen=True)
-class TrajectoryData(Trajectories):
-    q: np.ndarray
-    omega: np.ndarray
-    u: np.ndarray
-    metadata: dict[str, Any]
-
-    def __post_init__(self) -> None:
-        n, t1 = self.q.shape[:2]
-        if self.q.shape != (n, t1, 4) or self.omega.shape != (n, t1, 3) or self.u.shape[:2] != (n, t1 - 1):
-            raise ValueError(
-                f"inconsistent trajectory shapes q {self.q.shape}, omega {self.omega.shape}, u {self.u.shape}"
-            )
-
-    def windows(self, length: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # type: ignore[override]
-        """All overlapping windows of ``length`` steps: ``q (W, length+1, 4)``, ``ω``, ``u (W, length, m)``."""
-        return super().windows(length)  # type: ignore[return-value]
-
-
-def save_data(path: str | Path, data: TrajectoryData) -> Path:
-    return save_arrays(path, {"q": data.q, "omega": data.omega, "u": data.u}, data.metadata)
-
-
-def load_data(path: str | Path) -> TrajectoryData:
-    arrays, metadata = load_arrays(path, ("q", "omega", "u"), "fvin_mpc data", "python -m fvin_mpc.collect")
-    return TrajectoryData(**arrays, metadata=metadata)
+        files = set(archive.files)
+        if "metadata" not in files or "u" not in files or not ("state" in files or {"q", "omega"} <= files):
+            raise ValueError(f"{path}: not an fvin_mpc data file (arrays {sorted(files)})")
+        metadata = json.loads(str(archive["metadata"]))
+        u = archive["u"].astype(np.float64)
+        if "state" in files:
+            return Trajectories(archive["state"].astype(np.float64), u, metadata)
+        return Trajectories.from_parts(archive["q"], archive["omega"], u, metadata)

@@ -39,10 +39,6 @@ from fvin_mpc.core import networks, s3
 from fvin_mpc.core.backend import Ops
 from fvin_mpc.core.networks import VARIANTS, Variant, mlp, scalar_mlp_value_and_gradient
 
-#: ``configuration_space`` of an R³ × S³ model (checkpoint metadata); pivoted models are ``"S3"``.
-CONFIGURATION_SPACE = "R3xS3"
-
-
 @dataclass(frozen=True)
 class R3S3Config(networks.DictConfig):
     """Architecture and integration settings of a learned R³ × S³ model.
@@ -59,7 +55,6 @@ class R3S3Config(networks.DictConfig):
         position_in_forces: ``F_x`` and ``g`` see ``(x, q)`` instead of ``q`` only.
         force_frame: ``"body"`` (``F_x = R(q) G_b u``) or ``"world"`` (``F_x = G_x u``); module docstring.
         mass_epsilon, inertia_epsilon: ``ε`` of the Cholesky parametrizations.
-        configuration_space: always :data:`CONFIGURATION_SPACE` (written to checkpoints).
     """
 
     variant: Variant = "fixed-inertia"
@@ -73,15 +68,12 @@ class R3S3Config(networks.DictConfig):
     force_frame: str = "body"
     mass_epsilon: float = 1e-6
     inertia_epsilon: float = 1e-8
-    configuration_space: str = CONFIGURATION_SPACE
 
     def __post_init__(self) -> None:
         from fvin_mpc.core.fvin_r3s3 import FORCE_RULES
 
         if self.variant not in VARIANTS:
             raise ValueError(f"unknown variant {self.variant!r}; expected one of {VARIANTS}")
-        if self.configuration_space != CONFIGURATION_SPACE:
-            raise ValueError(f"configuration_space must be {CONFIGURATION_SPACE!r}, got {self.configuration_space!r}")
         if self.force_frame not in ("body", "world"):
             raise ValueError(f"force_frame must be 'body' or 'world', got {self.force_frame!r}")
         if self.force_rule not in FORCE_RULES:

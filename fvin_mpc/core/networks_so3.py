@@ -157,9 +157,3 @@ class LearnedSO3Terms:
 
     def dissipation(self, r: so3.Mat3) -> so3.Mat3 | None:
         return None
-
-
-# ---------------------------------------------------------------------------- checkpoints
-#: The sidecar's ``configuration_space`` of an SO3FVIN checkpoint (:mod:`fvin_mpc.core.checkpoint`'s field).
-CONFIGURATION_SPACE = "SO3"
-

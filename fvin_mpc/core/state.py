@@ -1,15 +1,15 @@
-"""The state convention at every numeric boundary, and the one validator for measured states.
+"""Array checks at numeric boundaries, and the pivoted body's state split.
 
-A state is one float64 array ``x`` of shape ``(7,)``: ``x = (q_w, q_x, q_y, q_z, ω_x, ω_y, ω_z)``,
-the orientation quaternion (Hamilton, ``(w, x, y, z)``, MuJoCo's order) followed by the body-frame
-angular velocity (rad/s) — ``DESIGN.md``'s ``x = (q, ω)``. Environments observe it, models step it,
-controllers and energies take it. Inside the math core the two parts travel as tuples of
-components (``fvin_mpc.core.s3``); :func:`split_state` is the one place a state is cut in two.
+A pivoted body's state is one float64 array ``x = (q_w, q_x, q_y, q_z, ω_x, ω_y, ω_z)``, the
+orientation quaternion (Hamilton, ``(w, x, y, z)``, MuJoCo's order) followed by the body-frame
+angular velocity (rad/s) — ``DESIGN.md``'s ``x = (q, ω)``; other configuration spaces place the
+quaternion elsewhere (:class:`fvin_mpc.core.space.StateLayout`). Inside the math core the parts
+travel as tuples of components (``fvin_mpc.core.s3``).
 
-Policy for measured states (:func:`check_state`): a quaternion within
-:data:`UNIT_NORM_TOLERANCE` of unit norm is normalized (float32 observations, sensor rounding);
-anything further raises ``ValueError`` — a non-unit ``q`` is not a rotation, and silently
-normalizing a wrong one would hide a bug upstream. NaN/inf or a wrong shape raise too.
+Policy for measured states (:meth:`fvin_mpc.core.space.StateLayout.check`, the one check): a
+quaternion within :data:`UNIT_NORM_TOLERANCE` of unit norm is normalized (float32 observations,
+sensor rounding); anything further raises ``ValueError`` — a non-unit ``q`` is not a rotation, and
+silently normalizing a wrong one would hide a bug upstream. NaN/inf or a wrong shape raise too.
 """
 
 from __future__ import annotations
@@ -18,8 +18,6 @@ from typing import Any
 
 import numpy as np
 
-#: Entries of a state ``x = (q, ω)``.
-STATE_DIM = 7
 #: How far a measured quaternion's norm may be from 1 before it is refused.
 UNIT_NORM_TOLERANCE = 1e-3
 #: The identity rotation ``(w, x, y, z)``.
@@ -43,27 +41,13 @@ def unit_quaternion(value: Any, name: str = "quaternion") -> np.ndarray:
     """A given orientation (goal, rest, a joint's qpos) as a unit quaternion ``(4,)``.
 
     Any finite non-zero 4-vector is accepted and normalized: this is for orientations a user
-    writes down, not for measurements (see :func:`check_state`).
+    writes down, not for measurements (see :meth:`fvin_mpc.core.space.StateLayout.check`).
     """
     q = as_float_array(value, (4,), name)
     norm = float(np.linalg.norm(q))
     if norm < 1e-12:
         raise ValueError(f"{name} must be a non-zero quaternion (w, x, y, z), got {q}")
     return q / norm
-
-
-def check_state(x: Any) -> np.ndarray:
-    """Validate a measured state ``x (7,)``; returns a float64 copy with ``q`` of unit norm.
-
-    Raises:
-        ValueError: wrong shape, NaN/inf, or ``|‖q‖ − 1| > UNIT_NORM_TOLERANCE``.
-    """
-    x = as_float_array(x, (STATE_DIM,), "state x = (q, ω)")
-    norm = float(np.linalg.norm(x[:4]))
-    if abs(norm - 1.0) > UNIT_NORM_TOLERANCE:
-        raise ValueError(f"q is not a unit quaternion (|q| = {norm:.6g}; tolerance {UNIT_NORM_TOLERANCE})")
-    x[:4] /= norm
-    return x
 
 
 def split_state(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -12,17 +12,13 @@ of the trajectories use each mode. Everything is seeded.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
-
 import math
+from typing import Any
 
 import numpy as np
 
 from fvin_mpc.core import s3
-from fvin_mpc.core.data import TrajectoryData
-
-if TYPE_CHECKING:
-    from fvin_mpc.core.free_body_data import FreeBodyData
+from fvin_mpc.core.data import Trajectories
 
 
 def _joint_kind(env: Any) -> str:
@@ -80,7 +76,7 @@ def collect(scene: str = "pendulum", trajectories: int = 320, steps: int = 20, s
             max_omega: float = 6.0, hold_steps: int = 4, body: str | None = None,
             progress: bool = True, control_period: float | None = None, max_speed: float | None = None,
             max_attempts_factor: int = 50, near_goal_trajectories: int = 0, near_goal_angle: float = 1.0,
-            near_goal_omega: float = 2.0) -> TrajectoryData:
+            near_goal_omega: float = 2.0) -> Trajectories:
     """Roll out ``trajectories`` seeded episodes of ``steps`` control periods in the scene.
 
     Each trajectory starts from a uniformly random joint state (|ω| ≤ ``max_omega``) under one
@@ -159,7 +155,7 @@ def collect(scene: str = "pendulum", trajectories: int = 320, steps: int = 20, s
         metadata.update(max_speed=max_speed, attempts=attempts, acceptance_rate=trajectories / attempts,
                         collector=SPEED_BOUNDED)
     env.close()
-    return TrajectoryData(qs, omegas, us, metadata)
+    return Trajectories.from_parts(qs, omegas, us, metadata)
 
 
 #: ``metadata["collector"]`` of free-body data flown by a perturbed stabilizing controller.
@@ -169,7 +165,7 @@ STABILIZED_FLIGHT = "stabilized-flight"
 def collect_quadrotor(scene: str = "quadrotor", trajectories: int = 300, steps: int = 50, seed: int = 0,
                       max_omega: float = 10.0, tumbling_fraction: float = 0.5, waypoint_radius: float = 1.0,
                       waypoint_steps: int = 25, noise_fraction: float = 0.35, hold_steps: int = 2,
-                      max_distance: float = 6.0, progress: bool = True) -> "FreeBodyData":
+                      max_distance: float = 6.0, progress: bool = True) -> Trajectories:
     """Fly ``trajectories`` seeded episodes of ``steps`` control periods in a free-body scene.
 
     Each episode flies :class:`~fvin_mpc.core.quadrotor.GeometricController` (the closed-form craft
@@ -183,14 +179,13 @@ def collect_quadrotor(scene: str = "quadrotor", trajectories: int = 300, steps: 
     [0.6, 1.4] so that the data do not follow one closed loop. Episodes that get farther than
     ``max_distance`` from the hover point are flown again with fresh draws (metadata: the count).
 
-    Returns :class:`~fvin_mpc.core.free_body_data.FreeBodyData` (``state (N, steps+1, 13)``, ``u (N, steps, 4)``).
+    Returns :class:`~fvin_mpc.core.data.Trajectories` on R³ × S³ (``state (N, steps+1, 13)``, ``u (N, steps, 4)``).
     """
     from dataclasses import replace as _replace
 
     from tqdm.auto import tqdm
 
     from fvin_mpc.core import s3
-    from fvin_mpc.core.free_body_data import FreeBodyData
     from fvin_mpc.core.quadrotor import GeometricController, from_mujoco
     from fvin_mpc.envs import QuadrotorEnv
     from fvin_mpc.envs.quadrotor_env import uniform_in_ball
@@ -252,4 +247,4 @@ def collect_quadrotor(scene: str = "quadrotor", trajectories: int = 300, steps: 
         },
     }
     env.close()
-    return FreeBodyData(states, controls, metadata)
+    return Trajectories(states, controls, {**metadata, "configuration_space": env.space.name})

@@ -1,8 +1,8 @@
 """Train a learned model on trajectory data (the library behind ``python -m fvin_mpc.train``).
 
-One loop (:func:`train`) for every model: S3FVIN by default, the SO3FVIN baseline
-(:mod:`fvin_mpc.learning.model_so3`) and the free-body R³ × S³ model
-(:mod:`fvin_mpc.learning.training_r3s3`) through its ``model_factory`` and ``window_tensors``.
+One loop (:func:`train`) for every model: by default the model of the config's configuration space
+(:func:`fvin_mpc.learning.model.model_for`: S³, the SO3FVIN baseline, the free-body R³ × S³ model),
+or any model a ``model_factory`` makes (the MLP baseline).
 
 Loss: multi-step rollout over windows of ``window`` steps, the sign-invariant
 orientation error ``4(1 − ⟨q̂, q⟩²)`` (≈ squared angle error in rad²) plus
@@ -36,7 +36,7 @@ from typing import Any, Callable, Literal, Mapping
 
 import numpy as np
 
-from fvin_mpc.core.data import TrajectoryData
+from fvin_mpc.core.data import Trajectories
 from fvin_mpc.core.networks import ModelConfig
 from fvin_mpc.learning.timing import torch_threads
 
@@ -148,7 +148,7 @@ def scene_stem(scene: str) -> str:
     return name[:-4] if name.lower().endswith(".xml") else name
 
 
-def default_checkpoint_stem(data: TrajectoryData, variant: str, directory: Path = Path("checkpoints")) -> Path:
+def default_checkpoint_stem(data: Trajectories, variant: str, directory: Path = Path("checkpoints")) -> Path:
     """``checkpoints/<scene stem>_<variant>`` for data collected in ``data.metadata['scene']``."""
     return directory / f"{scene_stem(data.metadata.get('scene', 'unknown'))}_{variant}"
 
@@ -382,8 +382,8 @@ def train(data: Any, config: Any, settings: TrainSettings, progress: bool = True
     """Train a model; returns ``(model, report)`` with losses, timings, threads and machine load.
 
     One loop for every model: ``data`` is anything with ``subset``, ``windows``, ``u``,
-    ``control_period`` and ``num_trajectories`` (:class:`~fvin_mpc.core.data.TrajectoryData`,
-    :class:`~fvin_mpc.core.free_body_data.FreeBodyData`), the model anything with ``weights``
+    ``control_period`` and ``num_trajectories`` (:class:`~fvin_mpc.core.data.Trajectories` of any
+    space), the model anything with ``weights``
     (a ``ParameterDict``), ``parameters()`` and ``rollout(q0, rest0, controls, step=None) → (q, rest)``
     scored by :func:`rollout_loss`.
 
@@ -391,7 +391,7 @@ def train(data: Any, config: Any, settings: TrainSettings, progress: bool = True
         data, config, settings, progress: what to train on, the architecture, the optimization,
             whether to show a progress bar.
         model_factory: called as ``model_factory(config, seed=settings.seed)`` for the model to
-            train (a model class will do); default :class:`~fvin_mpc.learning.model.S3FVIN`.
+            train (a model class will do); default :func:`~fvin_mpc.learning.model.model_for`.
         window_tensors: ``(model, subset, window) → tensors`` for :func:`rollout_loss` (``q``, the
             rest of the state, ``u``) from a split of ``data``; default :func:`trajectory_windows`.
     """
@@ -407,13 +407,17 @@ def train(data: Any, config: Any, settings: TrainSettings, progress: bool = True
     return model, report
 
 
-def trajectory_windows(model: Any, data: TrajectoryData, window: int) -> tuple[Any, ...]:
-    """``data``'s windows of ``window`` steps as float64 tensors ``(q, ω, u)`` (any pivoted model)."""
+def trajectory_windows(model: Any, data: Trajectories, window: int) -> tuple[Any, ...]:
+    """``data``'s windows of ``window`` steps as float64 tensors in ``model``'s training layout:
+    ``(q, rest, u)``, ``rest`` scaled by the model's ``rest_scale`` where it has one (a pivoted body's
+    ``rest`` is ``ω``)."""
     import torch
 
     from fvin_mpc.learning.model import DTYPE
 
-    return tuple(torch.as_tensor(a, dtype=DTYPE) for a in data.windows(window))
+    q, rest, u = (torch.as_tensor(a, dtype=DTYPE) for a in data.windows(window))
+    scale = getattr(model, "rest_scale", None)
+    return q, rest if scale is None else rest * scale, u
 
 
 def _train(data: Any, config: Any, settings: TrainSettings, progress: bool, model_factory: Callable[..., Any] | None,
@@ -421,14 +425,14 @@ def _train(data: Any, config: Any, settings: TrainSettings, progress: bool, mode
     import torch
     from tqdm.auto import tqdm
 
-    from fvin_mpc.learning.model import S3FVIN
+    from fvin_mpc.learning.model import model_for
 
     if abs(data.control_period - config.step_size) > 1e-12:
         raise ValueError(f"model step {config.step_size} differs from the data's control period {data.control_period}")
     if data.u.shape[2] != config.control_dim:
         raise ValueError(f"data has {data.u.shape[2]} controls, the model config {config.control_dim}")
     torch.manual_seed(settings.seed)
-    model = (model_factory or S3FVIN)(config, seed=settings.seed)
+    model = (model_factory or model_for)(config, seed=settings.seed)
     train_set, validation_set = split_data(data, settings.validation_fraction, settings.seed)
     train_windows = window_tensors(model, train_set, settings.window)
     validation_windows = window_tensors(model, validation_set, settings.window)
@@ -514,7 +518,7 @@ def _train(data: Any, config: Any, settings: TrainSettings, progress: bool, mode
     return model, report
 
 
-def split_losses(weights: Mapping[str, Any], config: ModelConfig, data: TrajectoryData,
+def split_losses(weights: Mapping[str, Any], config: ModelConfig, data: Trajectories,
                  settings: TrainSettings = TrainSettings()) -> tuple[float, float]:
     """``(train, validation)`` rollout losses of a model with ``weights`` on ``data``, split and
     windowed as :func:`train` does with ``settings`` (e.g. a shipped checkpoint on new data)."""

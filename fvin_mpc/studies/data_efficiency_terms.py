@@ -32,6 +32,7 @@ from typing import Any
 
 import numpy as np
 
+from fvin_mpc.core.space import S3
 from fvin_mpc.studies import data_efficiency as study
 from fvin_mpc.studies.report import StudyResult
 
@@ -53,7 +54,7 @@ def hemisphere_errors(variant: str, stem: Path) -> dict[str, float]:
         true_potential,
     )
 
-    paper_model = next(m for m in MODELS if m.space == "S3" and m.variant == variant)
+    paper_model = next(m for m in MODELS if m.space is S3 and m.variant == variant)
     checkpoint = load_checkpoint(stem)
     truth = true_potential(HINGE_ANGLES)
     span = float(np.ptp(truth))

@@ -27,9 +27,8 @@ import numpy as np
 from fvin_mpc.core import fvin
 from fvin_mpc.core.backend import get_ops
 from fvin_mpc.core.checkpoint import Checkpoint, load_checkpoint
-from fvin_mpc.core.data import TrajectoryData
-from fvin_mpc.core.networks import LearnedTerms
-from fvin_mpc.studies.quality import fit_scale, rollout, rollout_error
+from fvin_mpc.core.data import Trajectories
+from fvin_mpc.studies.quality import fit_scale, learned_terms, rollout, rollout_error
 
 NP = get_ops("numpy")
 
@@ -70,7 +69,7 @@ def axis_angles_deg(learned_axes: np.ndarray, true_axes: np.ndarray) -> np.ndarr
 
 def recover_inertia(checkpoint: Checkpoint, body: Any, quaternions: np.ndarray, rest: np.ndarray) -> dict[str, Any]:
     """Learned ``J``, ``U``, ``g`` against ``body`` after fixing λ on ``g`` (see the module docstring)."""
-    learned = LearnedTerms(checkpoint.weights, checkpoint.config, NP)
+    learned = learned_terms(checkpoint)
     true = body.terms(NP)
     q = _components(quaternions)
     scale = fit_scale(learned, true, quaternions)
@@ -139,7 +138,7 @@ def recover_inertia(checkpoint: Checkpoint, body: Any, quaternions: np.ndarray, 
 
 def energy_drift(checkpoint: Checkpoint, body: Any, count: int, steps: int, max_omega: float, seed: int) -> dict[str, Any]:
     """Unforced rollouts of the learned model from ``count`` random states (|ω| ≤ ``max_omega``)."""
-    terms = LearnedTerms(checkpoint.weights, checkpoint.config, NP)
+    terms = learned_terms(checkpoint)
     true = body.terms(NP)
     rng = np.random.default_rng(seed)
     q0 = uniform_quaternions(count, seed)
@@ -185,7 +184,7 @@ def solvability_limit(inertia: np.ndarray, step_size: float, directions: np.ndar
     return np.where(first_failure > 0, radii[np.maximum(first_failure - 1, 0)], 0.0)
 
 
-def true_rollout_error(body: Any, step_size: float, newton_iters: int, data: TrajectoryData, horizon: int) -> dict[str, Any]:
+def true_rollout_error(body: Any, step_size: float, newton_iters: int, data: Trajectories, horizon: int) -> dict[str, Any]:
     """:func:`fvin_mpc.studies.quality.rollout_error` of the closed-form body (the integrator's own error)."""
     from fvin_mpc.core import s3
 
@@ -203,7 +202,7 @@ def true_rollout_error(body: Any, step_size: float, newton_iters: int, data: Tra
     }
 
 
-def report(checkpoint: Checkpoint | str | Path, data: TrajectoryData, horizon: int = 20, samples: int = 512,
+def report(checkpoint: Checkpoint | str | Path, data: Trajectories, horizon: int = 20, samples: int = 512,
            energy_steps: int = 400, seed: int = 0) -> dict[str, Any]:
     """Everything in the module docstring for one checkpoint, as a JSON-ready dict."""
     if not isinstance(checkpoint, Checkpoint):
@@ -228,7 +227,7 @@ def solvability_summary(checkpoint: Checkpoint, body: Any, seed: int = 0, direct
     h = checkpoint.config.step_size
     sampled = uniform_quaternions(directions, seed + 1)[:, 1:]
     sampled = np.vstack([np.eye(3), sampled / np.linalg.norm(sampled, axis=1, keepdims=True)])
-    learned = LearnedTerms(checkpoint.weights, checkpoint.config, NP)
+    learned = learned_terms(checkpoint)
     j_learned = np.moveaxis(np.array(learned.inertia(_components(uniform_quaternions(256, seed))), dtype=float), -1, 0).mean(0)
     out: dict[str, Any] = {"step_size": h, "isotropic_limit": 1.0 / h}
     for name, inertia in (("true", np.array(body.inertia)), ("learned", j_learned)):

@@ -20,8 +20,9 @@ import numpy as np
 from fvin_mpc.core import fvin, s3
 from fvin_mpc.core.backend import get_ops
 from fvin_mpc.core.checkpoint import Checkpoint
-from fvin_mpc.core.data import TrajectoryData
+from fvin_mpc.core.data import Trajectories
 from fvin_mpc.core.networks import LearnedTerms
+from fvin_mpc.core.space import S3
 
 NP = get_ops("numpy")
 
@@ -45,14 +46,21 @@ def rollout(terms: Any, step_size: float, newton_iters: int, q0: np.ndarray, ome
     return np.stack(qs, 1), np.stack(omegas, 1), np.stack(residuals, 1)
 
 
-def rollout_error(checkpoint: Checkpoint, data: TrajectoryData, horizon: int | None = None,
+def learned_terms(checkpoint: Checkpoint) -> LearnedTerms:
+    """The checkpoint's NumPy terms; the quality studies compare ``J(q)``, ``U(q)``, ``g(q)`` on S³
+    and refuse other spaces' checkpoints."""
+    checkpoint.require(S3, by="the model-quality study")
+    return LearnedTerms(checkpoint.weights, checkpoint.config, NP)
+
+
+def rollout_error(checkpoint: Checkpoint, data: Trajectories, horizon: int | None = None,
                   terms: Any = None) -> dict[str, Any]:
     """Geodesic angle error (rad) and ‖Δω‖ (rad/s) of open-loop rollouts vs ``data``.
 
     ``terms`` replaces the checkpoint's learned terms (e.g. the closed-form body, to see what
     the same integrator with the true physics achieves); step size and ``K`` stay the checkpoint's.
     """
-    terms = LearnedTerms(checkpoint.weights, checkpoint.config, NP) if terms is None else terms
+    terms = learned_terms(checkpoint) if terms is None else terms
     steps = data.u.shape[1] if horizon is None else horizon
     q_hat, omega_hat, residual = rollout(terms, checkpoint.config.step_size, checkpoint.config.newton_iters,
                                          data.q[:, 0], data.omega[:, 0], data.u[:, :steps])
@@ -81,7 +89,7 @@ def compare_components(checkpoint: Checkpoint, true_body: Any, quaternions: np.n
     """Learned vs true ``J`` (along ``axis``), ``U`` (both relative to the ``rest`` orientation), ``g``
     after fixing λ; for a model with dissipation also ``D`` (constant; along ``axis`` and the whole
     matrix, over λ)."""
-    learned = LearnedTerms(checkpoint.weights, checkpoint.config, NP)
+    learned = learned_terms(checkpoint)
     true = true_body.terms(NP)
     scale = fit_scale(learned, true, quaternions)
     q = _components(quaternions)
@@ -133,7 +141,7 @@ def energy_behaviour(checkpoint: Checkpoint, true_body: Any, initial_angles: np.
     so nothing in training keeps the model's unforced motion in it. ``on_axis`` puts every
     step back onto rotations about ``axis`` (the hinge's constraint), isolating the in-plane behaviour.
     """
-    terms = LearnedTerms(checkpoint.weights, checkpoint.config, NP)
+    terms = learned_terms(checkpoint)
     true = true_body.terms(NP)
     n = initial_angles.size
     q0 = np.concatenate([np.cos(initial_angles / 2)[:, None], np.sin(initial_angles / 2)[:, None] * axis], 1)

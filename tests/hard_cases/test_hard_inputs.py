@@ -99,7 +99,7 @@ def test_energy_shaping_rejects_bad_observations(energy_shaping, x):
        norm=st.one_of(st.just(0.0), S.log_uniform(1e-8, 1e8), S.floats(1 - 3e-3, 1 + 3e-3)))
 @S.counted
 def test_energy_shaping_follows_the_unit_norm_policy(energy_shaping, q, omega, norm):
-    """Same policy as the MPC (``fvin_mpc.control.mpc.check_state``): normalize within 1e-3 of unit
+    """Same policy as the MPC (the space's ``check``): normalize within 1e-3 of unit
     norm, else ``ValueError`` — never a NaN torque (``q = 0``) or a torque for a non-rotation."""
     measured = norm * q
     off = abs(np.linalg.norm(measured) - 1.0)

@@ -1,6 +1,6 @@
 """Non-unit quaternions and a 10⁶-step unforced rollout.
 
-Policy (``fvin_mpc.core.state.check_state``, the controller boundary): a measured ``q`` with
+Policy (``StateLayout.check`` of ``fvin_mpc.core.space``, the controller boundary): a measured ``q`` with
 ``|‖q‖ − 1| ≤ 1e-3`` is normalized, anything further from unit norm raises ``ValueError``. The
 pure step :func:`fvin_mpc.core.fvin.fvin_step` is homogeneous math: ``q_{k+1} = q_k ⊗ exp(ξ)`` with a
 unit ``exp(ξ)``, so it preserves ``‖q‖`` exactly (to rounding) whatever ``‖q_k‖`` is.
@@ -16,7 +16,8 @@ import strategies as S
 from fvin_mpc.control import export
 from fvin_mpc.core import fvin
 from fvin_mpc.core.backend import get_ops
-from fvin_mpc.core.state import UNIT_NORM_TOLERANCE, check_state
+from fvin_mpc.core.space import S3
+from fvin_mpc.core.state import UNIT_NORM_TOLERANCE
 from fvin_mpc.core.rigid_body import PENDULUM
 
 H = 0.05
@@ -61,14 +62,14 @@ def test_check_state_normalizes_near_unit_and_rejects_the_rest(q, norm, omega):
     actual_norm = np.linalg.norm(measured)
     assume(abs(abs(actual_norm - 1.0) - UNIT_NORM_TOLERANCE) > 1e-12)  # no coin flips at the boundary
     if abs(actual_norm - 1.0) <= UNIT_NORM_TOLERANCE:
-        checked = check_state(np.r_[measured, omega])
+        checked = S3.check(np.r_[measured, omega])
         q_checked, omega_checked = checked[:4], checked[4:]
         assert abs(np.linalg.norm(q_checked) - 1.0) <= 4e-16
         np.testing.assert_allclose(q_checked, q, atol=1e-15)
         np.testing.assert_array_equal(omega_checked, omega)
     else:
         with pytest.raises(ValueError, match="not a unit quaternion"):
-            check_state(np.r_[measured, omega])
+            S3.check(np.r_[measured, omega])
 
 
 # ----------------------------------------------------------------------------- 10⁶ steps

@@ -102,7 +102,7 @@ def rti_stage_counts(step: Any, terms: Any, step_size: float) -> tuple[int, int]
     """Instructions per stage of the RTI's unrolled dynamics and of its implicit ones (node + stage)."""
     from fvin_mpc.control import implicit_dynamics
     from fvin_mpc.control.rti import retract, unrolled_stage_function
-    from fvin_mpc.control.state_layout import PIVOTED
+    from fvin_mpc.core.space import PIVOTED
 
     unrolled = unrolled_stage_function(step, PIVOTED, terms.control_dim)
     node, layout = implicit_dynamics.node_terms_function(terms, retract)

@@ -29,6 +29,7 @@ from typing import Any
 
 import numpy as np
 
+from fvin_mpc.core.space import S3, SO3, ConfigurationSpace
 from fvin_mpc.studies.report import StudyResult
 
 DATA = Path("data/pendulum.npz")
@@ -43,44 +44,36 @@ class PaperModel:
     """One model of the comparison: its label, configuration space, variant and checkpoint name."""
 
     label: str
-    space: str  # "S3" or "SO3"
+    space: ConfigurationSpace  # S3 or SO3
     variant: str
     checkpoint: str
 
     @property
     def true_gain(self) -> float:
         """The gain the model should learn about the hinge: ``2b`` on S³, ``b`` on SO(3) (DESIGN.md)."""
-        return (2.0 if self.space == "S3" else 1.0) * TRUE_TORQUE_PER_CONTROL
+        return (2.0 if self.space is S3 else 1.0) * TRUE_TORQUE_PER_CONTROL
 
 
 MODELS = (
-    PaperModel("S3FVIN sign-invariant", "S3", "sign-invariant", "pendulum_sign-invariant"),
-    PaperModel("S3FVIN fixed-inertia", "S3", "fixed-inertia", "pendulum_fixed-inertia"),
-    PaperModel("S3FVIN plain", "S3", "plain", "pendulum_plain"),
-    PaperModel("SO3FVIN matrix", "SO3", "so3-matrix", "pendulum_so3-matrix"),
-    PaperModel("SO3FVIN quaternion", "SO3", "so3-quaternion", "pendulum_so3-quaternion"),
+    PaperModel("S3FVIN sign-invariant", S3, "sign-invariant", "pendulum_sign-invariant"),
+    PaperModel("S3FVIN fixed-inertia", S3, "fixed-inertia", "pendulum_fixed-inertia"),
+    PaperModel("S3FVIN plain", S3, "plain", "pendulum_plain"),
+    PaperModel("SO3FVIN matrix", SO3, "so3-matrix", "pendulum_so3-matrix"),
+    PaperModel("SO3FVIN quaternion", SO3, "so3-quaternion", "pendulum_so3-quaternion"),
 )
 
 
 # ---------------------------------------------------------------------------- models
 def model_config(model: PaperModel, data: Any, newton_iters: int = 2) -> Any:
-    from fvin_mpc.core.networks import ModelConfig
-    from fvin_mpc.core.networks_so3 import SO3ModelConfig
-
-    common = dict(control_dim=int(data.u.shape[2]), step_size=data.control_period, newton_iters=newton_iters)
-    if model.space == "S3":
-        return ModelConfig(variant=model.variant, **common)
-    return SO3ModelConfig(variant=model.variant, **common)
+    return model.space.config_type(variant=model.variant, control_dim=int(data.u.shape[2]),
+                                   step_size=data.control_period, newton_iters=newton_iters)
 
 
 def train_model(model: PaperModel, data: Any, settings: Any, progress: bool = False) -> tuple[Any, dict[str, Any]]:
-    """``fvin_mpc.learning.training.train`` (with ``model_factory=SO3FVIN`` for SO3FVIN) on ``data``."""
-    from fvin_mpc.learning.model import S3FVIN
-    from fvin_mpc.learning.model_so3 import SO3FVIN
+    """``fvin_mpc.learning.training.train`` on ``data`` (the model of the config's space)."""
     from fvin_mpc.learning.training import train
 
-    return train(data, model_config(model, data), settings, progress,
-                 model_factory=S3FVIN if model.space == "S3" else SO3FVIN)
+    return train(data, model_config(model, data), settings, progress)
 
 
 def load_model(model: PaperModel) -> Any:
@@ -107,7 +100,7 @@ def checkpoint_settings(model: PaperModel) -> Any:
     ten to twenty times less CPU time, which is what the shared machine allowed (docs/paper.md)."""
     from fvin_mpc.learning.training import TrainSettings
 
-    return reference_settings() if model.space == "S3" else TrainSettings(seed=0, threads=1)
+    return reference_settings() if model.space is S3 else TrainSettings(seed=0, threads=1)
 
 
 def pendulum_data(progress: bool = True) -> Any:
@@ -207,9 +200,9 @@ def training_curves(settings: CurveSettings, cache: Path | None, models: tuple[P
 def loss_gradient_cpu_s(model: PaperModel, data: Any, repeats: int, seed: int = 0) -> float:
     """Median CPU seconds of one full-batch rollout loss and its gradient (what every optimizer
     iteration pays at least once) for a freshly initialized ``model`` on ``data``'s windows."""
-    from fvin_mpc.learning.model_so3 import loss_and_gradient_cpu_s
+    from fvin_mpc.learning.timing import loss_and_gradient_cpu_s
 
-    return loss_and_gradient_cpu_s(model.space == "SO3", model_config(model, data), data, repeats, seed)
+    return loss_and_gradient_cpu_s(model_config(model, data), data, repeats, seed)
 
 
 # ---------------------------------------------------------------------------- Figure 1: learned terms, energy
@@ -221,11 +214,8 @@ def hinge_quaternions(theta: np.ndarray) -> tuple[np.ndarray, ...]:
 
 def _terms(model: PaperModel, checkpoint: Any) -> Any:
     from fvin_mpc.core.backend import get_ops
-    from fvin_mpc.core.networks import LearnedTerms
-    from fvin_mpc.core.networks_so3 import LearnedSO3Terms
 
-    cls = LearnedTerms if model.space == "S3" else LearnedSO3Terms
-    return cls(checkpoint.weights, checkpoint.config, get_ops("numpy"))
+    return model.space.learned_terms(checkpoint.weights, checkpoint.config, get_ops("numpy"))
 
 
 def learned_profiles(model: PaperModel, checkpoint: Any, theta: np.ndarray, mirrored: bool = False) -> dict[str, np.ndarray]:
@@ -238,9 +228,9 @@ def learned_profiles(model: PaperModel, checkpoint: Any, theta: np.ndarray, mirr
     q = hinge_quaternions(theta)
     if mirrored:
         q = s3.negate(q)
-    x = q if model.space == "S3" else s3.rotation_matrix(q)
+    x = q if model.space is S3 else s3.rotation_matrix(q)
     x0 = tuple(np.full(1, c) for c in (1.0, 0.0, 0.0, 0.0))
-    x0 = x0 if model.space == "S3" else s3.rotation_matrix(x0)
+    x0 = x0 if model.space is S3 else s3.rotation_matrix(x0)
     return {"inertia_yy": np.asarray(terms.inertia(x)[1][1], float),
             "gain_y": np.asarray(terms.control_gain(x)[1][0], float),
             "potential": np.asarray(terms.potential(x) - terms.potential(x0), float)}
@@ -290,7 +280,7 @@ def uncontrolled_rollout(model: PaperModel | None, checkpoint: Any, theta0: np.n
         norm = np.sqrt(q[0] ** 2 + q[2] ** 2)
         return (q[0] / norm, 0.0 * q[0], q[2] / norm, 0.0 * q[0]), (0.0 * q[0], omega[1], 0.0 * q[0])
 
-    so3_model = model is not None and model.space == "SO3"
+    so3_model = model is not None and model.space is SO3
     terms = truth if model is None else _terms(model, checkpoint)
     rotation = s3.rotation_matrix(q)
     for _ in range(steps):
@@ -350,7 +340,7 @@ def _figure1_rows(theta: np.ndarray, starts: np.ndarray, steps: int, progress: b
         tenth = max(1, steps // 10)
         training = checkpoint.metadata.get("training", {})
         row = {
-            "model": model.label, "space": model.space, "checkpoint": model.checkpoint,
+            "model": model.label, "space": model.space.name, "checkpoint": model.checkpoint,
             "trained_with": f"{training.get('optimizer', 'adam')}, {training.get('iterations')} it.",
             "lambda": scale,
             "inertia_err_max": float(np.max(np.abs(inertia - TRUE_INERTIA)) / TRUE_INERTIA),
@@ -380,7 +370,7 @@ def _figure1_rows(theta: np.ndarray, starts: np.ndarray, steps: int, progress: b
     relative = np.abs(closed - closed[0]) / closed[0]
     tenth = max(1, steps // 10)
     closed_free = uncontrolled_rollout(None, None, starts, steps)
-    rows.append({"model": "closed form (S³ step, true J, U, g)", "space": "S3", "energy_err_max": float(relative.max()),
+    rows.append({"model": "closed form (S³ step, true J, U, g)", "space": S3.name, "energy_err_max": float(relative.max()),
                  "energy_drift": float(np.mean(relative[-tenth:]) - np.mean(relative[:tenth])),
                  "free_energy_err_max": float(np.max(np.abs(closed_free["energy"] / closed_free["energy"][0] - 1.0))),
                  "free_off_plane_speed_max": float(closed_free["off_plane_speed"].max())})

@@ -1,0 +1,415 @@
+"""Configuration spaces: one small value that data, checkpoints, models, envs and controllers carry.
+
+A :class:`ConfigurationSpace` says what a state is and how every layer treats it — jaxlie's shape,
+one interface and many groups:
+
+* its ``name``, the tag written into checkpoints and data files (``"S3"``, ``"SO3"``, ``"R3xS3"``);
+* its :class:`StateLayout` (where the quaternion sits in a state ``R^a × S³ × R^b``);
+* its model config type, and the learned terms, weight shapes and initialization for that config;
+* the step ``(x, u, terms, h, K, ops) → (x_next, residual)`` on stacked states, on any backend, and
+  the energy — the math itself stays in the space's step module (:mod:`~fvin_mpc.core.fvin`,
+  :mod:`~fvin_mpc.core.fvin_so3`, :mod:`~fvin_mpc.core.fvin_r3s3`);
+* the closed-form body read off an MJCF;
+* ``retract``/``local`` on the manifold (a chart of S³ that is the same for ``±q``), the one state
+  check, and the one sign-invariant distance to a goal.
+
+:func:`get_space` maps names to spaces and :func:`space_of_config` a model config to its space. Adding
+a space is a registry entry (:func:`register`) and its step — nothing else in the package asks which
+space it is handed. ``tests/test_space_guard.py`` keeps it so: outside this module no code may test a
+config's class, compare space names or read a space from a state's length.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Callable, ClassVar, Mapping
+
+import numpy as np
+
+from fvin_mpc.core import (
+    fvin,
+    fvin_r3s3,
+    fvin_so3,
+    networks,
+    networks_r3s3,
+    networks_so3,
+    quadrotor,
+    rigid_body,
+    s3,
+    so3,
+)
+from fvin_mpc.core.backend import Ops, get_ops
+from fvin_mpc.core.state import UNIT_NORM_TOLERANCE, as_float_array
+
+NP = get_ops("numpy")
+
+
+# ----------------------------------------------------------------------------- S³ chart
+def chart_retract(q_bar: s3.Quat, theta: s3.Vec3, ops: Ops) -> s3.Quat:
+    """``q̄ ⊗ (1, θ)/√(1 + |θ|²)`` on components (any backend): the Gibbs-vector chart of S³ at ``q̄``."""
+    return s3.scale(1.0 / ops.sqrt(1.0 + s3.dot(theta, theta)), s3.multiply(q_bar, (1.0, *theta)))
+
+
+def chart_local(q_bar: s3.Quat, q: s3.Quat) -> s3.Vec3:
+    """``Im(p)/Re(p)`` with ``p = q̄* ⊗ q`` — the inverse of :func:`chart_retract`, the same for ``±q``."""
+    p = s3.multiply(s3.conjugate(q_bar), q)
+    return tuple(component / p[0] for component in p[1:])
+
+
+def _components(array: np.ndarray) -> tuple[np.ndarray, ...]:
+    return tuple(np.moveaxis(array, -1, 0))
+
+
+# ----------------------------------------------------------------------------- state layout
+@dataclass(frozen=True)
+class StateLayout:
+    """A state ``(e_before (a), q (4), e_after (b))``; the last three entries of ``e_after`` are ``ω``
+    and everything after the quaternion is a *rate* (what a control changes within one step).
+
+    Attributes:
+        before: ``a``, Euclidean entries before the quaternion (0 pivoted, 3 free: ``x``).
+        after: ``b``, Euclidean entries after it (3 pivoted: ``ω``; 6 free: ``v``, ``ω``).
+        name: a label for messages.
+    """
+
+    before: int
+    after: int
+    name: str
+
+    # Index facts, computed once (a measured state is sliced by them on every controller call).
+    state_dim: int = field(init=False)
+    #: entries of the local coordinates ``δ``: the quaternion's 3 chart coordinates and the rest
+    tangent_dim: int = field(init=False)
+    #: the quaternion's entries in a state
+    quaternion: slice = field(init=False)
+    #: the entries after the quaternion in a state (``ω``, or ``v`` and ``ω``)
+    rates: slice = field(init=False)
+    #: ``ω`` in a state (its last three entries)
+    omega: slice = field(init=False)
+    #: the quaternion's 3 chart coordinates in ``δ``
+    chart: slice = field(init=False)
+    #: ``ω``'s entries in ``δ`` (its last three)
+    tangent_omega: slice = field(init=False)
+
+    def __post_init__(self) -> None:
+        if self.before < 0 or self.after < 3:
+            raise ValueError(f"a state layout needs before ≥ 0 and after ≥ 3 (ω last), got {self.before}, {self.after}")
+        n, a = self.before + 4 + self.after, self.before
+        facts = {"state_dim": n, "tangent_dim": n - 1, "quaternion": slice(a, a + 4), "rates": slice(a + 4, n),
+                 "omega": slice(n - 3, n), "chart": slice(a, a + 3), "tangent_omega": slice(n - 4, n - 1)}
+        for name, value in facts.items():
+            object.__setattr__(self, name, value)
+
+    def check(self, x: Any) -> np.ndarray:
+        """A measured state as a float64 copy with a unit quaternion.
+
+        Policy: a quaternion within ``UNIT_NORM_TOLERANCE`` of unit norm is normalized (float32
+        observations, sensor rounding); anything further is refused — a non-unit ``q`` is not a
+        rotation, and normalizing a wrong one would hide a bug upstream.
+
+        Raises:
+            ValueError: wrong shape, NaN/inf, or a quaternion further than ``UNIT_NORM_TOLERANCE``
+                from unit norm.
+        """
+        x = as_float_array(x, (self.state_dim,), f"state {self.name}")
+        norm = float(np.linalg.norm(x[self.quaternion]))
+        if abs(norm - 1.0) > UNIT_NORM_TOLERANCE:
+            raise ValueError(f"q is not a unit quaternion (|q| = {norm:.6g}; tolerance {UNIT_NORM_TOLERANCE})")
+        x[self.quaternion] /= norm
+        return x
+
+    def split(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """States ``(…, n)`` as ``(q (…, 4), rest (…, n − 4))``, ``rest`` every other entry in state order."""
+        qs = self.quaternion
+        return x[..., qs], np.concatenate([x[..., :qs.start], x[..., qs.stop:]], axis=-1)
+
+    def join(self, q: np.ndarray, rest: np.ndarray) -> np.ndarray:
+        """The inverse of :meth:`split`."""
+        a = self.before
+        return np.concatenate([rest[..., :a], q, rest[..., a:]], axis=-1)
+
+    def retract(self, x_bar: np.ndarray, delta: np.ndarray) -> np.ndarray:
+        """A state from a base point ``x̄ (…, n)`` and local coordinates ``δ (…, n − 1)``: the quaternion
+        by :func:`chart_retract`, every other entry by addition."""
+        a, qs = self.before, self.quaternion
+        q = np.stack(chart_retract(_components(x_bar[..., qs]), _components(delta[..., self.chart]), NP), axis=-1)
+        return np.concatenate([x_bar[..., :a] + delta[..., :a], q, x_bar[..., qs.stop:] + delta[..., a + 3:]], axis=-1)
+
+    def local(self, x_bar: np.ndarray, x: np.ndarray) -> np.ndarray:
+        """The inverse of :meth:`retract`: ``δ`` of ``x`` in ``x̄``'s chart (the same for ``±q``)."""
+        a, qs = self.before, self.quaternion
+        theta = np.stack(chart_local(_components(x_bar[..., qs]), _components(x[..., qs])), axis=-1)
+        return np.concatenate([x[..., :a] - x_bar[..., :a], theta, x[..., qs.stop:] - x_bar[..., qs.stop:]], axis=-1)
+
+
+# ----------------------------------------------------------------------------- spaces
+@dataclass(frozen=True, eq=False)
+class ConfigurationSpace:
+    """One configuration space; see the module docstring. Instances are singletons in the registry
+    (compare them with ``is``), each with its step written once in its own core module.
+
+    Attributes:
+        name: the tag in checkpoints and data (``"S3"``, ``"SO3"``, ``"R3xS3"``).
+        description: a few words for messages.
+        layout: where the quaternion sits in a state.
+        config_type: the model config class of this space's learned models.
+        pivoted: a body on a fixed pivot, whose goal is an orientation at rest (S³, SO(3)); a free
+            body's goal is a whole state (hover there).
+        variants: the values of its config's ``variant``, the config's default first.
+    """
+
+    name: str
+    description: str
+    layout: StateLayout
+    config_type: type
+    pivoted: bool
+    variants: tuple[str, ...]
+    _step: Callable[..., tuple[Any, Any]] = field(repr=False)
+    _energy: Callable[[Any, Any, Ops], Any] = field(repr=False)
+    _learned_terms: Callable[[Mapping[str, Any], Any, Ops], Any] = field(repr=False)
+    _weight_shapes: Callable[[Any], dict[str, tuple[int, ...]]] = field(repr=False)
+    _init_weights: Callable[..., dict[str, np.ndarray]] = field(repr=False)
+    _closed_form: Callable[[Any, str], Any] | None = field(default=None, repr=False)
+    _step_options: Callable[[Any], dict[str, Any]] = field(default=lambda config: {}, repr=False)
+    #: The step's own equations ``G(x_k, u_k, x_{k+1}) = 0`` on components, where the space has them
+    #: in the form the real-time iteration's implicit dynamics imposes (S³: :func:`fvin.step_residual`).
+    step_residual: Callable[..., tuple[Any, ...]] | None = field(default=None, repr=False)
+
+    #: Every registered space by name (:func:`register`).
+    registry: ClassVar[dict[str, "ConfigurationSpace"]] = {}
+
+    def __post_init__(self) -> None:
+        # Controllers read a pivoted body's state as (q, ω), and the implicit dynamics are the S³
+        # step's equations on (q, ω): a space claiming either must have that layout.
+        if (self.pivoted or self.step_residual is not None) and self.layout != PIVOTED:
+            raise ValueError(f"space {self.name!r}: a pivoted space or one with step_residual must have the "
+                             f"layout {PIVOTED.name}, got {self.layout.name}")
+
+    @property
+    def state_dim(self) -> int:
+        return self.layout.state_dim
+
+    # -------------------------------------------------------------- math
+    def step(self, x: Any, u: Any, terms: Any, step_size: float, newton_iters: int, ops: Ops,
+             **options: Any) -> tuple[Any, Any]:
+        """One step on stacked states: ``x (…, n)`` (CasADi: a column), ``u (…, m)`` →
+        ``(x_next, residual)``; ``residual`` is the final Newton residual in rad/s, large past the
+        solvability limit where ``x_next`` means nothing. ``options`` are the space's own
+        (:meth:`step_options`: R³ × S³'s ``force_rule``)."""
+        return self._step(x, u, terms, step_size, newton_iters, ops, **options)
+
+    def energy(self, x: Any, terms: Any, ops: Ops) -> Any:
+        """The model's energy of stacked states (kinetic + potential, in the model's own scale)."""
+        return self._energy(x, terms, ops)
+
+    def step_options(self, config: Any) -> dict[str, Any]:
+        """The :meth:`step` options a model config fixes (e.g. R³ × S³'s force rule)."""
+        return self._step_options(config)
+
+    # -------------------------------------------------------------- learned models
+    def owns(self, config: Any) -> bool:
+        """Whether ``config`` is a model config of this space."""
+        return type(config) is self.config_type
+
+    def learned_terms(self, weights: Mapping[str, Any], config: Any, ops: Ops) -> Any:
+        """The learned terms of ``weights`` under ``config`` on ``ops``' backend."""
+        self._require_own(config)
+        return self._learned_terms(weights, config, ops)
+
+    def weight_shapes(self, config: Any) -> dict[str, tuple[int, ...]]:
+        self._require_own(config)
+        return self._weight_shapes(config)
+
+    def check_weights(self, weights: Mapping[str, Any], config: Any) -> None:
+        """``ValueError`` naming the first weight whose name or shape does not match ``config``."""
+        networks.check_weight_shapes(weights, self.weight_shapes(config), config.CONFIG_NAME)
+
+    def init_weights(self, config: Any, seed: int, **scales: Any) -> dict[str, np.ndarray]:
+        """A fresh initialization (``scales``: the space's initial physical scales, e.g. ``inertia``)."""
+        self._require_own(config)
+        return self._init_weights(config, seed, **scales)
+
+    def config_from_dict(self, fields: Mapping[str, Any]) -> Any:
+        return self.config_type.from_dict(fields)
+
+    # -------------------------------------------------------------- closed form
+    def closed_form(self, model: Any, body: str) -> Any:
+        """The closed-form body of ``body`` in a compiled ``mujoco.MjModel``; it has ``terms(ops)``
+        and ``control_dim``. ``NotImplementedError`` for a space with no closed form."""
+        if self._closed_form is None:
+            raise NotImplementedError(f"the {self.description} space has no closed-form body")
+        return self._closed_form(model, body)
+
+    # -------------------------------------------------------------- manifold
+    def check(self, x: Any) -> np.ndarray:
+        """The one check of a measured state (:meth:`StateLayout.check`)."""
+        return self.layout.check(x)
+
+    def retract(self, x: np.ndarray, delta: np.ndarray) -> np.ndarray:
+        return self.layout.retract(np.asarray(x, dtype=float), np.asarray(delta, dtype=float))
+
+    def local(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        return self.layout.local(np.asarray(x, dtype=float), np.asarray(y, dtype=float))
+
+    def distance(self, x: Any, goal: Any) -> np.ndarray:
+        """The sign-invariant orientation distance ``1 − ⟨q, q_goal⟩²`` (zero on the goal's rotation,
+        for either sign) of states ``x (…, n)`` to a goal state or orientation ``(4,)``."""
+        x = np.asarray(x, dtype=float)
+        goal = np.asarray(goal, dtype=float)
+        q_goal = goal if goal.shape[-1] == 4 else goal[..., self.layout.quaternion]
+        return 1.0 - np.sum(x[..., self.layout.quaternion] * q_goal, axis=-1) ** 2
+
+    def _require_own(self, config: Any) -> None:
+        if not self.owns(config):
+            raise ValueError(f"a {type(config).__name__} is not a model config of the {self.description} space "
+                             f"({self.config_type.__name__})")
+
+    def __repr__(self) -> str:
+        return f"ConfigurationSpace({self.name!r})"
+
+
+def register(space: ConfigurationSpace) -> ConfigurationSpace:
+    """Add ``space`` to the registry; ``ValueError`` if its name or config type is taken."""
+    for other in ConfigurationSpace.registry.values():
+        if other.name == space.name or other.config_type is space.config_type:
+            raise ValueError(f"a space named {other.name!r} with config {other.config_type.__name__} is registered")
+    ConfigurationSpace.registry[space.name] = space
+    return space
+
+
+def unregister(name: str) -> None:
+    """Remove a space added by :func:`register` (tests register toy spaces and take them out again)."""
+    ConfigurationSpace.registry.pop(name, None)
+
+
+def get_space(name: str | ConfigurationSpace | None) -> ConfigurationSpace:
+    """The registered space called ``name`` (``None``: S³, what files written before the tag mean)."""
+    if isinstance(name, ConfigurationSpace):
+        return name
+    try:
+        return ConfigurationSpace.registry["S3" if name is None else name]
+    except (KeyError, TypeError):
+        raise ValueError(f"unknown configuration space {name!r}; known: {sorted(ConfigurationSpace.registry)}") from None
+
+
+def space_of_config(config: Any) -> ConfigurationSpace:
+    """The registered space whose model config ``config`` is."""
+    for space in ConfigurationSpace.registry.values():
+        if space.owns(config):
+            return space
+    raise ValueError(f"{type(config).__name__} is the model config of no registered configuration space")
+
+
+def space_for_variant(data_space: ConfigurationSpace, variant: str) -> ConfigurationSpace:
+    """The space of a model ``variant`` trained on states of ``data_space``: ``data_space`` itself if it
+    has the variant, else another registered space with the same state layout that has it (S³ data
+    trains the SO(3) baseline's ``so3-…`` variants).
+
+    Raises:
+        ValueError: no space on ``data_space``'s states has ``variant`` (the message lists theirs).
+    """
+    candidates = [data_space, *(s for s in spaces() if s is not data_space and s.layout == data_space.layout)]
+    for space in candidates:
+        if variant in space.variants:
+            return space
+    known = sorted({v for s in candidates for v in s.variants})
+    raise ValueError(f"no model variant {variant!r} on {data_space.description} data; choose from {known}")
+
+
+def require(space: ConfigurationSpace, supported: tuple[ConfigurationSpace, ...], by: str, what: str) -> None:
+    """``ValueError`` unless ``space`` is one of ``supported``: how code written for some spaces
+    refuses the others (``what`` names the model or checkpoint, ``by`` the refusing code)."""
+    if not any(space is other for other in supported):
+        names = ", ".join(other.description for other in supported)
+        raise ValueError(f"{by} supports models on {names}; {what} is on {space.description}")
+
+
+def spaces() -> tuple[ConfigurationSpace, ...]:
+    """Every registered space, in registration order."""
+    return tuple(ConfigurationSpace.registry.values())
+
+
+# ----------------------------------------------------------------------------- S³: a pivoted body
+def _split_pivoted(x: Any, ops: Ops) -> tuple[s3.Quat, s3.Vec3]:
+    c = ops.unstack(x)
+    return c[0:4], c[4:7]  # type: ignore[return-value]
+
+
+def _s3_step(x: Any, u: Any, terms: Any, step_size: float, newton_iters: int, ops: Ops) -> tuple[Any, Any]:
+    q, omega = _split_pivoted(x, ops)
+    out = fvin.fvin_step(q, omega, ops.unstack(u), terms, step_size, newton_iters, ops, with_residual=True)
+    return ops.stack((*out.q, *out.omega)), out.residual
+
+
+def _s3_energy(x: Any, terms: Any, ops: Ops) -> Any:
+    return fvin.total_energy(*_split_pivoted(x, ops), terms)
+
+
+#: Where the quaternion sits for a body on a fixed pivot: ``(q, ω)``.
+PIVOTED = StateLayout(before=0, after=3, name="(q, ω)")
+#: ... and for a free rigid body: ``(x, q, v, ω)``.
+FREE_BODY = StateLayout(before=3, after=6, name="(x, q, v, ω)")
+
+S3 = register(ConfigurationSpace(
+    name="S3", description="S³ (a pivoted body on unit quaternions)", layout=PIVOTED,
+    config_type=networks.ModelConfig, pivoted=True, variants=networks.VARIANTS, _step=_s3_step, _energy=_s3_energy,
+    _learned_terms=networks.LearnedTerms, _weight_shapes=networks.weight_shapes, _init_weights=networks.init_weights,
+    _closed_form=rigid_body.from_mujoco, step_residual=fvin.step_residual,
+))
+
+
+# ----------------------------------------------------------------------------- SO(3): the paper's baseline
+def _so3_step(x: Any, u: Any, terms: Any, step_size: float, newton_iters: int, ops: Ops) -> tuple[Any, Any]:
+    """The SO(3) step on a ``(q, ω)`` state: ``R(q)`` in, the preimage of ``R_{k+1}`` on ``q``'s side
+    of S³ out (continuous along a trajectory; the map is the same for ``±q``)."""
+    q, omega = _split_pivoted(x, ops)
+    out = fvin_so3.so3_step(s3.rotation_matrix(q), omega, ops.unstack(u), terms, step_size, newton_iters, ops,
+                            with_residual=True)
+    q_next = so3.quaternion_from_rotation(out.rotation, ops)
+    q_next = s3.scale(ops.where(s3.dot(q, q_next) >= 0.0, 1.0, -1.0), q_next)
+    return ops.stack((*q_next, *out.omega)), out.residual
+
+
+def _so3_energy(x: Any, terms: Any, ops: Ops) -> Any:
+    q, omega = _split_pivoted(x, ops)
+    return fvin_so3.total_energy(s3.rotation_matrix(q), omega, terms)
+
+
+class _SO3ClosedForm:
+    """A closed-form pivoted body as SO(3) terms (physical torques, not the S³ model's doubled ones)."""
+
+    def __init__(self, body: Any) -> None:
+        self.body = body
+        self.control_dim = body.control_dim
+
+    def terms(self, ops: Ops) -> Any:
+        return fvin_so3.PivotedRigidBodySO3Terms(self.body, ops)
+
+
+SO3 = register(ConfigurationSpace(
+    name="SO3", description="SO(3) (the paper's SO3FVIN baseline on a pivoted body)", layout=PIVOTED,
+    config_type=networks_so3.SO3ModelConfig, pivoted=True, variants=networks_so3.SO3_VARIANTS, _step=_so3_step, _energy=_so3_energy,
+    _learned_terms=networks_so3.LearnedSO3Terms, _weight_shapes=networks_so3.weight_shapes,
+    _init_weights=networks_so3.init_weights,
+    _closed_form=lambda model, body: _SO3ClosedForm(rigid_body.from_mujoco(model, body)),
+))
+
+
+# ----------------------------------------------------------------------------- R³ × S³: a free body
+def _r3s3_step(x: Any, u: Any, terms: Any, step_size: float, newton_iters: int, ops: Ops,
+               force_rule: str = "trapezoid") -> tuple[Any, Any]:
+    return fvin_r3s3.step_state(x, u, terms, step_size, newton_iters, ops, force_rule)
+
+
+def _r3s3_energy(x: Any, terms: Any, ops: Ops) -> Any:
+    return fvin_r3s3.total_energy(*fvin_r3s3.split_free_state(x, ops), terms)
+
+
+R3S3 = register(ConfigurationSpace(
+    name="R3xS3", description="R³ × S³ (a free body that translates and rotates)", layout=FREE_BODY,
+    config_type=networks_r3s3.R3S3Config, pivoted=False, variants=("fixed-inertia", "sign-invariant", "plain"),
+    _step=_r3s3_step, _energy=_r3s3_energy,
+    _learned_terms=networks_r3s3.LearnedCombinedTerms, _weight_shapes=networks_r3s3.weight_shapes,
+    _init_weights=networks_r3s3.init_weights, _closed_form=quadrotor.from_mujoco,
+    _step_options=lambda config: {"force_rule": config.force_rule},
+))
