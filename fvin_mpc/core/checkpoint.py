@@ -36,7 +36,7 @@ AnyConfig = ModelConfig | networks_r3s3.R3S3Config | networks_so3.SO3ModelConfig
 FORMAT = "fvin_mpc.checkpoint/1"
 #: Where the shipped checkpoints live (next to the package in a source checkout or
 #: installed as package data).
-CHECKPOINT_DIR = Path(__file__).resolve().parents[2] / "checkpoints"
+CHECKPOINT_DIR = max((root / "checkpoints" for root in Path(__file__).resolve().parents[1:3]), key=Path.is_dir)
 
 
 class CheckpointError(ValueError):
