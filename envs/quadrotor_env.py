@@ -24,7 +24,7 @@ from .scenes import SceneSpec, ScenePhysics
 
 #: Size of the observation ``(x, q, v, ω)``.
 FREE_STATE_DIM = 13
-#: Largest initial |ω| (rad/s) of a default reset: a tumbling craft (issue 13's recovery task).
+#: Largest initial |ω| (rad/s) of a default reset: a tumbling craft (the recovery task of ``python -m fvin_mpc.fly``).
 DEFAULT_RESET_MAX_OMEGA = 10.0
 #: Weights of the quadratic cost: |x − x*|², angle², |v|², |ω|², |u − u_hover|².
 COST_WEIGHTS = (1.0, 1.0, 0.1, 0.01, 0.01)
