@@ -23,7 +23,7 @@ from fvin_mpc.core.state import as_float_array, unit_quaternion
 from .rigid_body_env import MujocoBodyEnv, geodesic_angle
 from .scenes import SceneSpec, ScenePhysics
 
-#: Largest initial |ω| (rad/s) of a default reset: a tumbling craft (issue 13's recovery task).
+#: Largest initial |ω| (rad/s) of a default reset: a tumbling craft (the recovery task of ``python -m fvin_mpc.fly``).
 DEFAULT_RESET_MAX_OMEGA = 10.0
 #: Weights of the quadratic cost: |x − x*|², angle², |v|², |ω|², |u − u_hover|².
 COST_WEIGHTS = (1.0, 1.0, 0.1, 0.01, 0.01)

@@ -171,7 +171,7 @@ SCENES: dict[str, SceneSpec] = {
         # swung up in 10 s, with it it was up at 4.8 s). The RTI gets up to three iterations per
         # period within 6 ms: with one, the learned model reached the top but often failed to catch
         # the body there (docs/realtime.md).
-        # The RTI's stage ω weight is 0.06 instead of the scaled 0.129 (issue 12: late catches). Near
+        # The RTI's stage ω weight is 0.06 instead of the scaled 0.129 (it caught late). Near
         # the goal the plan glides in at ω ≈ −θ·√(w_q/4 / w_ω) (c(q) ≈ θ²/4): 2.8 rad/s per rad at
         # 0.129, so 0.1 → 0.005 rad took 1.05 s (median); at 0.06, 4.1 and 0.70 s. The same weight
         # made the swing-up plans arrive slowly, with no energy to spare: the learned model then

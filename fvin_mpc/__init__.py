@@ -1,26 +1,97 @@
 """fvin_mpc — learned forced variational integrators on S³ (S3FVIN) for model-based control.
 
 Layers, each importing only those above it in this list (``tests/test_layers.py`` reads the
-imports and holds the line):
+imports and holds the line). Every module, one line each:
 
-* :mod:`fvin_mpc.core` — the math, written once for NumPy, torch and CasADi: ``backend`` (the only
-  backend-specific code), ``s3`` (quaternion algebra), ``fvin`` (the forced step), ``fvin_r3s3`` (translation and rotation
-  together) and ``quadrotor``, ``networks``
-  (learned ``J``, ``U``, ``g``, ``D``), ``rigid_body`` (closed-form bodies, read off an MJCF),
-  ``state`` (the state ``x = (q, ω)`` and its validator), ``checkpoint``, ``data``.
-* :mod:`fvin_mpc.envs` — Gymnasium environments over MuJoCo scenes and the scene declarations
-  (the repository's ``envs/`` folder, installed under this name).
-* :mod:`fvin_mpc.learning` — data collection, the torch model, training: the only torch importers.
-* :mod:`fvin_mpc.control` — ``export`` (CasADi function, compile cache), ``mpc`` (IPOPT MPC with
-  multi-start), ``energy_shaping``, ``closed_loop`` (episodes and metrics), ``scene`` (the model,
-  MPC and settings a scene calls for — the one path every command takes). No torch.
-* :mod:`fvin_mpc.studies` — evaluation, Pendulum-v1, model quality, inertia, the spherical study,
-  the accuracy-vs-time studies (``studies.bench``, written by ``studies.report``), one process pool
-  (``studies.pool``) and one episode-start generator (``studies.starts``).
+:mod:`fvin_mpc.core` — the math, written once for NumPy, torch and CasADi:
 
-The top-level modules are the commands, thin over the library: ``python -m fvin_mpc.swingup``,
-``fly`` (the quadrotor's recovery and figure-eight), ``collect``, ``train``, ``export``, ``evaluate``,
-``pendulum_v1``, ``quality``, ``inertia``, ``spherical_report``, ``sweep`` and ``bench``.
+* ``backend`` — the leaf operations that differ between NumPy, torch and CasADi (the only backend-specific code).
+* ``s3`` — unit-quaternion algebra on S³ and 3×3 linear algebra.
+* ``so3`` — the rotation group SO(3) on 3×3 matrices (for the SO3FVIN baseline).
+* ``fvin`` — the forced S³ variational integrator step and its residual.
+* ``fvin_r3s3`` — the R³ × S³ step: translation and rotation together.
+* ``fvin_so3`` — the forced LieFVIN step on SO(3), the paper's baseline.
+* ``networks`` — the learned S3FVIN terms ``J``, ``U``, ``g`` (and ``D``) from weights.
+* ``networks_r3s3`` — the learned R³ × S³ terms ``M``, ``J``, ``U``, force and torque gains.
+* ``networks_so3`` — the learned SO3FVIN terms.
+* ``rigid_body`` — closed-form bodies on a fixed pivot, read off an MJCF.
+* ``quadrotor`` — the closed-form quadrotor (R³ × S³) and a geometric controller.
+* ``state`` — the state ``x = (q, ω)`` and its validator.
+* ``checkpoint`` — safetensors weights + JSON sidecar; where the shipped checkpoints are.
+* ``data`` — trajectory data sets of pivoted bodies (``.npz``).
+* ``free_body_data`` — trajectory data sets of free bodies (``.npz``, 13-number states).
+
+:mod:`fvin_mpc.envs` — Gymnasium environments over MuJoCo scenes (the repository's ``envs/`` folder,
+installed under this name):
+
+* ``scenes`` — the scene registry and physics declarations.
+* ``rigid_body_env`` — one rigid body on one actuated hinge or ball joint.
+* ``quadrotor_env`` — a free body with rotors (the ``quadrotor`` scene).
+* ``pendulum_v1`` — conversions between Gymnasium's ``Pendulum-v1`` and the ``pendulum`` scene.
+* ``disturbance`` — a known constant torque disturbance (the offset-free tests' oracle).
+
+:mod:`fvin_mpc.learning` — the only torch importers:
+
+* ``collection`` — trajectories from a scene (``python -m fvin_mpc.collect``).
+* ``model`` — the trainable torch S3FVIN.
+* ``model_r3s3`` — the trainable torch R³ × S³ model.
+* ``model_so3`` — the trainable torch SO3FVIN.
+* ``mlp_baseline`` — the unstructured MLP baseline.
+* ``training`` — one training loop for every model (``python -m fvin_mpc.train``).
+* ``training_r3s3`` — free-body training windows and command line.
+* ``timing`` — torch-side thread and step-timing helpers for the studies.
+
+:mod:`fvin_mpc.control` — the control runtime, no torch:
+
+* ``export`` — a model's step as a CasADi function; the compile cache.
+* ``mpc`` — the IPOPT MPC with multi-start cold solves.
+* ``rti`` — the real-time iteration MPC on S³.
+* ``implicit_dynamics`` — the step's own equations as the real-time iteration's dynamics constraint.
+* ``state_layout`` — where the quaternion sits in a controller's state (pivoted or free body).
+* ``buffered`` — CasADi calls through preallocated buffers, without per-call conversions.
+* ``energy_shaping`` — energy-shaping swing-up with an LQR catch from ``J``, ``U``, ``g``.
+* ``closed_loop`` — closed-loop episodes (waiting or latency-aware) and their metrics.
+* ``scene`` — a scene's env, model, MPC and settings (the one path every command takes).
+* ``quadrotor`` — the quadrotor's settings, references and metrics.
+
+:mod:`fvin_mpc.studies` — studies and reports:
+
+* ``evaluation`` — closed-loop evaluation over seeded episodes.
+* ``pendulum_v1`` — the MPC on Gymnasium's ``Pendulum-v1``.
+* ``pendulum_v1_reference`` — a global reference for ``Pendulum-v1`` (DP on the exact map, polished).
+* ``pendulum_v1_value`` — a value function of the learned model for ``Pendulum-v1``'s cost.
+* ``pendulum_v1_plan`` — the learned model's DP swing-up handing over to the MPC.
+* ``data_efficiency`` — how much data control needs.
+* ``data_efficiency_terms`` — why a data-efficiency cell costs more: its learned terms.
+* ``quality`` — a checkpoint's model quality.
+* ``inertia`` — 3-D model quality and the recovered inertia.
+* ``spherical`` — the ball-joint study.
+* ``quadrotor`` — the quadrotor's recovery and figure-eight study.
+* ``sweep`` — training sweeps.
+* ``pool`` — the one way to run many tasks (in order, process pool or Ray).
+* ``starts`` — the episodes' initial conditions.
+* ``report`` — the one report writer.
+* ``bench`` — the accuracy-vs-time studies: ``common`` (shared helpers), ``horizon``, ``newton``, ``ops``,
+  ``paper``, ``rti``, ``sim``, ``solver``, ``train_speed``, ``width``.
+
+The commands, thin over the library (``python -m fvin_mpc.<name>``):
+
+* ``swingup`` — swing a scene's body up with the MPC.
+* ``fly`` — fly the quadrotor with the real-time MPC.
+* ``collect`` — collect trajectories from a scene.
+* ``train`` — train a model on trajectory data (needs the ``train`` extra: torch).
+* ``export`` — write a checkpoint's step as a CasADi file.
+* ``evaluate`` — closed-loop evaluation of the controllers.
+* ``pendulum_v1`` — the MPC on Gymnasium's ``Pendulum-v1``.
+* ``quality`` — a checkpoint's model quality.
+* ``inertia`` — 3-D model quality and the recovered inertia.
+* ``spherical_report`` — the ball-joint study.
+* ``sweep`` — a training sweep.
+* ``bench`` — the accuracy-vs-time studies (``python -m fvin_mpc.bench <study>``).
+* ``_cli`` — the command-line options the commands share.
+
+The shipped checkpoints are ``fvin_mpc.checkpoints`` (the repository's ``checkpoints/`` folder,
+installed as package data).
 """
 
 __version__ = "0.1.0"

@@ -32,9 +32,11 @@ from fvin_mpc.core.space import ConfigurationSpace, get_space, require, space_of
 AnyConfig = Any
 
 FORMAT = "fvin_mpc.checkpoint/1"
-#: Where the shipped checkpoints live (next to the package in a source checkout or
-#: installed as package data).
-CHECKPOINT_DIR = Path(__file__).resolve().parents[2] / "checkpoints"
+_PACKAGE = Path(__file__).resolve().parents[1]
+#: Where the shipped checkpoints live: ``fvin_mpc/checkpoints`` in an installed wheel (package data),
+#: the repository's ``checkpoints/`` beside the package in a source checkout.
+CHECKPOINT_DIR = next((d for d in (_PACKAGE / "checkpoints", _PACKAGE.parent / "checkpoints") if d.is_dir()),
+                      _PACKAGE.parent / "checkpoints")
 
 
 class CheckpointError(ValueError):
