@@ -28,6 +28,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from fvin_mpc.core import networks, networks_r3s3, networks_so3
+from fvin_mpc.core.errors import FvinMpcError
 from fvin_mpc.core.networks import ModelConfig
 
 #: A checkpoint's model configuration: pivoted (S³), free body (R³ × S³) or the SO(3) baseline.
@@ -39,7 +40,7 @@ FORMAT = "fvin_mpc.checkpoint/1"
 CHECKPOINT_DIR = Path(__file__).resolve().parents[2] / "checkpoints"
 
 
-class CheckpointError(ValueError):
+class CheckpointError(FvinMpcError, ValueError):
     """A checkpoint could not be read; the message says which file and why."""
 
 
