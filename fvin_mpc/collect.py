@@ -16,13 +16,14 @@ from __future__ import annotations
 import argparse
 import json
 from pathlib import Path
+from fvin_mpc._cli import run_command
 from fvin_mpc.core.data import save_data
 from fvin_mpc.core.free_body_data import save_free_body_data
-from fvin_mpc.envs.scenes import FREE_BODY_SCENES, resolve_scene
+from fvin_mpc.envs.scenes import FREE_BODY_SCENES, existing_scene, resolve_scene
 from fvin_mpc.learning.collection import collect, collect_quadrotor
 
 
-def main(argv: list[str] | None = None) -> int:
+def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m fvin_mpc.collect", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--scene", default="pendulum", help="built-in scene name or MJCF path (default: %(default)s)")
@@ -44,8 +45,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, default=None, help="output .npz (default: data/<scene name>.npz, the MJCF's stem for a path)")
     parser.add_argument("--quiet", action="store_true")
-    args = parser.parse_args(argv)
-    spec = resolve_scene(args.scene)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    spec = existing_scene(args.scene)
     if spec.name in FREE_BODY_SCENES:
         free = collect_quadrotor(args.scene, trajectories=args.trajectories or 300, steps=args.steps or 50,
                                  seed=args.seed, max_omega=10.0 if args.max_omega is None else args.max_omega,
@@ -69,4 +74,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(run_command(main))

@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Sequence
 
 import fvin_mpc.studies.pendulum_v1 as pendulum_v1_module
-from fvin_mpc._cli import add_backend_arguments, backend_options, exit_status
+from fvin_mpc._cli import add_backend_arguments, backend_options, exit_status, run_command
 from fvin_mpc.studies.pendulum_v1 import (REFERENCE_GRIDS, BenchmarkConfig, plot_returns, run_benchmark,
                                           summarize, write_markdown)
 from fvin_mpc.studies.pool import TasksFailed
@@ -154,4 +154,4 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(run_command(main))

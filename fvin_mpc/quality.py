@@ -9,6 +9,7 @@ import json
 from pathlib import Path
 import numpy as np
 import fvin_mpc.studies.quality as quality_module
+from fvin_mpc._cli import run_command
 from fvin_mpc.envs.scenes import resolve_scene
 from fvin_mpc.control.scene import scene_env
 from fvin_mpc.core.checkpoint import load_checkpoint
@@ -17,7 +18,7 @@ from fvin_mpc.core.data import load_data
 from fvin_mpc.studies.quality import NP, compare_components, energy_behaviour, rollout_error
 
 
-def main(argv: list[str] | None = None) -> int:
+def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m fvin_mpc.quality", description=quality_module.__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--checkpoint", default=resolve_scene("pendulum").default_checkpoint,
@@ -29,6 +30,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--energy-steps", type=int, default=2000)
     parser.add_argument("--seed", type=int, default=0, help="seeds the sampled states of the component comparison")
     parser.add_argument("--json", type=Path, default=None)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
     args = parser.parse_args(argv)
     checkpoint = load_checkpoint(args.checkpoint)
     env = scene_env(checkpoint.scene, checkpoint)
@@ -70,4 +76,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(run_command(main))
