@@ -26,26 +26,26 @@ _START = time.perf_counter()
 from fvin_mpc.core.data import load_data  # noqa: E402
 from fvin_mpc.core.free_body_data import is_free_body_data  # noqa: E402
 from fvin_mpc.core.networks import VARIANTS, ModelConfig  # noqa: E402
+from fvin_mpc._cli import run_command  # noqa: E402
 from fvin_mpc.learning.training import (  # noqa: E402
-    DEFAULT_DATA, DEFAULT_ITERATIONS, OPTIMIZERS, TrainSettings, default_checkpoint_stem, package_versions,
-    safe_thread_count, scene_has_joint_damping, train,
+    DEFAULT_DATA, DEFAULT_ITERATIONS, OPTIMIZERS, TrainSettings, default_output_stem, package_versions,
+    refuse_to_overwrite, safe_thread_count, scene_has_joint_damping, train,
 )
 
 
-def main(argv: list[str] | None = None) -> int:
-    # Which model the data call for decides which options apply: read --data alone first.
-    peek = argparse.ArgumentParser(add_help=False)
-    peek.add_argument("--data", type=Path, default=DEFAULT_DATA)
-    if is_free_body_data(peek.parse_known_args(argv)[0].data):
-        from fvin_mpc.learning import training_r3s3
-
-        return training_r3s3.main(argv)
+def build_parser() -> argparse.ArgumentParser:
+    """The options for pivoted (S³) data; free-body data take those of
+    :func:`fvin_mpc.learning.training_r3s3.build_parser`."""
     parser = argparse.ArgumentParser(prog="python -m fvin_mpc.train", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", type=Path, default=DEFAULT_DATA, help="data file from fvin_mpc.collect (default: %(default)s)")
     parser.add_argument("--out", type=Path, default=None,
                         help="checkpoint stem (default: checkpoints/<scene stem>_<variant>, e.g. checkpoints/arm_sign-invariant "
-                             "for data collected from /any/path/arm.xml)")
+                             "for data collected from /any/path/arm.xml, the scene's default model; data in a file "
+                             "named otherwise, e.g. data/arm_big.npz, give checkpoints/arm_big_<variant>). The default "
+                             "never replaces an existing checkpoint (a shipped one included) unless --force")
+    parser.add_argument("--force", action="store_true",
+                        help="let the default --out replace an existing checkpoint")
     parser.add_argument("--variant", choices=VARIANTS, default="sign-invariant", help="model variant (default: %(default)s)")
     parser.add_argument("--hidden-width", type=int, default=ModelConfig.hidden_width, help="width of every hidden layer (default: %(default)s)")
     parser.add_argument("--hidden-layers", type=int, default=ModelConfig.hidden_layers, help="hidden layers per MLP (default: %(default)s)")
@@ -79,11 +79,26 @@ def main(argv: list[str] | None = None) -> int:
                         help="torch.compile the step (adam/lbfgs only): ≈75–200 s of compilation, then ≈3× faster iterations")
     parser.add_argument("--seed", type=int, default=0, help="seed of the initialization, split and LM samples (default: %(default)s)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    # Which model the data call for decides which options apply: read --data alone first.
+    peek = argparse.ArgumentParser(add_help=False)
+    peek.add_argument("--data", type=Path, default=DEFAULT_DATA)
+    if is_free_body_data(peek.parse_known_args(argv)[0].data):
+        from fvin_mpc.learning import training_r3s3
+
+        return training_r3s3.main(argv)
+    parser = build_parser()
     args = parser.parse_args(argv)
 
     from fvin_mpc.core.checkpoint import save_checkpoint
 
     data = load_data(args.data)
+    out = args.out or default_output_stem(data, args.data, args.variant)
+    if args.out is None:
+        refuse_to_overwrite(out, args.force)
     dissipation = args.dissipation
     if dissipation is None:
         dissipation = bool(scene_has_joint_damping(data.metadata))
@@ -103,7 +118,6 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(str(error))
     model, report = train(data, config, settings, progress=not args.quiet)
     scene = data.metadata.get("scene", "unknown")
-    out = args.out or default_checkpoint_stem(data, args.variant)
     report["dissipation_chosen"] = "given" if args.dissipation is not None else "scene joint damping"
     report["process_to_train_end_s"] = time.perf_counter() - _START
     report["process_cpu_to_train_end_s"] = time.process_time()  # CPU seconds since the process started
@@ -124,4 +138,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(run_command(main))

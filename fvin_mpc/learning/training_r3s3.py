@@ -23,7 +23,7 @@ import numpy as np
 
 from fvin_mpc.core.free_body_data import FreeBodyData, load_free_body_data
 from fvin_mpc.core.networks_r3s3 import LearnedCombinedTerms, R3S3Config, physical_scale
-from fvin_mpc.learning.training import TrainSettings, package_versions, train
+from fvin_mpc.learning.training import TrainSettings, package_versions, refuse_to_overwrite, train
 
 #: Position and velocity scales of the loss (1/m, s/m): 1 mm of position error weighs as 0.03 rad/s.
 POSITION_SCALE, VELOCITY_SCALE = 30.0, 10.0
@@ -191,7 +191,7 @@ def numpy_step(terms: Any, config_or_step: Any, newton_iters: int, force_rule: s
 
 
 # ----------------------------------------------------------------------------- command
-def main(argv: list[str] | None = None) -> int:
+def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m fvin_mpc.learning.training_r3s3", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", type=Path, default=DEFAULT_DATA, help="free-body data (default: %(default)s)")
@@ -207,13 +207,21 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--time-limit", type=float, default=None, help="seconds")
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--out", type=Path, default=None, help="checkpoint stem (default: checkpoints/quadrotor_<variant>)")
+    parser.add_argument("--out", type=Path, default=None,
+                        help="checkpoint stem (default: checkpoints/<scene>_<variant>, e.g. checkpoints/quadrotor_fixed-inertia; "
+                             "never replacing an existing checkpoint, a shipped one included, unless --force)")
+    parser.add_argument("--force", action="store_true", help="let the default --out replace an existing checkpoint")
     parser.add_argument("--init", default=None, metavar="CHECKPOINT",
                         help="continue training from this checkpoint (its architecture; --variant and --hidden-width are ignored)")
     parser.add_argument("--evaluate", default=None, metavar="CHECKPOINT",
                         help="no training: evaluate this checkpoint on --test-data (open loop over 0.2, 0.5 and 1 s, "
                              "learned beside closed form; recovered mass, inertia and hover thrust)")
     parser.add_argument("--quiet", action="store_true")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
     args = parser.parse_args(argv)
 
     from fvin_mpc.core.checkpoint import load_checkpoint, save_checkpoint
@@ -246,6 +254,9 @@ def main(argv: list[str] | None = None) -> int:
             parser.error(f"--init {args.init}: not an R3xS3 checkpoint")
         config, initial = start.config, {name: np.array(value) for name, value in start.weights.items()}
         previous = dict(start.metadata.get("training", {}))
+    stem = args.out or Path("checkpoints") / f"{data.metadata.get('scene', 'quadrotor')}_{config.variant}"
+    if args.out is None:
+        refuse_to_overwrite(stem, args.force)
     settings = TrainSettings(optimizer="lm", iterations=args.iterations, window=args.window, seed=args.seed,
                              jacobian_windows=args.jacobian_windows, threads=args.threads, patience=args.patience,
                              time_limit_s=args.time_limit)
@@ -260,7 +271,6 @@ def main(argv: list[str] | None = None) -> int:
     if args.test_data is not None:
         test = load_free_body_data(args.test_data)
         summary.update(compare_open_loop(weights, config, test, str(test.metadata.get("scene", "quadrotor"))))
-    stem = args.out or Path("checkpoints") / f"{data.metadata.get('scene', 'quadrotor')}_{config.variant}"
     history = report.pop("history")
     save_checkpoint(stem, config, weights, scene=data.metadata.get("scene"), body=data.metadata.get("body"),
                     data={"path": str(args.data), "trajectories": data.num_trajectories,
@@ -273,4 +283,6 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    from fvin_mpc.core.errors import run_command
+
+    raise SystemExit(run_command(main))
