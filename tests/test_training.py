@@ -203,6 +203,6 @@ def test_cli_records_threads_and_load(tmp_path, monkeypatch, data):
                                                    ("pendulum_damped", ("--no-dissipation",), False),
                                                    ("pendulum", ("--dissipation",), True)])
 def test_cli_dissipation_defaults_to_the_scene_damping(tmp_path, monkeypatch, data, scene, flag, expected):
-    sidecar, checkpoint = run_cli(tmp_path, monkeypatch, with_scene(data, scene=scene), *flag)
+    sidecar, checkpoint = run_cli(tmp_path, monkeypatch, with_scene(data, scene=scene), *flag, data_file=f"{scene}.npz")
     assert checkpoint.config.dissipation is expected
     assert sidecar.name == f"{scene}_sign-invariant.json"
