@@ -165,7 +165,7 @@ def _recorded_scene(scene: str) -> tuple[str, str]:
 
 
 def checked_scene_and_checkpoint(scene: Any, checkpoint: Any = None, true_model: bool = False,
-                                 command: str | None = None) -> tuple[Any, Any]:
+                                 command: str | None = None, controls: int | None = None) -> tuple[Any, Any]:
     """The scene's declaration and, unless ``true_model``, the checkpoint that will plan on it, both
     checked before any work: the scene must exist, a checkpoint must be there, be a model of the
     scene's configuration space, and — when not named by the user — of this very scene.
@@ -173,7 +173,7 @@ def checked_scene_and_checkpoint(scene: Any, checkpoint: Any = None, true_model:
     A checkpoint the user names (``--checkpoint``) may come from another scene of the same space (a
     model of one pendulum tried on another); one picked by default may not, since the user never
     chose it. With ``command`` (its name), the scene must be a body on a pivot, as the swing-up
-    commands need. Returns ``(SceneSpec, Checkpoint | None)``.
+    commands need; with ``controls``, the model must have that many. Returns ``(SceneSpec, Checkpoint | None)``.
 
     Raises:
         SceneError: the scene is neither built in nor an existing MJCF file.
@@ -184,7 +184,7 @@ def checked_scene_and_checkpoint(scene: Any, checkpoint: Any = None, true_model:
 
     spec = existing_scene(scene)
     if command is not None and spec.name in FREE_BODY_SCENES:
-        raise SceneError(f"scene {spec.name!r} is a free body and {command} swings up a body on a pivot; "
+        raise SceneError(f"scene {spec.name!r} is a free body and {command} needs a body on a pivot; "
                          "fly it with python -m fvin_mpc.fly")
     if true_model:
         return spec, None
@@ -200,8 +200,11 @@ def checked_scene_and_checkpoint(scene: Any, checkpoint: Any = None, true_model:
     model_space = "R3xS3" if str(loaded.configuration_space) == "R3xS3" else "pivoted"
     if model_space != scene_space:
         raise CheckpointError(
-            f"checkpoint {name!r} is a {loaded.configuration_space} model and scene {spec.name!r} needs "
-            f"{'an R3xS3 (free-body)' if scene_space == 'R3xS3' else 'a pivoted (S3)'} one")
+            f"checkpoint {name!r} models configuration space {loaded.configuration_space} and scene {spec.name!r} "
+            f"needs {'R3xS3 (a free body)' if scene_space == 'R3xS3' else 'S3 (a body on a pivot)'}")
+    if controls is not None and loaded.config.control_dim != controls:
+        raise CheckpointError(f"checkpoint {name!r} has {loaded.config.control_dim} controls and scene {spec.name!r} "
+                              f"{controls}")
     if loaded.scene is not None and _recorded_scene(str(loaded.scene)) != _scene_identity(spec):
         if checkpoint is None:
             raise CheckpointError(

@@ -9,10 +9,10 @@ import json
 from pathlib import Path
 import numpy as np
 import fvin_mpc.studies.quality as quality_module
-from fvin_mpc._cli import run_command
+from fvin_mpc._cli import checked_scene_and_checkpoint, run_command
 from fvin_mpc.envs.scenes import resolve_scene
 from fvin_mpc.control.scene import scene_env
-from fvin_mpc.core.checkpoint import load_checkpoint
+from fvin_mpc.core.checkpoint import CheckpointError, load_checkpoint
 from fvin_mpc.core.rigid_body import from_mujoco
 from fvin_mpc.core.data import load_data
 from fvin_mpc.studies.quality import NP, compare_components, energy_behaviour, rollout_error
@@ -36,7 +36,10 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    checkpoint = load_checkpoint(args.checkpoint)
+    recorded_scene = load_checkpoint(args.checkpoint).scene
+    if recorded_scene is None:
+        raise CheckpointError(f"checkpoint {args.checkpoint!r} records no scene, and the report compares it with its scene")
+    _, checkpoint = checked_scene_and_checkpoint(recorded_scene, args.checkpoint, command="quality")
     env = scene_env(checkpoint.scene, checkpoint)
     if env.joint_axis is None:
         parser.error(f"{args.checkpoint} models {checkpoint.scene!r}, a ball joint: this is the planar report; "

@@ -165,10 +165,36 @@ def test_a_checkpoint_of_another_configuration_space_is_refused(capsys):
     from fvin_mpc import evaluate, swingup
 
     line = refused(swingup.main, ["--scene", "pendulum", "--checkpoint", "quadrotor_fixed-inertia", "--quiet"], capsys)
-    assert "R3xS3" in line and "pivoted" in line
+    assert "R3xS3" in line and "S3 (a body on a pivot)" in line
     line = refused(evaluate.main, ["--checkpoint", "quadrotor_fixed-inertia", "--controllers", "mpc-learned",
                                    "--quiet"], capsys)
     assert "R3xS3" in line
+
+
+@pytest.mark.parametrize("command, argv, message", [
+    ("quality", ["--checkpoint", "quadrotor_fixed-inertia"], "is a free body and quality needs a body on a pivot"),
+    ("pendulum_v1", ["--checkpoint", "quadrotor_fixed-inertia", "--episodes", "1"], "configuration space R3xS3"),
+    ("pendulum_v1", ["--checkpoint", "spherical_pendulum_sign-invariant", "--episodes", "1"], "has 3 controls"),
+    ("export", ["--checkpoint", "no-such-model"], "checkpoint file not found"),
+])
+def test_checkpoint_commands_refuse_a_model_they_cannot_use(command, argv, message, capsys, tmp_path):
+    import importlib
+
+    main = importlib.import_module(f"fvin_mpc.{command}").main
+    assert message in refused(main, [*argv, "--out" if command == "pendulum_v1" else "--seed",
+                                     str(tmp_path / "out.md") if command == "pendulum_v1" else "0"], capsys)
+    assert not list(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("command", ["train", "inertia", "sweep"])
+def test_a_missing_data_file_is_a_one_line_error(command, capsys, tmp_path):
+    import importlib
+
+    from fvin_mpc.core.errors import DataFileNotFound
+
+    assert issubclass(DataFileNotFound, FileNotFoundError)
+    main = importlib.import_module(f"fvin_mpc.{command}").main
+    assert "data file not found" in refused(main, ["--data", str(tmp_path / "absent.npz")], capsys)
 
 
 def test_fly_refuses_a_pivoted_checkpoint_before_building_anything(capsys):

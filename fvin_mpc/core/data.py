@@ -17,6 +17,8 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from fvin_mpc.core.errors import DataFileError, DataFileNotFound
+
 
 class Trajectories:
     """Base of the trajectory data sets (frozen dataclasses): per-trajectory arrays whose first
@@ -68,14 +70,15 @@ def save_arrays(path: str | Path, arrays: Mapping[str, np.ndarray], metadata: Ma
 
 def load_arrays(path: str | Path, names: tuple[str, ...], kind: str, how_to_make: str) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
     """The float64 arrays ``names`` and the metadata of a file written by :func:`save_arrays`;
-    ``FileNotFoundError`` saying ``how_to_make`` one, ``ValueError`` when one is missing."""
+    ``DataFileNotFound`` (a ``FileNotFoundError``) saying ``how_to_make`` one, ``DataFileError`` (a
+    ``ValueError``) when one is missing."""
     path = Path(path)
     if not path.exists():
-        raise FileNotFoundError(f"data file not found: {path} (make one with `{how_to_make}`)")
+        raise DataFileNotFound(f"data file not found: {path} (make one with `{how_to_make}`)")
     with np.load(path, allow_pickle=False) as archive:
         missing = {*names, "metadata"} - set(archive.files)
         if missing:
-            raise ValueError(f"{path}: not a {kind} file (missing {sorted(missing)})")
+            raise DataFileError(f"{path}: not a {kind} file (missing {sorted(missing)})")
         return ({name: archive[name].astype(np.float64) for name in names},
                 json.loads(str(archive["metadata"])))
 

@@ -28,6 +28,14 @@ class SceneError(FvinMpcError, ValueError):
     """A scene that is neither built in nor an existing MJCF file, or one that cannot be simulated."""
 
 
+class DataFileNotFound(FvinMpcError, FileNotFoundError):
+    """A trajectory-data file that is not there (a ``FileNotFoundError`` too)."""
+
+
+class DataFileError(FvinMpcError, ValueError):
+    """A file that is not the kind of trajectory data asked for."""
+
+
 def run_command(main: Callable[[Sequence[str] | None], int], argv: Sequence[str] | None = None) -> int:
     """A command's exit status: ``main(argv)``'s, or 2 for an error the user can fix.
 
