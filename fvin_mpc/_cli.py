@@ -204,7 +204,7 @@ def checked_scene_and_checkpoint(scene: Any, checkpoint: Any = None, true_model:
             f"needs {'R3xS3 (a free body)' if scene_space == 'R3xS3' else 'S3 (a body on a pivot)'}")
     if controls is not None and loaded.config.control_dim != controls:
         raise CheckpointError(f"checkpoint {name!r} has {loaded.config.control_dim} controls and scene {spec.name!r} "
-                              f"{controls}")
+                              f"has {controls}")
     if loaded.scene is not None and _recorded_scene(str(loaded.scene)) != _scene_identity(spec):
         if checkpoint is None:
             raise CheckpointError(

@@ -38,7 +38,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     recorded_scene = load_checkpoint(args.checkpoint).scene
     if recorded_scene is None:
-        raise CheckpointError(f"checkpoint {args.checkpoint!r} records no scene, and the report compares it with its scene")
+        raise CheckpointError(f"checkpoint {args.checkpoint!r} records no scene; the report compares a model "
+                              "with its scene's closed form")
     _, checkpoint = checked_scene_and_checkpoint(recorded_scene, args.checkpoint, command="quality")
     env = scene_env(checkpoint.scene, checkpoint)
     if env.joint_axis is None:

@@ -1,9 +1,10 @@
 """Swing a MuJoCo pendulum up with MPC on the learned S3FVIN: ``python -m fvin_mpc.swingup``.
 
 With no arguments: the shipped sign-invariant model of the ``pendulum`` scene, starting
-hanging at rest, 10 s of closed loop in MuJoCo (a scene with a weaker motor gets longer:
-``--duration``), a summary on stdout and a plot in ``swingup.png``. ``--true-model`` runs the same MPC on the closed-form rigid body read
-off the scene's MJCF, for comparison. The controller is the one the evaluation reports
+hanging at rest, 10 s of closed loop in MuJoCo (a scene whose motor is weaker against gravity
+gets longer: ``--duration``), a summary on stdout and a plot in ``swingup.png``.
+``--true-model`` runs the same MPC on the closed-form rigid body read off the scene's MJCF, for
+comparison. The controller is the one the evaluation reports
 (``python -m fvin_mpc.evaluate``): the scene's MPC settings, multi-start cold solves.
 """
 

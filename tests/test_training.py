@@ -183,8 +183,8 @@ def run_cli(tmp_path, monkeypatch, data, *args, data_file="d.npz"):
 
 def test_cli_default_output_is_the_scene_stem_for_an_absolute_mjcf_path(tmp_path, monkeypatch, data):
     scene = str(tmp_path / "scenes" / "arm.xml")  # absolute; the file need not exist to name the checkpoint
-    sidecar, checkpoint = run_cli(tmp_path, monkeypatch, with_scene(data, scene=scene), "--variant", "plain", "--no-dissipation",
-                                  data_file="arm.npz")  # data named after their scene, as collect names them
+    sidecar, checkpoint = run_cli(tmp_path, monkeypatch, with_scene(data, scene=scene), "--variant", "plain",
+                                  "--no-dissipation", data_file="arm.npz")  # named after the scene, as collect does
     assert sidecar == tmp_path / "checkpoints" / "arm_plain.json"
     assert checkpoint.scene == scene
     assert not (tmp_path / "scenes").exists()

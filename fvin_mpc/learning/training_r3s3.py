@@ -208,8 +208,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, default=None,
-                        help="checkpoint stem (default: checkpoints/<scene>_<variant>, e.g. checkpoints/quadrotor_fixed-inertia; "
-                             "never replacing an existing checkpoint, a shipped one included, unless --force)")
+                        help="checkpoint stem (default: checkpoints/<scene>_<variant>, e.g. "
+                             "checkpoints/quadrotor_fixed-inertia; never replacing an existing checkpoint, a shipped "
+                             "one included, unless --force)")
     parser.add_argument("--force", action="store_true", help="let the default --out replace an existing checkpoint")
     parser.add_argument("--init", default=None, metavar="CHECKPOINT",
                         help="continue training from this checkpoint (its architecture; --variant and --hidden-width are ignored)")
