@@ -17,6 +17,7 @@ import numpy as np
 from gymnasium import spaces
 
 from fvin_mpc.core.space import S3, ConfigurationSpace
+from fvin_mpc.core.errors import SceneError, UsageError
 from fvin_mpc.core.state import as_float_array, split_state, unit_quaternion
 
 from .scenes import MIN_CONTROL_PERIOD, SceneSpec, ScenePhysics, build_model, resolve_scene
@@ -394,7 +395,7 @@ class RigidBodyEnv(MujocoBodyEnv):
         return goal, self._qpos_of_orientation(rest)
 
     def _no_task(self) -> None:
-        raise ValueError(f"scene {self.scene_spec.name!r}: the potential has no maximum to read the task off "
+        raise SceneError(f"scene {self.scene_spec.name!r}: the potential has no maximum to read the task off "
                          "(no gravity, or the centre of mass on the pivot); declare goal and rest")
 
     def _qpos_of_orientation(self, orientation: np.ndarray) -> np.ndarray:
@@ -484,11 +485,11 @@ def _only_jointed_body(model: mujoco.MjModel) -> str:
     jointed = [b for b in range(model.nbody) if model.body_jntnum[b] > 0]
     names = [mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, b) for b in jointed]
     if len(jointed) != 1:
-        raise ValueError(
+        raise SceneError(
             f"the MJCF has {len(jointed)} bodies with joints ({names}); pass body=... to choose the observed one"
         )
     if names[0] is None:
-        raise ValueError("the only body with a joint has no name; name it in the MJCF")
+        raise SceneError("the only body with a joint has no name; name it in the MJCF")
     return names[0]
 
 
@@ -496,37 +497,37 @@ def _validate_body_and_joint(model: mujoco.MjModel, body: str) -> tuple[int, int
     body_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, body)
     if body_id < 0:
         names = [mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, b) for b in range(1, model.nbody)]
-        raise ValueError(f"no body named {body!r} in the MJCF; bodies: {names}")
+        raise SceneError(f"no body named {body!r} in the MJCF; bodies: {names}")
     if model.body_jntnum[body_id] != 1:
-        raise ValueError(f"body {body!r} must have exactly one joint (a hinge or a ball), it has {model.body_jntnum[body_id]}")
+        raise SceneError(f"body {body!r} must have exactly one joint (a hinge or a ball), it has {model.body_jntnum[body_id]}")
     joint_id = int(model.body_jntadr[body_id])
     joint_type = int(model.jnt_type[joint_id])
     if joint_type not in _JOINT_TYPES:
-        raise ValueError(
+        raise SceneError(
             f"body {body!r}: its joint must be a hinge or a ball, got {mujoco.mjtJoint(joint_type).name}"
         )
     if model.nv != (1 if joint_type == int(mujoco.mjtJoint.mjJNT_HINGE) else 3):
-        raise ValueError(
+        raise SceneError(
             f"the body's joint must be the model's only degree of freedom (so that (q, ω) is the whole state); "
             f"the model has nv={model.nv}"
         )
     if model.nu == 0:
-        raise ValueError(f"body {body!r}: its joint is not actuated (the MJCF has no actuators)")
+        raise SceneError(f"body {body!r}: its joint is not actuated (the MJCF has no actuators)")
     for a in range(model.nu):
         name = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_ACTUATOR, a) or f"#{a}"
         if model.actuator_trntype[a] != mujoco.mjtTrn.mjTRN_JOINT or model.actuator_trnid[a, 0] != joint_id:
-            raise ValueError(f"actuator {name!r} must drive the joint of body {body!r} directly")
+            raise SceneError(f"actuator {name!r} must drive the joint of body {body!r} directly")
     if model.na > 0:
-        raise ValueError("actuators with internal state (dyntype != none) are not supported: (q, ω) would not be the whole state")
+        raise SceneError("actuators with internal state (dyntype != none) are not supported: (q, ω) would not be the whole state")
     return body_id, joint_id
 
 
 def _frame_skip(control_period: float, timestep: float) -> int:
     if not (math.isfinite(control_period) and control_period > 0.0):
-        raise ValueError(f"control_period must be finite and > 0, got {control_period!r}")
+        raise UsageError(f"control_period must be finite and > 0, got {control_period!r}")
     frame_skip = round(control_period / timestep)
     if frame_skip < 1 or abs(frame_skip * timestep - control_period) > 1e-9 * control_period:
-        raise ValueError(
+        raise UsageError(
             f"control_period {control_period} s must be a whole multiple of the MJCF timestep {timestep} s"
         )
     return int(frame_skip)

@@ -32,6 +32,7 @@ import mujoco
 import numpy as np
 
 from fvin_mpc.core.space import R3S3, S3, ConfigurationSpace
+from fvin_mpc.core.errors import SceneError
 
 SCENE_DIR = Path(__file__).resolve().parent / "scenes"
 
@@ -214,11 +215,11 @@ def _all_scenes() -> dict[str, SceneSpec]:
 
 
 def get_scene(name: str) -> SceneSpec:
-    """The built-in :class:`SceneSpec` called ``name``; ``ValueError`` listing the known ones."""
+    """The built-in :class:`SceneSpec` called ``name``; ``SceneError`` (a ``ValueError``) listing the known ones."""
     try:
         return _all_scenes()[name]
     except KeyError:
-        raise ValueError(
+        raise SceneError(
             f"unknown scene {name!r}: expected one of {sorted(_all_scenes())} or a path to an existing MJCF (.xml) file"
         ) from None
 
@@ -254,6 +255,20 @@ def _space_of_mjcf(path: Path) -> ConfigurationSpace:
     except (ValueError, OSError):
         return S3
     return R3S3 if np.any(model.jnt_type == mujoco.mjtJoint.mjJNT_FREE) else S3
+def existing_scene(scene: str | Path | SceneSpec) -> SceneSpec:
+    """:func:`resolve_scene`, refusing at once a scene whose MJCF file is not there.
+
+    A command checks its ``--scene`` with this before anything else: a misspelt name or path must
+    be reported as such, not as the missing checkpoint its name would have led to.
+
+    Raises:
+        SceneError: an unknown name, or a path to no file; the message lists the built-in scenes.
+    """
+    spec = resolve_scene(scene)
+    if not spec.xml_path.is_file():
+        raise SceneError(f"scene file does not exist: {str(spec.xml_path)!r}; expected one of the built-in scenes "
+                         f"{sorted(_all_scenes())} or a path to an existing MJCF (.xml) file")
+    return spec
 
 
 def _disabled(model: mujoco.MjModel, bit: int) -> bool:
@@ -321,7 +336,7 @@ def check_unsupported_effects(model: mujoco.MjModel) -> None:
     if model.ntendon > 0:
         problems.append("tendons")
     if problems:
-        raise ValueError(
+        raise SceneError(
             "the MJCF contains effects the scene physics declaration has no field for and that would be "
             f"switched off: {', '.join(problems)}; remove them from the file"
         )
@@ -338,7 +353,7 @@ def apply_physics(model: mujoco.MjModel, physics: ScenePhysics) -> None:
     present = present_effects(model)
     missing = [name for name, is_present in present.items() if getattr(physics, name) and not is_present]
     if missing:
-        raise ValueError(
+        raise SceneError(
             f"physics declares {missing} but the MJCF contains no such effect "
             "(gravity vector zero / no dof damping / no frictionloss / no ctrllimited actuator / "
             "no geom pair that can collide); declare it off or add it to the MJCF"
@@ -351,14 +366,14 @@ def apply_physics(model: mujoco.MjModel, physics: ScenePhysics) -> None:
 
 
 def load_model(xml_path: str | Path) -> mujoco.MjModel:
-    """Compile an MJCF file; ``ValueError`` naming the file if it is missing or invalid."""
+    """Compile an MJCF file; ``SceneError`` (a ``ValueError``) naming the file if it is missing or invalid."""
     path = Path(xml_path)
     if not path.is_file():
-        raise ValueError(f"MJCF file not found: {str(path)!r}")
+        raise SceneError(f"MJCF file not found: {str(path)!r}")
     try:
         return mujoco.MjModel.from_xml_path(str(path))
     except ValueError as error:
-        raise ValueError(f"could not compile MJCF {str(path)!r}: {error}") from error
+        raise SceneError(f"could not compile MJCF {str(path)!r}: {error}") from error
 
 
 def build_model(xml_path: str | Path, physics: ScenePhysics | None = None) -> tuple[mujoco.MjModel, ScenePhysics]:

@@ -5,6 +5,8 @@ imports and holds the line). Every module, one line each:
 
 :mod:`fvin_mpc.core` — the math, written once for NumPy, torch and CasADi:
 
+* ``space`` — the configuration spaces (S³, SO(3), R³ × S³): one value every layer carries — state
+  layout, step, energy, learned terms, closed form, chart, check — and the registry that names them.
 * ``backend`` — the leaf operations that differ between NumPy, torch and CasADi (the only backend-specific code).
 * ``s3`` — unit-quaternion algebra on S³ and 3×3 linear algebra.
 * ``so3`` — the rotation group SO(3) on 3×3 matrices (for the SO3FVIN baseline).
@@ -16,10 +18,9 @@ imports and holds the line). Every module, one line each:
 * ``networks_so3`` — the learned SO3FVIN terms.
 * ``rigid_body`` — closed-form bodies on a fixed pivot, read off an MJCF.
 * ``quadrotor`` — the closed-form quadrotor (R³ × S³) and a geometric controller.
-* ``state`` — the state ``x = (q, ω)`` and its validator.
+* ``state`` — array checks at numeric boundaries and the pivoted state's split.
 * ``checkpoint`` — safetensors weights + JSON sidecar; where the shipped checkpoints are.
-* ``data`` — trajectory data sets of pivoted bodies (``.npz``).
-* ``free_body_data`` — trajectory data sets of free bodies (``.npz``, 13-number states).
+* ``data`` — trajectory data sets of any configuration space (``.npz``), one container.
 
 :mod:`fvin_mpc.envs` — Gymnasium environments over MuJoCo scenes (the repository's ``envs/`` folder,
 installed under this name):
@@ -33,21 +34,19 @@ installed under this name):
 :mod:`fvin_mpc.learning` — the only torch importers:
 
 * ``collection`` — trajectories from a scene (``python -m fvin_mpc.collect``).
-* ``model`` — the trainable torch S3FVIN.
-* ``model_r3s3`` — the trainable torch R³ × S³ model.
-* ``model_so3`` — the trainable torch SO3FVIN.
+* ``model`` — the trainable torch model, one shell parametrized by the configuration space (fast
+  rollouts for S³ and SO(3)).
+* ``space_training`` — what training does per space: settings, loss scales, the free body's report.
 * ``mlp_baseline`` — the unstructured MLP baseline.
 * ``training`` — one training loop for every model (``python -m fvin_mpc.train``).
-* ``training_r3s3`` — free-body training windows and command line.
 * ``timing`` — torch-side thread and step-timing helpers for the studies.
 
 :mod:`fvin_mpc.control` — the control runtime, no torch:
 
 * ``export`` — a model's step as a CasADi function; the compile cache.
 * ``mpc`` — the IPOPT MPC with multi-start cold solves.
-* ``rti`` — the real-time iteration MPC on S³.
+* ``rti`` — the real-time iteration MPC (any state layout ``R^a × S³ × R^b``).
 * ``implicit_dynamics`` — the step's own equations as the real-time iteration's dynamics constraint.
-* ``state_layout`` — where the quaternion sits in a controller's state (pivoted or free body).
 * ``buffered`` — CasADi calls through preallocated buffers, without per-call conversions.
 * ``energy_shaping`` — energy-shaping swing-up with an LQR catch from ``J``, ``U``, ``g``.
 * ``closed_loop`` — closed-loop episodes (waiting or latency-aware) and their metrics.

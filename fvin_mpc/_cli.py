@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from typing import Any
+
+from fvin_mpc.core.errors import SceneError, UsageError, run_command  # noqa: F401 (every command's wrapper)
 
 #: ``--option`` → :class:`~fvin_mpc.control.mpc.MPCSettings` field, for the settings a user may need
 #: to change on a new scene (every one defaults to the scene's value).
@@ -21,6 +24,17 @@ MPC_OPTIONS: dict[str, tuple[str, type, str]] = {
                          "fraction of the torque range the plan keeps in reserve after its first control "
                          "(ipopt, sqpmethod, fatrop)"),
 }
+
+
+def positive_float(text: str) -> float:
+    """An option that must be a finite number above zero (``--duration``): refused while parsing, before any work."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number > 0, got {text!r}") from None
+    if not 0.0 < value < float("inf"):
+        raise argparse.ArgumentTypeError(f"must be > 0, got {text!r}")
+    return value
 
 
 def add_scene_arguments(parser: argparse.ArgumentParser, newton_iters: bool = True) -> None:
@@ -105,17 +119,17 @@ def add_backend_arguments(parser: argparse.ArgumentParser,
 
 
 def backend_options(args: argparse.Namespace) -> dict[str, Any]:
-    """``backend`` and ``address`` for :func:`~fvin_mpc.studies.pool.run_tasks`; ``ValueError`` for
+    """``backend`` and ``address`` for :func:`~fvin_mpc.studies.pool.run_tasks`; ``UsageError`` for
     ``--workers`` below 1, ``--ray-address`` without ``--backend ray``, or Ray missing."""
     if args.workers < 1:
-        raise ValueError(f"--workers must be >= 1, got {args.workers}")
+        raise UsageError(f"--workers must be >= 1, got {args.workers}")
     if args.ray_address is not None and args.backend != "ray":
-        raise ValueError("--ray-address needs --backend ray")
+        raise UsageError("--ray-address needs --backend ray")
     if args.backend == "ray":
         import importlib.util
 
         if importlib.util.find_spec("ray") is None:
-            raise ValueError('--backend ray needs Ray: pip install -e ".[ray]"')
+            raise UsageError('--backend ray needs Ray: pip install -e ".[ray]"')
     return {"backend": args.backend, "address": args.ray_address}
 
 
@@ -128,3 +142,72 @@ def exit_status(error: Exception) -> int:
 
     print(f"error: {error}", file=sys.stderr)
     return 1 if isinstance(error, TasksFailed) else 2
+
+
+def _scene_identity(spec: Any) -> tuple[str, str]:
+    """``("built-in", name)`` or ``("file", stem)``: a user's ``pendulum.xml`` is not the built-in ``pendulum``.
+    Files are told apart by their stem only, as a checkpoint records the path it was trained from
+    as written then (often relative to another working directory)."""
+    from fvin_mpc.envs.scenes import FREE_BODY_SCENES, SCENES
+
+    built_in = any(spec is known for known in (*SCENES.values(), *FREE_BODY_SCENES.values()))
+    return ("built-in" if built_in else "file", spec.name)
+
+
+def _recorded_scene(scene: str) -> tuple[str, str]:
+    """The identity of the scene a checkpoint's sidecar names (its MJCF may be gone: only the name is read)."""
+    from fvin_mpc.envs.scenes import resolve_scene
+
+    try:
+        return _scene_identity(resolve_scene(scene))
+    except SceneError:
+        return ("file", scene)
+
+
+def checked_scene_and_checkpoint(scene: Any, checkpoint: Any = None, true_model: bool = False,
+                                 command: str | None = None, controls: int | None = None) -> tuple[Any, Any]:
+    """The scene's declaration and, unless ``true_model``, the checkpoint that will plan on it, both
+    checked before any work: the scene must exist, a checkpoint must be there, be a model of the
+    scene's configuration space, and — when not named by the user — of this very scene.
+
+    A checkpoint the user names (``--checkpoint``) may come from another scene of the same space (a
+    model of one pendulum tried on another); one picked by default may not, since the user never
+    chose it. With ``command`` (its name), the scene must be a body on a pivot, as the swing-up
+    commands need; with ``controls``, the model must have that many. Returns ``(SceneSpec, Checkpoint | None)``.
+
+    Raises:
+        SceneError: the scene is neither built in nor an existing MJCF file.
+        CheckpointError: no such checkpoint, an unreadable one, or one for another space or scene.
+    """
+    from fvin_mpc.core.checkpoint import CheckpointError, checkpoint_exists, load_checkpoint
+    from fvin_mpc.envs.scenes import existing_scene
+
+    spec = existing_scene(scene)
+    if command is not None and not spec.space.pivoted:
+        raise SceneError(f"scene {spec.name!r} is a free body and {command} needs a body on a pivot; "
+                         "fly it with python -m fvin_mpc.fly")
+    if true_model:
+        return spec, None
+    name = checkpoint if checkpoint is not None else spec.default_checkpoint
+    if checkpoint is None and not checkpoint_exists(name):
+        raise CheckpointError(
+            f"scene {spec.name!r} has no trained model (no checkpoint {name!r}): collect data and train one "
+            f"(python -m fvin_mpc.collect --scene {scene}, then python -m fvin_mpc.train --data data/{spec.name}.npz), "
+            "pass --checkpoint, or plan with the closed form (--true-model)")
+    loaded = load_checkpoint(name)
+    # A model plans on the scene's states: a pivoted scene takes S³ or the SO(3) baseline (both on
+    # (q, ω)), a free body R³ × S³.
+    if loaded.space.layout != spec.space.layout:
+        raise CheckpointError(
+            f"checkpoint {name!r} is a model on {loaded.space.name} ({loaded.space.layout.name} states); scene "
+            f"{spec.name!r} is on {spec.space.name} ({spec.space.layout.name} states), {spec.space.description}")
+    if controls is not None and loaded.config.control_dim != controls:
+        raise CheckpointError(f"checkpoint {name!r} has {loaded.config.control_dim} controls and scene {spec.name!r} "
+                              f"has {controls}")
+    if loaded.scene is not None and _recorded_scene(str(loaded.scene)) != _scene_identity(spec):
+        if checkpoint is None:
+            raise CheckpointError(
+                f"the default checkpoint {name!r} models scene {loaded.scene!r}, not {str(scene)!r}: train one for "
+                "this scene, or pass --checkpoint to plan with it anyway")
+        print(f"note: checkpoint {name!r} was trained on scene {loaded.scene!r}, not {str(scene)!r}", file=sys.stderr)
+    return spec, loaded

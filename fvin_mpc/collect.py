@@ -16,12 +16,13 @@ from __future__ import annotations
 import argparse
 import json
 from pathlib import Path
+from fvin_mpc._cli import run_command
 from fvin_mpc.core.data import save_data
-from fvin_mpc.envs.scenes import resolve_scene
+from fvin_mpc.envs.scenes import existing_scene
 from fvin_mpc.learning.collection import collect, collect_quadrotor
 
 
-def main(argv: list[str] | None = None) -> int:
+def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m fvin_mpc.collect", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--scene", default="pendulum", help="built-in scene name or MJCF path (default: %(default)s)")
@@ -43,8 +44,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, default=None, help="output .npz (default: data/<scene name>.npz, the MJCF's stem for a path)")
     parser.add_argument("--quiet", action="store_true")
-    args = parser.parse_args(argv)
-    spec = resolve_scene(args.scene)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    spec = existing_scene(args.scene)
     if not spec.space.pivoted:
         free = collect_quadrotor(args.scene, trajectories=args.trajectories or 300, steps=args.steps or 50,
                                  seed=args.seed, max_omega=10.0 if args.max_omega is None else args.max_omega,
@@ -61,11 +66,11 @@ def main(argv: list[str] | None = None) -> int:
                    args.body, progress=not args.quiet, control_period=args.control_period, max_speed=args.max_speed,
                    near_goal_trajectories=args.near_goal_trajectories, near_goal_angle=args.near_goal_angle,
                    near_goal_omega=args.near_goal_omega)
-    out = args.out or Path("data") / f"{resolve_scene(args.scene).name}.npz"
+    out = args.out or Path("data") / f"{spec.name}.npz"
     save_data(out, data)
     print(json.dumps({"out": str(out), **{k: data.metadata[k] for k in ("scene", "trajectories", "transitions", "control_period")}}))
     return 0
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(run_command(main))

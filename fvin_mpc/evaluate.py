@@ -14,7 +14,7 @@ from typing import Sequence
 
 import fvin_mpc.studies.evaluation as evaluation_module
 from fvin_mpc._cli import (add_backend_arguments, add_closed_loop_arguments, add_scene_arguments, backend_options,
-                           exit_status, mpc_overrides)
+                           checked_scene_and_checkpoint, exit_status, mpc_overrides, positive_float, run_command)
 from fvin_mpc.studies.evaluation import (CONTROLLERS, DEFAULT_MAX_OMEGA, EvaluationConfig, evaluate, make_env,
                                          summary_table, write_report)
 from fvin_mpc.studies.pool import TasksFailed
@@ -25,7 +25,7 @@ def build_parser() -> argparse.ArgumentParser:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     add_scene_arguments(parser, newton_iters=False)
     parser.add_argument("--episodes", type=int, default=50, help="episodes per controller (default: %(default)s)")
-    parser.add_argument("--duration", type=float, default=10.0, help="seconds per episode (default: %(default)s)")
+    parser.add_argument("--duration", type=positive_float, default=10.0, help="seconds per episode (default: %(default)s)")
     parser.add_argument("--controllers", default=",".join(CONTROLLERS),
                         help="comma-separated subset of: %(default)s")
     parser.add_argument("--seed", type=int, default=0, help="base seed of the initial states (default: %(default)s)")
@@ -40,6 +40,20 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _check_scene_and_checkpoint(config: EvaluationConfig) -> None:
+    """The scene, and the checkpoint if a learned controller will run, before any episode: a missing
+    default checkpoint is no error here (the learned controllers are skipped), a wrong one is."""
+    from fvin_mpc.core.checkpoint import checkpoint_exists
+    from fvin_mpc.envs.scenes import existing_scene
+
+    learned = any(name.endswith("-learned") for name in config.controllers)
+    explicit = config.checkpoint is not None
+    if learned and (explicit or checkpoint_exists(existing_scene(config.scene).default_checkpoint)):
+        checked_scene_and_checkpoint(config.scene, config.checkpoint, command="evaluate")
+    else:
+        checked_scene_and_checkpoint(config.scene, true_model=True, command="evaluate")
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = build_parser()
@@ -52,7 +66,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             mpc=tuple((name, value) for name, value in mpc_overrides(args).items() if value is not None),
             latency=args.latency)
         backend = backend_options(args)
-        make_env(config).close()  # fails early on an unknown scene
+        _check_scene_and_checkpoint(config)
+        make_env(config).close()  # fails early on a scene the env cannot simulate
         result = evaluate(config, workers=args.workers, progress=not args.quiet, **backend)
     except (ValueError, FileNotFoundError, TasksFailed) as error:
         return exit_status(error)
@@ -71,4 +86,4 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(run_command(main))

@@ -12,7 +12,8 @@ from pathlib import Path
 from typing import Sequence
 
 import fvin_mpc.studies.quadrotor as study
-from fvin_mpc._cli import add_latency_argument
+from fvin_mpc._cli import add_latency_argument, checked_scene_and_checkpoint, run_command
+from fvin_mpc.core.errors import UsageError
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -42,8 +43,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     args = build_parser().parse_args(argv)
     if args.episodes < 1:
-        print("error: --episodes must be >= 1", file=sys.stderr)
-        return 2
+        raise UsageError(f"--episodes must be >= 1, got {args.episodes}")
+    if args.model == "learned" or args.report is not None:
+        checked_scene_and_checkpoint(study.SCENE, args.checkpoint)  # an R3xS3 model of this scene, before any build
     if args.report is not None:
         results = study.side_by_side(args.report, argv, args.episodes, args.seed, args.latency, args.checkpoint,
                                      progress=not args.quiet)
@@ -87,4 +89,4 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(run_command(main))

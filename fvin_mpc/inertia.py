@@ -8,12 +8,13 @@ import argparse
 import json
 from pathlib import Path
 import fvin_mpc.studies.inertia as inertia_module
+from fvin_mpc._cli import run_command
 from fvin_mpc.envs.scenes import resolve_scene
 from fvin_mpc.core.data import load_data
 from fvin_mpc.studies.inertia import report
 
 
-def main(argv: list[str] | None = None) -> int:
+def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m fvin_mpc.inertia", description=inertia_module.__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--checkpoint", nargs="+", default=[resolve_scene("spherical_pendulum").default_checkpoint],
@@ -25,7 +26,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--energy-steps", type=int, default=400)
     parser.add_argument("--seed", type=int, default=0, help="seeds the sampled orientations and energy states")
     parser.add_argument("--json", type=Path, default=None, help="write the reports (a list) as JSON")
-    args = parser.parse_args(argv)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
     data = load_data(args.data)
     reports = []
     for name in args.checkpoint:
@@ -42,4 +47,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(run_command(main))

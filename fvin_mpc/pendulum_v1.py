@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Sequence
 
 import fvin_mpc.studies.pendulum_v1 as pendulum_v1_module
-from fvin_mpc._cli import add_backend_arguments, backend_options, exit_status
+from fvin_mpc._cli import add_backend_arguments, backend_options, checked_scene_and_checkpoint, exit_status, run_command
 from fvin_mpc.studies.pendulum_v1 import (REFERENCE_GRIDS, BenchmarkConfig, plot_returns, run_benchmark,
                                           summarize, write_markdown)
 from fvin_mpc.studies.pool import TasksFailed
@@ -121,10 +121,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         else:
             config = BenchmarkConfig(**options)
         previous = json.loads(args.previous.read_text()) if args.previous else None
-        if not config.true_model:
-            from fvin_mpc.core.checkpoint import load_checkpoint
-
-            load_checkpoint(config.checkpoint)  # a clear error before any worker starts
+        if not config.true_model:  # a clear error before any worker starts (Pendulum-v1: one torque)
+            checked_scene_and_checkpoint("pendulum", config.checkpoint, command="pendulum_v1", controls=1)
         backend = backend_options(args)
         reference_from = json.loads(args.reference_from.read_text()) if args.reference_from else None
         if args.dp_swing_up:
@@ -154,4 +152,4 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(run_command(main))

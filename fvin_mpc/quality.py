@@ -9,15 +9,16 @@ import json
 from pathlib import Path
 import numpy as np
 import fvin_mpc.studies.quality as quality_module
+from fvin_mpc._cli import checked_scene_and_checkpoint, run_command
 from fvin_mpc.envs.scenes import resolve_scene
 from fvin_mpc.control.scene import scene_env
-from fvin_mpc.core.checkpoint import load_checkpoint
+from fvin_mpc.core.checkpoint import CheckpointError, load_checkpoint
 from fvin_mpc.core.rigid_body import from_mujoco
 from fvin_mpc.core.data import load_data
 from fvin_mpc.studies.quality import NP, compare_components, energy_behaviour, rollout_error
 
 
-def main(argv: list[str] | None = None) -> int:
+def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m fvin_mpc.quality", description=quality_module.__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--checkpoint", default=resolve_scene("pendulum").default_checkpoint,
@@ -29,8 +30,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--energy-steps", type=int, default=2000)
     parser.add_argument("--seed", type=int, default=0, help="seeds the sampled states of the component comparison")
     parser.add_argument("--json", type=Path, default=None)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
     args = parser.parse_args(argv)
-    checkpoint = load_checkpoint(args.checkpoint)
+    recorded_scene = load_checkpoint(args.checkpoint).scene
+    if recorded_scene is None:
+        raise CheckpointError(f"checkpoint {args.checkpoint!r} records no scene; the report compares a model "
+                              "with its scene's closed form")
+    _, checkpoint = checked_scene_and_checkpoint(recorded_scene, args.checkpoint, command="quality")
     env = scene_env(checkpoint.scene, checkpoint)
     if env.joint_axis is None:
         parser.error(f"{args.checkpoint} models {checkpoint.scene!r}, a ball joint: this is the planar report; "
@@ -70,4 +80,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(run_command(main))

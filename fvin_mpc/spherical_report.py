@@ -9,12 +9,13 @@ import json
 import time
 from pathlib import Path
 import fvin_mpc.studies.spherical as spherical_module
+from fvin_mpc._cli import checked_scene_and_checkpoint, positive_float, run_command
 from fvin_mpc.core.data import save_data
 from fvin_mpc.learning.collection import collect
 from fvin_mpc.studies.spherical import SCENE, closed_loop_study, markdown_tables, merge_results
 
 
-def main(argv: list[str] | None = None) -> int:
+def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m fvin_mpc.spherical_report", description=spherical_module.__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -34,7 +35,7 @@ def main(argv: list[str] | None = None) -> int:
     e = sub.add_parser("closed-loop", help="MPC swing-up from rest and seeded random states, learned vs true model")
     e.add_argument("--checkpoint", default=None, help=f"learned model (default: {SCENE}_sign-invariant)")
     e.add_argument("--episodes", type=int, default=21, help="starts: rest + (episodes − 1) random")
-    e.add_argument("--duration", type=float, default=10.0, help="seconds per episode")
+    e.add_argument("--duration", type=positive_float, default=10.0, help="seconds per episode")
     e.add_argument("--max-omegas", default="2,5", help="comma-separated |ω₀| bounds cycled over the random starts")
     e.add_argument("--models", default="learned,true", help="comma-separated subset of learned,true")
     e.add_argument("--horizon", type=int, default=None, help="MPC steps (default: the scene's, scene_mpc_settings)")
@@ -47,6 +48,11 @@ def main(argv: list[str] | None = None) -> int:
     mg.add_argument("parts", type=Path, nargs="+")
     mg.add_argument("--json", type=Path, default=Path("docs/spherical/closed_loop.json"))
     mg.add_argument("--markdown", type=Path, default=Path("docs/spherical/closed_loop.md"))
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
     args = parser.parse_args(argv)
     if args.command == "merge":
         merged = merge_results([json.loads(path.read_text()) for path in args.parts])
@@ -59,6 +65,8 @@ def main(argv: list[str] | None = None) -> int:
         if not models or set(models) - {"learned", "true"}:
             parser.error(f"--models: expected a subset of learned,true, got {args.models!r}")
         max_omegas = tuple(float(w) for w in args.max_omegas.split(","))
+        if "learned" in models:
+            checked_scene_and_checkpoint(SCENE, args.checkpoint, command="spherical_report closed-loop")
         start = time.perf_counter()
         indices = None
         if args.indices:
@@ -90,4 +98,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(run_command(main))

@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any, Callable, Sequence
 
 import fvin_mpc.studies.sweep as sweep_module
-from fvin_mpc._cli import add_backend_arguments, backend_options
+from fvin_mpc._cli import add_backend_arguments, backend_options, run_command
 from fvin_mpc.studies.sweep import SweepConfig, run_sweep, sweep_table, write_report
 
 
@@ -88,4 +88,4 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(run_command(main))

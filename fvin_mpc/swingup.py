@@ -1,9 +1,10 @@
 """Swing a MuJoCo pendulum up with MPC on the learned S3FVIN: ``python -m fvin_mpc.swingup``.
 
 With no arguments: the shipped sign-invariant model of the ``pendulum`` scene, starting
-hanging at rest, 10 s of closed loop in MuJoCo, a summary on stdout and a plot in
-``swingup.png``. ``--true-model`` runs the same MPC on the closed-form rigid body read
-off the scene's MJCF, for comparison. The controller is the one the evaluation reports
+hanging at rest, 10 s of closed loop in MuJoCo (a scene whose motor is weaker against gravity
+gets longer: ``--duration``), a summary on stdout and a plot in ``swingup.png``.
+``--true-model`` runs the same MPC on the closed-form rigid body read off the scene's MJCF, for
+comparison. The controller is the one the evaluation reports
 (``python -m fvin_mpc.evaluate``): the scene's MPC settings, multi-start cold solves.
 """
 
@@ -11,15 +12,40 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
 
-from fvin_mpc._cli import add_closed_loop_arguments, add_scene_arguments, mpc_overrides
-from fvin_mpc.control.closed_loop import episode_metrics, plot_episode, run_episode, write_video
-from fvin_mpc.control.scene import scene_env, scene_model, scene_mpc, scene_mpc_settings
+from fvin_mpc._cli import (add_closed_loop_arguments, add_scene_arguments, checked_scene_and_checkpoint,
+                           mpc_overrides, positive_float, run_command)
+from fvin_mpc.control.closed_loop import HOLD_WINDOW_S, episode_metrics, plot_episode, run_episode, write_video
+from fvin_mpc.control.scene import SceneScales, scene_env, scene_model, scene_mpc, scene_mpc_settings, scene_scales
+from fvin_mpc.core.errors import UsageError
+
+#: The shortest default episode: the former fixed default, which the built-in scenes keep.
+MIN_DEFAULT_DURATION_S = 10.0
+DURATION_RULE = (f"none given: time for the swing-up, (1 + peak gravity torque / motor torque) natural periods, "
+                 f"plus the {HOLD_WINDOW_S:g} s hold window, at least {MIN_DEFAULT_DURATION_S:g} s")
+
+
+def default_duration(scales: SceneScales) -> float:
+    """Seconds of closed loop that leave room for the swing-up and the hold window after it.
+
+    A motor weaker than gravity pumps: each half swing raises the amplitude by about
+    ``2u/(m g l)`` rad, so reaching upright takes about ``(π/2)·m g l/u`` half swings of at least half
+    a natural period each, ≈ 0.8 ``m g l/u`` periods; ``(1 + m g l/u)`` periods bounds that with room
+    for a strong motor's single swing. ``m g l``, the peak gravity torque, is half the energy span
+    between hanging and upright, and the natural period is ``4π/ω_s`` (``ω_s = 2√(m g l/J)``, the
+    scene's speed scale). On the ``pendulum`` scene this is 5.7 s + 3 s, so it keeps 10 s; the weak
+    pendulum of docs/custom_scene.md (±1 N·m against 5 N·m) gets 12.7 s.
+    """
+    gravity_torque = scales.energy_span / 2.0
+    natural_period = 4.0 * math.pi / scales.speed
+    swing_up_s = (1.0 + gravity_torque / scales.torque) * natural_period
+    return max(MIN_DEFAULT_DURATION_S, swing_up_s + HOLD_WINDOW_S)
 
 
 def parse_init(text: str, joint_type: str) -> dict[str, Any] | None:
@@ -28,10 +54,13 @@ def parse_init(text: str, joint_type: str) -> dict[str, Any] | None:
         return None
     if text == "random":
         return {"random": True, "max_omega": 2.0}
-    values = np.array([float(v) for v in text.split(",")])
+    try:
+        values = np.array([float(v) for v in text.split(",")])
+    except ValueError:
+        raise UsageError(f"--init: expected rest, random or comma-separated numbers, got {text!r}") from None
     nq, nv = (1, 1) if joint_type == "hinge" else (4, 3)
     if values.size != nq + nv:
-        raise ValueError(f"--init needs {nq} qpos and {nv} qvel numbers for a {joint_type} joint, got {values.size}")
+        raise UsageError(f"--init needs {nq} qpos and {nv} qvel numbers for a {joint_type} joint, got {values.size}")
     return {"qpos": values[:nq], "qvel": values[nq:]}
 
 
@@ -44,7 +73,8 @@ def build_parser() -> argparse.ArgumentParser:
                         help="goal quaternion (default: the scene's, the potential's maximum)")
     parser.add_argument("--init", default="rest",
                         help="initial state: rest (the potential's minimum) | random | comma-separated qpos,qvel")
-    parser.add_argument("--duration", type=float, default=10.0, help="seconds of closed loop")
+    parser.add_argument("--duration", type=positive_float, default=None,
+                        help=f"seconds of closed loop; {DURATION_RULE}")
     parser.add_argument("--seed", type=int, default=0, help="seeds the env (random init, sensor noise)")
     parser.add_argument("--true-model", action="store_true", help="plan with the closed-form rigid body instead")
     parser.add_argument("--json", type=Path, default=None, help="write the summary as JSON")
@@ -57,9 +87,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    env = scene_env(args.scene, args.checkpoint, args.true_model, args.control_period, body=args.body, goal=args.goal,
+    spec, checkpoint = checked_scene_and_checkpoint(args.scene, args.checkpoint, args.true_model, "swingup")
+    env = scene_env(spec, checkpoint, args.true_model, args.control_period, body=args.body, goal=args.goal,
                     render_mode="rgb_array" if args.video else None)
-    model = scene_model(env, args.checkpoint, args.true_model, args.newton_iters)
+    reset_options = parse_init(args.init, env.joint_type)
+    duration = args.duration if args.duration is not None else default_duration(scene_scales(env))
+    model = scene_model(env, checkpoint, args.true_model, args.newton_iters)
     settings = scene_mpc_settings(env, **mpc_overrides(args))
     controller = scene_mpc(env, model, settings)
     report = controller.compile_report
@@ -68,7 +101,7 @@ def main(argv: Sequence[str] | None = None) -> int:
           f"solver built in {controller.build_s:.1f} s"
           + (f" ({'cached library' if report.cached else f'compiled in {report.compile_s:.1f} s'})" if report else ""),
           file=sys.stderr)
-    episode, frames = run_episode(env, controller, args.duration, parse_init(args.init, env.joint_type),
+    episode, frames = run_episode(env, controller, duration, reset_options,
                                   seed=args.seed, render=args.video is not None, progress=not args.quiet,
                                   description=f"swing-up {model.name}", latency=args.latency)
     metrics = episode_metrics(episode)
@@ -101,4 +134,4 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(run_command(main))

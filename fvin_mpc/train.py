@@ -27,6 +27,7 @@ _START = time.perf_counter()
 
 import numpy as np  # noqa: E402
 
+from fvin_mpc._cli import run_command  # noqa: E402
 from fvin_mpc.core.data import load_data  # noqa: E402
 from fvin_mpc.core.space import space_for_variant, space_of_config, spaces  # noqa: E402
 from fvin_mpc.learning.space_training import train_model, training_for  # noqa: E402
@@ -35,8 +36,9 @@ from fvin_mpc.learning.training import (  # noqa: E402
     DEFAULT_ITERATIONS,
     OPTIMIZERS,
     TrainSettings,
-    default_checkpoint_stem,
+    default_output_stem,
     package_versions,
+    refuse_to_overwrite,
     safe_thread_count,
     scene_has_joint_damping,
 )
@@ -53,7 +55,11 @@ def build_parser() -> argparse.ArgumentParser:
                         help="held-out data for the space's report (a free body: the 1 s open-loop error)")
     parser.add_argument("--out", type=Path, default=None,
                         help="checkpoint stem (default: checkpoints/<scene stem>_<variant>, e.g. checkpoints/arm_sign-invariant "
-                             "for data collected from /any/path/arm.xml)")
+                             "for data collected from /any/path/arm.xml, the scene's default model; data in a file "
+                             "named otherwise, e.g. data/arm_big.npz, give checkpoints/arm_big_<variant>). The default "
+                             "never replaces an existing checkpoint (a shipped one included) unless --force")
+    parser.add_argument("--force", action="store_true",
+                        help="let the default --out replace an existing checkpoint")
     parser.add_argument("--variant", choices=ALL_VARIANTS, default=None,
                         help="model variant (default: the data's space's first: sign-invariant on a pivot, "
                              "fixed-inertia for a free body; so3-matrix/so3-quaternion: the SO(3) baseline)")
@@ -146,6 +152,9 @@ def main(argv: list[str] | None = None) -> int:
 
     if preset.optimizers is not None and settings.optimizer not in preset.optimizers:
         parser.error(f"models on {space.description} train with {', '.join(preset.optimizers)} only")
+    out = args.out or default_output_stem(data, args.data, config.variant)
+    if args.out is None:
+        refuse_to_overwrite(out, args.force)
     model, report = train_model(data, config, settings, progress=not args.quiet, initial_weights=initial)
     if previous is not None:
         report["continued_from"] = {"checkpoint": str(args.init), "iterations": previous.get("iterations"),
@@ -159,7 +168,6 @@ def main(argv: list[str] | None = None) -> int:
     evaluation: dict[str, Any] = {}
     if preset.report is not None:
         evaluation = preset.report(weights, config, data, None if args.test_data is None else load_data(args.test_data))
-    out = args.out or default_checkpoint_stem(data, config.variant)
     stem = save_checkpoint(
         out, config, weights, scene=data.metadata.get("scene", "unknown"), body=data.metadata.get("body"),
         data={"path": str(args.data), "trajectories": data.num_trajectories, "transitions": data.num_transitions,
@@ -205,4 +213,4 @@ def _model_config(parser: argparse.ArgumentParser, args: argparse.Namespace, spa
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(run_command(main))

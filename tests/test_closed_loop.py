@@ -85,6 +85,26 @@ def test_deadline_misses_are_counted_and_observations_skipped():
     assert np.isfinite(metrics["solve_time_ms"]["median"])
 
 
+def test_waiting_mode_summaries_do_not_claim_zero_deadline_misses():
+    """With latency "none" the simulator waits for the controller: no period has a deadline, so a
+    summary says the misses were not measured instead of a 0 that reads as "kept real time"."""
+    from fvin_mpc.control.closed_loop import NOT_MEASURED
+    from fvin_mpc.studies.evaluation import summarize
+
+    env = RigidBodyEnv("pendulum")
+    waiting, _ = run_episode(env, LinearController(), 0.5, START, latency="none")
+    delayed, _ = run_episode(env, LinearController(), 0.5, START, latency=0.01)
+    assert episode_metrics(waiting)["deadline_misses"] == NOT_MEASURED == "not measured"
+    assert episode_metrics(delayed)["deadline_misses"] == 0
+
+    def record(episode):
+        return {"metrics": episode_metrics(episode), "controller_time_s": episode.controller_time_s,
+                "feedback_time_s": episode.feedback_s, "index": 0}
+
+    assert summarize([record(waiting)])["deadline_misses"] == NOT_MEASURED
+    assert summarize([record(delayed), record(delayed)])["deadline_misses"] == 0
+
+
 def test_prepare_is_called_after_each_delivered_torque():
     class Preparing(ConstantController):
         prepared = 0

@@ -163,11 +163,12 @@ def test_fly_command(tmp_path, capsys):
     import json
 
     from fvin_mpc import fly
+    from fvin_mpc._cli import run_command
 
     with pytest.raises(SystemExit) as exit_info:
         fly.main(["--help"])
     assert exit_info.value.code == 0 and "figure-eight" in capsys.readouterr().out
-    assert fly.main(["--episodes", "0"]) == 2
+    assert run_command(fly.main, ["--episodes", "0"]) == 2
     path = tmp_path / "recovery.json"
     assert fly.main(["--task", "recovery", "--model", "closed-form", "--episodes", "1", "--latency", "0.01",
                      "--json", str(path), "--quiet"]) == 0

@@ -138,14 +138,17 @@ def test_the_weak_pendulums_settings_and_cli_overrides():
 
 def test_the_weak_pendulum_swings_up_with_default_settings(tmp_path):
     """The closed-form model of a pendulum written the other way round, with damping and a motor a
-    fifth of the gravity torque (several pumps), swings up and holds with no tuning at all."""
+    fifth of the gravity torque (several pumps), swings up and holds with no tuning at all — within
+    the episode length swingup derives from the scene (no --duration either)."""
     from fvin_mpc import swingup
 
     out = tmp_path / "weak.json"
-    assert swingup.main(["--scene", str(WEAK_PENDULUM), "--true-model", "--duration", "12", "--plot", "", "--quiet",
+    assert swingup.main(["--scene", str(WEAK_PENDULUM), "--true-model", "--plot", "", "--quiet",
                          "--json", str(out)]) == 0
     summary = json.loads(out.read_text())
     assert summary["swung_up"], summary
+    derived = swingup.default_duration(scene_scales(RigidBodyEnv(str(WEAK_PENDULUM))))
+    assert derived > 10.0 and summary["duration_s"] == pytest.approx(derived, abs=0.02)
     assert summary["control_period_s"] == pytest.approx(0.02) and summary["horizon"] == 75
     assert summary["max_abs_torque"] <= 1.0
 

@@ -169,12 +169,12 @@ def test_damping_is_read_from_the_metadata_or_the_scene():
     assert scene_has_joint_damping({}) is None
 
 
-def run_cli(tmp_path, monkeypatch, data, *args):
+def run_cli(tmp_path, monkeypatch, data, *args, data_file="d.npz"):
     from fvin_mpc.core.checkpoint import load_checkpoint
     from fvin_mpc.train import main
 
     monkeypatch.chdir(tmp_path)
-    path = save_data(tmp_path / "d.npz", data)
+    path = save_data(tmp_path / data_file, data)
     assert main(["--data", str(path), "--iterations", "2", "--hidden-width", "4", "--window", "3", "--quiet", *args]) == 0
     checkpoints = sorted((tmp_path / "checkpoints").glob("*.json"))
     assert len(checkpoints) == 1, checkpoints
@@ -183,7 +183,8 @@ def run_cli(tmp_path, monkeypatch, data, *args):
 
 def test_cli_default_output_is_the_scene_stem_for_an_absolute_mjcf_path(tmp_path, monkeypatch, data):
     scene = str(tmp_path / "scenes" / "arm.xml")  # absolute; the file need not exist to name the checkpoint
-    sidecar, checkpoint = run_cli(tmp_path, monkeypatch, with_scene(data, scene=scene), "--variant", "plain", "--no-dissipation")
+    sidecar, checkpoint = run_cli(tmp_path, monkeypatch, with_scene(data, scene=scene), "--variant", "plain",
+                                  "--no-dissipation", data_file="arm.npz")  # named after the scene, as collect does
     assert sidecar == tmp_path / "checkpoints" / "arm_plain.json"
     assert checkpoint.scene == scene
     assert not (tmp_path / "scenes").exists()
@@ -202,6 +203,6 @@ def test_cli_records_threads_and_load(tmp_path, monkeypatch, data):
                                                    ("pendulum_damped", ("--no-dissipation",), False),
                                                    ("pendulum", ("--dissipation",), True)])
 def test_cli_dissipation_defaults_to_the_scene_damping(tmp_path, monkeypatch, data, scene, flag, expected):
-    sidecar, checkpoint = run_cli(tmp_path, monkeypatch, with_scene(data, scene=scene), *flag)
+    sidecar, checkpoint = run_cli(tmp_path, monkeypatch, with_scene(data, scene=scene), *flag, data_file=f"{scene}.npz")
     assert checkpoint.config.dissipation is expected
     assert sidecar.name == f"{scene}_sign-invariant.json"

@@ -11,7 +11,8 @@ import importlib
 import sys
 from pathlib import Path
 
-from fvin_mpc._cli import add_backend_arguments, backend_options, exit_status
+from fvin_mpc._cli import add_backend_arguments, backend_options, exit_status, run_command
+from fvin_mpc.core.errors import UsageError
 
 #: study name → module (each has ``run(quick, seed, repeats, **options) -> StudyResult`` and
 #: optionally ``add_arguments(parser)`` for its own options).
@@ -56,8 +57,7 @@ def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     args = build_parser().parse_args(argv)
     if args.repeats < 1:
-        print(f"error: --repeats must be >= 1, got {args.repeats}", file=sys.stderr)
-        return 2
+        raise UsageError(f"--repeats must be >= 1, got {args.repeats}")
     from fvin_mpc.studies.pool import TasksFailed
     from fvin_mpc.studies.report import StudySkipped, write_study
 
@@ -78,4 +78,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(run_command(main))

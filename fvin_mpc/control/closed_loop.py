@@ -35,6 +35,9 @@ UPRIGHT_TOLERANCE = 0.1
 #: … and holding means staying within this angle over the last :data:`HOLD_WINDOW_S` seconds.
 HOLD_TOLERANCE = 0.05
 HOLD_WINDOW_S = 3.0
+#: A summary's deadline misses in waiting mode (latency "none"): the simulator waits for the
+#: controller, so no period has a deadline, and a 0 would read as "kept real time".
+NOT_MEASURED = "not measured"
 
 
 #: The scalar entries of a controller's ``info`` an :class:`Episode` keeps per period (the plan
@@ -294,7 +297,8 @@ def episode_metrics(episode: Episode, upright_tolerance: float = UPRIGHT_TOLERAN
     ``swung_up``: ``success`` and the largest angle over the last ``hold_window_s``
     (``hold_error_rad``) within ``hold_tolerance``. ``solve_time_ms`` is the whole controller call
     per sampled period (feedback plus any ``prepare()``); ``latency`` the mode the episode ran in,
-    ``deadline_misses`` the periods whose compute exceeded the control period.
+    ``deadline_misses`` the periods whose compute exceeded the control period (:data:`NOT_MEASURED`
+    in waiting mode).
     """
     reached = time_to_upright(episode, upright_tolerance)
     hold_mask = episode.time >= episode.time[-1] - hold_window_s
@@ -310,7 +314,7 @@ def episode_metrics(episode: Episode, upright_tolerance: float = UPRIGHT_TOLERAN
                           "p99": float(np.percentile(times_ms, 99)), "max": float(times_ms.max())},
         "cpu_time_ms_median": float(np.nanmedian(1e3 * episode.cpu_s)) if episode.cpu_s is not None else None,
         "latency": episode.latency,
-        "deadline_misses": int(episode.deadline_misses),
+        "deadline_misses": NOT_MEASURED if episode.latency == "none" else int(episode.deadline_misses),
         "skipped_observations": int(episode.skipped),
         "controller_failures": int((~episode.controller_success).sum()),
         "max_abs_torque": float(np.abs(episode.u).max()),

@@ -35,7 +35,7 @@ import numpy as np
 from fvin_mpc.control.energy_shaping import EnergyShapingController, EnergyShapingNotApplicable, EnergyShapingSettings
 from fvin_mpc.control.export import ExportedModel, from_checkpoint, from_closed_form
 from fvin_mpc.control.mpc import COLD_STARTS, MPC, MPCSettings
-from fvin_mpc.core.checkpoint import Checkpoint, load_checkpoint
+from fvin_mpc.core.checkpoint import Checkpoint, CheckpointError, load_checkpoint
 
 
 @dataclass(frozen=True)
@@ -154,9 +154,9 @@ def scene_model(env: Any, checkpoint: Any = None, true_model: bool = False,
     the env's control period.
 
     Raises:
-        ValueError: the model's states are not the env's (another configuration space's layout), its
-            step differs from the env's control period, or its number of controls from the env's
-            actuators.
+        CheckpointError: (a ``ValueError``) the model's states are not the env's (another
+            configuration space's layout), its step differs from the env's control period, or its
+            number of controls from the env's actuators.
     """
     base = env.unwrapped
     if true_model:
@@ -167,10 +167,10 @@ def scene_model(env: Any, checkpoint: Any = None, true_model: bool = False,
         raise ValueError(f"model {model.name!r} is on {model.space.description}, states {model.space.layout.name}; "
                          f"scene {base.scene_spec.name!r} observes {base.space.layout.name}")
     if abs(model.step_size - base.dt) > 1e-9:
-        raise ValueError(f"the model's step {model.step_size} s differs from the scene's control period {base.dt} s; "
+        raise CheckpointError(f"the model's step {model.step_size} s differs from the scene's control period {base.dt} s; "
                          "make the env with scene_env(..., checkpoint=...) or pass a matching control period")
     if model.control_dim != base.action_space.shape[0]:
-        raise ValueError(f"the model has {model.control_dim} controls, the scene {base.action_space.shape[0]}")
+        raise CheckpointError(f"the model has {model.control_dim} controls, the scene {base.action_space.shape[0]}")
     return model
 
 

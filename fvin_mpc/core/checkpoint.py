@@ -26,6 +26,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from fvin_mpc.core.errors import FvinMpcError
 from fvin_mpc.core.space import ConfigurationSpace, get_space, require, space_of_config
 
 #: A checkpoint's model configuration: the config type of one registered configuration space.
@@ -39,7 +40,7 @@ CHECKPOINT_DIR = next((d for d in (_PACKAGE / "checkpoints", _PACKAGE.parent / "
                       _PACKAGE.parent / "checkpoints")
 
 
-class CheckpointError(ValueError):
+class CheckpointError(FvinMpcError, ValueError):
     """A checkpoint could not be read; the message says which file and why."""
 
 

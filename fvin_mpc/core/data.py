@@ -18,6 +18,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from fvin_mpc.core.errors import DataFileError, DataFileNotFound
 from fvin_mpc.core.space import ConfigurationSpace, get_space
 
 #: The command that makes a data file (named in the error for a missing one).
@@ -115,16 +116,17 @@ def load_data(path: str | Path) -> Trajectories:
     """Read a file written by :func:`save_data` (or an older pivoted ``q``/``omega`` file).
 
     Raises:
-        FileNotFoundError: no such file (the message says how to make one).
-        ValueError: not a data file, or arrays inconsistent with the named space.
+        DataFileNotFound: (a ``FileNotFoundError``) no such file (the message says how to make one).
+        DataFileError: (a ``ValueError``) not a data file.
+        ValueError: arrays inconsistent with the named space.
     """
     path = Path(path)
     if not path.exists():
-        raise FileNotFoundError(f"data file not found: {path} (make one with `{HOW_TO_MAKE}`)")
+        raise DataFileNotFound(f"data file not found: {path} (make one with `{HOW_TO_MAKE}`)")
     with np.load(path, allow_pickle=False) as archive:
         files = set(archive.files)
         if "metadata" not in files or "u" not in files or not ("state" in files or {"q", "omega"} <= files):
-            raise ValueError(f"{path}: not an fvin_mpc data file (arrays {sorted(files)})")
+            raise DataFileError(f"{path}: not an fvin_mpc data file (arrays {sorted(files)})")
         metadata = json.loads(str(archive["metadata"]))
         u = archive["u"].astype(np.float64)
         if "state" in files:

@@ -153,6 +153,31 @@ def default_checkpoint_stem(data: Trajectories, variant: str, directory: Path = 
     return directory / f"{scene_stem(data.metadata.get('scene', 'unknown'))}_{variant}"
 
 
+def default_output_stem(data: Trajectories, data_path: str | Path, variant: str,
+                        directory: Path = Path("checkpoints")) -> Path:
+    """Where ``train`` writes by default: the scene's default checkpoint
+    (:func:`default_checkpoint_stem`) for data in a file named after their scene (``data/arm.npz``
+    from ``arm.xml``), else ``checkpoints/<data file stem>_<variant>``: other data of a scene
+    (``data/arm_big.npz``) must not take the name the scene's commands load by default."""
+    scene_named = default_checkpoint_stem(data, variant, directory)
+    stem = Path(data_path).stem
+    if stem == scene_stem(data.metadata.get("scene", "unknown")):
+        return scene_named
+    return directory / f"{stem}_{variant}"
+
+
+def refuse_to_overwrite(stem: Path, force: bool) -> None:
+    """``UsageError`` if a checkpoint (either of its files) is at ``stem`` and not ``force``: a default
+    output name must not silently replace a shipped or earlier model."""
+    from fvin_mpc.core.errors import UsageError
+
+    existing = [path for path in (stem.parent / f"{stem.name}.json", stem.parent / f"{stem.name}.safetensors")
+                if path.exists()]
+    if existing and not force:
+        raise UsageError(f"checkpoint {stem} exists ({existing[0]}); the default --out would replace it: "
+                         "pass --out for a new name, or --force to replace it")
+
+
 def scene_has_joint_damping(metadata: Mapping[str, Any]) -> bool | None:
     """Whether the data's scene declares joint damping: the collection metadata's
     ``physics.joint_damping`` when recorded, else the scene's env (``physics.joint_damping``);

@@ -245,6 +245,8 @@ class EvaluationResult:
 
 def summarize(records: list[dict[str, Any]]) -> dict[str, Any]:
     """Aggregate one controller's episode records."""
+    from fvin_mpc.control.closed_loop import NOT_MEASURED
+
     metrics = [r["metrics"] for r in records]
     successes = [m for m in metrics if m["success"]]
     times = np.array([m["time_to_upright_s"] for m in successes], dtype=float)
@@ -269,7 +271,8 @@ def summarize(records: list[dict[str, Any]]) -> dict[str, Any]:
         # preparation a real-time iteration does after the torque is sent
         "feedback_time_median_ms": float(np.median(feedback_ms)),
         "feedback_time_p99_ms": float(np.percentile(feedback_ms, 99)),
-        "deadline_misses": int(sum(m["deadline_misses"] for m in metrics)),
+        "deadline_misses": (NOT_MEASURED if any(m["deadline_misses"] == NOT_MEASURED for m in metrics)
+                            else int(sum(m["deadline_misses"] for m in metrics))),
         "controller_failures": int(sum(m["controller_failures"] for m in metrics)),
         "episodes_with_failures": int(sum(m["controller_failures"] > 0 for m in metrics)),
         "failed_episodes": [r["index"] for r in records if not r["metrics"]["success"]],
