@@ -24,9 +24,8 @@ simulate it, including its own ``<flag>`` settings); callers override fields wit
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any, Mapping
 
 import mujoco
 import numpy as np
@@ -102,11 +101,6 @@ class SceneSpec:
         goal: goal orientation ``(w, x, y, z)``; ``None``: the maximum of the potential.
         rest: the orientation of the potential's minimum (hanging), where episodes start and
             which sets the energy scale of the controllers; ``None``: read off the potential.
-        mpc: :class:`~fvin_mpc.control.mpc.MPCSettings` fields this scene changes from the
-            defaults derived from its own scales (:func:`fvin_mpc.control.scene.scene_mpc_settings`),
-            each with the measurement that asked for it.
-        mpc_per_solver: further fields for one solver only (``{"ipopt": {...}, "rti": {...}}``),
-            applied after ``mpc`` when the settings use that solver.
         checkpoint: the default model; ``None``: ``<name>_sign-invariant``, which is also where
             ``python -m fvin_mpc.train`` writes a model of this scene by default.
         space: the configuration space of the observed body's state (:mod:`fvin_mpc.core.space`):
@@ -120,8 +114,6 @@ class SceneSpec:
     physics: ScenePhysics | None = None
     goal: tuple[float, float, float, float] | None = None
     rest: tuple[float, float, float, float] | None = None
-    mpc: Mapping[str, Any] = field(default_factory=dict)
-    mpc_per_solver: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
     checkpoint: str | None = None
     space: ConfigurationSpace = S3
 
@@ -137,59 +129,23 @@ MIN_CONTROL_PERIOD = 0.02
 
 _ACTUATED = ScenePhysics(gravity=True, joint_damping=False, dry_friction=False, actuator_limits=True, contact=False)
 
-def _built_in(name: str, physics: ScenePhysics, **task: Any) -> SceneSpec:
+def _built_in(name: str, physics: ScenePhysics) -> SceneSpec:
     """A scene of ``envs/scenes/<name>.xml``: the built-in MJCFs all observe the body ``pendulum``
     and are controlled at 50 ms (ten RK4 steps of 5 ms)."""
     return SceneSpec(name=name, xml_path=SCENE_DIR / f"{name}.xml", body="pendulum", control_period=0.05,
-                     physics=physics, **task)
+                     physics=physics)
 
 
 SCENES: dict[str, SceneSpec] = {
     spec.name: spec
     for spec in (
-        # The 1.5 s horizon is shorter than a swing-up from near hanging; the terminal energy cost
-        # (on by default) makes pumping pay inside it (docs/evaluation.md). The real-time iteration
-        # plans 1 s: one Gauss–Newton step per period follows a shorter plan more closely — over 50
-        # starts (waiting mode) the learned model's mean cost was 148.6 at N = 20 against 176.1 at
-        # N = 30 (closed form 147.7 and 152.1), at two thirds of the time per period (docs/bench/rti.md).
-        # Its RTI imposes the step's equations between plan nodes (`rti_dynamics="implicit"`): the
-        # learned terms once per node instead of twice per stage in every direction of the step's
-        # Jacobian (fvin_mpc/control/implicit_dynamics.py; docs/realtime.md has the periods and
-        # outcomes of both). The ball joint keeps the unrolled step: from its inconsistent cold plans
-        # the implicit form's Newton gaps diverged (J_z = 0.017 magnifies them), 1/20 swung up.
-        _built_in("pendulum", _ACTUATED, mpc_per_solver={"rti": {"horizon": 20, "rti_dynamics": "implicit"}}),
-        # At horizons 30 and 40 the plan settles on a local optimum that never swings up, with the
-        # learned and the closed-form model alike; 2.5 s escapes it (docs/scenes.md). Tuned for IPOPT
-        # without the terminal energy cost; the real-time iteration keeps it (below).
-        _built_in("pendulum_damped", replace(_ACTUATED, joint_damping=True),
-                  mpc={"horizon": 50}, mpc_per_solver={"ipopt": {"terminal_energy_weight": 0.0}}),
-        # 1.5 N·m against 6 N·m of gravity torque about a slow axis needs several pumps: with a 1.5 s
-        # horizon the plan stalls near the bottom, with 2.5 s it swings up; cold solves from rest take
-        # ≈ 130 IPOPT iterations (docs/spherical.md). For IPOPT the terminal energy cost does not help
-        # on a ball joint (the energy can sit in a conical swing); the real-time iteration needs it:
-        # one Gauss–Newton step per period does not leave a swing that never pumps, which a converged,
-        # multi-started IPOPT solve escapes (docs/realtime.md: without it the closed-form RTI never
-        # swung up in 10 s, with it it was up at 4.8 s). The RTI gets up to three iterations per
-        # period within 6 ms: with one, the learned model reached the top but often failed to catch
-        # the body there (docs/realtime.md).
-        # The RTI's stage ω weight is 0.06 instead of the scaled 0.129 (it caught late). Near
-        # the goal the plan glides in at ω ≈ −θ·√(w_q/4 / w_ω) (c(q) ≈ θ²/4): 2.8 rad/s per rad at
-        # 0.129, so 0.1 → 0.005 rad took 1.05 s (median); at 0.06, 4.1 and 0.70 s. The same weight
-        # made the swing-up plans arrive slowly, with no energy to spare: the learned model then
-        # hovered under saturated torque short of the top and fell back (4 of 80 episodes, caught at
-        # 5.85–7.2 s). 20 seeded starts × latency none / 2 / 7 / 12 ms, learned: 77/80 → 80/80 held
-        # within 0.005 rad, upright median 2.62 → 1.92 s, latest 7.2 → 5.2 s; closed form 79/80 →
-        # 80/80, 2.45 → 1.82 s. Unseen starts, learned: seed 100 55/60 → 60/60, seed 200 73/80 →
-        # 80/80, seed 300 53/60 (2 never up) → 60/60; none of 600 learned episodes at 0.06 failed to
-        # swing up. The cost: the closed form lost 2 of 140 unseen starts to tumbling (energy pumped
-        # far past the goal's; 0 at 0.129). Lower (0.03–0.05) lost learned swing-ups (at 0.03 the
-        # body spun at 14 rad/s about the rod's axis, J_z = 0.017: the ω weight keeps the terminal
-        # energy term from being met by spin); a stiffer ω-bound penalty (1000) lost 11 of 240.
-        _built_in("spherical_pendulum", _ACTUATED, mpc={"horizon": 50, "max_iter": 300},
-                  mpc_per_solver={"ipopt": {"terminal_energy_weight": 0.0},
-                                  "rti": {"rti_max_iter": 3, "rti_budget_s": 0.006, "omega_weight": 0.06}}),
+        _built_in("pendulum", _ACTUATED),
+        _built_in("pendulum_damped", replace(_ACTUATED, joint_damping=True)),
+        _built_in("spherical_pendulum", _ACTUATED),
     )
 }
+# How to control them (horizons, solver settings, each with its reason) is control's business:
+# fvin_mpc/control/presets.py.
 
 
 #: Scenes of one free body (a 13-number state ``(x, q, v, ω)``, :class:`~fvin_mpc.envs.QuadrotorEnv`),
@@ -212,6 +168,11 @@ FREE_BODY_SCENES: dict[str, SceneSpec] = {
 
 def _all_scenes() -> dict[str, SceneSpec]:
     return {**SCENES, **FREE_BODY_SCENES}
+
+
+def built_in_scene(spec: SceneSpec) -> bool:
+    """Whether ``spec`` is one of the built-in declarations (not a user's scene of the same name)."""
+    return _all_scenes().get(spec.name) is spec
 
 
 def get_scene(name: str) -> SceneSpec:

@@ -102,9 +102,9 @@ def test_mpc_never_beats_the_search():
 def test_rti_benchmark_takes_the_pendulum_scenes_dynamics_unless_told():
     """The benchmark is the ``pendulum`` scene's task: its RTI uses the scene's dynamics constraint
     (``rti_dynamics``) by default, and an explicit choice wins; either way the label says which."""
-    from fvin_mpc.envs.scenes import resolve_scene
+    from fvin_mpc.control.presets import PRESETS
 
-    scene_choice = resolve_scene("pendulum").mpc_per_solver["rti"]["rti_dynamics"]
+    scene_choice = PRESETS["pendulum"].fields_for("rti")["rti_dynamics"]
     default = v1.BenchmarkConfig(episodes=1, reference=False, solver="rti")
     assert v1.rti_dynamics(default) == scene_choice
     assert v1.build_mpc(default).settings.rti_dynamics == scene_choice

@@ -34,6 +34,7 @@ import numpy as np
 
 from fvin_mpc.control.energy_shaping import EnergyShapingController, EnergyShapingNotApplicable, EnergyShapingSettings
 from fvin_mpc.control.export import ExportedModel, from_checkpoint, from_closed_form
+from fvin_mpc.control.presets import preset_for
 from fvin_mpc.control.mpc import COLD_STARTS, MPC, MPCSettings
 from fvin_mpc.core.checkpoint import Checkpoint, CheckpointError, load_checkpoint
 
@@ -119,18 +120,17 @@ SETTING_NAMES = frozenset(f.name for f in fields(MPCSettings))
 
 def scene_mpc_settings(env: Any, **overrides: Any) -> MPCSettings:
     """The settings :func:`scene_mpc` uses: derived from the scene's scales
-    (:func:`default_mpc_settings`), then the scene's declared ``mpc`` fields and its fields for the
-    solver in use (``mpc_per_solver``), then ``overrides`` (``None`` values ignored, so CLI options
+    (:func:`default_mpc_settings`), then a built-in scene's preset for the solver in use
+    (:mod:`fvin_mpc.control.presets`), then ``overrides`` (``None`` values ignored, so CLI options
     can be passed through as they are)."""
-    base = env.unwrapped
     unknown = set(overrides) - SETTING_NAMES
     if unknown:
         raise ValueError(f"unknown MPC settings {sorted(unknown)}; expected some of {sorted(SETTING_NAMES)}")
     settings = default_mpc_settings(scene_scales(env))
-    spec = base.scene_spec
+    preset = preset_for(env.unwrapped.scene_spec)
     given = {k: v for k, v in overrides.items() if v is not None}
-    solver = given.get("solver", spec.mpc.get("solver", settings.solver))
-    return replace(settings, **{**spec.mpc, **spec.mpc_per_solver.get(solver, {}), **given})
+    solver = given.get("solver", preset.settings.get("solver", settings.solver))
+    return replace(settings, **{**preset.fields_for(solver), **given})
 
 
 def scene_env(scene: Any = "pendulum", checkpoint: Any = None, true_model: bool = False,

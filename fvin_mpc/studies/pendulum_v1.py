@@ -40,6 +40,7 @@ import numpy as np
 
 from fvin_mpc.envs.scenes import resolve_scene
 from fvin_mpc.control.mpc import MPCSettings
+from fvin_mpc.control.presets import PRESETS
 
 #: Pendulum-v1's constants (gymnasium.envs.classic_control.pendulum, g = 10 as ``make`` uses).
 DT, MAX_SPEED, MAX_TORQUE, GRAVITY, MASS, LENGTH = 0.05, 8.0, 2.0, 10.0, 1.0, 1.0
@@ -241,7 +242,7 @@ def rti_dynamics(config: BenchmarkConfig) -> str:
     """The RTI's dynamics constraint: the config's, else the ``pendulum`` scene's RTI setting."""
     if config.rti_dynamics is not None:
         return config.rti_dynamics
-    return resolve_scene("pendulum").mpc_per_solver.get("rti", {}).get("rti_dynamics", MPCSettings.rti_dynamics)
+    return PRESETS["pendulum"].fields_for("rti").get("rti_dynamics", MPCSettings.rti_dynamics)
 
 
 def build_mpc(config: BenchmarkConfig) -> Any:
