@@ -4,11 +4,12 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from helpers import hinge
 
 from fvin_mpc.control import export
 from fvin_mpc.control.mpc import MPC, MPCSettings
+from fvin_mpc.control.rti import RealTimeMPC
 from fvin_mpc.core.rigid_body import PENDULUM
-from helpers import hinge
 
 UPRIGHT = np.array([0.0, 0.0, 1.0, 0.0])
 HANGING = np.array([1.0, 0.0, 0.0, 0.0])
@@ -162,15 +163,17 @@ def test_settings_are_validated():
     for reserve in (-0.1, 1.0):
         with pytest.raises(ValueError, match="torque_reserve"):
             MPCSettings(torque_reserve=reserve)
-    with pytest.raises(ValueError, match="not for solver='rti'"):
-        MPCSettings(torque_reserve=0.05, solver="rti")
 
 
-def test_torque_reserve_bounds_the_plan_after_its_first_control(true_model):
+@pytest.mark.parametrize("solver", ["ipopt", "rti"])
+def test_torque_reserve_bounds_the_plan_after_its_first_control(true_model, solver):
     """The first control keeps the whole range; the later ones the middle (1 − r) of it — also for
-    asymmetric bounds. From hanging with a little speed the swing-up saturates, so the bounds bind."""
+    asymmetric bounds, with either solver (the reserve is the problem's). From hanging with a little
+    speed the swing-up saturates, so the bounds bind."""
     reserve, low, high = 0.2, -1.0, 3.0
-    mpc = MPC(true_model, MPCSettings(torque_reserve=reserve, compile="none"), UPRIGHT, [low], [high])
+    settings = MPCSettings(torque_reserve=reserve, compile="none", solver=solver, rti_cold_iter=30,
+                           rti_cold_budget_s=30.0)
+    mpc = (RealTimeMPC if solver == "rti" else MPC)(true_model, settings, UPRIGHT, [low], [high])
     q, omega = hinge(0.3, 1.0)
     u, info = mpc(np.r_[q, omega])
     assert info["success"]
@@ -227,6 +230,7 @@ def test_energy_cost_pumps_where_the_short_horizon_stalls(true_model):
     """0.35 rad from hanging, 0.27 rad/s (evaluation episode 33): the 1.5 s plan without the
     energy term keeps deferring the swing-up; with it the controller pumps and ends upright."""
     from fvin_mpc.envs import RigidBodyEnv
+
     from fvin_mpc.control.closed_loop import episode_metrics, run_episode
 
     env = RigidBodyEnv(scene="pendulum")

@@ -56,8 +56,14 @@ import casadi as ca
 import numpy as np
 
 from fvin_mpc.control.export import CompileReport, ExportedModel, compile_functions
-from fvin_mpc.core.space import spaces
+from fvin_mpc.control.problem import (
+    ConstantReference, DisturbanceEstimate, Reference, control_bounds, predict_function, residual_functions,
+)
+from fvin_mpc.core import s3
+from fvin_mpc.core.backend import get_ops
 from fvin_mpc.core.state import unit_quaternion
+
+NP = get_ops("numpy")
 
 #: IPOPT return statuses accepted as a solution.
 SUCCESS_STATUSES = frozenset({"Solve_Succeeded", "Solved_To_Acceptable_Level"})
@@ -219,9 +225,6 @@ class MPCSettings:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
         if not 0.0 <= self.torque_reserve < 1.0:
             raise ValueError(f"torque_reserve must be in [0, 1), got {self.torque_reserve}")
-        if self.torque_reserve > 0.0 and self.solver == "rti":
-            raise ValueError("torque_reserve is implemented for the NLP solvers (ipopt, sqpmethod, fatrop), "
-                             "not for solver='rti'")
         if self.hessian not in ("gauss-newton", "exact", "limited-memory"):
             raise ValueError(f"unknown hessian {self.hessian!r}")
         if self.compile not in ("cached", "none"):
@@ -303,13 +306,29 @@ class MPC:
                 raise ValueError(f"terminal_cost needs solver 'ipopt' or 'sqpmethod', got {settings.solver!r}")
         self.terminal_cost = terminal_cost
         self.cold_start_score = cold_start_score
-        self.goal = unit_quaternion(goal, "goal")
+        #: where the quaternion sits in the model's states (pivoted ``(q, ω)`` or free ``(x, q, v, ω)``)
+        self.layout = model.space.layout
+        if model.space.pivoted:  # the goal is an orientation, at rest
+            goal_state = np.zeros(self.layout.state_dim)
+            goal_state[self.layout.quaternion] = unit_quaternion(goal, "goal")
+        else:  # the goal is a state: hover there
+            goal_state = self.layout.check(goal)
+            if settings.terminal_energy_weight > 0 or settings.rti_cold_solver == "ipopt" and settings.solver == "rti":
+                raise ValueError(f"a {self.layout.name} model takes no terminal energy term and no IPOPT cold start "
+                                 "of the real-time iteration (both are written for pivoted bodies)")
+        #: the goal state; the reference is this state at rest unless :meth:`set_reference` says otherwise
+        self.goal_state = goal_state
+        #: the goal orientation (the goal state's quaternion)
+        self.goal = goal_state[self.layout.quaternion].copy()
+        self._reference: Reference = ConstantReference(goal_state)
         m = model.control_dim
         self.torque_low = np.broadcast_to(np.asarray(torque_low, dtype=float), (m,)).copy()
         self.torque_high = np.broadcast_to(np.asarray(torque_high, dtype=float), (m,)).copy()
         if not np.all(self.torque_low < self.torque_high):
             raise ValueError(f"need torque_low < torque_high, got {self.torque_low} and {self.torque_high}")
         self.omega_bound = settings.omega_bound_fraction / model.step_size
+        self.estimate = DisturbanceEstimate(self.layout, settings.disturbance_gain, settings.disturbance_region_rad,
+                                            settings.disturbance_region_speed, self.torque_low, self.torque_high)
         self.rest = None if rest is None else unit_quaternion(rest, "rest")
         if settings.terminal_energy_weight > 0:
             if self.rest is None:
@@ -323,7 +342,90 @@ class MPC:
         start = time.perf_counter()
         self._build()
         self.build_s = time.perf_counter() - start
+        self._u_goal = self._goal_control()
+        self.reset()
+
+    # ------------------------------------------------------------------ state of the controller
+    def _goal_control(self) -> np.ndarray:
+        """``u_goal``: the control that holds the goal at rest in the model — its rates (``ω``, or ``v``
+        and ``ω``) stay zero (least squares, Newton). For a quadrotor: the hover thrusts."""
+        x_goal = self.goal_state.copy()
+        x_goal[self.layout.rates] = 0.0
+        u = np.zeros(self.model.control_dim)
+        for _ in range(5):
+            stepped, _, _, inverse = self._predict(x_goal, u)
+            u = u - np.asarray(inverse, dtype=float) @ np.asarray(stepped, dtype=float).ravel()[self.layout.rates]
+        return u
+
+    @property
+    def disturbance(self) -> np.ndarray:
+        """``d̂``, the input-disturbance estimate (control units; :class:`DisturbanceEstimate`)."""
+        return self.estimate.value
+
+    def reset(self) -> None:
+        """Forget the plan and the disturbance estimate (the next call is a cold start); the clock
+        restarts at 0."""
         self._previous: _Plan | None = None
+        self.estimate.reset()
+        self._time = 0.0
+        self._forget_preparation()
+
+    def _forget_preparation(self) -> None:
+        """Drop what was prepared for the next call (a solver that prepares says what)."""
+
+    def set_reference(self, reference: Reference) -> None:
+        """Track ``reference`` (a :class:`~fvin_mpc.control.problem.Reference`: states and control
+        scales over time) from now on."""
+        self._reference = reference
+        self._reference_cache = None
+        self._forget_preparation()
+
+    def set_time(self, t: float) -> None:
+        """The time of the next measurement (s, on the reference's clock). Without it the clock
+        advances by one step per call; :func:`fvin_mpc.control.closed_loop.run_episode` tells it."""
+        if abs(float(t) - self._time) > 1e-9:
+            # Not one step after the last call (a deadline miss skipped observations): the last
+            # one-step prediction says nothing about this measurement, and what was prepared was for
+            # another time.
+            self.estimate.forget_prediction()
+            if not self._reference.constant:
+                self._forget_preparation()
+        self._time = float(t)
+
+    def _sample_reference(self) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
+        """``(time, states (N+1, n), scales (N,), states as the solvers' input (n, N+1))`` of the
+        reference over the horizon from now (cached)."""
+        cache = getattr(self, "_reference_cache", None)
+        if cache is None or not (self._reference.constant or cache[0] == self._time):
+            n = self.horizon
+            states, scales = self._reference(self._time + self.model.step_size * np.arange(n + 1))
+            states = np.asarray(states, dtype=float).reshape(n + 1, self.layout.state_dim)
+            cache = (self._time, states, np.asarray(scales, dtype=float).reshape(n + 1)[:n], states.T)
+            self._reference_cache = cache
+        return cache
+
+    def reference_window(self) -> tuple[np.ndarray, np.ndarray]:
+        """The reference over the horizon from the current time: states ``(N+1, n)`` and target
+        controls ``u_s,k = clip(s_k u_goal − d̂)`` ``(N, m)`` (``s_k`` the reference's control scale)."""
+        _, states, scales, _ = self._sample_reference()
+        return states, np.clip(scales[:, None] * self._u_goal - self.disturbance, self.torque_low, self.torque_high)
+
+    @property
+    def target_control(self) -> np.ndarray:
+        """``u_s = u_goal − d̂`` (times the reference's control scale now), clipped to the bounds."""
+        return self.reference_window()[1][0]
+
+    def _update_estimate(self, x0: np.ndarray) -> None:
+        """The disturbance estimate at the measured ``x0``, against the reference's attitude now."""
+        self.estimate.update(x0, self._sample_reference()[1][0, self.layout.quaternion])
+
+    def _predicted(self, x0: np.ndarray, u: np.ndarray) -> float:
+        """Remember the model's prediction after ``u`` from ``x0`` (with ``d̂``) for the next estimate,
+        advance the clock one step; returns the step's Newton residual (rad/s)."""
+        predicted, _, residual, inverse = self._predict(x0, u + self.disturbance)
+        self.estimate.predicted(predicted, inverse)
+        self._time += self.model.step_size  # the next measurement's time unless set_time says otherwise
+        return float(residual)
 
     # ------------------------------------------------------------------ layout
     @property
@@ -343,81 +445,69 @@ class MPC:
 
     # ------------------------------------------------------------------ problem
     def _build(self) -> None:
-        # The cost below (orientation to a goal, ω, the energy at rest) is written for a body on a pivot.
-        self.model.require(*(space for space in spaces() if space.pivoted), by=f"the {self.settings.solver} MPC")
-        s, n, m, nx = self.settings, self.horizon, self.model.control_dim, self.model.state_dim
+        s, n, m, nx, layout = self.settings, self.horizon, self.model.control_dim, self.model.state_dim, self.layout
         states = ca.MX.sym("X", nx, n + 1)
         controls = ca.MX.sym("U", m, n)
-        goal = ca.MX.sym("goal", 4)
+        # Parameters: the reference over the horizon, the target controls u_s = u_goal − d̂, and d̂.
+        references, targets, disturbance = ca.MX.sym("R", nx, n + 1), ca.MX.sym("U_s", m, n), ca.MX.sym("d", m)
+        parameters = ca.vertcat(ca.vec(references), ca.vec(targets), disturbance)
         x_sym, u_sym = ca.SX.sym("x", nx), ca.SX.sym("u", m)
         next_state = ca.Function("next_state", [x_sym, u_sym], [self.model.step(x_sym, u_sym)[0]])
+        predict = predict_function(self.model, "mpc_predict")
 
-        # --- objective
-        def orientation_cost(q: ca.MX) -> ca.MX:
-            return ca.sum1(q * q) - ca.mtimes(goal.T, q) ** 2
-
-        stage_q, terminal_q = states[:4, :n], states[:4, n]
-        quadratic = (
-            s.orientation_weight * ca.sum2(orientation_cost(stage_q))
-            + s.omega_weight * ca.sumsqr(states[4:, :n])
-            + s.control_weight * ca.sumsqr(controls)
-            + s.terminal_orientation_weight * orientation_cost(terminal_q)
-            + s.terminal_omega_weight * ca.sumsqr(states[4:, n])
-        )
-        # Least-squares terms: their Gauss–Newton Hessian is 2·JᵀJ (first derivatives only).
-        residuals = ca.MX(0, 1)
+        # --- objective: the problem's residuals (control/problem.py), the ω bound hard (below)
+        energy = None
         if s.terminal_energy_weight > 0:
-            energy = self.model.energy_function
-            goal_energy = energy(ca.vertcat(goal, ca.DM.zeros(3)))
-            energy_span = ca.fabs(goal_energy - float(energy(np.concatenate([self.rest, np.zeros(3)]))))
-            residuals = np.sqrt(s.terminal_energy_weight) * (energy(states[:, n]) - goal_energy) / energy_span
-        objective = quadratic + ca.sumsqr(residuals)
+            rest_state = np.zeros(nx)
+            rest_state[layout.quaternion] = self.rest
+            energy = (self.model.energy_function, self.model.energy(rest_state))
+        stage, terminal = residual_functions(layout, s, m, self.omega_bound, None, energy)
+        residuals = ca.vertcat(ca.vec(stage.map(n)(states[:, :n], controls, references[:, :n], targets)),
+                               terminal(states[:, n], references[:, n]))
+        objective = ca.sumsqr(residuals)
         # An optional terminal cost (constructor argument); its exact Hessian joins the Gauss–Newton one.
         terminal_term = None if self.terminal_cost is None else self.terminal_cost(states[:, n])
         if terminal_term is not None:
             objective = objective + terminal_term
-        # --- dynamics
-        defects = next_state.map(n)(states[:, :n], controls) - states[:, 1:]
+        # --- dynamics, with the disturbance estimate on the input
+        defects = next_state.map(n)(states[:, :n], controls + ca.repmat(disturbance, 1, n)) - states[:, 1:]
         decision = ca.vertcat(ca.vec(states), ca.vec(controls))
-        nlp = {"x": decision, "p": goal, "f": objective, "g": ca.vec(defects)}
+        nlp = {"x": decision, "p": parameters, "f": objective, "g": ca.vec(defects)}
         self._num_constraints = nx * n
+        self._num_parameters = parameters.shape[0]
 
         # --- bounds (x_0 is fixed per call)
         lower = np.full(decision.shape[0], -np.inf)
         upper = np.full(decision.shape[0], np.inf)
         state_lower, control_lower = self._unpack(lower)
         state_upper, control_upper = self._unpack(upper)
-        state_lower[1:, 4:], state_upper[1:, 4:] = -self.omega_bound, self.omega_bound
-        control_lower[:], control_upper[:] = self.torque_low, self.torque_high
-        if s.torque_reserve > 0.0:
-            middle, half_range = 0.5 * (self.torque_high + self.torque_low), 0.5 * (self.torque_high - self.torque_low)
-            control_lower[1:] = middle - (1.0 - s.torque_reserve) * half_range
-            control_upper[1:] = middle + (1.0 - s.torque_reserve) * half_range
+        state_lower[1:, layout.omega], state_upper[1:, layout.omega] = -self.omega_bound, self.omega_bound
+        control_lower[:], control_upper[:] = control_bounds(self.torque_low, self.torque_high, n, s.torque_reserve)
         self._lower, self._upper = lower, upper
 
         self.compile_report: CompileReport | None = None
         self._order = None
         if s.solver == "fatrop":
-            self._build_fatrop(states, controls, goal, objective, defects)
+            self._predict = predict
+            self._build_fatrop(states, controls, parameters, objective, defects)
             return
         options: dict[str, Any] = {}
         if s.hessian == "gauss-newton":
             lam_f, lam_g = ca.MX.sym("lam_f"), ca.MX.sym("lam_g", self._num_constraints)
-            cost_hessian = ca.hessian(quadratic, decision)[0]
-            if residuals.numel() > 0:
-                residual_jacobian = ca.jacobian(residuals, decision)
-                cost_hessian = cost_hessian + 2.0 * ca.mtimes(residual_jacobian.T, residual_jacobian)
+            residual_jacobian = ca.jacobian(residuals, decision)
+            cost_hessian = 2.0 * ca.mtimes(residual_jacobian.T, residual_jacobian)
             if terminal_term is not None:
                 cost_hessian = cost_hessian + ca.hessian(terminal_term, decision)[0]
             # IPOPT reads the upper triangle, sqpmethod the whole symmetric matrix.
             hessian, label = (ca.triu(lam_f * cost_hessian), "triu_hess_gamma_x_x") if s.solver == "ipopt" \
                 else (lam_f * cost_hessian, "hess_gamma_x_x")
-            options["hess_lag"] = ca.Function("nlp_hess_l", [decision, goal, lam_f, lam_g], [hessian],
+            options["hess_lag"] = ca.Function("nlp_hess_l", [decision, parameters, lam_f, lam_g], [hessian],
                                               ["x", "p", "lam_f", "lam_g"], [label])
         symbolic = ca.nlpsol("mpc_symbolic", s.solver, nlp, {**options, **self._ipopt_options(warm=False)})
         if s.compile == "none":
             self._nlp = nlp
             self._oracle_options = options
+            self._predict = predict
         else:
             names = ["nlp_f", "nlp_g", "nlp_grad_f", "nlp_jac_g"] if s.solver == "ipopt" else ["nlp_fg", "nlp_jac_fg"]
             if s.hessian != "limited-memory":
@@ -425,11 +515,13 @@ class MPC:
             oracles = [symbolic.get_function(name) for name in names]
             if s.hessian == "gauss-newton":
                 oracles[-1] = options["hess_lag"]
+            oracles.append(predict)
             # IPOPT's interface insists on being able to differentiate f and g (for lam_p, which
             # calc_lam_p=False never computes); finite differences satisfy it and are never run.
             compiled, self.compile_report = compile_functions(
                 oracles, prefix=re.sub(r"[^0-9A-Za-z_]", "_", f"mpc_{self.model.name}"), external_options={"enable_fd": True})
-            x, p = ca.MX.sym("x", decision.shape[0]), ca.MX.sym("p", 4)
+            self._predict = compiled["mpc_predict"]
+            x, p = ca.MX.sym("x", decision.shape[0]), ca.MX.sym("p", self._num_parameters)
             f, g = (compiled["nlp_f"](x, p), compiled["nlp_g"](x, p)) if s.solver == "ipopt" else compiled["nlp_fg"](x, p)
             self._nlp = {"x": x, "p": p, "f": f, "g": g}
             self._oracle_options = {"grad_f": compiled["nlp_grad_f"], "jac_g": compiled["nlp_jac_g"]} \
@@ -441,18 +533,18 @@ class MPC:
         self._warm = ca.nlpsol("mpc_warm", s.solver, self._nlp, {**self._oracle_options, **self._ipopt_options(warm=warm)}) \
             if warm else self._cold
 
-    def _build_fatrop(self, states: ca.MX, controls: ca.MX, goal: ca.MX, objective: ca.MX, defects: ca.MX) -> None:
+    def _build_fatrop(self, states: ca.MX, controls: ca.MX, parameters: ca.MX, objective: ca.MX, defects: ca.MX) -> None:
         """The same NLP for fatrop: variables stage by stage ``(x_0, u_0, x_1, …, x_N)`` and the
         dynamics as gap-closing constraints ``x_{k+1} − F(x_k, u_k) = 0``, the form its structure
         detection requires. ``self._order`` maps the stage-wise vector to the default layout."""
         n, m, nx = self.horizon, self.model.control_dim, self.model.state_dim
-        problem = ca.Function("mpc_problem", [states, controls, goal], [objective, -ca.vec(defects)])
+        problem = ca.Function("mpc_problem", [states, controls, parameters], [objective, -ca.vec(defects)])
         index = np.arange(nx * (n + 1) + m * n)
         state_index, control_index = self._unpack(index)
         order = np.concatenate([np.concatenate([state_index[k], control_index[k]]) if k < n else state_index[k]
                                 for k in range(n + 1)])
         self._order = order  # stage-wise vector v = w[order]
-        v, p = ca.MX.sym("v", order.size), ca.MX.sym("p", 4)
+        v, p = ca.MX.sym("v", order.size), ca.MX.sym("p", self._num_parameters)
         w = v[np.argsort(order).tolist()]  # default layout from the stage-wise one
         w_states, w_controls = ca.reshape(w[: nx * (n + 1)], nx, n + 1), ca.reshape(w[nx * (n + 1):], m, n)
         f, g = problem(w_states, w_controls, p)
@@ -485,7 +577,22 @@ class MPC:
 
     # ------------------------------------------------------------------ guesses
     def _first_guess(self, x0: np.ndarray, start: str) -> _Plan:
-        """The plan a cold solve starts from (see :data:`COLD_STARTS`)."""
+        """The plan a cold solve starts from (see :data:`COLD_STARTS`). A free body's ``"goal"``: the
+        reference, the orientation turned from the measured one to the reference's along the geodesic
+        over the first third of the horizon, the reference's target controls."""
+        if start == "goal" and not self.model.space.pivoted:
+            n, layout = self.horizon, self.layout
+            references, targets = self.reference_window()
+            states = references.copy()
+            q0 = x0[layout.quaternion]
+            q_ref = references[:, layout.quaternion] * np.where(references[:, layout.quaternion] @ q0 >= 0, 1.0, -1.0)[:, None]
+            relative = s3.multiply(s3.conjugate(tuple(q0)), tuple(q_ref.T))
+            turn = np.array(s3.log(relative, NP))  # (3, N+1): q_ref = q0 ⊗ exp(turn)
+            weights = np.clip(np.arange(n + 1) / max(1, n // 3), 0.0, 1.0)
+            states[:, layout.quaternion] = np.array(s3.multiply(tuple(q0), s3.exp(tuple(weights * turn), NP))).T
+            states[:, layout.omega] = 0.0
+            states[0] = x0
+            return _Plan(states, targets.copy(), None, None)
         if start == "goal":
             n = self.horizon
             q0 = x0[:4]
@@ -507,7 +614,8 @@ class MPC:
         """The model rolled out under the constant ``torque`` (clipped to the bounds), ω clipped to its bound."""
         controls = np.clip(np.tile(torque, (self.horizon, 1)), self.torque_low, self.torque_high)
         states = self.model.rollout(x0, controls)
-        states[1:, 4:] = np.clip(states[1:, 4:], -self.omega_bound, self.omega_bound)
+        omega = self.layout.omega
+        states[1:, omega] = np.clip(states[1:, omega], -self.omega_bound, self.omega_bound)
         return _Plan(states, controls, None, None)
 
     def _shifted(self, plan: _Plan, x0: np.ndarray) -> _Plan:
@@ -526,10 +634,6 @@ class MPC:
         return _Plan(states, controls, lam_g, lam_x)
 
     # ------------------------------------------------------------------ control
-    def reset(self) -> None:
-        """Forget the previous plan (the next call starts from the first guess)."""
-        self._previous = None
-
     def __call__(self, x: Any) -> tuple[np.ndarray, dict[str, Any]]:
         """Plan from the measured state ``x = (q, ω)`` ``(7,)``; returns ``(u (m,), info)``.
 
@@ -543,7 +647,15 @@ class MPC:
         Raises:
             ValueError: non-finite or wrongly shaped state, or ``q`` not of unit norm.
         """
-        x0 = self.model.space.check(x)
+        x0 = self.layout.check(x)
+        self._update_estimate(x0)
+        u, info = self._plan_and_control(x0)
+        info["step_residual"] = self._predicted(x0, u)
+        info["disturbance"] = self.disturbance.copy()
+        return u, info
+
+    def _plan_and_control(self, x0: np.ndarray) -> tuple[np.ndarray, dict[str, Any]]:
+        """A warm solve from the shifted previous plan, or the multi-start cold solves."""
         if self._previous is not None and self.settings.warm_start != "none":
             return self._solve(x0, self._shifted(self._previous, x0), warm=True)
         best: tuple[np.ndarray, dict[str, Any], _Plan | None] | None = None
@@ -570,7 +682,9 @@ class MPC:
         """One NLP solve from ``guess``; keeps the plan (or falls back) and returns the control."""
         lower, upper = self._lower.copy(), self._upper.copy()
         lower[:x0.size] = upper[:x0.size] = x0
-        arguments: dict[str, Any] = {"x0": self._pack(guess.states, guess.controls), "p": self.goal,
+        references, targets = self.reference_window()
+        parameters = np.concatenate([references.ravel(), targets.ravel(), self.disturbance])
+        arguments: dict[str, Any] = {"x0": self._pack(guess.states, guess.controls), "p": parameters,
                                      "lbx": lower, "ubx": upper, "lbg": 0.0, "ubg": 0.0}
         use_duals = warm and self.settings.warm_start == "primal-dual" and guess.lam_g is not None
         if use_duals:
@@ -613,11 +727,10 @@ class MPC:
             states, controls = guess.states, guess.controls
             u, fallback = np.zeros(self.model.control_dim), "zero"
         u = np.clip(u, self.torque_low, self.torque_high)
-        _, residual = self.model(x0, u)
         info = {
             "status": status, "success": success, "iterations": int(stats.get("iter_count", -1)),
             "solve_time_s": solve_time, "fallback": fallback,
             "cost": float(solution["f"]) if success else float("nan"),
-            "step_residual": residual, "states": states, "controls": controls,
+            "states": states, "controls": controls,
         }
         return u, info

@@ -30,7 +30,8 @@ import numpy as np
 
 from fvin_mpc.control.export import ExportedModel
 from fvin_mpc.control.mpc import MPCSettings
-from fvin_mpc.control.rti import ConstantReference, RealTimeMPC
+from fvin_mpc.control.problem import ConstantReference
+from fvin_mpc.control.rti import RealTimeMPC
 from fvin_mpc.core.space import R3S3
 
 #: Recovered: within this distance of the hover point (m) …

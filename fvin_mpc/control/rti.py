@@ -62,7 +62,7 @@ from __future__ import annotations
 
 import re
 import time
-from typing import Any, Protocol
+from typing import Any
 
 import casadi as ca
 import numpy as np
@@ -71,10 +71,10 @@ from fvin_mpc.control import implicit_dynamics
 from fvin_mpc.control.buffered import BufferedFunction
 from fvin_mpc.control.export import ExportedModel, compile_functions
 from fvin_mpc.control.mpc import MPC, MPCSettings, _Plan
+from fvin_mpc.control.problem import control_bounds, predict_function, residual_functions
 from fvin_mpc.core import s3
 from fvin_mpc.core.backend import get_ops
 from fvin_mpc.core.space import StateLayout, chart_local, chart_retract
-from fvin_mpc.core.state import unit_quaternion
 
 CA, NP = get_ops("casadi"), get_ops("numpy")
 
@@ -162,16 +162,18 @@ def riccati_feedback_function(layout: StateLayout, n: int, m: int, low: np.ndarr
     state and tangent dimensions (7 and 6 for a pivoted body, 13 and 12 for a free one).
 
     The QP ``min Σ ½[δ;Δu]ᵀH_k[δ;Δu] + g_kᵀ[δ;Δu] + ½δ_NᵀH_Nδ_N + g_Nᵀδ_N`` s.t.
-    ``δ_{k+1} = A_kδ_k + B_kΔu_k + c_k``, ``δ_0 = local(x̄_0, x0)``, ``low ≤ ū_k + Δu_k ≤ high`` is
+    ``δ_{k+1} = A_kδ_k + B_kΔu_k + c_k``, ``δ_0 = local(x̄_0, x0)``, ``low_k ≤ ū_k + Δu_k ≤ high_k`` is
     solved by a primal–dual interior-point method on the input boxes with a fixed number of
     ``iterations``: each solves the barrier-modified LQ problem (``R + diag(λ/s)``) by a Riccati
     recursion (``O(N)``, backward ``mapaccum``), takes the fraction-to-boundary step and reduces
     ``μ`` to ``centering ×`` the mean complementarity, not below ``mu_min`` (:data:`QP_MU_MIN`).
     Then the trust region (``limits``, per entry of ``δ``: :func:`step_limits`), the update on S³
     and ``|ω|`` within ``omega_valid`` (as :meth:`RealTimeMPC._iterate`). No Python between the
-    stages: the whole iteration is one call.
+    stages: the whole iteration is one call. ``low``, ``high``: the control bounds, ``(m,)`` for every
+    stage or ``(N, m)`` per stage (the torque reserve: :func:`fvin_mpc.control.problem.control_bounds`).
     """
     ns, nd = layout.state_dim, layout.tangent_dim
+    stage_low, stage_high = (np.broadcast_to(np.asarray(bound, dtype=float), (n, m)).T for bound in (low, high))
     size = nd + m
     # --- one backward Riccati stage: (P, p) at k+1 → at k, with the gains of stage k
     P, p = ca.SX.sym("P", nd, nd), ca.SX.sym("p", nd)
@@ -204,8 +206,8 @@ def riccati_feedback_function(layout: StateLayout, n: int, m: int, low: np.ndarr
     gradients, terminal_gradient = ca.MX.sym("g", size, n), ca.MX.sym("gN", nd)
     jacobians, gaps = ca.MX.sym("AB", nd, size * n), ca.MX.sym("c", nd, n)
     delta0 = local_state(layout, states[:, 0], x0)
-    lower = ca.fmax(ca.repmat(ca.DM(np.maximum(low, -1e6)), 1, n) - controls, -1e6)
-    upper = ca.fmin(ca.repmat(ca.DM(np.minimum(high, 1e6)), 1, n) - controls, 1e6)
+    lower = ca.fmax(ca.DM(np.maximum(stage_low, -1e6)) - controls, -1e6)
+    upper = ca.fmin(ca.DM(np.minimum(stage_high, 1e6)) - controls, 1e6)
     width = upper - lower
     hessians_rev, jacobians_rev = reverse(hessians, size), reverse(jacobians, size)
     gradients_rev, gaps_rev = reverse(gradients, 1), reverse(gaps, 1)
@@ -244,36 +246,12 @@ def riccati_feedback_function(layout: StateLayout, n: int, m: int, low: np.ndarr
     moved = retracted(states[:, 1:], steps)
     omega = ns - 3
     new_states = ca.horzcat(x0, ca.vertcat(moved[:omega, :], ca.fmin(ca.fmax(moved[omega:, :], -omega_valid), omega_valid)))
-    new_controls = ca.fmin(ca.fmax(controls + v, ca.DM(low)), ca.DM(high))
-    step = ca.fmax(ca.mmax(ca.fabs(v) / ca.repmat(ca.DM(np.minimum(high - low, 1e6)), 1, n)),
+    new_controls = ca.fmin(ca.fmax(controls + v, ca.DM(stage_low)), ca.DM(stage_high))
+    step = ca.fmax(ca.mmax(ca.fabs(v) / ca.DM(np.minimum(stage_high - stage_low, 1e6))),
                    ca.mmax(ca.fabs(steps) / bound))
     return ca.Function("rti_feedback", [states, controls, x0, hessians, terminal_hessian, gradients, terminal_gradient,
                                         jacobians, gaps], [new_states, new_controls, step, mu],
                        ["X", "U", "x0", "H", "HN", "g", "gN", "AB", "c"], ["X_new", "U_new", "step", "mu"])
-
-
-class Reference(Protocol):
-    """What the MPC tracks: ``states, scales = reference(times)`` for times ``(T,)`` (s) — reference
-    states ``(T, n)`` in the model's layout and control scales ``(T,)``: the stage's target control is
-    ``scale × u_goal`` (``u_goal`` holds the goal at rest in the model; for a quadrotor the ratio of
-    the thrust the reference needs to hover thrust). ``constant`` says the answer never changes
-    with time (computed once)."""
-
-    constant: bool
-
-    def __call__(self, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]: ...
-
-
-class ConstantReference:
-    """The goal state at every time, control scale 1: swing up and hold, hover at a point."""
-
-    constant = True
-
-    def __init__(self, state: np.ndarray) -> None:
-        self.state = np.asarray(state, dtype=float)
-
-    def __call__(self, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        return np.tile(self.state, (len(times), 1)), np.ones(len(times))
 
 
 class RealTimeMPC(MPC):
@@ -291,36 +269,21 @@ class RealTimeMPC(MPC):
                  rest: Any = None) -> None:
         if settings.solver != "rti":
             settings = MPCSettings(**{**settings.__dict__, "solver": "rti"})
-        #: where the quaternion sits in the model's states (pivoted ``(q, ω)`` or free ``(x, q, v, ω)``)
-        self.layout = model.space.layout
-        if model.space.pivoted:  # the goal is an orientation, at rest
-            goal_state = np.concatenate([unit_quaternion(goal, "goal"), np.zeros(3)])
-        else:  # the goal is a state: hover there
-            goal_state = self.layout.check(goal)
-            if settings.terminal_energy_weight > 0 or settings.rti_cold_solver == "ipopt":
-                raise ValueError(f"a {self.layout.name} model takes no terminal energy term and no IPOPT cold start "
-                                 "(both are written for pivoted bodies)")
-        #: the goal state; the reference is this state at rest unless :meth:`set_reference` says otherwise
-        self.goal_state = goal_state
-        self._reference: Reference = ConstantReference(goal_state)
-        super().__init__(model, settings, goal_state[self.layout.quaternion], torque_low, torque_high, rest)
+        super().__init__(model, settings, goal, torque_low, torque_high, rest)
         self._cold_mpc = None
         if settings.rti_cold_solver == "ipopt":
             self._cold_mpc = MPC(model, MPCSettings(**{**settings.__dict__, "solver": "ipopt"}), goal, torque_low,
                                  torque_high, rest)
-        self.reset()
 
     # ------------------------------------------------------------------ problem
     def _build(self) -> None:
         s, n, m, layout = self.settings, self.horizon, self.model.control_dim, self.layout
-        ns, nd, a = layout.state_dim, layout.tangent_dim, layout.before
-        qs, ws = layout.quaternion, layout.omega
+        ns, nd, qs = layout.state_dim, layout.tangent_dim, layout.quaternion
         stage_size = nd + m
 
         x_bar = ca.SX.sym("x_bar", ns)
         u_bar, u_s = ca.SX.sym("u_bar", m), ca.SX.sym("u_s", m)
         reference = ca.SX.sym("reference", ns)  # the stage's reference state
-        goal = reference[qs]
         delta, du = ca.SX.sym("delta", nd), ca.SX.sym("du", m)
         x = retract_state(layout, x_bar, delta)
         u = u_bar + du
@@ -342,40 +305,16 @@ class RealTimeMPC(MPC):
         else:
             stage_dynamics = unrolled_stage_function(self.model.step, layout, m)
 
-        # --- cost: sums of squares, Gauss–Newton
-        projector = ca.SX.eye(4) - ca.mtimes(goal, goal.T)
-        # |ω_i| ≤ bound as an exact-penalty-like soft constraint (zero inside the bound): the
-        # linearized QP then has only the torque boxes and is always feasible.
-        omega = x[ws]
-        if s.orientation_residual == "projector":
-            orientation_error = ca.mtimes(projector, x[qs])
-        else:  # half the rotation vector from the reference to q, of the sign-aligned relative rotation
-            relative = s3.multiply(s3.conjugate(tuple(goal[i] for i in range(4))), tuple(x[qs][i] for i in range(4)))
-            aligned = s3.scale(ca.if_else(relative[0] >= 0, 1.0, -1.0), relative)
-            orientation_error = ca.vertcat(*s3.log(aligned, CA))
-        excess = np.sqrt(s.rti_omega_penalty) * (omega - ca.fmin(ca.fmax(omega, -self.omega_bound), self.omega_bound))
-
-        def tracking(position_weight: float, orientation_weight: float, velocity_weight: float,
-                     omega_weight: float) -> list[Any]:
-            """Residuals of the state against the stage's reference: position and velocity (free
-            bodies), the sign-invariant orientation ``(I − g gᵀ) q``, ``ω``."""
-            velocity = slice(qs.stop, ws.start)
-            translation = [np.sqrt(position_weight) * (x[:a] - reference[:a])] if a else []
-            rate = [np.sqrt(velocity_weight) * (x[velocity] - reference[velocity])] if a else []
-            return [*translation, np.sqrt(orientation_weight) * orientation_error, *rate,
-                    np.sqrt(omega_weight) * (omega - reference[ws])]
-
-        stage_residual = ca.vertcat(*tracking(s.position_weight, s.orientation_weight, s.velocity_weight,
-                                              s.omega_weight), np.sqrt(s.control_weight) * (u - u_s), excess)
-        terminal_parts = [*tracking(s.terminal_position_weight, s.terminal_orientation_weight,
-                                    s.terminal_velocity_weight, s.terminal_omega_weight), excess]
+        # --- cost: the problem's residuals (control/problem.py), the ω bound as a stiff penalty on its
+        # excess (zero inside the bound): the linearized QP then has only the torque boxes and is always
+        # feasible. Gauss–Newton.
+        energy = None
         if s.terminal_energy_weight > 0:
-            energy = self.model.energy_function
-            rest_energy = self.model.energy(np.concatenate([self.rest, np.zeros(3)]))
-            goal_energy = energy(ca.vertcat(goal, ca.DM.zeros(3)))
-            terminal_parts.append(np.sqrt(s.terminal_energy_weight) * (energy(x) - goal_energy)
-                                  / ca.fabs(goal_energy - rest_energy))
-        terminal_residual = ca.vertcat(*terminal_parts)
+            energy = (self.model.energy_function, self.model.energy(np.concatenate([self.rest, np.zeros(3)])))
+        stage_function, terminal_function = residual_functions(layout, s, m, self.omega_bound, s.rti_omega_penalty,
+                                                               energy)
+        stage_residual = stage_function(x, u, reference, u_s)
+        terminal_residual = terminal_function(x, reference)
         regularization = s.rti_regularization
 
         def gauss_newton(residual: Any, variables: Any, size: int) -> list[Any]:
@@ -418,23 +357,17 @@ class RealTimeMPC(MPC):
                                        [hessians, terminal_hessian, gradients, terminal_gradient, jacobians, gaps,
                                         ca.sum2(costs) + terminal_value],
                                        ["X", "U", "R", "d", "u_s"], ["H", "HN", "g", "gN", "AB", "gaps", "cost"])
-        # one step and the derivative of its rates (ω, or v and ω) in u, for the disturbance
-        # estimator and the target control
-        x_sym, u_sym = ca.SX.sym("x", ns), ca.SX.sym("u", m)
-        stepped, residual = self.model.step(x_sym, u_sym)
-        b = ca.jacobian(stepped[layout.rates], u_sym)  # ∂(rates)⁺/∂u (b, m), and its least-squares inverse (m, b)
-        predict = ca.Function("rti_predict", [x_sym, u_sym],
-                              [stepped, b, residual, ca.solve(ca.mtimes(b.T, b), b.T)])
+        predict = predict_function(self.model, "rti_predict")
 
         self._implicit = implicit
+        self._control_bounds = control_bounds(self.torque_low, self.torque_high, n, s.torque_reserve)
         self._omega_valid = OMEGA_VALID_FRACTION / self.model.step_size
         self._step_limits = step_limits(layout, STEP_LIMIT_OMEGA * self.omega_bound)
         riccati = s.rti_qp_solver == "riccati"
         if riccati:
             linearize = linearize_blocks
             functions = [linearize, predict, riccati_feedback_function(
-                layout, n, m, self.torque_low, self.torque_high, self._step_limits, self._omega_valid,
-                s.rti_qp_iterations)]
+                layout, n, m, *self._control_bounds, self._step_limits, self._omega_valid, s.rti_qp_iterations)]
         else:
             functions = [linearize, predict]
         self.compile_report = None
@@ -449,7 +382,6 @@ class RealTimeMPC(MPC):
         self._qp = None if riccati else self._make_qp(hessian.sparsity(), constraints.sparsity())
         self._size = size
         self._stage_size = stage_size
-        self._u_goal = self._goal_control()
 
     def _make_qp(self, h: ca.Sparsity, a: ca.Sparsity) -> ca.Function:
         s, n, m = self.settings, self.horizon, self.model.control_dim
@@ -463,69 +395,6 @@ class RealTimeMPC(MPC):
             options = {"osqp": {"verbose": False, "eps_abs": 1e-8, "eps_rel": 1e-8, "max_iter": 4000},
                        "error_on_fail": False}
         return ca.conic("rti_qp", s.rti_qp_solver, {"h": h, "a": a}, options)
-
-    def _goal_control(self) -> np.ndarray:
-        """``u_goal``: the control that holds the goal at rest in the model — its rates (``ω``, or ``v``
-        and ``ω``) stay zero (least squares, Newton). For a quadrotor: the hover thrusts."""
-        x_goal = self.goal_state.copy()
-        x_goal[self.layout.rates] = 0.0
-        u = np.zeros(self.model.control_dim)
-        for _ in range(5):
-            stepped, _, _, inverse = self._predict(x_goal, u)
-            u = u - np.asarray(inverse, dtype=float) @ np.asarray(stepped, dtype=float).ravel()[self.layout.rates]
-        return u
-
-    # ------------------------------------------------------------------ state of the controller
-    def reset(self) -> None:
-        """Forget the plan and the disturbance estimate (the next call is a cold start); the clock
-        restarts at 0."""
-        self._previous = None
-        self._plan: _Plan | None = None
-        self._linearization: tuple[Any, ...] | None = None
-        self.disturbance = np.zeros(self.model.control_dim)
-        self._last: tuple[np.ndarray, np.ndarray] | None = None  # (predicted rates, (∂rates/∂u)⁺) after the last torque
-        self._time = 0.0
-
-    def set_reference(self, reference: "Reference") -> None:
-        """Track ``reference`` (a :class:`Reference`: states and control scales over time) from now on."""
-        self._reference = reference
-        self._reference_cache = None
-        self._linearization = None
-
-    def set_time(self, t: float) -> None:
-        """The time of the next measurement (s, on the reference's clock). Without it the clock
-        advances by one step per call; :func:`fvin_mpc.control.closed_loop.run_episode` tells it."""
-        if abs(float(t) - self._time) > 1e-9:
-            # Not one step after the last call (a deadline miss skipped observations): the last
-            # one-step prediction says nothing about this measurement, and the preparation was for
-            # another time.
-            self._last = None
-            if not self._reference.constant:
-                self._linearization = None
-        self._time = float(t)
-
-    def _sample_reference(self) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
-        """``(time, states (N+1, n), scales (N,), states as the linearization's input (n, N+1))`` of
-        the reference over the horizon from now (cached)."""
-        cache = getattr(self, "_reference_cache", None)
-        if cache is None or not (self._reference.constant or cache[0] == self._time):
-            n = self.horizon
-            states, scales = self._reference(self._time + self.model.step_size * np.arange(n + 1))
-            states = np.asarray(states, dtype=float).reshape(n + 1, self.layout.state_dim)
-            cache = (self._time, states, np.asarray(scales, dtype=float).reshape(n + 1)[:n], states.T)
-            self._reference_cache = cache
-        return cache
-
-    def reference_window(self) -> tuple[np.ndarray, np.ndarray]:
-        """The reference over the horizon from the current time: states ``(N+1, n)`` and target
-        controls ``u_s,k = clip(s_k u_goal − d̂)`` ``(N, m)`` (``s_k`` the reference's control scale)."""
-        _, states, scales, _ = self._sample_reference()
-        return states, np.clip(scales[:, None] * self._u_goal - self.disturbance, self.torque_low, self.torque_high)
-
-    @property
-    def target_control(self) -> np.ndarray:
-        """``u_s = u_goal − d̂`` (times the reference's control scale now), clipped to the bounds."""
-        return self.reference_window()[1][0]
 
     def _linearize_at(self, plan: _Plan) -> tuple[Any, ...]:
         if self._implicit:
@@ -589,8 +458,9 @@ class RealTimeMPC(MPC):
         lower, upper = np.full(self._size, -np.inf), np.full(self._size, np.inf)
         control_lower = lower[:size * n].reshape(n, size)[:, :m]  # Δu_k sits first in each stage
         control_upper = upper[:size * n].reshape(n, size)[:, :m]
-        control_lower[:] = self.torque_low - plan.controls
-        control_upper[:] = self.torque_high - plan.controls
+        stage_low, stage_high = self._control_bounds
+        control_lower[:] = stage_low - plan.controls
+        control_upper[:] = stage_high - plan.controls
         solution = self._qp(h=h, g=g, a=a, lba=gaps, uba=gaps, lbx=lower, ubx=upper)
         stats = self._qp.stats()
         self.qp_iterations = int(stats.get("iter_count", -1))
@@ -608,7 +478,7 @@ class RealTimeMPC(MPC):
         states = layout.retract(plan.states, deltas)
         states[:, layout.omega] = np.clip(states[:, layout.omega], -self._omega_valid, self._omega_valid)
         states[0] = x0
-        controls = np.clip(plan.controls + stages[:, :m], self.torque_low, self.torque_high)
+        controls = np.clip(plan.controls + stages[:, :m], stage_low, stage_high)
         self.step_scale = float(np.mean(clipped == steps))
         #: size of the last step: largest |Δu| over the torque range, or |δ| over the trust region
         self.last_step = max(float(np.max(np.abs(stages[:, :m]) / (self.torque_high - self.torque_low))),
@@ -668,21 +538,14 @@ class RealTimeMPC(MPC):
         self._plan = _Plan(states, controls, None, None)
         self._linearization = self._linearize_at(self._plan)
 
-    def _estimate_disturbance(self, x0: np.ndarray) -> None:
-        """``d̂ ← d̂ + α B⁺(ω − ω̂)``, ``ω̂`` predicted from the last call's state and torque (module docstring)."""
-        alpha = self.settings.disturbance_gain
-        if alpha == 0.0 or self._last is None:
-            return
-        layout = self.layout
-        goal = self._sample_reference()[1][0, layout.quaternion]
-        cosine = min(abs(float(np.dot(x0[layout.quaternion], goal))), 1.0)
-        s = self.settings
-        if 2.0 * np.arccos(cosine) > s.disturbance_region_rad or np.max(np.abs(x0[layout.omega])) > s.disturbance_region_speed:
-            return
-        predicted, inverse = self._last
-        step = inverse @ (x0[layout.rates] - predicted)
-        limit = 0.5 * (self.torque_high - self.torque_low)
-        self.disturbance = np.clip(self.disturbance + alpha * step, -limit, limit)
+    def reset(self) -> None:
+        """Forget the plan and the disturbance estimate (the next call is a cold start); the clock
+        restarts at 0."""
+        super().reset()
+        self._plan: _Plan | None = None
+
+    def _forget_preparation(self) -> None:
+        self._linearization: tuple[Any, ...] | None = None
 
     def __call__(self, x: Any) -> tuple[np.ndarray, dict[str, Any]]:
         """The torque for the measured state ``x = (q, ω)`` ``(7,)``; see the class docstring for ``info``."""
@@ -690,7 +553,7 @@ class RealTimeMPC(MPC):
         x0 = self.layout.check(x)
         s = self.settings
         extra: dict[str, Any] = {}
-        self._estimate_disturbance(x0)
+        self._update_estimate(x0)
         if self._plan is None and self._cold_mpc is not None:  # cold: IPOPT to convergence, once
             self._cold_mpc.reset()
             _, cold_info = self._cold_mpc(x0)
@@ -736,10 +599,7 @@ class RealTimeMPC(MPC):
                 plan, fallback = self._plan, "previous-plan"
         self._plan, self._linearization = plan, None
         u = np.clip(plan.controls[0], self.torque_low, self.torque_high)
-        predicted, _, residual, inverse = self._predict(x0, u + self.disturbance)
-        self._last = (np.asarray(predicted, dtype=float).ravel()[self.layout.rates], np.asarray(inverse, dtype=float))
-        self._time += self.model.step_size  # the next measurement's time unless set_time says otherwise
-        residual = float(residual)
+        residual = self._predicted(x0, u)
         info = {"status": status, "success": success, "fallback": fallback, "iterations": iterations,
                 "solve_time_s": time.perf_counter() - start, "cost": float("nan"), "step_residual": residual,
                 "states": plan.states, "controls": plan.controls, "disturbance": self.disturbance.copy(),

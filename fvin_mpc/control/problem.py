@@ -1,0 +1,188 @@
+"""The control problem both solvers solve: its cost as least-squares residuals, written once.
+
+:class:`~fvin_mpc.control.mpc.MPC` (IPOPT, sqpmethod or fatrop, to convergence) and
+:class:`~fvin_mpc.control.rti.RealTimeMPC` (one Gauss–Newton iteration per period, as acados'
+SQP-RTI) solve the same problem — acados' shape: one problem, the solver an option. Every cost
+term is a sum of squares ``|r|²`` of a residual ``r``, so both use the Gauss–Newton Hessian ``2JᵀJ``:
+
+* **stage** ``r(x, u, x_ref, u_s)`` — position and velocity against the reference (free bodies),
+  the orientation against the reference's (``orientation_residual``: the projector ``(I − g gᵀ) q``,
+  ``|·|² = sin²(angle/2)``, or half the rotation vector of the sign-aligned relative rotation,
+  ``|·|² = (angle/2)²``; both the same for ``±q`` and ``±g``), ``ω`` against the reference's, and
+  ``u − u_s``: the control is measured from the torque that holds the reference in the model
+  corrected by the disturbance estimate (``u_s = u_goal − d̂``, :class:`DisturbanceEstimate`);
+* **terminal** ``r_N(x, x_ref)`` — the same tracking terms with the terminal weights and, on a pivoted
+  body, the normalized energy deficit ``(E(x) − E(g, 0)) / |E(g, 0) − E(rest, 0)|`` (the model's own
+  energy: the learned scale cancels);
+* **the ω bound** ``|ω_i| ≤ omega_bound`` — IPOPT takes it as a hard bound on the plan's states; the
+  real-time iteration as a stiff penalty on its excess, a residual appended to both (a hard bound made
+  its linearized QP infeasible from spinning first guesses);
+* **torque bounds** with the **torque reserve** (:func:`control_bounds`): the controls after the first
+  are planned within the middle ``1 − r`` of the range (constraint tightening), the applied first keeps
+  the whole range.
+
+The dynamics ``x_{k+1} = F(x_k, u_k + d̂)`` carry the same input-disturbance estimate in both.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Protocol
+
+import casadi as ca
+import numpy as np
+
+from fvin_mpc.core import s3
+from fvin_mpc.core.backend import get_ops
+from fvin_mpc.core.space import StateLayout
+
+CA = get_ops("casadi")
+
+
+def orientation_error(q: Any, goal: Any, kind: str) -> Any:
+    """The orientation residual of ``q`` against ``goal`` (CasADi columns of 4): ``"projector"``
+    ``(I − g gᵀ) q`` or ``"rotation-vector"`` ``log(±g* ⊗ q)`` (the sign making the real part ≥ 0).
+
+    Near the goal the two agree; far from it the projector's Gauss–Newton model has a false minimum
+    at the upside-down orientation (its residual's Jacobian is orthogonal to the residual there), the
+    rotation vector's does not."""
+    if kind == "projector":
+        return ca.mtimes(ca.SX.eye(4) - ca.mtimes(goal, goal.T), q)
+    relative = s3.multiply(s3.conjugate(tuple(goal[i] for i in range(4))), tuple(q[i] for i in range(4)))
+    aligned = s3.scale(ca.if_else(relative[0] >= 0, 1.0, -1.0), relative)
+    return ca.vertcat(*s3.log(aligned, CA))
+
+
+def residual_functions(layout: StateLayout, settings: Any, control_dim: int, omega_bound: float,
+                       omega_penalty: float | None, energy: tuple[ca.Function, float] | None
+                       ) -> tuple[ca.Function, ca.Function]:
+    """``(stage, terminal)``: ``stage(x, u, x_ref, u_s) → r`` and ``terminal(x, x_ref) → r_N`` as SX
+    functions (module docstring).
+
+    Args:
+        layout: where the quaternion sits in the states.
+        settings: the :class:`~fvin_mpc.control.mpc.MPCSettings` (weights, ``orientation_residual``).
+        control_dim: ``m``.
+        omega_bound: the bound on each ``|ω_i|``.
+        omega_penalty: weight of the squared excess of ``|ω_i|`` over the bound, appended to both
+            residuals; ``None`` leaves it out (a solver that bounds ``ω`` hard).
+        energy: ``(E, E(rest, 0))`` for the terminal energy deficit (a pivoted body's ``E`` on its
+            states); ``None`` leaves it out.
+    """
+    s, a = settings, layout.before
+    qs, ws = layout.quaternion, layout.omega
+    velocity = slice(qs.stop, ws.start)
+    x, reference = ca.SX.sym("x", layout.state_dim), ca.SX.sym("x_ref", layout.state_dim)
+    u, u_s = ca.SX.sym("u", control_dim), ca.SX.sym("u_s", control_dim)
+    goal, omega = reference[qs], x[ws]
+    attitude = orientation_error(x[qs], goal, s.orientation_residual)
+    excess = [] if omega_penalty is None else [
+        np.sqrt(omega_penalty) * (omega - ca.fmin(ca.fmax(omega, -omega_bound), omega_bound))]
+
+    def tracking(position_weight: float, orientation_weight: float, velocity_weight: float,
+                 omega_weight: float) -> list[Any]:
+        translation = [np.sqrt(position_weight) * (x[:a] - reference[:a])] if a else []
+        rate = [np.sqrt(velocity_weight) * (x[velocity] - reference[velocity])] if a else []
+        return [*translation, np.sqrt(orientation_weight) * attitude, *rate,
+                np.sqrt(omega_weight) * (omega - reference[ws])]
+
+    stage = ca.vertcat(*tracking(s.position_weight, s.orientation_weight, s.velocity_weight, s.omega_weight),
+                       np.sqrt(s.control_weight) * (u - u_s), *excess)
+    terminal = [*tracking(s.terminal_position_weight, s.terminal_orientation_weight, s.terminal_velocity_weight,
+                          s.terminal_omega_weight), *excess]
+    if energy is not None:
+        energy_function, rest_energy = energy
+        goal_energy = energy_function(ca.vertcat(ca.DM.zeros(a), goal, ca.DM.zeros(layout.after)))  # at rest
+        terminal.append(np.sqrt(s.terminal_energy_weight) * (energy_function(x) - goal_energy)
+                        / ca.fabs(goal_energy - rest_energy))
+    return (ca.Function("stage_residual", [x, u, reference, u_s], [stage], ["x", "u", "x_ref", "u_s"], ["r"]),
+            ca.Function("terminal_residual", [x, reference], [ca.vertcat(*terminal)], ["x", "x_ref"], ["r"]))
+
+
+def predict_function(model: Any, name: str = "predict") -> ca.Function:
+    """``(x, u) → (x⁺, B, residual, B⁺)``: one step of ``model``, the derivative ``B = ∂rates⁺/∂u`` of its
+    rates (``ω``, or ``v`` and ``ω``) and its least-squares inverse — for the disturbance estimate and
+    the control that holds the goal — and the step's Newton residual."""
+    layout = model.space.layout
+    x, u = ca.SX.sym("x", layout.state_dim), ca.SX.sym("u", model.control_dim)
+    stepped, residual = model.step(x, u)
+    b = ca.jacobian(stepped[layout.rates], u)
+    return ca.Function(name, [x, u], [stepped, b, residual, ca.solve(ca.mtimes(b.T, b), b.T)])
+
+
+def control_bounds(low: np.ndarray, high: np.ndarray, horizon: int, reserve: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per-stage control bounds ``(N, m)``: the whole range for the first control, the middle
+    ``1 − reserve`` of it for the later ones (constraint tightening)."""
+    lower, upper = np.tile(low, (horizon, 1)), np.tile(high, (horizon, 1))
+    if reserve > 0.0:
+        middle, half_range = 0.5 * (high + low), 0.5 * (high - low)
+        lower[1:] = middle - (1.0 - reserve) * half_range
+        upper[1:] = middle + (1.0 - reserve) * half_range
+    return lower, upper
+
+
+class DisturbanceEstimate:
+    """The offset-free estimate ``d̂`` of a constant input disturbance (``x⁺ = F(x, u + d)``), shared
+    by both solvers.
+
+    After each step the prediction ``F(x_prev, u_prev + d̂)`` is compared with the measured rates
+    (``ω``, or ``v`` and ``ω``): ``d̂ ← d̂ + α B⁺(rates − rates_pred)`` (``B = ∂rates⁺/∂u``, least
+    squares), only within ``region_rad`` of the reference attitude and below ``region_speed``, and
+    ``|d̂|`` at most half the torque range (Pannocchia & Rawlings 2003; Maeder & Morari 2009). During a
+    swing-up the torque changes fast, and the delay between measurement and actuation (which the
+    one-step prediction does not know) reads as a large, sign-changing "disturbance"; near the goal and
+    slow the estimate is what it should be (docs/realtime.md).
+    """
+
+    def __init__(self, layout: StateLayout, gain: float, region_rad: float, region_speed: float,
+                 low: np.ndarray, high: np.ndarray) -> None:
+        self.layout, self.gain = layout, gain
+        self.region_rad, self.region_speed = region_rad, region_speed
+        self.limit = 0.5 * (high - low)
+        self.reset()
+
+    def reset(self) -> None:
+        self.value = np.zeros(self.limit.shape)
+        self._last: tuple[np.ndarray, np.ndarray] | None = None  # (predicted rates, (∂rates/∂u)⁺)
+
+    def forget_prediction(self) -> None:
+        """The next measurement is not one step after the last torque (a deadline miss): skip it."""
+        self._last = None
+
+    def predicted(self, state: np.ndarray, rates_inverse: np.ndarray) -> None:
+        """Remember the model's prediction of the next state (after the torque just sent)."""
+        self._last = (np.asarray(state, dtype=float).ravel()[self.layout.rates], np.asarray(rates_inverse, dtype=float))
+
+    def update(self, x0: np.ndarray, goal: np.ndarray) -> None:
+        """``d̂ ← d̂ + α B⁺(rates − rates_pred)`` at the measured ``x0`` (class docstring)."""
+        if self.gain == 0.0 or self._last is None:
+            return
+        layout = self.layout
+        cosine = min(abs(float(np.dot(x0[layout.quaternion], goal))), 1.0)
+        if 2.0 * np.arccos(cosine) > self.region_rad or np.max(np.abs(x0[layout.omega])) > self.region_speed:
+            return
+        predicted, inverse = self._last
+        self.value = np.clip(self.value + self.gain * (inverse @ (x0[layout.rates] - predicted)), -self.limit, self.limit)
+
+
+class Reference(Protocol):
+    """What the MPC tracks: ``states, scales = reference(times)`` for times ``(T,)`` (s) — reference
+    states ``(T, n)`` in the model's layout and control scales ``(T,)``: the stage's target control is
+    ``scale × u_goal`` (``u_goal`` holds the goal at rest in the model; for a quadrotor the ratio of
+    the thrust the reference needs to hover thrust). ``constant`` says the answer never changes
+    with time (computed once)."""
+
+    constant: bool
+
+    def __call__(self, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]: ...
+
+
+class ConstantReference:
+    """The goal state at every time, control scale 1: swing up and hold, hover at a point."""
+
+    constant = True
+
+    def __init__(self, state: np.ndarray) -> None:
+        self.state = np.asarray(state, dtype=float)
+
+    def __call__(self, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return np.tile(self.state, (len(times), 1)), np.ones(len(times))

@@ -1,0 +1,101 @@
+"""One control problem, two solvers: IPOPT to convergence and the real-time iteration agree on it,
+and the features that belong to the problem (the disturbance estimate, the torque reserve, free bodies,
+references) are honoured by both. The planar and ball-joint agreement is tests/test_rti.py's
+``test_iterations_reach_the_ipopt_optimum_on_a_fixed_problem``; the free body is here."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from fvin_mpc.control.export import from_closed_form
+from fvin_mpc.control.mpc import MPC, MPCSettings, _Plan
+from fvin_mpc.control.problem import ConstantReference, control_bounds
+from fvin_mpc.control.quadrotor import quadrotor_mpc_settings
+from fvin_mpc.control.rti import RealTimeMPC
+from fvin_mpc.control.scene import scene_env, scene_model, scene_mpc, scene_mpc_settings
+from fvin_mpc.core.quadrotor import QUADROTOR
+from fvin_mpc.core.space import R3S3
+
+HOVER = np.array([0.0, 0.0, 1.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+
+
+@pytest.fixture(scope="module")
+def craft():
+    return from_closed_form(R3S3, QUADROTOR, 0.02, 2, name="true:quadrotor")
+
+
+def test_ipopt_and_the_rti_reach_the_same_plan_for_a_free_body(craft):
+    """From a tilted, displaced, turning start: IPOPT to convergence and RTI iterations with the
+    measured state fixed reach the same plan (same cost, same first thrusts)."""
+    settings = quadrotor_mpc_settings(horizon=15, compile="none", disturbance_gain=0.0, tol=1e-10)
+    low, high = np.zeros(4), np.full(4, 2.5)
+    tilt = 0.4
+    x0 = HOVER.copy()
+    x0[:3] += (0.2, -0.1, 0.1)
+    x0[3:7] = (np.cos(tilt / 2), np.sin(tilt / 2), 0.0, 0.0)
+    x0[10:] = (0.5, -0.3, 0.2)
+    ipopt = MPC(craft, MPCSettings(**{**settings.__dict__, "solver": "ipopt"}), HOVER, low, high)
+    u_ipopt, info = ipopt(x0)
+    assert info["success"] and info["status"] == "Solve_Succeeded"
+    controller = RealTimeMPC(craft, settings, HOVER, low, high)
+    guess = controller._first_guess(x0, "goal")
+    plan = _Plan(guess.states, guess.controls, None, None)
+    for _ in range(30):
+        plan, status = controller._iterate(plan, controller._linearize_at(plan), x0)
+        assert plan is not None, status
+    cost, gap = controller.plan_cost(plan)
+    assert gap < 1e-8
+    # IPOPT's objective is the same sum of squares; the RTI's QP keeps a barrier floor on the boxes
+    assert cost == pytest.approx(info["cost"], rel=1e-4)
+    np.testing.assert_allclose(plan.controls[0], u_ipopt, atol=1e-3)
+    np.testing.assert_allclose(plan.states, info["states"], atol=1e-3)
+
+
+def test_the_ipopt_mpc_flies_a_free_body_and_tracks_a_moved_reference(craft):
+    """IPOPT on R³ × S³ (the rotation-vector residual, sound upside down): from upside down at the
+    hover point, a few waiting-mode periods on the model turn the craft over; a reference moved
+    1 m up is followed."""
+    settings = quadrotor_mpc_settings(horizon=20, compile="none", solver="ipopt")
+    low, high = np.zeros(4), np.full(4, 2.5)
+    controller = MPC(craft, settings, HOVER, low, high)
+    x = HOVER.copy()
+    x[3:7] = (0.0, 1.0, 0.0, 0.0)  # upside down
+    for _ in range(60):
+        u, info = controller(x)
+        assert info["success"] and np.all(u >= low - 1e-9) and np.all(u <= high + 1e-9)
+        x = craft(x, u)[0]
+    assert abs(x[3]) > 0.98 and np.linalg.norm(x[:3] - HOVER[:3]) < 0.3
+    above = HOVER.copy()
+    above[2] += 1.0
+    controller.set_reference(ConstantReference(above))
+    for _ in range(100):
+        x = craft(x, controller(x)[0])[0]
+    assert np.linalg.norm(x[:3] - above[:3]) < 0.05
+
+
+def test_the_disturbance_estimate_removes_the_ipopt_hold_error():
+    """A constant torque on the plant the model does not know: with the estimate (on by default, as in
+    the RTI) IPOPT holds the pendulum upright without the steady error it leaves without it."""
+    env = scene_env("pendulum", true_model=True)
+    model = scene_model(env, true_model=True)
+    errors = {}
+    for gain in (0.0, 0.5):
+        controller = scene_mpc(env, model, scene_mpc_settings(env, disturbance_gain=gain, compile="none",
+                                                              cold_starts=("goal",)))
+        x = np.concatenate([controller.goal, np.zeros(3)])
+        for _ in range(60):
+            u, info = controller(x)
+            x = model(x, u + 0.2)[0]  # the plant: 0.2 units of torque the model lacks
+        errors[gain] = 2.0 * np.arccos(min(1.0, abs(float(x[:4] @ controller.goal))))
+        if gain > 0:
+            assert info["disturbance"][0] == pytest.approx(0.2, rel=0.05)
+    env.close()
+    assert errors[0.0] > 1e-3 and errors[0.5] < 1e-5, errors
+
+
+def test_control_bounds_keep_the_first_control_whole():
+    lower, upper = control_bounds(np.array([-1.0]), np.array([3.0]), 4, 0.25)
+    assert (lower[0, 0], upper[0, 0]) == (-1.0, 3.0)
+    np.testing.assert_allclose(lower[1:, 0], -0.5)
+    np.testing.assert_allclose(upper[1:, 0], 2.5)
