@@ -24,6 +24,9 @@ def build_parser() -> argparse.ArgumentParser:
                         help="plan with the learned R³ × S³ checkpoint or the closed form read off the MJCF "
                              "(default: learned)")
     parser.add_argument("--checkpoint", default=None, help="learned model: shipped name or path (default: the scene's)")
+    parser.add_argument("--solver", choices=["rti", "ipopt"], default="rti",
+                        help="rti: one real-time iteration per period (default); ipopt: the same problem solved to "
+                             "convergence every period")
     parser.add_argument("--episodes", type=int, default=20, help="recovery starts (default: 20)")
     parser.add_argument("--seed", type=int, default=0, help="seeds the recovery starts (default: 0)")
     add_latency_argument(parser, default="measured")
@@ -53,10 +56,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"report: {args.report / 'quadrotor.md'}", file=sys.stderr)
         return 0
     env = study.make_env(render=args.video is not None)
-    controller = study.make_controller(env, args.model, args.checkpoint)
+    controller = study.make_controller(env, args.model, args.checkpoint, solver=args.solver)
     print(f"model {controller.model.name}, horizon {controller.settings.horizon} "
           f"({controller.settings.horizon * controller.model.step_size:.2f} s), built in {controller.build_s:.1f} s, "
-          f"latency {args.latency}", file=sys.stderr)
+          f"solver {args.solver}, latency {args.latency}", file=sys.stderr)
     if args.task == "recovery":
         rows, episodes, frames = study.run_recovery(env, controller, args.episodes, args.seed, args.latency,
                                                     progress=not args.quiet, render_first=args.video is not None)

@@ -1,34 +1,34 @@
-"""Nonlinear MPC over an exported S3FVIN step, solved by IPOPT.
+"""Nonlinear MPC over an exported step of any configuration space, solved to convergence by IPOPT.
 
 ``controller = MPC(model, settings, goal, torque_low, torque_high, rest)`` (or
 :func:`fvin_mpc.control.scene.scene_mpc` for a scene), then ``u, info = controller(x)`` once
-per control period, ``x = (q, ω)`` the measured state.
+per control period, ``x`` the measured state (``(q, ω)`` on a pivot, ``(x, q, v, ω)`` for a free body).
 
-The problem (multiple shooting, ``N = settings.horizon`` steps of the model's ``h``):
+The problem is :mod:`fvin_mpc.control.problem`'s, the one :class:`~fvin_mpc.control.rti.RealTimeMPC`
+solves by real-time iterations (multiple shooting, ``N = settings.horizon`` steps of the model's ``h``):
 
-* **decision variables** — states ``x_0 … x_N`` (7 each: ``q``, ``ω``) and controls
-  ``u_0 … u_{N−1}``; ``x_0`` is fixed to the measured state through its bounds.
-* **objective** — ``Σ_k w_q c(q_k) + w_ω|ω_k|² + w_u|u_k|²`` plus a terminal
-  ``W_q c(q_N) + W_ω|ω_N|² + W_E e(x_N)²``, with the sign-invariant orientation cost
-  ``c(q) = |q|² − ⟨q, q_goal⟩²``. The dynamics preserve ``|q| = 1``, where ``c`` equals
-  ``1 − ⟨q, q_goal⟩² = sin²(angle/2)``; written this way it is a *convex quadratic*, so
-  the cost Hessian is constant and ``q_goal`` and ``−q_goal`` give the same problem.
-  ``e(x) = (E(x) − E(q_goal, 0)) / |E(q_goal, 0) − E(q_rest, 0)|`` is the model's own
-  energy deficit (``E = ½ωᵀJω + U``, so the learned scale λ cancels): a horizon shorter
-  than a swing-up cannot see the goal from near hanging, and without ``W_E`` the plan
-  that defers pumping is as cheap as the one that pumps; the energy term makes pumping
-  pay inside the horizon. Off in a bare :class:`MPCSettings` (``W_E = 0``); on in the
-  settings a scene derives (:func:`fvin_mpc.control.scene.scene_mpc_settings`) unless the
-  scene declares otherwise.
-* **dynamics** — ``x_{k+1} = F(x_k, u_k)``, ``F`` mapped over the horizon (one copy of
-  the step's code however long the horizon).
-* **bounds** — ``u`` within the actuators' range; every ``ω`` component of ``x_1 … x_N``
-  within ``omega_bound_fraction / h``, inside the step's solvability limit ``h|ω| ≈ 1``
-  (``DESIGN.md``).
+* **decision variables** — states ``x_0 … x_N`` and controls ``u_0 … u_{N−1}``; ``x_0`` is fixed to
+  the measured state through its bounds.
+* **objective** — the sum of squares of the problem's stage and terminal residuals: the state against
+  the reference (a goal orientation at rest, a hover point, or a time-varying reference:
+  :meth:`set_reference`) with the sign-invariant orientation residual (``orientation_residual``:
+  the projector, whose square ``1 − ⟨q, g⟩² = sin²(angle/2)`` is a convex quadratic, or the rotation
+  vector, sound upside down), ``u − u_s`` with ``u_s = u_goal − d̂`` the torque that holds the goal in
+  the model, and on a pivoted body the terminal energy deficit
+  ``e(x) = (E(x) − E(q_goal, 0)) / |E(q_goal, 0) − E(q_rest, 0)|`` (the model's own energy, so the
+  learned scale λ cancels): a horizon shorter than a swing-up cannot see the goal from near hanging,
+  and without ``W_E`` the plan that defers pumping is as cheap as the one that pumps. Off in a bare
+  :class:`MPCSettings` (``W_E = 0``); on in the settings a scene derives
+  (:func:`fvin_mpc.control.scene.scene_mpc_settings`) unless its preset says otherwise.
+* **dynamics** — ``x_{k+1} = F(x_k, u_k + d̂)``, ``F`` mapped over the horizon (one copy of the step's
+  code however long the horizon), ``d̂`` the input-disturbance estimate (offset-free:
+  :class:`~fvin_mpc.control.problem.DisturbanceEstimate`, on by default).
+* **bounds** — ``u`` within the actuators' range (the torque reserve tightens the controls after the
+  first); every ``ω`` component of ``x_1 … x_N`` within ``omega_bound_fraction / h``, inside the
+  step's solvability limit ``h|ω| ≈ 1`` (``DESIGN.md``).
 
 Speed comes from three choices, measured in ``docs/bench/solver.md``: the Gauss–Newton
-Lagrangian Hessian (the constant quadratic cost Hessian plus ``2W_E ∇e∇eᵀ``; no second
-derivatives of the networks),
+Lagrangian Hessian (``2JᵀJ`` of the residuals; no second derivatives of the networks),
 the NLP's functions compiled to C once and cached on disk
 (:func:`fvin_mpc.control.export.compile_functions`), and a primal–dual warm start from the
 previous plan shifted by one step.
@@ -97,8 +97,7 @@ class MPCSettings:
             falls short and takes one more swing (on the pendulum: +50–120 % on such a start).
             With a reserve the re-planned first control has torque left to correct it
             (constraint tightening, as in tube MPC; docs/data-efficiency.md measures what it fixes
-            and what it does not). ``0`` (default) plans on the whole range. Not with
-            ``solver="rti"``.
+            and what it does not). ``0`` (default) plans on the whole range. Both solvers.
         hessian: ``"gauss-newton"`` (constant cost Hessian, default), ``"exact"`` (with the
             dynamics' second derivatives) or ``"limited-memory"`` (IPOPT's L-BFGS).
         compile: ``"cached"`` compiles the NLP's functions to C once (cached on disk);
@@ -151,22 +150,22 @@ class MPCSettings:
             ``x_{k+1} = F(x_k, u_k)``, K Newton iterations, linearized per stage) or ``"implicit"`` (the
             step's own equations between consecutive plan nodes, the learned terms evaluated once per
             node; pivoted bodies only; :mod:`fvin_mpc.control.implicit_dynamics`).
-        disturbance_gain: ``solver="rti"`` only: gain ``α`` of the offset-free estimator of a constant
-            input disturbance ``d`` (``x⁺ = F(x, u + d)``); ``0`` switches it off.
+        disturbance_gain: gain ``α`` of the offset-free estimator of a constant input disturbance ``d``
+            (``x⁺ = F(x, u + d)``; :class:`~fvin_mpc.control.problem.DisturbanceEstimate`), both solvers;
+            ``0`` switches it off.
         disturbance_region_rad: … updated only within this angle of the reference attitude (rad) …
         disturbance_region_speed: … and while every ``|ω_i|`` is below this (rad/s). The pendulums'
             defaults: during a swing-up the torque changes fast, and the delay between measurement and
             actuation (which the one-step prediction does not know) reads as a large, sign-changing
             "disturbance" that feeds back through the plan; near the goal and slow the torque is nearly
             constant and the estimate is what it should be (docs/realtime.md).
-        position_weight: ``solver="rti"`` with a free body (``(x, q, v, ω)`` states): ``w_x`` on
-            ``|x − x_ref|²`` per stage …
+        position_weight: a free body (``(x, q, v, ω)`` states): ``w_x`` on ``|x − x_ref|²`` per stage …
         velocity_weight: … ``w_v`` on ``|v − v_ref|²`` per stage …
         terminal_position_weight: … ``W_x`` on the last stage's …
         terminal_velocity_weight: … and ``W_v``. Pivoted bodies have no ``x``, ``v``: unused there.
-        orientation_residual: ``solver="rti"``: the least-squares residual whose square is the
-            orientation cost: ``"projector"`` ``(I − g gᵀ) q`` (``|·|² = sin²(angle/2)``, as the IPOPT
-            MPC's ``c(q)``) or ``"rotation-vector"`` ``log(±g* ⊗ q)`` (half the rotation vector,
+        orientation_residual: the least-squares residual whose square is the orientation cost (both
+            solvers): ``"projector"`` ``(I − g gᵀ) q`` (``|·|² = sin²(angle/2)``, a convex quadratic
+            in q) or ``"rotation-vector"`` ``log(±g* ⊗ q)`` (half the rotation vector,
             ``|·|² = (angle/2)²``, the sign making the real part ≥ 0). Near the goal the two agree;
             far from it the projector's Gauss–Newton model has a false minimum at the upside-down
             orientation (its residual's Jacobian is orthogonal to the residual there: the model sees
@@ -313,9 +312,9 @@ class MPC:
             goal_state[self.layout.quaternion] = unit_quaternion(goal, "goal")
         else:  # the goal is a state: hover there
             goal_state = self.layout.check(goal)
-            if settings.terminal_energy_weight > 0 or settings.rti_cold_solver == "ipopt" and settings.solver == "rti":
-                raise ValueError(f"a {self.layout.name} model takes no terminal energy term and no IPOPT cold start "
-                                 "of the real-time iteration (both are written for pivoted bodies)")
+            if settings.terminal_energy_weight > 0:
+                raise ValueError(f"a {self.layout.name} model takes no terminal energy term (the energy deficit "
+                                 "to an orientation at rest is written for pivoted bodies)")
         #: the goal state; the reference is this state at rest unless :meth:`set_reference` says otherwise
         self.goal_state = goal_state
         #: the goal orientation (the goal state's quaternion)

@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from fvin_mpc.control.export import ExportedModel
-from fvin_mpc.control.mpc import MPCSettings
+from fvin_mpc.control.mpc import MPC, MPCSettings
 from fvin_mpc.control.problem import ConstantReference
 from fvin_mpc.control.rti import RealTimeMPC
 from fvin_mpc.core.space import R3S3
@@ -87,12 +87,15 @@ def quadrotor_model(env: Any, checkpoint: Any = None, true_model: bool = False, 
     return model
 
 
-def quadrotor_mpc(env: Any, model: ExportedModel, settings: MPCSettings | None = None) -> RealTimeMPC:
-    """The real-time MPC on the quadrotor ``env``: hover at its hover point, level, the actuators'
-    thrust bounds; ``settings`` default to :func:`quadrotor_mpc_settings`."""
+def quadrotor_mpc(env: Any, model: ExportedModel, settings: MPCSettings | None = None) -> MPC:
+    """The MPC on the quadrotor ``env``: hover at its hover point, level, the actuators' thrust bounds;
+    ``settings`` default to :func:`quadrotor_mpc_settings`. The real-time iteration
+    (:class:`~fvin_mpc.control.rti.RealTimeMPC`) with ``solver="rti"`` (the default), else the same
+    problem solved to convergence (:class:`~fvin_mpc.control.mpc.MPC`, IPOPT)."""
     base = env.unwrapped
-    return RealTimeMPC(model, quadrotor_mpc_settings() if settings is None else settings, base.goal_state,
-                       base.torque_low, base.torque_high)
+    settings = quadrotor_mpc_settings() if settings is None else settings
+    controller = RealTimeMPC if settings.solver == "rti" else MPC
+    return controller(model, settings, base.goal_state, base.torque_low, base.torque_high)
 
 
 def hover_reference(env: Any) -> ConstantReference:

@@ -50,7 +50,8 @@ def make_env(render: bool = False) -> Any:
 
 
 def make_controller(env: Any, model_kind: str, checkpoint: Any = None, **overrides: Any) -> Any:
-    """The RTI MPC planning with ``model_kind`` (``"learned"`` or ``"closed-form"``) on ``env``."""
+    """The MPC planning with ``model_kind`` (``"learned"`` or ``"closed-form"``) on ``env`` (the RTI unless
+    ``overrides`` name another ``solver``)."""
     from fvin_mpc.control.quadrotor import quadrotor_model, quadrotor_mpc, quadrotor_mpc_settings
 
     if model_kind not in MODELS:
