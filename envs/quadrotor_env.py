@@ -21,7 +21,7 @@ from fvin_mpc.core.space import R3S3, ConfigurationSpace
 from fvin_mpc.core.state import as_float_array, unit_quaternion
 
 from .rigid_body_env import MujocoBodyEnv, geodesic_angle
-from .scenes import SceneSpec, ScenePhysics
+from .scenes import ScenePhysics, SceneSpec
 
 #: Largest initial |ω| (rad/s) of a default reset: a tumbling craft (the recovery task of ``python -m fvin_mpc.fly``).
 DEFAULT_RESET_MAX_OMEGA = 10.0

@@ -16,11 +16,11 @@ import mujoco
 import numpy as np
 from gymnasium import spaces
 
-from fvin_mpc.core.space import S3, ConfigurationSpace
 from fvin_mpc.core.errors import SceneError, UsageError
+from fvin_mpc.core.space import S3, ConfigurationSpace
 from fvin_mpc.core.state import as_float_array, split_state, unit_quaternion
 
-from .scenes import MIN_CONTROL_PERIOD, SceneSpec, ScenePhysics, build_model, resolve_scene
+from .scenes import MIN_CONTROL_PERIOD, ScenePhysics, SceneSpec, build_model, resolve_scene
 
 #: Largest initial |ω| (rad/s) of ``reset(options={"random": True})`` unless ``"max_omega"`` is given
 #: (Pendulum-v1 draws θ̇ from [−1, 1]).

@@ -13,9 +13,11 @@ tumble (upside down included, ``|ω|`` up to ``--max-omega``, default 10 rad/s t
 """
 
 from __future__ import annotations
+
 import argparse
 import json
 from pathlib import Path
+
 from fvin_mpc._cli import run_command
 from fvin_mpc.core.data import save_data
 from fvin_mpc.envs.scenes import existing_scene

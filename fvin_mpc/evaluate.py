@@ -13,10 +13,26 @@ from pathlib import Path
 from typing import Sequence
 
 import fvin_mpc.studies.evaluation as evaluation_module
-from fvin_mpc._cli import (add_backend_arguments, add_closed_loop_arguments, add_scene_arguments, backend_options,
-                           checked_scene_and_checkpoint, exit_status, mpc_overrides, positive_float, run_command)
-from fvin_mpc.studies.evaluation import (CONTROLLERS, DEFAULT_MAX_OMEGA, EvaluationConfig, evaluate, make_env,
-                                         summary_table, write_report)
+from fvin_mpc._cli import (
+    add_backend_arguments,
+    add_closed_loop_arguments,
+    add_scene_arguments,
+    backend_options,
+    checked_scene_and_checkpoint,
+    exit_status,
+    mpc_overrides,
+    positive_float,
+    run_command,
+)
+from fvin_mpc.studies.evaluation import (
+    CONTROLLERS,
+    DEFAULT_MAX_OMEGA,
+    EvaluationConfig,
+    evaluate,
+    make_env,
+    summary_table,
+    write_report,
+)
 from fvin_mpc.studies.pool import TasksFailed
 
 

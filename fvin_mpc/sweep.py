@@ -1,6 +1,6 @@
 """Training sweep: a grid of models trained as one job: ``python -m fvin_mpc.sweep``.
 
-The command line of :mod:`fvin_mpc.studies.sweep`, whose docstring (the method) is this command's ``--help``.
+The command line of :mod:`fvin_mpc.studies.training_sweep`, whose docstring (the method) is this command's ``--help``.
 """
 
 from __future__ import annotations
@@ -12,9 +12,9 @@ import sys
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
-import fvin_mpc.studies.sweep as sweep_module
+import fvin_mpc.studies.training_sweep as sweep_module
 from fvin_mpc._cli import add_backend_arguments, backend_options, run_command
-from fvin_mpc.studies.sweep import SweepConfig, run_sweep, sweep_table, write_report
+from fvin_mpc.studies.training_sweep import SweepConfig, run_sweep, sweep_table, write_report
 
 
 def _list(kind: Callable[[str], Any]) -> Callable[[str], tuple[Any, ...]]:

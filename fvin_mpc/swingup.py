@@ -19,8 +19,14 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from fvin_mpc._cli import (add_closed_loop_arguments, add_scene_arguments, checked_scene_and_checkpoint,
-                           mpc_overrides, positive_float, run_command)
+from fvin_mpc._cli import (
+    add_closed_loop_arguments,
+    add_scene_arguments,
+    checked_scene_and_checkpoint,
+    mpc_overrides,
+    positive_float,
+    run_command,
+)
 from fvin_mpc.control.closed_loop import HOLD_WINDOW_S, episode_metrics, plot_episode, run_episode, write_video
 from fvin_mpc.control.scene import SceneScales, scene_env, scene_model, scene_mpc, scene_mpc_settings, scene_scales
 from fvin_mpc.core.errors import UsageError

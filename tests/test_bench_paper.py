@@ -1,13 +1,13 @@
-"""``python -m fvin_mpc.bench paper`` (the paper's Figures 1 and 2): its ``--quick`` run end to end
+"""``python -m benchmarks paper`` (the paper's Figures 1 and 2): its ``--quick`` run end to end
 on the shipped checkpoints, and the pieces whose math can be checked exactly."""
 
 import json
 
 import numpy as np
 
-from fvin_mpc.bench.__main__ import main
+from benchmarks import paper
+from benchmarks.__main__ import main
 from fvin_mpc.core.space import S3
-from fvin_mpc.studies.bench import paper
 
 
 def test_scale_fit_recovers_the_scale_of_a_scaled_potential():

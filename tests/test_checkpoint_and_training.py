@@ -4,13 +4,13 @@ import json
 
 import numpy as np
 import pytest
+from helpers import synthetic_hinge_data
 
 from fvin_mpc.core.backend import get_ops
 from fvin_mpc.core.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from fvin_mpc.core.data import load_data, save_data
 from fvin_mpc.core.networks import ModelConfig, init_weights
 from fvin_mpc.core.rigid_body import PENDULUM
-from helpers import synthetic_hinge_data
 
 NP = get_ops("numpy")
 

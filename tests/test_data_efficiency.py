@@ -1,4 +1,4 @@
-"""The data-efficiency study (fvin_mpc.studies.data_efficiency): its training sets are whole
+"""The data-efficiency study (benchmarks.data_efficiency): its training sets are whole
 trajectories of the pool, nested per draw; its headline logic; and its --quick path end to end
 through the bench CLI (resumable from its per-cell cache)."""
 
@@ -10,7 +10,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from fvin_mpc.studies import data_efficiency as study
+from benchmarks import data_efficiency as study
 
 
 @pytest.fixture(scope="module")
@@ -88,8 +88,8 @@ def test_headline_counts_from_where_it_holds_at_every_larger_size():
 
 
 def test_quick_study_via_the_bench_cli_and_resumes_from_its_cache(tmp_path, monkeypatch):
-    from fvin_mpc.bench.__main__ import main
-    from fvin_mpc.studies import pendulum_v1
+    from benchmarks import pendulum_v1_mpc as pendulum_v1
+    from benchmarks.__main__ import main
 
     monkeypatch.chdir(tmp_path)
     monkeypatch.setenv("FVIN_MPC_CACHE", str(tmp_path / "casadi"))

@@ -3,12 +3,12 @@
 import numpy as np
 import pytest
 import scipy.linalg
+from helpers import hinge
 
+from fvin_mpc.control.energy_shaping import EnergyShapingController
 from fvin_mpc.core import fvin, s3
 from fvin_mpc.core.backend import get_ops
-from fvin_mpc.control.energy_shaping import EnergyShapingController
 from fvin_mpc.core.rigid_body import PENDULUM, PivotedRigidBody
-from helpers import hinge
 
 NP = get_ops("numpy")
 GOAL = np.array([0.0, 0.0, 1.0, 0.0])
@@ -151,10 +151,9 @@ def test_scene_energy_shaping_rejects_a_ball_joint_with_a_reason():
 
 
 def test_true_model_swings_up_the_mujoco_pendulum_from_rest():
-    from fvin_mpc.envs import RigidBodyEnv
-
     from fvin_mpc.control.closed_loop import episode_metrics, run_episode
     from fvin_mpc.control.scene import scene_energy_shaping, scene_model
+    from fvin_mpc.envs import RigidBodyEnv
 
     env = RigidBodyEnv("pendulum")
     controller = scene_energy_shaping(env, scene_model(env, true_model=True))
@@ -165,10 +164,9 @@ def test_true_model_swings_up_the_mujoco_pendulum_from_rest():
 
 def test_learned_model_swings_up_the_mujoco_pendulum_from_rest():
     """Energy shaping from the shipped learned J, U, g alone (its own E*, its own LQR) on MuJoCo."""
-    from fvin_mpc.envs import RigidBodyEnv
-
     from fvin_mpc.control.closed_loop import episode_metrics, run_episode
     from fvin_mpc.control.scene import scene_energy_shaping, scene_model
+    from fvin_mpc.envs import RigidBodyEnv
 
     env = RigidBodyEnv("pendulum")
     controller = scene_energy_shaping(env, scene_model(env))  # the scene's shipped checkpoint; missing = failure

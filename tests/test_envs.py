@@ -11,6 +11,7 @@ import mujoco
 import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
+from helpers import assert_same_rotation, hinge_quaternion
 from scipy.integrate import solve_ivp
 
 from fvin_mpc import envs
@@ -21,7 +22,6 @@ from fvin_mpc.envs.pendulum_v1 import (
     v1_angle_from_scene,
     v1_observation_from_state,
 )
-from helpers import assert_same_rotation, hinge_quaternion
 
 BUILT_IN = sorted(SCENES)
 HINGE_AXIS_Y = np.array([0.0, 1.0, 0.0])

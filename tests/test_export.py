@@ -3,14 +3,12 @@
 import casadi as ca
 import numpy as np
 import pytest
+from helpers import random_states
 
 from fvin_mpc.control import export
 from fvin_mpc.core.checkpoint import save_checkpoint
 from fvin_mpc.core.networks import ModelConfig, init_weights
 from fvin_mpc.core.rigid_body import PENDULUM
-from helpers import random_states
-
-
 
 
 @pytest.fixture(params=[("sign-invariant", 1, False), ("fixed-inertia", 1, False), ("plain", 3, True)],

@@ -7,7 +7,6 @@ import dataclasses
 import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
-
 from strategies import quat_multiply
 
 from fvin_mpc.core import fvin, s3

@@ -4,11 +4,11 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from helpers import hinge
 
 from fvin_mpc.control import export
 from fvin_mpc.control.mpc import MPC, MPCSettings
 from fvin_mpc.core.rigid_body import PENDULUM
-from helpers import hinge
 
 UPRIGHT = np.array([0.0, 0.0, 1.0, 0.0])
 HANGING = np.array([1.0, 0.0, 0.0, 0.0])
@@ -27,9 +27,8 @@ def controller(true_model):
 
 
 def test_swings_up_the_mujoco_pendulum_from_rest_and_holds(true_model):
-    from fvin_mpc.envs import RigidBodyEnv
-
     from fvin_mpc.control.closed_loop import episode_metrics, run_episode
+    from fvin_mpc.envs import RigidBodyEnv
 
     env = RigidBodyEnv("pendulum")
     mpc = MPC(true_model, MPCSettings(), env.goal, env.torque_low, env.torque_high)
@@ -226,8 +225,8 @@ def test_energy_cost_gauss_newton_and_exact_hessian_reach_the_same_plan(true_mod
 def test_energy_cost_pumps_where_the_short_horizon_stalls(true_model):
     """0.35 rad from hanging, 0.27 rad/s (evaluation episode 33): the 1.5 s plan without the
     energy term keeps deferring the swing-up; with it the controller pumps and ends upright."""
-    from fvin_mpc.envs import RigidBodyEnv
     from fvin_mpc.control.closed_loop import episode_metrics, run_episode
+    from fvin_mpc.envs import RigidBodyEnv
 
     env = RigidBodyEnv(scene="pendulum")
     start = {"random": True, "max_omega": 2.0}  # with seed 33: the evaluation's episode 33

@@ -1,5 +1,5 @@
 """The real-time MPC on the free body (``fvin_mpc.control.rti`` with ``(x, q, v, ω)`` states,
-``fvin_mpc.control.quadrotor``): the R³ × S³ chart, recovery to hover on the closed-form model with
+``fvin_mpc.control.flight``): the R³ × S³ chart, recovery to hover on the closed-form model with
 MuJoCo as the plant, the flip from exactly upside down, the safe fallback, the offset-free estimate
 against a known mass error (oracle) and the figure-eight reference against its own derivatives.
 Behaviour only: no timings are asserted."""
@@ -13,10 +13,17 @@ import pytest
 
 from fvin_mpc.control import export
 from fvin_mpc.control.closed_loop import run_episode
-from fvin_mpc.control.quadrotor import (FigureEight, flight_metrics, hover_reference, quadrotor_model, quadrotor_mpc,
-                                        quadrotor_mpc_settings, recovery_starts)
-from fvin_mpc.core.space import FREE_BODY, PIVOTED, R3S3, S3
+from fvin_mpc.control.flight import (
+    FigureEight,
+    flight_metrics,
+    hover_reference,
+    quadrotor_model,
+    quadrotor_mpc,
+    quadrotor_mpc_settings,
+    recovery_starts,
+)
 from fvin_mpc.core.quadrotor import from_mujoco
+from fvin_mpc.core.space import FREE_BODY, PIVOTED, R3S3, S3
 from fvin_mpc.envs.quadrotor_env import QuadrotorEnv
 
 #: The task's settings (its compiled library is shared with the commands through the on-disk cache).

@@ -10,13 +10,13 @@ The reference dynamics are written here from the physics (``strategies.rotation_
 import casadi as ca
 import numpy as np
 import pytest
+import strategies as S
 import torch
+from helpers import random_unit_quaternions
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.integrate import solve_ivp
 
-import strategies as S
-from helpers import random_unit_quaternions
 from fvin_mpc.core import fvin_r3s3
 from fvin_mpc.core.backend import get_ops
 from fvin_mpc.core.quadrotor import QUADROTOR, Quadrotor

@@ -139,10 +139,9 @@ def test_casadi_derivatives_finite_at_zero_rotation():
 import functools  # noqa: E402
 import math  # noqa: E402
 
+import strategies as S  # noqa: E402
 from hypothesis import given, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
-
-import strategies as S  # noqa: E402
 
 BACKENDS = ["numpy", "torch", "casadi-sx", "casadi-dm"]
 

@@ -14,15 +14,15 @@ from pathlib import Path
 import mujoco
 import numpy as np
 import pytest
+from helpers import synthetic_hinge_data
 from scipy.integrate import solve_ivp
 
-from fvin_mpc.envs import SCENES, RigidBodyEnv, ScenePhysics
-from fvin_mpc.envs.scenes import ALWAYS_DISABLED, build_model, infer_physics
 from fvin_mpc.core.backend import get_ops
 from fvin_mpc.core.data import Trajectories
 from fvin_mpc.core.networks import ModelConfig
 from fvin_mpc.core.rigid_body import PENDULUM_DAMPED, from_mujoco
-from helpers import synthetic_hinge_data
+from fvin_mpc.envs import SCENES, RigidBodyEnv, ScenePhysics
+from fvin_mpc.envs.scenes import ALWAYS_DISABLED, build_model, infer_physics
 
 NP = get_ops("numpy")
 DSBL = mujoco.mjtDisableBit
@@ -281,8 +281,8 @@ def test_training_with_dissipation_recovers_the_damping():
     along the hinge, after fixing the scale λ on g, is the true 2·0.1 (factor of two: DESIGN.md)."""
     pytest.importorskip("torch")
     from fvin_mpc.core.checkpoint import Checkpoint
-    from fvin_mpc.studies.quality import compare_components
     from fvin_mpc.learning.training import TrainSettings, train
+    from fvin_mpc.studies.model_quality import compare_components
 
     data = synthetic_damped_data(trajectories=24, steps=10, seed=0)
     settings = TrainSettings(iterations=80, window=2, learning_rate=3e-2, seed=3, eval_every=80)

@@ -6,9 +6,8 @@ and torch ↔ NumPy parity."""
 
 import numpy as np
 import pytest
-from scipy.integrate import solve_ivp
-
 from helpers import random_states
+from scipy.integrate import solve_ivp
 
 from fvin_mpc.core import fvin, fvin_so3, s3, so3
 from fvin_mpc.core.backend import get_ops

@@ -1,4 +1,4 @@
-"""Training sweep (fvin_mpc.studies.sweep, python -m fvin_mpc.sweep): every grid entry trained and
+"""Training sweep (fvin_mpc.studies.training_sweep, python -m fvin_mpc.sweep): every grid entry trained and
 written with its sidecar, one table; the same weights on a real local Ray cluster as here; a run
 that fails is listed while the others are written."""
 
@@ -6,11 +6,11 @@ import json
 
 import numpy as np
 import pytest
+from test_pool import ray_cluster  # noqa: F401  (the session's local Ray cluster)
 
 import fvin_mpc.learning.training
 from fvin_mpc.core.checkpoint import load_checkpoint
-from fvin_mpc.studies.sweep import SweepConfig, run_sweep, sweep_table, write_report
-from test_pool import ray_cluster  # noqa: F401  (the session's local Ray cluster)
+from fvin_mpc.studies.training_sweep import SweepConfig, run_sweep, sweep_table, write_report
 
 TRAIN = (("optimizer", "adam"), ("iterations", 3))
 

@@ -5,17 +5,23 @@ import json
 
 import numpy as np
 import pytest
+from helpers import synthetic_hinge_data
 
 from fvin_mpc.core.data import Trajectories, save_data
 from fvin_mpc.core.networks import ModelConfig
 from fvin_mpc.core.rigid_body import PENDULUM
-from helpers import synthetic_hinge_data
 
 torch = pytest.importorskip("torch")
 
 from fvin_mpc.learning.training import (  # noqa: E402
-    TrainSettings, default_checkpoint_stem, rollout_loss, rollout_residuals, safe_thread_count, scene_has_joint_damping,
-    scene_stem, train,
+    TrainSettings,
+    default_checkpoint_stem,
+    rollout_loss,
+    rollout_residuals,
+    safe_thread_count,
+    scene_has_joint_damping,
+    scene_stem,
+    train,
 )
 
 SMALL = ModelConfig(hidden_width=6)

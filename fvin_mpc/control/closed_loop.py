@@ -145,7 +145,7 @@ def run_episode(env: Any, controller: Controller, duration_s: float, reset_optio
     """
     from tqdm.auto import tqdm
 
-    fixed_delay = _check_latency(latency)
+    fixed_delay = check_latency(latency)
     base = env.unwrapped
     periods = int(round(duration_s / base.dt))
     frame_skip = int(base.frame_skip)
@@ -242,7 +242,7 @@ def run_episode(env: Any, controller: Controller, duration_s: float, reset_optio
     return episode, frames
 
 
-def _check_latency(latency: Any) -> float | None:
+def check_latency(latency: Any) -> float | None:
     """``None`` for ``"none"``/``"measured"``, else the fixed delay in seconds; ``ValueError`` if invalid."""
     if isinstance(latency, str):
         if latency not in ("none", "measured"):

@@ -39,6 +39,7 @@ from fvin_mpc.core import networks, s3
 from fvin_mpc.core.backend import Ops
 from fvin_mpc.core.networks import VARIANTS, Variant, mlp, scalar_mlp_value_and_gradient
 
+
 @dataclass(frozen=True)
 class R3S3Config(networks.DictConfig):
     """Architecture and integration settings of a learned R³ × S³ model.

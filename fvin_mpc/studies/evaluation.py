@@ -92,10 +92,10 @@ class EvaluationConfig:
             raise ValueError(f"unknown controllers {unknown}; choose from {', '.join(CONTROLLERS)}")
         if not (math.isfinite(self.max_omega) and self.max_omega >= 0):
             raise ValueError(f"max_omega must be finite and >= 0, got {self.max_omega}")
-        from fvin_mpc.control.closed_loop import _check_latency
+        from fvin_mpc.control.closed_loop import check_latency
         from fvin_mpc.control.mpc import MPCSettings
 
-        _check_latency(self.latency)
+        check_latency(self.latency)
         try:  # validate the overrides (names and values) now, not in a worker
             MPCSettings(**dict(self.mpc))
         except TypeError as error:

@@ -12,11 +12,11 @@ energy error (unforced) scales the same way and ``|q|`` stays 1.
 
 import numpy as np
 import pytest
+import strategies as S
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 from scipy.integrate import solve_ivp
 
-import strategies as S
 from fvin_mpc.core import fvin
 from fvin_mpc.core.backend import get_ops
 

@@ -4,15 +4,15 @@ The MPC's cost and torque under ``q → −q`` and ``goal → −goal`` are in `
 
 import numpy as np
 import pytest
+import strategies as S
+import torch  # noqa: E402  (a dependency: a missing torch is a failure, not a skip)
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-import strategies as S
 from fvin_mpc.control import export
 from fvin_mpc.core.checkpoint import save_checkpoint
 from fvin_mpc.core.networks import ModelConfig, init_weights
 
-import torch  # noqa: E402  (a dependency: a missing torch is a failure, not a skip)
 WEIGHT_SEEDS = (0, 1, 2)
 
 

@@ -25,8 +25,8 @@ import tempfile
 from dataclasses import replace
 from typing import Any
 
-from fvin_mpc.studies.report import StudyResult, StudySkipped
-from fvin_mpc.studies.bench.common import NOISE_NOTE, checkpoint_or_none, make_env, plot_pareto, solve_stats
+from benchmarks.common import NOISE_NOTE, checkpoint_or_none, make_env, plot_pareto, solve_stats
+from benchmarks.study import StudyResult, StudySkipped
 
 #: (label, settings overrides) — IPOPT (the default solver) first.
 CONFIGS: tuple[tuple[str, dict[str, Any]], ...] = (

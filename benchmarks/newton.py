@@ -5,7 +5,7 @@ or ``kinsol``): the Newton residual and the one-step and 40-step (2 s at h = 0.0
 errors against held-out MuJoCo trajectories (``data/<scene>_heldout.npz``, collected with
 ``python -m fvin_mpc.collect --seed 1 --trajectories 64 --steps 40`` if missing; for
 ``spherical_pendulum`` the speed-bounded set of ``docs/spherical.md``, see
-:func:`~fvin_mpc.studies.bench.common.heldout_data`), the
+:func:`~benchmarks.common.heldout_data`), the
 difference from the converged step, the time of one step (torch batched, CasADi single
 call, CasADi ``map`` over the batch), and MPC solve time and closed-loop swing-up from rest
 on MuJoCo (:func:`fvin_mpc.control.closed_loop.run_episode`) with the scene's MPC settings
@@ -22,8 +22,8 @@ from typing import Any
 
 import numpy as np
 
-from fvin_mpc.studies.report import StudyResult, StudySkipped, median_time
-from fvin_mpc.studies.bench.common import NOISE_NOTE, checkpoint_or_none, heldout_data, make_env, plot_pareto, solve_stats
+from benchmarks.common import NOISE_NOTE, checkpoint_or_none, heldout_data, make_env, plot_pareto, solve_stats
+from benchmarks.study import StudyResult, StudySkipped, median_time
 
 BATCH = 1024
 

@@ -29,8 +29,8 @@ from typing import Any
 
 import numpy as np
 
+from benchmarks.study import StudyResult
 from fvin_mpc.core.space import S3, SO3, ConfigurationSpace
-from fvin_mpc.studies.report import StudyResult
 
 DATA = Path("data/pendulum.npz")
 #: The checkpoint whose training settings every checkpoint of this study repeats.
@@ -198,11 +198,26 @@ def training_curves(settings: CurveSettings, cache: Path | None, models: tuple[P
 
 
 def loss_gradient_cpu_s(model: PaperModel, data: Any, repeats: int, seed: int = 0) -> float:
-    """Median CPU seconds of one full-batch rollout loss and its gradient (what every optimizer
-    iteration pays at least once) for a freshly initialized ``model`` on ``data``'s windows."""
-    from fvin_mpc.learning.timing import loss_and_gradient_cpu_s
+    """Median thread CPU seconds of one full-batch rollout loss and its gradient (what every optimizer
+    iteration pays at least once) for a freshly initialized ``model`` on ``data``'s windows (the
+    training's default window and weight), one torch thread."""
+    import torch
 
-    return loss_and_gradient_cpu_s(model_config(model, data), data, repeats, seed)
+    from fvin_mpc.learning.model import DTYPE, model_for
+    from fvin_mpc.learning.timing import torch_threads
+    from fvin_mpc.learning.training import TrainSettings, rollout_loss
+
+    settings = TrainSettings()
+    windows = tuple(torch.as_tensor(a, dtype=DTYPE) for a in data.windows(settings.window))
+    network = model_for(model_config(model, data), seed=seed)
+    times = []
+    with torch_threads(1):
+        for _ in range(repeats + 1):  # the first call warms up
+            network.zero_grad()
+            start = time.thread_time()
+            rollout_loss(network, *windows, settings.omega_weight).backward()
+            times.append(time.thread_time() - start)
+    return float(np.median(times[1:]))
 
 
 # ---------------------------------------------------------------------------- Figure 1: learned terms, energy
@@ -553,7 +568,7 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 5, seeds: str = "0,1,
         train_missing_checkpoints(progress)
     missing = [m.checkpoint for m in MODELS if not checkpoint_exists(m.checkpoint)]
     if missing:
-        raise FileNotFoundError(f"missing checkpoints {missing}: run `python -m fvin_mpc.bench paper --train-missing`")
+        raise FileNotFoundError(f"missing checkpoints {missing}: run `python -m benchmarks paper --train-missing`")
     if quick:
         settings = CurveSettings(seeds=(seed,), trajectories=8, optimizer=optimizer, iterations=2, jacobian_windows=16)
         theta, steps, repeats, curves = np.linspace(-np.pi, np.pi, 37), 40, 1, None

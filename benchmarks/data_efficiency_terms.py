@@ -32,9 +32,9 @@ from typing import Any
 
 import numpy as np
 
+from benchmarks import data_efficiency as study
+from benchmarks.study import StudyResult
 from fvin_mpc.core.space import S3
-from fvin_mpc.studies import data_efficiency as study
-from fvin_mpc.studies.report import StudyResult
 
 #: A start "costs more" when its cost exceeds the closed form's on that start by this factor.
 COSTLY_FACTOR = 1.25
@@ -44,8 +44,7 @@ HINGE_ANGLES = np.linspace(-np.pi, np.pi, 181)
 
 def hemisphere_errors(variant: str, stem: Path) -> dict[str, float]:
     """The scale-fixed term errors of the checkpoint at ``stem`` at ``q`` and ``−q`` (module docstring)."""
-    from fvin_mpc.core.checkpoint import load_checkpoint
-    from fvin_mpc.studies.bench.paper import (
+    from benchmarks.paper import (
         MODELS,
         TRUE_INERTIA,
         TRUE_TORQUE_PER_CONTROL,
@@ -53,6 +52,7 @@ def hemisphere_errors(variant: str, stem: Path) -> dict[str, float]:
         scale_from_potential,
         true_potential,
     )
+    from fvin_mpc.core.checkpoint import load_checkpoint
 
     paper_model = next(m for m in MODELS if m.space is S3 and m.variant == variant)
     checkpoint = load_checkpoint(stem)
@@ -220,7 +220,7 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 1, sizes: str = study
             "plan made at that period (its first state is the measured one).")])
     rows, missing = term_rows(config, progress)
     if not rows:
-        raise ValueError(f"none of the cells is in {config.cache_dir}: run `python -m fvin_mpc.bench data-efficiency` "
+        raise ValueError(f"none of the cells is in {config.cache_dir}: run `python -m benchmarks data-efficiency` "
                          "with the same options first")
     notes = [(
         "Errors after fixing the scale λ on the w ≥ 0 hemisphere: `potential_err_*` as a fraction of the energy "

@@ -22,13 +22,13 @@ from typing import Any
 
 import numpy as np
 
-from fvin_mpc.studies.report import StudyResult
+from benchmarks.common import NOISE_NOTE, heldout_data, make_env, plot_pareto, solve_stats
+from benchmarks.study import StudyResult
 from fvin_mpc.learning.timing import torch_threads
-from fvin_mpc.studies.bench.common import NOISE_NOTE, heldout_data, make_env, plot_pareto, solve_stats
 
 WIDTHS = (8, 16, 32, 64)
 #: ``run`` takes ``workers``, ``backend`` and ``ray_address``: its rows go through
-#: :func:`fvin_mpc.studies.pool.run_tasks` (``python -m fvin_mpc.bench`` adds the options).
+#: :func:`fvin_mpc.studies.pool.run_tasks` (``python -m benchmarks`` adds the options).
 PARALLEL_ROWS = True
 VARIANTS = ("sign-invariant", "fixed-inertia")
 
@@ -36,8 +36,8 @@ VARIANTS = ("sign-invariant", "fixed-inertia")
 def _training_data(seed: int) -> Any:
     from pathlib import Path
 
-    from fvin_mpc.learning.collection import collect
     from fvin_mpc.core.data import load_data, save_data
+    from fvin_mpc.learning.collection import collect
 
     path = Path("data/pendulum.npz")
     if path.is_file():
@@ -50,8 +50,8 @@ def _training_data(seed: int) -> Any:
 
 def _trained(data: Any, variant: str, width: int, iterations: int, seed: int, progress: bool) -> tuple[Any, bool]:
     """A checkpoint trained with these settings: from the cache, or trained now and cached."""
-    from fvin_mpc.core.checkpoint import load_checkpoint, save_checkpoint
     from fvin_mpc.control.export import cache_dir
+    from fvin_mpc.core.checkpoint import load_checkpoint, save_checkpoint
     from fvin_mpc.core.networks import ModelConfig
     from fvin_mpc.learning.training import TrainSettings, train
 
@@ -85,7 +85,7 @@ def width_row(variant: str, width: int) -> dict[str, Any]:
     from fvin_mpc.control.mpc import MPCSettings
     from fvin_mpc.core.backend import get_ops
     from fvin_mpc.core.networks import LearnedTerms
-    from fvin_mpc.studies.quality import rollout
+    from fvin_mpc.studies.model_quality import rollout
 
     w = _WORKER
     heldout, quick, seed = w["heldout"], w["quick"], w["seed"]

@@ -18,8 +18,8 @@ from typing import Any
 
 import numpy as np
 
-from fvin_mpc.studies.report import StudyResult
-from fvin_mpc.studies.bench.common import NOISE_NOTE
+from benchmarks.common import NOISE_NOTE
+from benchmarks.study import StudyResult
 
 THETA0, TORQUE = 2.5, 0.5
 SAMPLE_PERIOD = 0.01
@@ -156,7 +156,7 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 5, duration: float = 
 
     def plot(figure: Any, rows_: list[dict[str, Any]]) -> None:
         axis = figure.add_subplot()
-        from fvin_mpc.studies.bench.common import plot_pareto
+        from benchmarks.common import plot_pareto
 
         integ = [r for r in rows_ if r["part"] == "integrator"]
         for name in sorted({r["integrator"] for r in integ}):
@@ -176,7 +176,7 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 5, duration: float = 
 
 
 def _median(function: Any, repeats: int) -> tuple[float, float]:
-    from fvin_mpc.studies.report import median_time
+    from benchmarks.study import median_time
 
     return median_time(function, repeats)
 

@@ -1,22 +1,24 @@
-"""The 3-D rigid body on a ball joint (scene ``spherical_pendulum``): ``python -m fvin_mpc.spherical_report``.
+"""The 3-D rigid body on a ball joint (scene ``spherical_pendulum``): ``python -m benchmarks.spherical_report``.
 
-The command line of :mod:`fvin_mpc.studies.spherical`, whose docstring (the method) is this command's ``--help``.
+The command line of :mod:`benchmarks.spherical`, whose docstring (the method) is this command's ``--help``.
 """
 
 from __future__ import annotations
+
 import argparse
 import json
 import time
 from pathlib import Path
-import fvin_mpc.studies.spherical as spherical_module
+
+import benchmarks.spherical as spherical_module
+from benchmarks.spherical import SCENE, closed_loop_study, markdown_tables, merge_results
 from fvin_mpc._cli import checked_scene_and_checkpoint, positive_float, run_command
 from fvin_mpc.core.data import save_data
 from fvin_mpc.learning.collection import collect
-from fvin_mpc.studies.spherical import SCENE, closed_loop_study, markdown_tables, merge_results
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="python -m fvin_mpc.spherical_report", description=spherical_module.__doc__,
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.spherical_report", description=spherical_module.__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)
     c = sub.add_parser("collect", help="speed-bounded trajectory data of the spherical pendulum")

@@ -12,7 +12,7 @@ Models are trained on growing numbers of transitions (``--sizes``), several draw
   starts for every model (:func:`fvin_mpc.studies.starts.episode_starts`: hanging at rest, then
   seeded random states, ``|ω₀| ≤ 2``), 10 s each; success and accumulated cost as
   :func:`fvin_mpc.control.closed_loop.episode_metrics` defines them;
-- **Pendulum-v1** — the benchmark's MPC (:func:`fvin_mpc.studies.pendulum_v1.benchmark_settings`)
+- **Pendulum-v1** — the benchmark's MPC (:func:`benchmarks.pendulum_v1_mpc.benchmark_settings`)
   on ``gymnasium.make("Pendulum-v1")``, mean return over seeds ``0 … v1_episodes − 1``.
 
 The closed-form model (the rod read off the MJCF, same step, same MPC) runs on the same starts:
@@ -20,7 +20,7 @@ costs are reported relative to it. Closed loops run in the *waiting* latency mod
 (``latency="none"``): these are model-quality figures, not real-time ones.
 
 Models: the S3FVIN variants (``sign-invariant``, ``fixed-inertia``, ``plain``) and ``mlp``, the
-unstructured baseline of :mod:`fvin_mpc.learning.mlp_baseline` (increment of ``(q, ω)``,
+unstructured baseline of :mod:`benchmarks.mlp_baseline` (increment of ``(q, ω)``,
 sign-equivariant, hidden width 16: 535 parameters against the S3FVIN's 590), trained by the same
 loop on the same windows with the same settings. The MLP has no energy: its MPC's terminal
 energy-deficit term uses the closed-form energy (privileged information that favours it).
@@ -48,7 +48,7 @@ from typing import Any
 
 import numpy as np
 
-from fvin_mpc.studies.report import StudyResult
+from benchmarks.study import StudyResult
 
 S3FVIN_VARIANTS: tuple[str, ...] = ("sign-invariant", "fixed-inertia", "plain")
 MLP = "mlp"
@@ -197,7 +197,7 @@ def train_cell_model(model: str, data: Any, config: StudyConfig, draw: int, stem
                      progress: bool = False) -> dict[str, Any]:
     """Train ``model`` on ``data``, save it at ``stem`` (checkpoint, or the MLP's files); the training report."""
     if model == MLP:
-        from fvin_mpc.learning.mlp_baseline import MLPConfig, save_mlp, train_mlp
+        from benchmarks.mlp_baseline import MLPConfig, save_mlp, train_mlp
 
         trained, report = train_mlp(data, MLPConfig(hidden_width=16, step_size=data.control_period), train_settings(config, draw),
                                     progress=progress)
@@ -222,8 +222,8 @@ def export_cell_model(model: str, stem: Path | None, env: Any) -> Any:
     if model == CLOSED_FORM:
         return scene_model(env, true_model=True)
     if model == MLP:
+        from benchmarks.mlp_baseline import load_mlp
         from fvin_mpc.core.rigid_body import from_mujoco
-        from fvin_mpc.learning.mlp_baseline import load_mlp
 
         mlp_config, weights = load_mlp(stem)
         base = env.unwrapped
@@ -332,8 +332,8 @@ def pendulum_v1_returns(model: Any, env: Any, config: StudyConfig, overrides: di
         return {"episodes": 0, "return_mean": None, "returns": []}
     import gymnasium
 
+    from benchmarks.pendulum_v1_mpc import benchmark_settings, run_v1_episode
     from fvin_mpc.control.scene import scene_mpc
-    from fvin_mpc.studies.pendulum_v1 import benchmark_settings, run_v1_episode
 
     settings = benchmark_settings() if config.horizon is None else benchmark_settings(config.horizon)
     controller = BudgetedController(scene_mpc(env, model, replace(settings, compile=config.compile,
@@ -587,7 +587,7 @@ def headline(rows: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
 
 def plot(figure: Any, rows: list[dict[str, Any]]) -> None:
     """Four panels against the number of transitions: rollout error, success, cost excess, Pendulum-v1."""
-    from fvin_mpc.studies.pendulum_v1 import ZOO_BEST
+    from benchmarks.pendulum_v1_mpc import ZOO_BEST
 
     figure.set_size_inches(11, 7.5)
     axes = figure.subplots(2, 2)
@@ -742,7 +742,7 @@ def add_arguments(parser: Any) -> None:
 
 
 def export_mlp(weights: Any, config: Any, energy_body: Any, name: str = "mlp") -> Any:
-    """The MLP baseline (:mod:`fvin_mpc.learning.mlp_baseline`) as an :class:`~fvin_mpc.control.export.ExportedModel` (``newton_iters = 0``).
+    """The MLP baseline (:mod:`benchmarks.mlp_baseline`) as an :class:`~fvin_mpc.control.export.ExportedModel` (``newton_iters = 0``).
 
     Args:
         energy_body: a closed-form :class:`~fvin_mpc.core.rigid_body.PivotedRigidBody` (e.g.
@@ -750,8 +750,8 @@ def export_mlp(weights: Any, config: Any, energy_body: Any, name: str = "mlp") -
             terminal energy-deficit cost (the MLP has none; module docstring). The name gets a
             ``+true-energy`` suffix so that no report can miss it.
     """
+    from benchmarks.mlp_baseline import check_mlp_weights, mlp_step_function
     from fvin_mpc.control.export import CA, NP, ExportedModel, energy_function
-    from fvin_mpc.learning.mlp_baseline import check_mlp_weights, mlp_step_function
 
     check_mlp_weights(weights, config)
     return ExportedModel(step=mlp_step_function(weights, config), step_size=config.step_size, newton_iters=0,

@@ -17,13 +17,13 @@ signs), which would charge the baseline for a symmetry the S3FVIN gets for free.
 
 Training goes through the package's one loop (:func:`fvin_mpc.learning.training.train` with
 ``model_factory=IncrementMLP``): same windows, same multi-step rollout loss, same optimizer (LM),
-same early stopping. :func:`fvin_mpc.studies.data_efficiency.export_mlp` builds the same step in CasADi as an
+same early stopping. :func:`benchmarks.data_efficiency.export_mlp` builds the same step in CasADi as an
 :class:`~fvin_mpc.control.export.ExportedModel` with the S3FVIN's call signature
 ``F(x[7], u[m]) -> (x_next, residual)`` (``residual`` is 0: no implicit solve), so the *same*
 MPC runs on it.
 
 Energy: the MPC's terminal energy-deficit cost needs the model's energy, which this model does not
-have. :func:`fvin_mpc.studies.data_efficiency.export_mlp` takes the energy from a closed-form body (the scene's, read off the MJCF)
+have. :func:`benchmarks.data_efficiency.export_mlp` takes the energy from a closed-form body (the scene's, read off the MJCF)
 and says so in the model's name: privileged information that favours the baseline.
 
 Float64 throughout (the torch parameters are ``torch.float64``).

@@ -14,9 +14,8 @@ from __future__ import annotations
 from dataclasses import replace
 from typing import Any
 
-
-from fvin_mpc.studies.report import StudyResult
-from fvin_mpc.studies.bench.common import NOISE_NOTE, checkpoint_or_none, make_env, plot_pareto, solve_stats
+from benchmarks.common import NOISE_NOTE, checkpoint_or_none, make_env, plot_pareto, solve_stats
+from benchmarks.study import StudyResult
 
 CHECKPOINTS = {0.05: "pendulum_sign-invariant", 0.02: "pendulum-h0.02_sign-invariant"}
 HORIZONS_S = (0.5, 1.0, 1.5, 2.0, 3.0)

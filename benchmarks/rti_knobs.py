@@ -18,8 +18,8 @@ from typing import Any
 
 import numpy as np
 
-from fvin_mpc.studies.bench.common import NOISE_NOTE, plot_pareto
-from fvin_mpc.studies.report import StudyResult
+from benchmarks.common import NOISE_NOTE, plot_pareto
+from benchmarks.study import StudyResult
 
 #: (label, overrides of the scene's RTI settings); the first is the scene's own.
 CONFIGS: tuple[tuple[str, dict[str, Any]], ...] = (
@@ -68,9 +68,9 @@ def measure(scene: str, overrides: dict[str, Any], true_model: bool, starts: lis
 
 def run(quick: bool = False, seed: int = 0, starts: int = 20, duration: float = 10.0, scene: str = "pendulum",
         **_: Any) -> StudyResult:
-    from fvin_mpc.studies.starts import episode_starts
-
     from tqdm.auto import tqdm
+
+    from fvin_mpc.studies.starts import episode_starts
 
     if quick:
         starts, duration = 2, 2.0

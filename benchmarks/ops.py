@@ -22,8 +22,8 @@ from typing import Any
 
 import numpy as np
 
+from benchmarks.study import StudyResult
 from fvin_mpc.core.backend import get_ops
-from fvin_mpc.studies.report import StudyResult
 
 #: Shipped planar checkpoints counted, beside the closed form.
 CHECKPOINTS = ("pendulum_sign-invariant", "pendulum_fixed-inertia", "pendulum_plain")
@@ -112,8 +112,8 @@ def rti_stage_counts(step: Any, terms: Any, step_size: float) -> tuple[int, int]
 
 def run(quick: bool = False, seed: int = 0, **_: Any) -> StudyResult:
     from fvin_mpc.control import export
-    from fvin_mpc.core.checkpoint import load_checkpoint
     from fvin_mpc.control.scene import scene_env, scene_model
+    from fvin_mpc.core.checkpoint import load_checkpoint
 
     structures = {
         "sign-invariant": "`J(q)`, `U(q)`, `g(q)`, each averaged over `±q`; `J` also at `q_{k+1}`",

@@ -29,7 +29,7 @@ def heldout_data(scene: str = "pendulum", control_period: float | None = None, s
 
     The default is the data of ``python -m fvin_mpc.collect --seed 1 --trajectories 64 --steps 40
     --out data/<scene>_heldout.npz``, for the scenes in :data:`BOUNDED_HELDOUT` that of
-    ``python -m fvin_mpc.spherical_report collect --trajectories 100 --steps 40 --seed 1 --out
+    ``python -m benchmarks.spherical_report collect --trajectories 100 --steps 40 --seed 1 --out
     data/<scene>_heldout.npz``. ``control_period`` other than the scene's adds ``-h<period>``
     to the file name.
 
@@ -37,8 +37,8 @@ def heldout_data(scene: str = "pendulum", control_period: float | None = None, s
         ValueError: the file exists but holds other data (different size, seed, period or
             collector): it is never overwritten; delete it or pass another ``path``.
     """
-    from fvin_mpc.learning.collection import SPEED_BOUNDED, collect
     from fvin_mpc.core.data import load_data, save_data
+    from fvin_mpc.learning.collection import SPEED_BOUNDED, collect
 
     stem = Path(scene).stem + (f"-h{control_period:g}" if control_period is not None else "")
     bounded = BOUNDED_HELDOUT.get(Path(scene).stem)

@@ -2,7 +2,7 @@
 
 Scene ``quadrotor`` (a 0.5 kg craft, four rotors, thrust 0–2.5 N each, controlled at 20 ms; MuJoCo is
 the plant). The controller is the real-time iteration MPC (:class:`fvin_mpc.control.rti.RealTimeMPC`
-on ``(x, q, v, ω)`` states, :mod:`fvin_mpc.control.quadrotor`'s settings: 0.6 s horizon, one
+on ``(x, q, v, ω)`` states, :mod:`fvin_mpc.control.flight`'s settings: 0.6 s horizon, one
 Gauss–Newton SQP iteration per period, a compiled Riccati interior-point QP, offset-free thrust
 estimate), planning with the learned R³ × S³ model (``--model learned``, the scene's checkpoint) or
 the closed-form craft read off the MJCF (``--model closed-form``).
@@ -51,7 +51,7 @@ def make_env(render: bool = False) -> Any:
 
 def make_controller(env: Any, model_kind: str, checkpoint: Any = None, **overrides: Any) -> Any:
     """The RTI MPC planning with ``model_kind`` (``"learned"`` or ``"closed-form"``) on ``env``."""
-    from fvin_mpc.control.quadrotor import quadrotor_model, quadrotor_mpc, quadrotor_mpc_settings
+    from fvin_mpc.control.flight import quadrotor_model, quadrotor_mpc, quadrotor_mpc_settings
 
     if model_kind not in MODELS:
         raise ValueError(f"model must be one of {MODELS}, got {model_kind!r}")
@@ -61,19 +61,19 @@ def make_controller(env: Any, model_kind: str, checkpoint: Any = None, **overrid
 
 def figure_eight(env: Any) -> Any:
     """The task's figure-eight around the env's hover point."""
-    from fvin_mpc.control.quadrotor import FigureEight
+    from fvin_mpc.control.flight import FigureEight
 
     return FigureEight(center=tuple(env.unwrapped.hover_point), amplitude=0.5, period=3.0, ramp_s=1.0)
 
 
 def run_recovery(env: Any, controller: Any, episodes: int, seed: int, latency: Any, duration_s: float = RECOVERY_DURATION_S,
                  progress: bool = True, render_first: bool = False) -> tuple[list[dict[str, Any]], list[Any], list[np.ndarray]]:
-    """Recovery episodes from :func:`~fvin_mpc.control.quadrotor.recovery_starts`; per-episode metrics,
+    """Recovery episodes from :func:`~fvin_mpc.control.flight.recovery_starts`; per-episode metrics,
     the episodes, and the first episode's frames when ``render_first``."""
     from tqdm.auto import tqdm
 
     from fvin_mpc.control.closed_loop import run_episode
-    from fvin_mpc.control.quadrotor import flight_metrics, hover_reference, recovery_starts
+    from fvin_mpc.control.flight import flight_metrics, hover_reference, recovery_starts
 
     controller.set_reference(hover_reference(env))
     rows, kept, frames = [], [], []
@@ -96,7 +96,7 @@ def run_figure_eight(env: Any, controller: Any, latency: Any, progress: bool = T
                      render: bool = False) -> tuple[dict[str, Any], Any, list[np.ndarray]]:
     """One figure-eight flight from hover at the centre: metrics, the episode and its frames."""
     from fvin_mpc.control.closed_loop import run_episode
-    from fvin_mpc.control.quadrotor import flight_metrics
+    from fvin_mpc.control.flight import flight_metrics
 
     reference = figure_eight(env)
     controller.set_reference(reference)

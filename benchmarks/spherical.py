@@ -1,4 +1,4 @@
-"""The 3-D rigid body on a ball joint (scene ``spherical_pendulum``): ``python -m fvin_mpc.spherical_report``.
+"""The 3-D rigid body on a ball joint (scene ``spherical_pendulum``): ``python -m benchmarks.spherical_report``.
 
 Sub-commands:
 
@@ -13,7 +13,7 @@ Sub-commands:
   learned model and true model side by side: success, time to upright, hold error, MPC solve times,
   the step residual along the plan; writes JSON + a Markdown table.
 
-The model-quality part (held-out rollouts, recovered inertia) is :mod:`fvin_mpc.inertia`.
+The model-quality part (held-out rollouts, recovered inertia) is ``python -m fvin_mpc.quality`` on its checkpoints.
 """
 
 from __future__ import annotations
@@ -23,7 +23,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-
 
 from fvin_mpc.studies.starts import episode_starts
 

@@ -31,7 +31,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from fvin_mpc.studies.report import StudyResult, median_time
+from benchmarks.study import StudyResult, median_time
 
 REFERENCE_SECONDS_PER_ITERATION = 1.5
 DAMPED_DATA = Path("data/pendulum_damped_10k.npz")
@@ -47,9 +47,9 @@ MODES: dict[str, list[str]] = {
 def _shipped_validation_loss(name: str, data: Path) -> float | None:
     """The shipped checkpoint ``name``'s validation loss on ``data``'s validation split (as
     ``fvin_mpc.train`` splits it with default settings); ``None`` without the checkpoint."""
+    from benchmarks.common import checkpoint_or_none
     from fvin_mpc.core.data import load_data
     from fvin_mpc.learning.training import split_losses
-    from fvin_mpc.studies.bench.common import checkpoint_or_none
 
     checkpoint = checkpoint_or_none(name)
     if checkpoint is None:

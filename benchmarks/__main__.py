@@ -1,6 +1,6 @@
-"""``python -m fvin_mpc.bench <study>`` — accuracy-vs-time studies (see :mod:`fvin_mpc.bench`).
+"""``python -m benchmarks <study>`` — accuracy-vs-time studies (see :mod:`benchmarks`).
 
-Every study writes ``<out-dir>/<study>.{json,md,png}``; ``python -m fvin_mpc.bench <study> --help``
+Every study writes ``<out-dir>/<study>.{json,md,png}``; ``python -m benchmarks <study> --help``
 lists its own options.
 """
 
@@ -17,22 +17,22 @@ from fvin_mpc.core.errors import UsageError
 #: study name → module (each has ``run(quick, seed, repeats, **options) -> StudyResult`` and
 #: optionally ``add_arguments(parser)`` for its own options).
 STUDIES = {
-    "train-speed": "fvin_mpc.studies.bench.train_speed",
-    "newton": "fvin_mpc.studies.bench.newton",
-    "horizon": "fvin_mpc.studies.bench.horizon",
-    "width": "fvin_mpc.studies.bench.width",
-    "solver": "fvin_mpc.studies.bench.solver",
-    "rti": "fvin_mpc.studies.bench.rti",
-    "ops": "fvin_mpc.studies.bench.ops",
-    "sim": "fvin_mpc.studies.bench.sim",
-    "paper": "fvin_mpc.studies.bench.paper",
-    "data-efficiency": "fvin_mpc.studies.data_efficiency",
-    "data-efficiency-terms": "fvin_mpc.studies.data_efficiency_terms",
+    "train-speed": "benchmarks.train_speed",
+    "newton": "benchmarks.newton",
+    "horizon": "benchmarks.horizon",
+    "width": "benchmarks.width",
+    "solver": "benchmarks.solver",
+    "rti": "benchmarks.rti_knobs",
+    "ops": "benchmarks.ops",
+    "sim": "benchmarks.sim",
+    "paper": "benchmarks.paper",
+    "data-efficiency": "benchmarks.data_efficiency",
+    "data-efficiency-terms": "benchmarks.data_efficiency_terms",
 }
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="python -m fvin_mpc.bench", description=__doc__,
+    parser = argparse.ArgumentParser(prog="python -m benchmarks", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     subparsers = parser.add_subparsers(dest="study", required=True, metavar="study",
                                        help=f"one of: {', '.join(STUDIES)}")
@@ -58,8 +58,8 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     if args.repeats < 1:
         raise UsageError(f"--repeats must be >= 1, got {args.repeats}")
+    from benchmarks.study import StudySkipped, write_study
     from fvin_mpc.studies.pool import TasksFailed
-    from fvin_mpc.studies.report import StudySkipped, write_study
 
     module = importlib.import_module(STUDIES[args.study])
     options = {k: v for k, v in vars(args).items() if k not in ("study", "quick", "out_dir", "repeats", "seed")}
