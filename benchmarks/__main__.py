@@ -11,8 +11,10 @@ import importlib
 import sys
 from pathlib import Path
 
+from benchmarks.study import StudySkipped, write_study
 from fvin_mpc._cli import add_backend_arguments, backend_options, exit_status, run_command
 from fvin_mpc.core.errors import UsageError
+from fvin_mpc.studies.pool import TasksFailed
 
 #: study name → module (each has ``run(quick, seed, repeats, **options) -> StudyResult`` and
 #: optionally ``add_arguments(parser)`` for its own options).
@@ -58,8 +60,6 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     if args.repeats < 1:
         raise UsageError(f"--repeats must be >= 1, got {args.repeats}")
-    from benchmarks.study import StudySkipped, write_study
-    from fvin_mpc.studies.pool import TasksFailed
 
     module = importlib.import_module(STUDIES[args.study])
     options = {k: v for k, v in vars(args).items() if k not in ("study", "quick", "out_dir", "repeats", "seed")}

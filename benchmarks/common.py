@@ -10,6 +10,13 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from fvin_mpc.control.closed_loop import episode_metrics, run_episode
+from fvin_mpc.control.scene import scene_mpc
+from fvin_mpc.core.checkpoint import checkpoint_exists, load_checkpoint
+from fvin_mpc.core.data import load_data, save_data
+from fvin_mpc.envs import RigidBodyEnv
+from fvin_mpc.learning.collection import SPEED_BOUNDED, collect
+
 #: The note every timing study carries.
 NOISE_NOTE = ("Timings were taken on a 2-core machine shared with other jobs (training, tests): absolute "
               "times are noisy; compare configurations by the ratios within this one run.")
@@ -37,8 +44,6 @@ def heldout_data(scene: str = "pendulum", control_period: float | None = None, s
         ValueError: the file exists but holds other data (different size, seed, period or
             collector): it is never overwritten; delete it or pass another ``path``.
     """
-    from fvin_mpc.core.data import load_data, save_data
-    from fvin_mpc.learning.collection import SPEED_BOUNDED, collect
 
     stem = Path(scene).stem + (f"-h{control_period:g}" if control_period is not None else "")
     bounded = BOUNDED_HELDOUT.get(Path(scene).stem)
@@ -78,14 +83,11 @@ def checkpoint_or_none(name: str) -> Any:
     A checkpoint that is there but corrupted or inconsistent raises its
     :class:`~fvin_mpc.core.checkpoint.CheckpointError`: it is not "missing".
     """
-    from fvin_mpc.core.checkpoint import checkpoint_exists, load_checkpoint
 
     return load_checkpoint(name) if checkpoint_exists(name) else None
 
 
 def make_env(scene: str, control_period: float | None = None) -> Any:
-    from fvin_mpc.envs import RigidBodyEnv
-
     return RigidBodyEnv(scene=scene, control_period=control_period)
 
 
@@ -93,8 +95,6 @@ def solve_stats(env: Any, model: Any, settings: Any, duration_s: float, reset_op
             seed: int = 0) -> dict[str, Any]:
     """Build the scene's MPC on ``model`` with ``settings``, run one episode; metrics, build info and
     the solver's iterations and solve times of every call."""
-    from fvin_mpc.control.closed_loop import episode_metrics, run_episode
-    from fvin_mpc.control.scene import scene_mpc
 
     controller = scene_mpc(env, model, settings)
     episode, _ = run_episode(env, controller, duration_s, reset_options, seed=seed)

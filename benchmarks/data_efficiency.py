@@ -48,7 +48,20 @@ from typing import Any
 
 import numpy as np
 
+from benchmarks.mlp_baseline import MLPConfig, check_mlp_weights, load_mlp, mlp_step_function, save_mlp, train_mlp
+from benchmarks.pendulum_v1_mpc import ZOO_BEST, benchmark_settings, run_v1_episode
 from benchmarks.study import StudyResult
+from fvin_mpc.control.closed_loop import episode_metrics, run_episode
+from fvin_mpc.control.export import CA, NP, ExportedModel, energy_function, from_checkpoint
+from fvin_mpc.control.scene import scene_env, scene_model, scene_mpc, scene_mpc_settings
+from fvin_mpc.core.checkpoint import save_checkpoint
+from fvin_mpc.core.data import load_data, save_data
+from fvin_mpc.core.networks import ModelConfig
+from fvin_mpc.core.rigid_body import from_mujoco
+from fvin_mpc.learning.collection import collect
+from fvin_mpc.learning.training import TrainSettings, train
+from fvin_mpc.studies.evaluation import DEFAULT_MAX_OMEGA
+from fvin_mpc.studies.starts import episode_starts
 
 S3FVIN_VARIANTS: tuple[str, ...] = ("sign-invariant", "fixed-inertia", "plain")
 MLP = "mlp"
@@ -157,8 +170,6 @@ def test_path(config: StudyConfig) -> Path:
 def _collected(path: Path, trajectories: int, steps: int, seed: int, progress: bool) -> Any:
     """The data at ``path``, collected on the ``pendulum`` scene (the package's collector and its
     defaults: uniform states, ``|ω₀| ≤ 6``, constant or piecewise-constant torques) if absent."""
-    from fvin_mpc.core.data import load_data, save_data
-    from fvin_mpc.learning.collection import collect
 
     if not path.exists():
         save_data(path, collect("pendulum", trajectories=trajectories, steps=steps, seed=seed, progress=progress))
@@ -187,8 +198,6 @@ def training_subset(pool: Any, transitions: int, draw: int, seed: int) -> Any:
 
 # ---------------------------------------------------------------------------- models
 def train_settings(config: StudyConfig, draw: int) -> Any:
-    from fvin_mpc.learning.training import TrainSettings
-
     return TrainSettings(seed=draw, threads=1, patience=PATIENCE, iterations=config.iterations,
                          jacobian_windows=config.jacobian_windows)
 
@@ -197,15 +206,11 @@ def train_cell_model(model: str, data: Any, config: StudyConfig, draw: int, stem
                      progress: bool = False) -> dict[str, Any]:
     """Train ``model`` on ``data``, save it at ``stem`` (checkpoint, or the MLP's files); the training report."""
     if model == MLP:
-        from benchmarks.mlp_baseline import MLPConfig, save_mlp, train_mlp
 
         trained, report = train_mlp(data, MLPConfig(hidden_width=16, step_size=data.control_period), train_settings(config, draw),
                                     progress=progress)
         save_mlp(stem, trained.config, trained.numpy_weights(), transitions=data.num_transitions)
     else:
-        from fvin_mpc.core.checkpoint import save_checkpoint
-        from fvin_mpc.core.networks import ModelConfig
-        from fvin_mpc.learning.training import train
 
         trained, report = train(data, ModelConfig(variant=model, step_size=data.control_period),
                                 train_settings(config, draw), progress=progress)
@@ -217,18 +222,14 @@ def train_cell_model(model: str, data: Any, config: StudyConfig, draw: int, stem
 
 def export_cell_model(model: str, stem: Path | None, env: Any) -> Any:
     """The :class:`~fvin_mpc.control.export.ExportedModel` of a cell (``closed-form``: the MJCF's rod)."""
-    from fvin_mpc.control.scene import scene_model
 
     if model == CLOSED_FORM:
         return scene_model(env, true_model=True)
     if model == MLP:
-        from benchmarks.mlp_baseline import load_mlp
-        from fvin_mpc.core.rigid_body import from_mujoco
 
         mlp_config, weights = load_mlp(stem)
         base = env.unwrapped
         return export_mlp(weights, mlp_config, from_mujoco(base.model, base.body_name), name=stem.name)
-    from fvin_mpc.control.export import from_checkpoint
 
     return from_checkpoint(stem)
 
@@ -285,7 +286,6 @@ class BudgetedController:
 def scene_settings(env: Any, config: StudyConfig, overrides: dict[str, Any] | None = None) -> Any:
     """The MPCSettings of the study's closed loops on ``env``: the scene's, with the study's
     compile mode, horizon and ``mpc_overrides``, then ``overrides`` (a model's own)."""
-    from fvin_mpc.control.scene import scene_mpc_settings
 
     return scene_mpc_settings(env, **{"compile": config.compile, "horizon": config.horizon,
                                       **dict(config.mpc_overrides), **(overrides or {})})
@@ -293,8 +293,6 @@ def scene_settings(env: Any, config: StudyConfig, overrides: dict[str, Any] | No
 
 def study_starts(config: StudyConfig, count: int | None = None) -> list[Any]:
     """The study's first ``count`` (default ``config.episodes``) closed-loop starts."""
-    from fvin_mpc.studies.evaluation import DEFAULT_MAX_OMEGA
-    from fvin_mpc.studies.starts import episode_starts
 
     return episode_starts(config.episodes if count is None else count, config.seed, (DEFAULT_MAX_OMEGA,))
 
@@ -303,8 +301,6 @@ def closed_loop(model: Any, env: Any, config: StudyConfig, progress: bool = Fals
                 overrides: dict[str, Any] | None = None) -> dict[str, Any]:
     """The scene's MPC on ``model`` over the study's starts (waiting latency mode); ``overrides``:
     MPCSettings fields of this model's MPC."""
-    from fvin_mpc.control.closed_loop import episode_metrics, run_episode
-    from fvin_mpc.control.scene import scene_mpc
 
     start = time.perf_counter()
     controller = BudgetedController(scene_mpc(env, model, scene_settings(env, config, overrides)), model.control_dim,
@@ -331,9 +327,6 @@ def pendulum_v1_returns(model: Any, env: Any, config: StudyConfig, overrides: di
     if config.v1_episodes == 0:
         return {"episodes": 0, "return_mean": None, "returns": []}
     import gymnasium
-
-    from benchmarks.pendulum_v1_mpc import benchmark_settings, run_v1_episode
-    from fvin_mpc.control.scene import scene_mpc
 
     settings = benchmark_settings() if config.horizon is None else benchmark_settings(config.horizon)
     controller = BudgetedController(scene_mpc(env, model, replace(settings, compile=config.compile,
@@ -458,8 +451,6 @@ def run_cells(config: StudyConfig, progress: bool = True,
     cut short still holds whole sweeps over the sizes. Returns the closed form's record, the
     cells' records and (``cached_only``) the names of the cells left out because not cached."""
     from tqdm.auto import tqdm
-
-    from fvin_mpc.control.scene import scene_env
 
     pool, test = training_pool(config, progress), test_set(config, progress)
     env = scene_env("pendulum", true_model=True)
@@ -587,7 +578,6 @@ def headline(rows: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
 
 def plot(figure: Any, rows: list[dict[str, Any]]) -> None:
     """Four panels against the number of transitions: rollout error, success, cost excess, Pendulum-v1."""
-    from benchmarks.pendulum_v1_mpc import ZOO_BEST
 
     figure.set_size_inches(11, 7.5)
     axes = figure.subplots(2, 2)
@@ -750,8 +740,6 @@ def export_mlp(weights: Any, config: Any, energy_body: Any, name: str = "mlp") -
             terminal energy-deficit cost (the MLP has none; module docstring). The name gets a
             ``+true-energy`` suffix so that no report can miss it.
     """
-    from benchmarks.mlp_baseline import check_mlp_weights, mlp_step_function
-    from fvin_mpc.control.export import CA, NP, ExportedModel, energy_function
 
     check_mlp_weights(weights, config)
     return ExportedModel(step=mlp_step_function(weights, config), step_size=config.step_size, newton_iters=0,

@@ -33,7 +33,20 @@ from typing import Any
 import numpy as np
 
 from benchmarks import data_efficiency as study
+from benchmarks.paper import (
+    MODELS,
+    TRUE_INERTIA,
+    TRUE_TORQUE_PER_CONTROL,
+    learned_profiles,
+    scale_from_potential,
+    true_potential,
+)
 from benchmarks.study import StudyResult
+from fvin_mpc.control.closed_loop import run_episode
+from fvin_mpc.control.scene import scene_env, scene_mpc
+from fvin_mpc.core import s3
+from fvin_mpc.core.backend import get_ops
+from fvin_mpc.core.checkpoint import load_checkpoint
 from fvin_mpc.core.space import S3
 
 #: A start "costs more" when its cost exceeds the closed form's on that start by this factor.
@@ -44,15 +57,6 @@ HINGE_ANGLES = np.linspace(-np.pi, np.pi, 181)
 
 def hemisphere_errors(variant: str, stem: Path) -> dict[str, float]:
     """The scale-fixed term errors of the checkpoint at ``stem`` at ``q`` and ``−q`` (module docstring)."""
-    from benchmarks.paper import (
-        MODELS,
-        TRUE_INERTIA,
-        TRUE_TORQUE_PER_CONTROL,
-        learned_profiles,
-        scale_from_potential,
-        true_potential,
-    )
-    from fvin_mpc.core.checkpoint import load_checkpoint
 
     paper_model = next(m for m in MODELS if m.space is S3 and m.variant == variant)
     checkpoint = load_checkpoint(stem)
@@ -111,10 +115,6 @@ def term_rows(config: study.StudyConfig, progress: bool = True) -> tuple[list[di
 def climb_trace(cell: str, start_index: int, config: study.StudyConfig) -> list[dict[str, Any]]:
     """One episode of ``cell`` (a cached model, or ``closed-form``) from the study's start
     ``start_index``: per control period, the angle from upright, ``u`` and the plan's closest approach."""
-    from fvin_mpc.control.closed_loop import run_episode
-    from fvin_mpc.control.scene import scene_env, scene_mpc
-    from fvin_mpc.core import s3
-    from fvin_mpc.core.backend import get_ops
 
     model = study.CLOSED_FORM if cell == study.CLOSED_FORM else cell.split("_n")[0]
     trained_as = study.MLP if model == study.MLP_EXACT else model  # as run_cell: the same network, another MPC

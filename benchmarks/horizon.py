@@ -16,6 +16,9 @@ from typing import Any
 
 from benchmarks.common import NOISE_NOTE, checkpoint_or_none, make_env, plot_pareto, solve_stats
 from benchmarks.study import StudyResult
+from fvin_mpc.control.export import from_checkpoint, from_rigid_body
+from fvin_mpc.control.mpc import MPCSettings
+from fvin_mpc.core.rigid_body import from_mujoco
 
 CHECKPOINTS = {0.05: "pendulum_sign-invariant", 0.02: "pendulum-h0.02_sign-invariant"}
 HORIZONS_S = (0.5, 1.0, 1.5, 2.0, 3.0)
@@ -31,9 +34,6 @@ H002_COMMANDS = (
 
 def run(quick: bool = False, seed: int = 0, repeats: int = 5, model: str = "learned", duration: float = 8.0,
         steps: str = "0.05,0.02", horizons: str = ",".join(f"{t:g}" for t in HORIZONS_S), **_: Any) -> StudyResult:
-    from fvin_mpc.control.export import from_checkpoint, from_rigid_body
-    from fvin_mpc.control.mpc import MPCSettings
-    from fvin_mpc.core.rigid_body import from_mujoco
 
     step_sizes = [0.05] if quick else [float(v) for v in steps.split(",")]
     horizon_s = [0.5, 1.0] if quick else [float(v) for v in horizons.split(",")]

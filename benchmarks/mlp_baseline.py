@@ -40,6 +40,7 @@ from typing import Any
 import numpy as np
 
 from fvin_mpc.core.networks import DictConfig, add_mlp_shapes, check_weight_shapes
+from fvin_mpc.learning.training import train
 
 #: ``ModelConfig``-like name of the baseline (progress bars, reports).
 MLP_VARIANT = "mlp"
@@ -171,7 +172,6 @@ def IncrementMLP(config: MLPConfig, weights: Mapping[str, np.ndarray] | None = N
 
 def train_mlp(data: Any, config: MLPConfig, settings: Any, progress: bool = True) -> tuple[Any, dict[str, Any]]:
     """Train the baseline through the package's loop; returns ``(model, report)`` as ``train``."""
-    from fvin_mpc.learning.training import train
 
     return train(data, config, settings, progress=progress, model_factory=IncrementMLP)
 

@@ -24,6 +24,14 @@ import numpy as np
 
 from benchmarks.common import NOISE_NOTE, checkpoint_or_none, heldout_data, make_env, plot_pareto, solve_stats
 from benchmarks.study import StudyResult, StudySkipped, median_time
+from fvin_mpc.control.export import from_checkpoint, from_rigid_body
+from fvin_mpc.control.scene import scene_mpc_settings
+from fvin_mpc.core import fvin, s3
+from fvin_mpc.core.backend import get_ops
+from fvin_mpc.core.networks import LearnedTerms
+from fvin_mpc.core.rigid_body import from_mujoco
+from fvin_mpc.learning.collection import collect
+from fvin_mpc.learning.timing import batched_step_call, tensor_weights, torch_threads
 
 BATCH = 1024
 
@@ -36,9 +44,6 @@ def rootfinder_step(terms_ca: Any, step_size: float, plugin: str = "newton") -> 
     :func:`~fvin_mpc.core.fvin.finish_step`); step 3, ``Φ(ξ) = C``, is solved to convergence (abstol 1e-14) from the first Newton iterate.
     """
     import casadi as ca
-
-    from fvin_mpc.core import fvin, s3
-    from fvin_mpc.core.backend import get_ops
 
     ops = get_ops("casadi")
     m, h = terms_ca.control_dim, step_size
@@ -89,10 +94,8 @@ def _errors(states: np.ndarray, q_true: np.ndarray, omega_true: np.ndarray) -> t
 
 def _torch_step_time(source: Any, newton_iters: int, q: np.ndarray, omega: np.ndarray, u: np.ndarray,
                      repeats: int) -> float:
-    from fvin_mpc.learning.timing import batched_step_call, tensor_weights, torch_threads
 
     if source["kind"] == "learned":
-        from fvin_mpc.core.networks import LearnedTerms
 
         checkpoint = source["checkpoint"]
 
@@ -121,9 +124,6 @@ def _casadi_map_time(step: Any, x: np.ndarray, u: np.ndarray, repeats: int) -> f
 
 # ----------------------------------------------------------------------------- study
 def _source(scene: str, model: str, checkpoint: str | None, control_period: float | None) -> dict[str, Any]:
-    from fvin_mpc.control.export import from_checkpoint, from_rigid_body  # noqa: F401  (used by callers)
-    from fvin_mpc.core.rigid_body import from_mujoco
-
     env = make_env(scene, control_period)
     base = env.unwrapped
     if model == "true":
@@ -141,17 +141,12 @@ def _source(scene: str, model: str, checkpoint: str | None, control_period: floa
 
 
 def _exported(source: dict[str, Any], newton_iters: int) -> Any:
-    from fvin_mpc.control.export import from_checkpoint, from_rigid_body
-
     if source["kind"] == "learned":
         return from_checkpoint(source["checkpoint"], newton_iters)
     return from_rigid_body(source["body"], source["step_size"], newton_iters, name=f"true_{newton_iters}")
 
 
 def _casadi_terms(source: dict[str, Any]) -> Any:
-    from fvin_mpc.core.backend import get_ops
-    from fvin_mpc.core.networks import LearnedTerms
-
     ops = get_ops("casadi")
     if source["kind"] == "learned":
         return LearnedTerms(source["checkpoint"].weights, source["checkpoint"].config, ops)
@@ -163,14 +158,11 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 5, scene: str = "pend
         iters: str = "1,2,3,4,5,6", **_: Any) -> StudyResult:
     from tqdm.auto import tqdm
 
-    from fvin_mpc.control.scene import scene_mpc_settings
-
     source = _source(scene, "true" if quick else model, checkpoint, None)
     h = source["step_size"]
     ks = [1, 2] if quick else [int(k) for k in iters.split(",")]
     repeats = 2 if quick else repeats
     if quick:
-        from fvin_mpc.learning.collection import collect
 
         data = collect(scene, 8, 10, 1, progress=False)
         horizon, duration = 10, 1.0

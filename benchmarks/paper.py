@@ -30,7 +30,16 @@ from typing import Any
 import numpy as np
 
 from benchmarks.study import StudyResult
+from fvin_mpc.core import fvin, fvin_so3, s3, so3
+from fvin_mpc.core.backend import get_ops
+from fvin_mpc.core.checkpoint import CHECKPOINT_DIR, checkpoint_exists, load_checkpoint, save_checkpoint
+from fvin_mpc.core.data import load_data, save_data
+from fvin_mpc.core.rigid_body import PENDULUM
 from fvin_mpc.core.space import S3, SO3, ConfigurationSpace
+from fvin_mpc.learning.collection import collect
+from fvin_mpc.learning.timing import torch_threads
+from fvin_mpc.learning.training import TrainSettings, package_versions, rollout_loss, train
+from fvin_mpc.studies.report import markdown_table
 
 DATA = Path("data/pendulum.npz")
 #: The checkpoint whose training settings every checkpoint of this study repeats.
@@ -71,22 +80,18 @@ def model_config(model: PaperModel, data: Any, newton_iters: int = 2) -> Any:
 
 def train_model(model: PaperModel, data: Any, settings: Any, progress: bool = False) -> tuple[Any, dict[str, Any]]:
     """``fvin_mpc.learning.training.train`` on ``data`` (the model of the config's space)."""
-    from fvin_mpc.learning.training import train
 
     return train(data, model_config(model, data), settings, progress)
 
 
 def load_model(model: PaperModel) -> Any:
     """The checkpoint of ``model`` (a :class:`~fvin_mpc.core.checkpoint.Checkpoint`)."""
-    from fvin_mpc.core.checkpoint import load_checkpoint
 
     return load_checkpoint(model.checkpoint)
 
 
 def reference_settings() -> Any:
     """The shipped sign-invariant checkpoint's training settings (its sidecar): Adam, no early stop."""
-    from fvin_mpc.core.checkpoint import load_checkpoint
-    from fvin_mpc.learning.training import TrainSettings
 
     recorded = dict(load_checkpoint(REFERENCE_CHECKPOINT).metadata["training"]["settings"])
     recorded.setdefault("optimizer", "adam")  # written before LM became the default; trained with Adam
@@ -98,7 +103,6 @@ def checkpoint_settings(model: PaperModel) -> Any:
     """How a missing checkpoint is trained: S3FVIN with :func:`reference_settings` (Adam, 600
     iterations); SO3FVIN with the package's default, Levenberg–Marquardt with early stopping —
     ten to twenty times less CPU time, which is what the shared machine allowed (docs/paper.md)."""
-    from fvin_mpc.learning.training import TrainSettings
 
     return reference_settings() if model.space is S3 else TrainSettings(seed=0, threads=1)
 
@@ -106,8 +110,6 @@ def checkpoint_settings(model: PaperModel) -> Any:
 def pendulum_data(progress: bool = True) -> Any:
     """:data:`DATA`, collected first (as ``python -m fvin_mpc.collect --seed 0`` does) if it is absent:
     a fresh clone has no ``data/``."""
-    from fvin_mpc.core.data import load_data, save_data
-    from fvin_mpc.learning.collection import collect
 
     if not DATA.exists():
         save_data(DATA, collect("pendulum", seed=0, progress=progress))
@@ -116,8 +118,6 @@ def pendulum_data(progress: bool = True) -> Any:
 
 def train_missing_checkpoints(progress: bool = True) -> list[str]:
     """Train (with :func:`checkpoint_settings`) and save every checkpoint of :data:`MODELS` not there."""
-    from fvin_mpc.core.checkpoint import CHECKPOINT_DIR, checkpoint_exists, save_checkpoint
-    from fvin_mpc.learning.training import package_versions
 
     data = pendulum_data(progress)
     trained = []
@@ -175,8 +175,6 @@ def training_curves(settings: CurveSettings, cache: Path | None, models: tuple[P
     (``cpu_s``) besides ``train``'s wall clock, and the load average around it."""
     from tqdm.auto import tqdm
 
-    from fvin_mpc.learning.training import TrainSettings
-
     stored: dict[str, dict[str, Any]] = json.loads(cache.read_text()) if cache is not None and cache.exists() else {}
     data = curve_data(pendulum_data(progress), settings.trajectories)
     jobs = [(m, s) for m in models for s in settings.seeds]
@@ -204,8 +202,6 @@ def loss_gradient_cpu_s(model: PaperModel, data: Any, repeats: int, seed: int = 
     import torch
 
     from fvin_mpc.learning.model import DTYPE, model_for
-    from fvin_mpc.learning.timing import torch_threads
-    from fvin_mpc.learning.training import TrainSettings, rollout_loss
 
     settings = TrainSettings()
     windows = tuple(torch.as_tensor(a, dtype=DTYPE) for a in data.windows(settings.window))
@@ -228,8 +224,6 @@ def hinge_quaternions(theta: np.ndarray) -> tuple[np.ndarray, ...]:
 
 
 def _terms(model: PaperModel, checkpoint: Any) -> Any:
-    from fvin_mpc.core.backend import get_ops
-
     return model.space.learned_terms(checkpoint.weights, checkpoint.config, get_ops("numpy"))
 
 
@@ -237,7 +231,6 @@ def learned_profiles(model: PaperModel, checkpoint: Any, theta: np.ndarray, mirr
     """``J_yy(θ)``, ``g_y(θ)`` and ``U(θ) − U(0)`` of a learned model along the hinge, in its own scale.
 
     ``mirrored``: evaluate an S³ model at ``−q`` (the same rotations) — a plain model may differ."""
-    from fvin_mpc.core import s3
 
     terms = _terms(model, checkpoint)
     q = hinge_quaternions(theta)
@@ -253,7 +246,6 @@ def learned_profiles(model: PaperModel, checkpoint: Any, theta: np.ndarray, mirr
 
 def true_potential(theta: np.ndarray) -> np.ndarray:
     """``U(θ) = m g l/2 (1 − cos θ)`` of the rod (``core.rigid_body.PENDULUM``: 5(1 − cos θ))."""
-    from fvin_mpc.core.rigid_body import PENDULUM
 
     return -PENDULUM.mass_gravity * PENDULUM.center_of_mass[2] * (1.0 - np.cos(theta))
 
@@ -280,9 +272,6 @@ def uncontrolled_rollout(model: PaperModel | None, checkpoint: Any, theta0: np.n
     ``(cos θ/2, 0, sin θ/2, 0)``, ``ω`` onto ``(0, ω_y, 0)`` — as the hinge joint that made the data
     does. Free, a learned rigid body can leave the plane its data never left (nothing fixes its
     out-of-plane torque or inertia), and then its unidentified terms decide the motion."""
-    from fvin_mpc.core import fvin, fvin_so3, s3, so3
-    from fvin_mpc.core.backend import get_ops
-    from fvin_mpc.core.rigid_body import PENDULUM
 
     ops = get_ops("numpy")
     truth = PENDULUM.terms(ops)
@@ -562,7 +551,6 @@ def _plot(curves1: dict[str, Any], curves2: dict[str, Any], settings: CurveSetti
 def run(quick: bool = False, seed: int = 0, repeats: int = 5, seeds: str = "0,1,2", trajectories: int = 64,
         iterations: int = 30, optimizer: str = "lm", curves: Path | None = None, train_missing: bool = False,
         horizon: float = 200.0, progress: bool = True, **_: Any) -> StudyResult:
-    from fvin_mpc.core.checkpoint import checkpoint_exists
 
     if train_missing:
         train_missing_checkpoints(progress)
@@ -583,7 +571,6 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 5, seeds: str = "0,1,
     runs = training_curves(settings, curves, progress=progress)
     curves2 = _figure2(rows, runs, settings, curve_data(pendulum_data(progress), settings.trajectories), repeats)
     claims = _claims(rows, curves2)
-    from fvin_mpc.studies.report import markdown_table
 
     notes = [
         "**Figure 1** (checkpoints; `trained_with`): `lambda` is the scale of (J, U, g) fitted by least squares of the "

@@ -49,8 +49,12 @@ from benchmarks.pendulum_v1_reference import (
     rollout_guesses,
 )
 from benchmarks.pendulum_v1_value import model_value_table, plan_score
-from fvin_mpc.control.mpc import MPC, MPCSettings
+from fvin_mpc.control.mpc import COLD_STARTS, MPC, MPCSettings
+from fvin_mpc.control.scene import DEFAULT_TERMINAL_ENERGY_WEIGHT, scene_env, scene_model, scene_mpc
+from fvin_mpc.envs.pendulum_v1 import state_from_v1_observation
 from fvin_mpc.envs.scenes import resolve_scene
+from fvin_mpc.studies.pool import run_tasks
+from fvin_mpc.studies.report import write_report
 
 #: rl-baselines3-zoo's best Pendulum-v1 entry (benchmark.md): TQC, mean ± std over 750 episodes.
 ZOO_BEST = {"algorithm": "TQC", "mean": -151.3, "std": 87.9, "episodes": 750}
@@ -66,8 +70,6 @@ def benchmark_settings(horizon: int = 30, terminal_energy_weight: float | None =
     every first guess unless ``multistart=False`` (a single constant-torque guess lets a pendulum
     that starts near upright fall through a full turn: cost ≈ 128 instead of ≈ 0.4).
     """
-    from fvin_mpc.control.mpc import COLD_STARTS
-    from fvin_mpc.control.scene import DEFAULT_TERMINAL_ENERGY_WEIGHT
 
     energy_weight = DEFAULT_TERMINAL_ENERGY_WEIGHT if terminal_energy_weight is None else terminal_energy_weight
     return replace(MPCSettings(), horizon=horizon, orientation_weight=4.0, omega_weight=0.1, control_weight=0.001,
@@ -121,7 +123,6 @@ def rti_dynamics(config: BenchmarkConfig) -> str:
 def build_mpc(config: BenchmarkConfig) -> Any:
     """The MPC on the learned model (or the closed-form pendulum) with :func:`benchmark_settings`, on
     the ``pendulum`` scene's task (Pendulum-v1's physics; its goal, rest and torque bounds)."""
-    from fvin_mpc.control.scene import scene_env, scene_model, scene_mpc
 
     env = scene_env("pendulum", config.checkpoint, config.true_model)
     model = scene_model(env, config.checkpoint, config.true_model, config.newton_iters)
@@ -142,7 +143,6 @@ def build_mpc(config: BenchmarkConfig) -> Any:
 
 def run_v1_episode(env: Any, controller: Any, seed: int) -> dict[str, Any]:
     """One 200-step episode of ``controller`` on ``env`` (Pendulum-v1) reset with ``seed``."""
-    from fvin_mpc.envs.pendulum_v1 import state_from_v1_observation
 
     observation, _ = env.reset(seed=seed)
     controller.reset()
@@ -180,7 +180,6 @@ def run_seed(seed: int) -> dict[str, Any]:
 
 
 def _init_polisher() -> None:
-
     _WORKER.update(polishers=polishers())
 
 
@@ -195,7 +194,6 @@ def add_references(records: list[dict[str, Any]], grids: tuple[tuple[int, int], 
     """Each record's global reference (DP on every grid, rolled out and polished; the MPC's episode one
     more first guess): ``reference_return``, ``reference_source``, the convergence study per grid
     (``reference_grids``: DP estimate, rollout return, polished return) and ``reference_converged``."""
-    from fvin_mpc.studies.pool import run_tasks
 
     initial = np.array([[r["theta0"], r["theta_dot0"]] for r in records])
     rollouts, noisy = rollout_guesses(initial, grids, progress=progress)
@@ -245,7 +243,6 @@ def reuse_references(records: list[dict[str, Any]], previous: dict[str, Any], gr
     Raises:
         ValueError: other DP grids, or a seed (or its initial state) missing from ``previous``.
     """
-    from fvin_mpc.studies.pool import run_tasks
 
     stored_grids = tuple(tuple(g) for g in previous["config"].get("reference_grids", ()))
     if stored_grids != tuple(tuple(g) for g in grids):
@@ -279,7 +276,6 @@ def run_benchmark(config: BenchmarkConfig, workers: int = 1, progress: bool = Tr
     or with ``reference_from`` (an earlier run's JSON) reused with this run's MPC episodes polished
     (:func:`reuse_references`); ``workers > 1`` uses a process pool, ``backend="ray"`` Ray actors
     (``address``: the cluster; :func:`fvin_mpc.studies.pool.run_tasks`)."""
-    from fvin_mpc.studies.pool import run_tasks
 
     if workers > 1 or backend != "process":
         build_mpc(config)  # compiles the MPC's library into the disk cache once, before the workers load it
@@ -368,7 +364,6 @@ def write_markdown(summary: dict[str, Any], records: list[dict[str, Any]], confi
                    path: Path, previous: dict[str, Any] | None = None, reference_reused_from: str | None = None) -> None:
     """``path`` (``.md``) and its ``.json`` twin through the one report writer; ``previous`` (an earlier
     run's JSON) adds its MPC returns and references per seed to the table."""
-    from fvin_mpc.studies.report import write_report
 
     previous_by_seed = {e["seed"]: e for e in previous["episodes"]} if previous else {}
 

@@ -40,7 +40,10 @@ from typing import Any
 import numpy as np
 
 from benchmarks.pendulum_v1_exact import EPISODE_STEPS, MAX_SPEED, MAX_TORQUE, v1_cost
-from benchmarks.pendulum_v1_mpc import BenchmarkConfig
+from benchmarks.pendulum_v1_mpc import BenchmarkConfig, add_references, build_mpc, reuse_references, run_v1_episode
+from benchmarks.pendulum_v1_value import interpolate, model_value_table
+from fvin_mpc.envs.pendulum_v1 import v1_observation_from_state
+from fvin_mpc.studies.pool import run_tasks
 
 #: Torques the greedy policy tries per step (spacing 0.05 on [−2, 2]).
 GREEDY_TORQUES = 81
@@ -59,7 +62,6 @@ def caught(theta: np.ndarray, rate: np.ndarray) -> bool:
 
 def v1_angles(states: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Pendulum-v1's ``(θ, θ̇)`` of model states ``(…, 7)`` (θ in ``[−π, π)``, 0 upright)."""
-    from fvin_mpc.envs.pendulum_v1 import v1_observation_from_state
 
     observed = v1_observation_from_state(np.asarray(states, float).reshape(-1, 7))
     return np.arctan2(observed[:, 1], observed[:, 0]), observed[:, 2]
@@ -93,7 +95,6 @@ class DPSwingUpController:
 
     def greedy_torque(self, state: np.ndarray) -> tuple[float, np.ndarray]:
         """``argmin_u c(x, u) + V(F(x, u))`` over :attr:`torques` and the model's next state under it."""
-        from benchmarks.pendulum_v1_value import interpolate
 
         state = np.asarray(state, float).ravel()
         next_states = np.asarray(self._mapped_step(np.tile(state[:, None], (1, len(self.torques))),
@@ -247,8 +248,6 @@ class SwingUpConfig(BenchmarkConfig):
 
 def build_swing_up_controller(config: SwingUpConfig) -> SimulatedChoiceController:
     """The benchmark's MPC (:func:`~benchmarks.pendulum_v1_mpc.build_mpc`) with the learned-DP swing-up."""
-    from benchmarks.pendulum_v1_mpc import build_mpc
-    from benchmarks.pendulum_v1_value import model_value_table
 
     mpc = build_mpc(config)
     table = model_value_table(mpc.model, config.value_grid, steps=EPISODE_STEPS - config.horizon, stage_cost="v1")
@@ -267,7 +266,6 @@ def _init_worker(config: SwingUpConfig) -> None:
 
 def run_seed(seed: int) -> dict[str, Any]:
     """The swing-up controller's episode on ``seed``, with its choice and the simulated costs."""
-    from benchmarks.pendulum_v1_mpc import run_v1_episode
 
     controller = _WORKER["controller"]
     record = run_v1_episode(_WORKER["env"], controller, seed)
@@ -278,8 +276,6 @@ def run_swing_up_benchmark(config: SwingUpConfig, workers: int = 1, progress: bo
                            address: str | None = None, reference_from: dict[str, Any] | None = None) -> list[dict[str, Any]]:
     """:func:`~benchmarks.pendulum_v1_mpc.run_benchmark` with :func:`build_swing_up_controller`'s episodes
     (their references the same way: computed, or reused from ``reference_from``)."""
-    from benchmarks.pendulum_v1_mpc import add_references, reuse_references
-    from fvin_mpc.studies.pool import run_tasks
 
     if workers > 1 or backend != "process":
         build_swing_up_controller(config)  # compiles the MPC's library and the value into the disk cache once

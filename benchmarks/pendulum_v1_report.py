@@ -21,6 +21,7 @@ from benchmarks.pendulum_v1_mpc import (
     summarize,
     write_markdown,
 )
+from benchmarks.pendulum_v1_plan import SwingUpConfig, describe_swing_up, run_swing_up_benchmark
 from fvin_mpc._cli import add_backend_arguments, backend_options, checked_scene_and_checkpoint, exit_status, run_command
 from fvin_mpc.studies.pool import TasksFailed
 
@@ -117,7 +118,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         if not args.dp_swing_up and any(v is not None for v in swing_up.values()):
             raise ValueError("--dp-lookahead, --dp-simulated-steps and --dp-choice-margin need --dp-swing-up")
         if args.dp_swing_up:
-            from benchmarks.pendulum_v1_plan import SwingUpConfig
 
             config = SwingUpConfig(**options, **{k: v for k, v in swing_up.items() if v is not None})
         else:
@@ -128,7 +128,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         backend = backend_options(args)
         reference_from = json.loads(args.reference_from.read_text()) if args.reference_from else None
         if args.dp_swing_up:
-            from benchmarks.pendulum_v1_plan import run_swing_up_benchmark
 
             records = run_swing_up_benchmark(config, args.workers, progress=not args.quiet,
                                              reference_from=reference_from, **backend)
@@ -145,7 +144,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     write_markdown(summary, records, config, command.strip(), args.out, previous,
                    str(args.reference_from) if args.reference_from else None)
     if args.dp_swing_up:
-        from benchmarks.pendulum_v1_plan import describe_swing_up
 
         describe_swing_up(args.out, config, records)
     print(json.dumps(summary, indent=2))

@@ -34,6 +34,8 @@ from typing import Any, Callable
 import numpy as np
 
 from benchmarks.pendulum_v1_exact import EPISODE_STEPS, MAX_SPEED, MAX_TORQUE, v1_cost
+from fvin_mpc.control.export import cache_dir
+from fvin_mpc.envs.pendulum_v1 import state_from_v1_observation, v1_observation_from_state
 
 #: Grid of the learned model's value function: ``(n_theta, n_rate)`` and torques per state.
 VALUE_GRID: tuple[int, int] = (256, 129)
@@ -62,7 +64,6 @@ def learned_transitions(model: Any, thetas: np.ndarray, rates: np.ndarray, torqu
                         chunk: int = 200_000) -> tuple[np.ndarray, np.ndarray]:
     """The model's next ``(θ', θ̇')`` (Pendulum-v1 angles, θ' wrapped to ``[−π, π)``), each of shape
     ``(n_theta, n_rate, n_torque)``, from every grid state under every torque (``model.step`` mapped)."""
-    from fvin_mpc.envs.pendulum_v1 import state_from_v1_observation, v1_observation_from_state
 
     theta, rate, torque = np.meshgrid(thetas, rates, torques, indexing="ij")
     observation = np.stack([np.cos(theta), np.sin(theta), rate], axis=-1).reshape(-1, 3)
@@ -153,7 +154,6 @@ def model_value_table(model: Any, grid: tuple[int, int] = VALUE_GRID, torques: i
                       stage_cost: str = "mpc", max_torque: float = MAX_TORQUE, cache: bool = True) -> np.ndarray:
     """``V_steps`` of the learned ``model`` for Pendulum-v1's cost on ``grid``; cached on disk under the
     MPC's compile cache (key: the step function's serialization, the grid, torques and steps)."""
-    from fvin_mpc.control.export import cache_dir
 
     torque_values = np.linspace(-max_torque, max_torque, torques)
     key = hashlib.sha256(model.step.serialize().encode() + repr((grid, torques, steps, tuple(noise), stage_cost, max_torque)).encode()).hexdigest()[:20]
@@ -187,7 +187,6 @@ def plan_score(table: np.ndarray, stage_cost: str = "v1") -> Callable[[np.ndarra
     """``(states (N+1, 7), controls (N, 1)) ↦ Σ_k c(x_k, u_k) + V(x_N)``: a plan's estimate of the whole
     episode's cost (the stage cost over the horizon, the value ``table`` bilinear after it), to rank the
     MPC's cold-start plans (:class:`~fvin_mpc.control.mpc.MPC`'s ``cold_start_score``)."""
-    from fvin_mpc.envs.pendulum_v1 import v1_observation_from_state
 
     cost = STAGE_COSTS[stage_cost]
 

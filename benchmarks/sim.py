@@ -18,8 +18,9 @@ from typing import Any
 
 import numpy as np
 
-from benchmarks.common import NOISE_NOTE
-from benchmarks.study import StudyResult
+from benchmarks.common import NOISE_NOTE, plot_pareto
+from benchmarks.study import StudyResult, median_time
+from fvin_mpc.envs.scenes import SCENES, build_model, load_model
 
 THETA0, TORQUE = 2.5, 0.5
 SAMPLE_PERIOD = 0.01
@@ -58,8 +59,6 @@ def _all_effects_model(xml_path: Any) -> Any:
     """The scene with everything MuJoCo can compute: no disable flag, every enable flag, collidable geoms."""
     import mujoco
 
-    from fvin_mpc.envs.scenes import load_model
-
     model = load_model(xml_path)
     model.opt.disableflags = 0
     enable = 0
@@ -75,8 +74,6 @@ def _all_effects_model(xml_path: Any) -> Any:
 
 def run(quick: bool = False, seed: int = 0, repeats: int = 5, duration: float = 5.0, **_: Any) -> StudyResult:
     import mujoco
-
-    from fvin_mpc.envs.scenes import SCENES, build_model
 
     spec = SCENES["pendulum"]
     duration = 1.0 if quick else duration
@@ -156,7 +153,6 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 5, duration: float = 
 
     def plot(figure: Any, rows_: list[dict[str, Any]]) -> None:
         axis = figure.add_subplot()
-        from benchmarks.common import plot_pareto
 
         integ = [r for r in rows_ if r["part"] == "integrator"]
         for name in sorted({r["integrator"] for r in integ}):
@@ -176,8 +172,6 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 5, duration: float = 
 
 
 def _median(function: Any, repeats: int) -> tuple[float, float]:
-    from benchmarks.study import median_time
-
     return median_time(function, repeats)
 
 

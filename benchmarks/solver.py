@@ -27,6 +27,13 @@ from typing import Any
 
 from benchmarks.common import NOISE_NOTE, checkpoint_or_none, make_env, plot_pareto, solve_stats
 from benchmarks.study import StudyResult, StudySkipped
+from fvin_mpc.control.closed_loop import episode_metrics, run_episode
+from fvin_mpc.control.export import cache_dir, from_checkpoint, from_rigid_body
+from fvin_mpc.control.mpc import MPC, MPCSettings
+from fvin_mpc.control.scene import scene_env, scene_model, scene_mpc, scene_mpc_settings
+from fvin_mpc.core.checkpoint import load_checkpoint
+from fvin_mpc.core.rigid_body import from_mujoco
+from fvin_mpc.studies.report import markdown_table
 
 #: (label, settings overrides) — IPOPT (the default solver) first.
 CONFIGS: tuple[tuple[str, dict[str, Any]], ...] = (
@@ -46,9 +53,6 @@ QUICK = ("ipopt GN cached pd (default)", "sqpmethod GN cached pd", "fatrop exact
 
 
 def _model(model: str) -> tuple[Any, Any, str]:
-    from fvin_mpc.control.export import from_checkpoint, from_rigid_body
-    from fvin_mpc.core.rigid_body import from_mujoco
-
     env = make_env("pendulum")
     base = env.unwrapped
     if model == "true":
@@ -65,9 +69,6 @@ def _cold_build_s(exported: Any, settings: Any) -> float:
     The library it compiles is then copied into the real cache, so the next build is a cached one."""
     import shutil
     from pathlib import Path
-
-    from fvin_mpc.control.export import cache_dir
-    from fvin_mpc.control.mpc import MPC
 
     previous = os.environ.get("FVIN_MPC_CACHE")
     with tempfile.TemporaryDirectory(prefix="fvin_mpc_cold_") as empty:
@@ -113,9 +114,6 @@ def realtime_rows(duration: float = 10.0, seed: int = 0, scenes: tuple[str, ...]
     labelled ``learned (<variant>)``) × configuration."""
     import numpy as np
 
-    from fvin_mpc.control.closed_loop import episode_metrics, run_episode
-    from fvin_mpc.control.scene import scene_env, scene_model, scene_mpc, scene_mpc_settings
-
     rows: list[dict[str, Any]] = []
     for scene in scenes:
         models = [("learned", None, False), ("closed form", None, True)]
@@ -154,7 +152,6 @@ def realtime_rows(duration: float = 10.0, seed: int = 0, scenes: tuple[str, ...]
 
 def _variant(checkpoint: str) -> str:
     """The checkpoint's variant, from its metadata (``pendulum_fixed-inertia`` → ``fixed-inertia``)."""
-    from fvin_mpc.core.checkpoint import load_checkpoint
 
     return load_checkpoint(checkpoint).config.variant
 
@@ -162,7 +159,6 @@ def _variant(checkpoint: str) -> str:
 def run(quick: bool = False, seed: int = 0, repeats: int = 5, model: str = "learned", horizon: int = 30,
         duration: float = 8.0, cold: bool = True, realtime: bool = True, realtime_duration: float = 10.0,
         **_: Any) -> StudyResult:
-    from fvin_mpc.control.mpc import MPCSettings
 
     model = "true" if quick else model
     env, exported, label = _model(model)
@@ -203,7 +199,6 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 5, model: str = "lear
         NOISE_NOTE,
     ]
     if realtime and not quick:
-        from fvin_mpc.studies.report import markdown_table
 
         load = os.getloadavg()
         realtime_table = realtime_rows(realtime_duration, seed)

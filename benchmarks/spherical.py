@@ -24,6 +24,8 @@ from typing import Any
 
 import numpy as np
 
+from fvin_mpc.control.closed_loop import episode_metrics, run_episode
+from fvin_mpc.control.scene import scene_env, scene_model, scene_mpc, scene_mpc_settings
 from fvin_mpc.studies.starts import episode_starts
 
 SCENE = "spherical_pendulum"
@@ -40,9 +42,6 @@ def closed_loop_study(checkpoint: str | None, episodes: int = 21, duration_s: fl
     processes, merged again by :func:`merge_results`); ``partial_path`` gets the results so far
     after every episode."""
     from tqdm.auto import tqdm
-
-    from fvin_mpc.control.closed_loop import episode_metrics, run_episode
-    from fvin_mpc.control.scene import scene_env, scene_model, scene_mpc, scene_mpc_settings
 
     env = scene_env(SCENE, true_model=True)
     settings = scene_mpc_settings(env, horizon=horizon)

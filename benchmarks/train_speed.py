@@ -31,7 +31,11 @@ import time
 from pathlib import Path
 from typing import Any
 
+from benchmarks.common import checkpoint_or_none
 from benchmarks.study import StudyResult, median_time
+from fvin_mpc.core.data import load_data
+from fvin_mpc.learning.timing import torch_threads
+from fvin_mpc.learning.training import reference_iteration, split_losses
 
 REFERENCE_SECONDS_PER_ITERATION = 1.5
 DAMPED_DATA = Path("data/pendulum_damped_10k.npz")
@@ -47,9 +51,6 @@ MODES: dict[str, list[str]] = {
 def _shipped_validation_loss(name: str, data: Path) -> float | None:
     """The shipped checkpoint ``name``'s validation loss on ``data``'s validation split (as
     ``fvin_mpc.train`` splits it with default settings); ``None`` without the checkpoint."""
-    from benchmarks.common import checkpoint_or_none
-    from fvin_mpc.core.data import load_data
-    from fvin_mpc.learning.training import split_losses
 
     checkpoint = checkpoint_or_none(name)
     if checkpoint is None:
@@ -93,7 +94,6 @@ def _fresh_process(data: Path, mode: str, target: float, threads: int, seed: int
 
 def run(quick: bool = False, seed: int = 0, repeats: int = 5, threads: int = 1, modes: str = "eager,compiled",
         optimizers: str = ",".join(MODES), to_target: bool = True, time_limit: float = 600.0, **_: Any) -> StudyResult:
-    from fvin_mpc.learning.timing import torch_threads
 
     with torch_threads(threads):
         result = _per_iteration(quick, seed, repeats, ["eager"] if quick else modes.split(","))
@@ -128,8 +128,6 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 5, threads: int = 1, 
 
 
 def _per_iteration(quick: bool, seed: int, repeats: int, modes: list[str]) -> StudyResult:
-    from fvin_mpc.learning.training import reference_iteration
-
     windows, steps = (352, 9) if quick else (3520, 9)
     repeats = 2 if quick else repeats
     rows = []

@@ -24,7 +24,17 @@ import numpy as np
 
 from benchmarks.common import NOISE_NOTE, heldout_data, make_env, plot_pareto, solve_stats
 from benchmarks.study import StudyResult
+from fvin_mpc.control.export import cache_dir, from_checkpoint
+from fvin_mpc.control.mpc import MPCSettings
+from fvin_mpc.core.backend import get_ops
+from fvin_mpc.core.checkpoint import load_checkpoint, save_checkpoint
+from fvin_mpc.core.data import load_data, save_data
+from fvin_mpc.core.networks import LearnedTerms, ModelConfig
+from fvin_mpc.learning.collection import collect
 from fvin_mpc.learning.timing import torch_threads
+from fvin_mpc.learning.training import TrainSettings, train
+from fvin_mpc.studies.model_quality import rollout
+from fvin_mpc.studies.pool import run_tasks
 
 WIDTHS = (8, 16, 32, 64)
 #: ``run`` takes ``workers``, ``backend`` and ``ray_address``: its rows go through
@@ -35,9 +45,6 @@ VARIANTS = ("sign-invariant", "fixed-inertia")
 
 def _training_data(seed: int) -> Any:
     from pathlib import Path
-
-    from fvin_mpc.core.data import load_data, save_data
-    from fvin_mpc.learning.collection import collect
 
     path = Path("data/pendulum.npz")
     if path.is_file():
@@ -50,10 +57,6 @@ def _training_data(seed: int) -> Any:
 
 def _trained(data: Any, variant: str, width: int, iterations: int, seed: int, progress: bool) -> tuple[Any, bool]:
     """A checkpoint trained with these settings: from the cache, or trained now and cached."""
-    from fvin_mpc.control.export import cache_dir
-    from fvin_mpc.core.checkpoint import load_checkpoint, save_checkpoint
-    from fvin_mpc.core.networks import ModelConfig
-    from fvin_mpc.learning.training import TrainSettings, train
 
     config = ModelConfig(variant=variant, control_dim=data.u.shape[2], hidden_width=width,
                          step_size=data.control_period)
@@ -81,11 +84,6 @@ def _init_worker(data: Any, heldout: Any, iterations: int, seed: int, horizon: i
 def width_row(variant: str, width: int) -> dict[str, Any]:
     """One row (in the current worker): the model trained (or from the cache), its held-out rollout
     error and its MPC's swing-up; ``compile_failure`` says if the MPC fell back to interpreted."""
-    from fvin_mpc.control.export import from_checkpoint
-    from fvin_mpc.control.mpc import MPCSettings
-    from fvin_mpc.core.backend import get_ops
-    from fvin_mpc.core.networks import LearnedTerms
-    from fvin_mpc.studies.model_quality import rollout
 
     w = _WORKER
     heldout, quick, seed = w["heldout"], w["quick"], w["seed"]
@@ -122,21 +120,18 @@ def width_row(variant: str, width: int) -> dict[str, Any]:
 def run(quick: bool = False, seed: int = 0, repeats: int = 5, iterations: int = 200, train_trajectories: int = 32,
         horizon: int = 30, duration: float = 4.0, widths: str = ",".join(map(str, WIDTHS)), workers: int = 1,
         backend: str = "process", ray_address: str | None = None, **_: Any) -> StudyResult:
-    from fvin_mpc.studies.pool import run_tasks
 
     width_list = [4] if quick else [int(w) for w in widths.split(",")]
     variants = ("fixed-inertia",) if quick else VARIANTS
     if quick:
         iterations, train_trajectories, horizon, duration = 3, 8, 10, 1.0
     if quick:
-        from fvin_mpc.learning.collection import collect
 
         full = collect("pendulum", train_trajectories, 20, seed, progress=False)
     else:
         full = _training_data(seed)
     data = full.subset(np.sort(np.random.default_rng(seed).permutation(full.num_trajectories)[:train_trajectories]))
     if quick:
-        from fvin_mpc.learning.collection import collect
 
         heldout = collect("pendulum", 8, 10, 1, progress=False)
     else:

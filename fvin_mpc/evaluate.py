@@ -24,6 +24,8 @@ from fvin_mpc._cli import (
     positive_float,
     run_command,
 )
+from fvin_mpc.core.checkpoint import checkpoint_exists
+from fvin_mpc.envs.scenes import existing_scene
 from fvin_mpc.studies.evaluation import (
     CONTROLLERS,
     DEFAULT_MAX_OMEGA,
@@ -59,8 +61,6 @@ def build_parser() -> argparse.ArgumentParser:
 def _check_scene_and_checkpoint(config: EvaluationConfig) -> None:
     """The scene, and the checkpoint if a learned controller will run, before any episode: a missing
     default checkpoint is no error here (the learned controllers are skipped), a wrong one is."""
-    from fvin_mpc.core.checkpoint import checkpoint_exists
-    from fvin_mpc.envs.scenes import existing_scene
 
     learned = any(name.endswith("-learned") for name in config.controllers)
     explicit = config.checkpoint is not None

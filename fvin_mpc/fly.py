@@ -13,6 +13,7 @@ from typing import Sequence
 
 import fvin_mpc.studies.flight_report as study
 from fvin_mpc._cli import add_latency_argument, checked_scene_and_checkpoint, run_command
+from fvin_mpc.control.closed_loop import write_video
 from fvin_mpc.core.errors import UsageError
 
 
@@ -77,7 +78,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         args.json.write_text(json.dumps({"command": "python -m fvin_mpc.fly " + " ".join(argv), **data}, indent=1,
                                         default=float) + "\n")
     if args.video:
-        from fvin_mpc.control.closed_loop import write_video
 
         args.video.parent.mkdir(parents=True, exist_ok=True)
         write_video(frames, args.video, fps=1.0 / env.dt)

@@ -20,6 +20,7 @@ from fvin_mpc.core.checkpoint import CheckpointError, load_checkpoint
 from fvin_mpc.core.data import load_data, save_data
 from fvin_mpc.core.rigid_body import from_mujoco
 from fvin_mpc.envs.scenes import resolve_scene
+from fvin_mpc.learning.collection import collect
 from fvin_mpc.studies.model_quality import NP, compare_components, energy_behaviour, report, rollout_error
 
 #: Defaults that differ between the planar (hinge) and the 3-D (ball-joint) report: rollout steps
@@ -63,8 +64,6 @@ def hinge_report(args: argparse.Namespace, name: str) -> str:
     quaternions = np.concatenate([np.cos(angles / 2)[:, None], np.sin(angles / 2)[:, None] * axis], 1)
     data_path = args.data or Path("data") / f"{env.scene_spec.name}_heldout.npz"
     if not data_path.exists() and args.data is None:
-        # Collection needs the learning layer's collector; it imports no torch.
-        from fvin_mpc.learning.collection import collect
 
         save_data(data_path, collect(checkpoint.scene, trajectories=64, steps=horizon, seed=1))
     held_out = load_data(data_path)

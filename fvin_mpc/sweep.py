@@ -14,6 +14,7 @@ from typing import Any, Callable, Sequence
 
 import fvin_mpc.studies.training_sweep as sweep_module
 from fvin_mpc._cli import add_backend_arguments, backend_options, run_command
+from fvin_mpc.learning.training import DEFAULT_DATA, OPTIMIZERS
 from fvin_mpc.studies.training_sweep import SweepConfig, run_sweep, sweep_table, write_report
 
 
@@ -34,8 +35,6 @@ def _size(text: str) -> int | None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from fvin_mpc.learning.training import DEFAULT_DATA, OPTIMIZERS
-
     parser = argparse.ArgumentParser(prog="python -m fvin_mpc.sweep", description=sweep_module.__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", type=Path, default=DEFAULT_DATA, help="data file from fvin_mpc.collect (default: %(default)s)")

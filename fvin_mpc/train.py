@@ -28,6 +28,7 @@ _START = time.perf_counter()
 import numpy as np  # noqa: E402
 
 from fvin_mpc._cli import run_command  # noqa: E402
+from fvin_mpc.core.checkpoint import load_checkpoint, save_checkpoint
 from fvin_mpc.core.data import load_data  # noqa: E402
 from fvin_mpc.core.space import space_for_variant, space_of_config, spaces  # noqa: E402
 from fvin_mpc.learning.space_training import train_model, training_for  # noqa: E402
@@ -113,8 +114,6 @@ _SETTINGS_OPTIONS = {"optimizer": "optimizer", "iterations": "iterations", "lr":
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-
-    from fvin_mpc.core.checkpoint import load_checkpoint, save_checkpoint
 
     if args.evaluate is not None:
         if args.test_data is None:

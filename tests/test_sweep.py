@@ -9,6 +9,7 @@ import pytest
 from test_pool import ray_cluster  # noqa: F401  (the session's local Ray cluster)
 
 import fvin_mpc.learning.training
+import fvin_mpc.studies.training_sweep
 from fvin_mpc.core.checkpoint import load_checkpoint
 from fvin_mpc.studies.training_sweep import SweepConfig, run_sweep, sweep_table, write_report
 
@@ -53,7 +54,7 @@ def test_a_failed_run_is_listed_and_the_others_are_written(data_path, tmp_path, 
             raise FloatingPointError("training loss became nan at iteration 2")
         return real_train(data, config, settings, progress)
 
-    monkeypatch.setattr(fvin_mpc.learning.training, "train", train)
+    monkeypatch.setattr(fvin_mpc.studies.training_sweep, "train", train)  # the name the sweep calls
     config = SweepConfig(data=str(data_path), widths=(4,), seeds=(0, 1, 2), train=TRAIN)
     result = run_sweep(config, tmp_path, progress=False)  # serial: the patch applies in this process
     assert [r["status"] for r in result.runs] == ["ok", "failed", "ok"]

@@ -28,6 +28,8 @@ from typing import Any
 
 import numpy as np
 
+from fvin_mpc.control import export
+from fvin_mpc.control.closed_loop import episode_metrics
 from fvin_mpc.control.export import ExportedModel
 from fvin_mpc.control.mpc import MPCSettings
 from fvin_mpc.control.rti import ConstantReference, RealTimeMPC
@@ -72,7 +74,6 @@ def quadrotor_model(env: Any, checkpoint: Any = None, true_model: bool = False, 
     Raises:
         ValueError: the model's step differs from the env's control period, or it is not a free body.
     """
-    from fvin_mpc.control import export
 
     base = env.unwrapped
     if true_model:
@@ -203,7 +204,6 @@ def flight_metrics(episode: Any, reference: Any, settle_s: float = 0.0,
     figures of :func:`fvin_mpc.control.closed_loop.episode_metrics` (time per call, CPU time, deadline
     misses, failures). Angles are sign-invariant (``2 acos |⟨q, q_ref⟩|``).
     """
-    from fvin_mpc.control.closed_loop import episode_metrics
 
     states = episode.states
     layout = R3S3.layout

@@ -37,6 +37,7 @@ import numpy as np
 
 from fvin_mpc.core import networks, s3
 from fvin_mpc.core.backend import Ops
+from fvin_mpc.core.fvin_r3s3 import FORCE_RULES
 from fvin_mpc.core.networks import VARIANTS, Variant, mlp, scalar_mlp_value_and_gradient
 
 
@@ -71,8 +72,6 @@ class R3S3Config(networks.DictConfig):
     inertia_epsilon: float = 1e-8
 
     def __post_init__(self) -> None:
-        from fvin_mpc.core.fvin_r3s3 import FORCE_RULES
-
         if self.variant not in VARIANTS:
             raise ValueError(f"unknown variant {self.variant!r}; expected one of {VARIANTS}")
         if self.force_frame not in ("body", "world"):

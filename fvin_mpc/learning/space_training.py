@@ -26,6 +26,7 @@ from fvin_mpc.core.networks_r3s3 import LearnedCombinedTerms, R3S3Config, physic
 from fvin_mpc.core.quadrotor import from_mujoco
 from fvin_mpc.core.space import R3S3, ConfigurationSpace, space_of_config
 from fvin_mpc.envs import QuadrotorEnv
+from fvin_mpc.learning.training import train
 
 #: Position and velocity scales of the free body's loss (1/m, s/m): 1 mm of position error weighs as 0.03 rad/s.
 POSITION_SCALE, VELOCITY_SCALE = 30.0, 10.0
@@ -97,7 +98,6 @@ def train_model(data: Trajectories, config: Any, settings: Any, progress: bool =
     training layout (its ``rest_scale``), from ``initial_weights`` when given (continued training)
     or the seeded initialization; the report records the scales."""
     from fvin_mpc.learning.model import model_for
-    from fvin_mpc.learning.training import train
 
     space = space_of_config(config)
     preset = training_for(space)

@@ -11,6 +11,9 @@ from typing import Any, Callable, Iterator
 
 import numpy as np
 
+from fvin_mpc.core import fvin
+from fvin_mpc.core.backend import get_ops
+
 
 @contextmanager
 def torch_threads(threads: int) -> Iterator[None]:
@@ -34,9 +37,6 @@ def batched_step_call(terms_of: Callable[[Any], Any], step_size: float, newton_i
     ``terms_of(ops)`` builds the rigid-body terms on the torch backend (learned weights as float64
     tensors, or a closed-form body). For timing with :func:`benchmarks.study.median_time` (the repository's studies)."""
     import torch
-
-    from fvin_mpc.core import fvin
-    from fvin_mpc.core.backend import get_ops
 
     ops = get_ops("torch")
     terms = terms_of(ops)

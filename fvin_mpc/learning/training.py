@@ -36,8 +36,11 @@ from typing import Any, Callable, Literal, Mapping
 
 import numpy as np
 
+from fvin_mpc.core import s3
 from fvin_mpc.core.data import Trajectories
+from fvin_mpc.core.errors import UsageError
 from fvin_mpc.core.networks import ModelConfig
+from fvin_mpc.envs import RigidBodyEnv
 from fvin_mpc.learning.timing import torch_threads
 
 DEFAULT_DATA = Path("data/pendulum.npz")
@@ -169,7 +172,6 @@ def default_output_stem(data: Trajectories, data_path: str | Path, variant: str,
 def refuse_to_overwrite(stem: Path, force: bool) -> None:
     """``UsageError`` if a checkpoint (either of its files) is at ``stem`` and not ``force``: a default
     output name must not silently replace a shipped or earlier model."""
-    from fvin_mpc.core.errors import UsageError
 
     existing = [path for path in (stem.parent / f"{stem.name}.json", stem.parent / f"{stem.name}.safetensors")
                 if path.exists()]
@@ -189,8 +191,6 @@ def scene_has_joint_damping(metadata: Mapping[str, Any]) -> bool | None:
     if not scene:
         return None
     try:
-        from fvin_mpc.envs import RigidBodyEnv
-
         env = RigidBodyEnv(scene=scene, body=metadata.get("body"))
     except (ValueError, FileNotFoundError, OSError):
         return None
@@ -222,8 +222,6 @@ def rollout_residuals(q_hat: Any, omega_hat: Any, q: Any, omega: Any, omega_weig
     changes the residuals' sign, not their squares, ``JᵀJ`` or ``Jᵀr``); velocity:
     ``√omega_weight·(ω̂ − ω)``."""
     import torch
-
-    from fvin_mpc.core import s3
 
     a, b = q_hat[:, 1:].unbind(-1), q[:, 1:].unbind(-1)
     orientation = torch.stack(s3.imaginary(s3.multiply(s3.conjugate(b), a)), dim=-1)

@@ -33,6 +33,19 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from fvin_mpc.control.closed_loop import NOT_MEASURED, run_episode
+from fvin_mpc.control.flight import (
+    FigureEight,
+    flight_metrics,
+    hover_reference,
+    quadrotor_model,
+    quadrotor_mpc,
+    quadrotor_mpc_settings,
+    recovery_starts,
+)
+from fvin_mpc.envs.quadrotor_env import QuadrotorEnv
+from fvin_mpc.studies.report import markdown_table, write_report
+
 #: The scene.
 SCENE = "quadrotor"
 #: Seconds per recovery episode.
@@ -44,14 +57,11 @@ MODELS = ("learned", "closed-form")
 
 
 def make_env(render: bool = False) -> Any:
-    from fvin_mpc.envs.quadrotor_env import QuadrotorEnv
-
     return QuadrotorEnv(SCENE, render_mode="rgb_array" if render else None)
 
 
 def make_controller(env: Any, model_kind: str, checkpoint: Any = None, **overrides: Any) -> Any:
     """The RTI MPC planning with ``model_kind`` (``"learned"`` or ``"closed-form"``) on ``env``."""
-    from fvin_mpc.control.flight import quadrotor_model, quadrotor_mpc, quadrotor_mpc_settings
 
     if model_kind not in MODELS:
         raise ValueError(f"model must be one of {MODELS}, got {model_kind!r}")
@@ -61,7 +71,6 @@ def make_controller(env: Any, model_kind: str, checkpoint: Any = None, **overrid
 
 def figure_eight(env: Any) -> Any:
     """The task's figure-eight around the env's hover point."""
-    from fvin_mpc.control.flight import FigureEight
 
     return FigureEight(center=tuple(env.unwrapped.hover_point), amplitude=0.5, period=3.0, ramp_s=1.0)
 
@@ -71,9 +80,6 @@ def run_recovery(env: Any, controller: Any, episodes: int, seed: int, latency: A
     """Recovery episodes from :func:`~fvin_mpc.control.flight.recovery_starts`; per-episode metrics,
     the episodes, and the first episode's frames when ``render_first``."""
     from tqdm.auto import tqdm
-
-    from fvin_mpc.control.closed_loop import run_episode
-    from fvin_mpc.control.flight import flight_metrics, hover_reference, recovery_starts
 
     controller.set_reference(hover_reference(env))
     rows, kept, frames = [], [], []
@@ -95,8 +101,6 @@ def run_recovery(env: Any, controller: Any, episodes: int, seed: int, latency: A
 def run_figure_eight(env: Any, controller: Any, latency: Any, progress: bool = True,
                      render: bool = False) -> tuple[dict[str, Any], Any, list[np.ndarray]]:
     """One figure-eight flight from hover at the centre: metrics, the episode and its frames."""
-    from fvin_mpc.control.closed_loop import run_episode
-    from fvin_mpc.control.flight import flight_metrics
 
     reference = figure_eight(env)
     controller.set_reference(reference)
@@ -111,7 +115,6 @@ def run_figure_eight(env: Any, controller: Any, latency: Any, progress: bool = T
 def summarize(model_kind: str, recovery: list[dict[str, Any]] | None, tracking: dict[str, Any] | None,
               episodes: list[Any]) -> dict[str, Any]:
     """One table row: recoveries, time to recover, figure-eight RMS, controller time over every period."""
-    from fvin_mpc.control.closed_loop import NOT_MEASURED
 
     times = np.concatenate([e.controller_time_s for e in episodes]) * 1e3
     times = times[np.isfinite(times)]
@@ -142,7 +145,6 @@ def side_by_side(out_dir: Path, argv: Sequence[str], episodes: int = 20, seed: i
                  checkpoint: Any = None, models: Sequence[str] = MODELS, progress: bool = True) -> dict[str, Any]:
     """Both tasks with each model under the same controller; writes ``out_dir/quadrotor.{json,md}``
     and ``recovery.png``, ``figure_eight.png``; returns the data."""
-    from fvin_mpc.studies.report import markdown_table, write_report
 
     env = make_env()
     results: dict[str, Any] = {"episodes": episodes, "seed": seed, "latency": latency, "models": {}}
@@ -250,7 +252,6 @@ def write_still(frames: list[np.ndarray], path: Path, count: int = 5) -> None:
     imageio.imwrite(str(path), np.concatenate([frames[i] for i in picks if i < len(frames)], axis=1))
 
 
-def print_rows(rows: list[dict[str, Any]], file: Any = sys.stdout) -> None:
-    from fvin_mpc.studies.report import markdown_table
-
-    print(markdown_table(rows, [c for c in COLUMNS if any(c in row for row in rows)]), file=file)
+def print_rows(rows: list[dict[str, Any]], file: Any = None) -> None:
+    # sys.stdout read at the call, not at import: a caller (or a test) may have replaced it since.
+    print(markdown_table(rows, [c for c in COLUMNS if any(c in row for row in rows)]), file=file or sys.stdout)

@@ -41,7 +41,9 @@ from fvin_mpc.core.backend import get_ops
 from fvin_mpc.core.checkpoint import Checkpoint, load_checkpoint
 from fvin_mpc.core.data import Trajectories
 from fvin_mpc.core.networks import LearnedTerms
+from fvin_mpc.core.rigid_body import from_mujoco
 from fvin_mpc.core.space import S3
+from fvin_mpc.envs import RigidBodyEnv
 
 NP = get_ops("numpy")
 
@@ -206,8 +208,6 @@ def uniform_quaternions(count: int, seed: int) -> np.ndarray:
 def scene_body(scene: str = "spherical_pendulum") -> tuple[Any, np.ndarray]:
     """The closed-form :class:`~fvin_mpc.core.rigid_body.PivotedRigidBody` of a scene (read off its
     MJCF) and the scene's rest orientation."""
-    from fvin_mpc.core.rigid_body import from_mujoco
-    from fvin_mpc.envs import RigidBodyEnv
 
     env = RigidBodyEnv(scene=scene)
     body, rest = from_mujoco(env.model, env.body_name), env.rest
@@ -346,7 +346,6 @@ def solvability_limit(inertia: np.ndarray, step_size: float, directions: np.ndar
 
 def true_rollout_error(body: Any, step_size: float, newton_iters: int, data: Trajectories, horizon: int) -> dict[str, Any]:
     """:func:`rollout_error` of the closed-form body (the integrator's own error)."""
-    from fvin_mpc.core import s3
 
     q_hat, omega_hat, residual = rollout(body.terms(NP), step_size, newton_iters, data.q[:, 0], data.omega[:, 0],
                                          data.u[:, :horizon])
