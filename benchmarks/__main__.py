@@ -44,9 +44,15 @@ def build_parser() -> argparse.ArgumentParser:
         sub = subparsers.add_parser(name, help=summary, description=module.__doc__,
                                     formatter_class=argparse.RawDescriptionHelpFormatter)
         sub.add_argument("--quick", action="store_true", help="tiny workload (used by the test suite)")
-        sub.add_argument("--out-dir", type=Path, default=Path("docs/bench"), help="where to write (default: %(default)s)")
-        sub.add_argument("--repeats", type=int, default=5, help="timing repeats per configuration (default: %(default)s)")
-        sub.add_argument("--seed", type=int, default=0, help="seeds data, initial states and training (default: %(default)s)")
+        sub.add_argument(
+            "--out-dir", type=Path, default=Path("docs/bench"), help="where to write (default: %(default)s)"
+        )
+        sub.add_argument(
+            "--repeats", type=int, default=5, help="timing repeats per configuration (default: %(default)s)"
+        )
+        sub.add_argument(
+            "--seed", type=int, default=0, help="seeds data, initial states and training (default: %(default)s)"
+        )
         if hasattr(module, "add_arguments"):
             module.add_arguments(sub)
         if getattr(module, "PARALLEL_ROWS", False):

@@ -167,5 +167,15 @@ def timed(function: Any) -> tuple[Any, float]:
     return value, time.perf_counter() - start
 
 
-__all__ = ["NOISE_NOTE", "BOUNDED_HELDOUT", "heldout_data", "checkpoint_or_none", "make_env", "solve_stats", "pareto_mask",
-           "plot_pareto", "timed", "replace"]
+__all__ = [
+    "NOISE_NOTE",
+    "BOUNDED_HELDOUT",
+    "heldout_data",
+    "checkpoint_or_none",
+    "make_env",
+    "solve_stats",
+    "pareto_mask",
+    "plot_pareto",
+    "timed",
+    "replace",
+]

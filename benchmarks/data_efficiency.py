@@ -26,7 +26,8 @@ loop on the same windows with the same settings. The MLP has no energy: its MPC'
 energy-deficit term uses the closed-form energy (privileged information that favours it).
 
 Data: one pool of ``--pool`` transitions (default 20,000) in trajectories of 10 periods (seed
-``--seed``; the package's collector and its defaults otherwise), collected once; the training set of ``n`` transitions for draw ``r`` is the
+``--seed``; the package's collector and its defaults otherwise), collected once; the training set of
+``n`` transitions for draw ``r`` is the
 first ``n / steps`` *whole* trajectories of a permutation seeded by ``(seed, r)`` — whole
 trajectories keep every window valid, and the sets of one draw are nested. Draw ``r`` also seeds
 the training. Everything is cached per cell (model × size × draw) under ``--cache-dir``: a run
@@ -128,7 +129,9 @@ class StudyConfig:
                 raise ValueError(f"size {size} is not a positive multiple of the trajectory length "
                                  f"{self.trajectory_steps} (training sets are whole trajectories)")
         if self.pool_size < max(self.sizes) or self.pool_size % self.trajectory_steps:
-            raise ValueError(f"the pool ({self.pool_size} transitions) must hold the largest size and be whole trajectories")
+            raise ValueError(
+                f"the pool ({self.pool_size} transitions) must hold the largest size and be whole trajectories"
+            )
         if self.trajectory_steps < 8:
             raise ValueError("trajectories need at least 8 periods (the training windows' length)")
         if self.episodes < 1 or self.v1_episodes < 0 or self.duration_s <= 0:
@@ -206,9 +209,12 @@ def train_cell_model(model: str, data: Any, config: StudyConfig, draw: int, stem
                      progress: bool = False) -> dict[str, Any]:
     """Train ``model`` on ``data``, save it at ``stem`` (checkpoint, or the MLP's files); the training report."""
     if model == MLP:
-
-        trained, report = train_mlp(data, MLPConfig(hidden_width=16, step_size=data.control_period), train_settings(config, draw),
-                                    progress=progress)
+        trained, report = train_mlp(
+            data,
+            MLPConfig(hidden_width=16, step_size=data.control_period),
+            train_settings(config, draw),
+            progress=progress,
+        )
         save_mlp(stem, trained.config, trained.numpy_weights(), transitions=data.num_transitions)
     else:
 
@@ -251,7 +257,9 @@ def rollout_errors(model: Any, test: Any) -> dict[str, float]:
             window = model.rollout(x_true[start], controls[start:start + 8])
             truth = x_true[start:start + 9]
             cos = np.sum(window[1:, :4] * truth[1:, :4], axis=-1)
-            window_losses.append(float(np.mean(4.0 * (1.0 - cos**2) + 0.1 * np.sum((window[1:, 4:] - truth[1:, 4:]) ** 2, -1))))
+            window_losses.append(
+                float(np.mean(4.0 * (1.0 - cos**2) + 0.1 * np.sum((window[1:, 4:] - truth[1:, 4:]) ** 2, -1)))
+            )
     finals_array = np.array(finals)
     finite = np.isfinite(finals_array)
     return {"angle_error_1s_mean_rad": float(finals_array[finite].mean()) if finite.any() else math.nan,
@@ -321,7 +329,9 @@ def closed_loop(model: Any, env: Any, config: StudyConfig, progress: bool = Fals
             "budget_exhausted": int(sum(e["budget_exhausted"] for e in episodes)), "per_episode": episodes}
 
 
-def pendulum_v1_returns(model: Any, env: Any, config: StudyConfig, overrides: dict[str, Any] | None = None) -> dict[str, Any]:
+def pendulum_v1_returns(
+    model: Any, env: Any, config: StudyConfig, overrides: dict[str, Any] | None = None
+) -> dict[str, Any]:
     """The Pendulum-v1 benchmark's MPC on ``model`` on ``gymnasium.make("Pendulum-v1")``, seeds
     ``0 … v1_episodes − 1``."""
     if config.v1_episodes == 0:
@@ -510,17 +520,28 @@ def summarize(reference: dict[str, Any], records: list[dict[str, Any]]) -> list[
                               "iterations": r["training"]["iterations"]} for r in mine],
             })
     loop = reference["closed_loop"]
-    rows.append({"model": CLOSED_FORM, "transitions": None, "seeds": None,
-                 "angle_error_1s_rad": reference["rollout"]["angle_error_1s_mean_rad"],
-                 "test_loss": reference["rollout"]["test_window_loss"],
-                 "success": f"{loop['successes']}/{loop['episodes']}", "success_rate": loop["successes"] / loop["episodes"],
-                 "all_succeed": loop["successes"] == loop["episodes"], "cost_mean": loop["cost_mean"],
-                 "cost_excess_pct_median": 0.0, "cost_excess_pct_max": 0.0, "cost_within_2pct_all_seeds": True,
-                 "v1_return_mean": reference["pendulum_v1"]["return_mean"],
-                 "v1_return_worst_seed": (float(np.min(reference["pendulum_v1"]["returns"]))
-                                          if reference["pendulum_v1"]["returns"] else None),
-                 "failed_solves": loop["failures"],
-                 "budget_exhausted": loop.get("budget_exhausted", 0) + reference["pendulum_v1"].get("budget_exhausted", 0)})
+    rows.append(
+        {
+            "model": CLOSED_FORM,
+            "transitions": None,
+            "seeds": None,
+            "angle_error_1s_rad": reference["rollout"]["angle_error_1s_mean_rad"],
+            "test_loss": reference["rollout"]["test_window_loss"],
+            "success": f"{loop['successes']}/{loop['episodes']}",
+            "success_rate": loop["successes"] / loop["episodes"],
+            "all_succeed": loop["successes"] == loop["episodes"],
+            "cost_mean": loop["cost_mean"],
+            "cost_excess_pct_median": 0.0,
+            "cost_excess_pct_max": 0.0,
+            "cost_within_2pct_all_seeds": True,
+            "v1_return_mean": reference["pendulum_v1"]["return_mean"],
+            "v1_return_worst_seed": (
+                float(np.min(reference["pendulum_v1"]["returns"])) if reference["pendulum_v1"]["returns"] else None
+            ),
+            "failed_solves": loop["failures"],
+            "budget_exhausted": loop.get("budget_exhausted", 0) + reference["pendulum_v1"].get("budget_exhausted", 0),
+        }
+    )
     return rows
 
 
@@ -636,7 +657,9 @@ def study_config(quick: bool, seed: int, sizes: str, seeds: str, models: str, ep
                  cache_dir: Path, compile: str, duration: float, pool: int | None = None,
                  episode_budget: float = EPISODE_BUDGET_S, torque_reserve: float = 0.0) -> StudyConfig:
     model_names = tuple(m.strip() for m in models.split(",") if m.strip())
-    if quick:  # the test suite's path: tiny sets, a short horizon, uncompiled functions, capped IPOPT, one Pendulum-v1 episode
+    if (
+        quick
+    ):  # the test suite's path: tiny sets, a short horizon, uncompiled functions, capped IPOPT, one Pendulum-v1 episode
         quick_sizes = _parse_ints(sizes, "sizes") if sizes != DEFAULT_SIZES else (40, 80)
         return StudyConfig(sizes=quick_sizes, draws=(0,), models=model_names, seed=seed, episodes=1, duration_s=1.0,
                            v1_episodes=min(v1_episodes, 1), trajectory_steps=10, test_trajectories=4,
@@ -689,7 +712,9 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 1, sizes: str = DEFAU
                 f"{d['cost_within_2pct_from']} (first {d['cost_within_2pct_first']})"
                 for model, v in best.items() for draw, d in v.get("per_draw", {}).items()]
     if per_draw:
-        notes.insert(2, "Per draw (each over the sizes that draw was run at; same definitions): " + "; ".join(per_draw) + ".")
+        notes.insert(
+            2, "Per draw (each over the sizes that draw was run at; same definitions): " + "; ".join(per_draw) + "."
+        )
     if missing:
         notes.append(f"Not run (`--cached-only`; not in the cache): {', '.join(missing)}. The `seeds` column "
                      "says how many draws each row has.")
@@ -708,16 +733,26 @@ def add_arguments(parser: Any) -> None:
                         help="closed-loop starts per model, the same for all (default: %(default)s)")
     parser.add_argument("--v1-episodes", type=int, default=10,
                         help="Pendulum-v1 seeds 0..N-1 per model; 0 skips it (default: %(default)s)")
-    parser.add_argument("--duration", type=float, default=10.0, help="seconds per closed-loop episode (default: %(default)s)")
-    parser.add_argument("--compile", choices=("cached", "none"), default="cached",
-                        help="the MPC's functions compiled to C (cached on disk) or run in CasADi's VM (default: %(default)s)")
+    parser.add_argument(
+        "--duration", type=float, default=10.0, help="seconds per closed-loop episode (default: %(default)s)"
+    )
+    parser.add_argument(
+        "--compile",
+        choices=("cached", "none"),
+        default="cached",
+        help="the MPC's functions compiled to C (cached on disk) or run in CasADi's VM (default: %(default)s)",
+    )
     parser.add_argument("--cached-only", action="store_true",
                         help="report only the cells already in the cache (a partial grid), list the others as not run")
     parser.add_argument("--pool", type=int, default=20000,
                         help="transitions collected once; every training set is drawn from them, so runs with "
                              "other --sizes share data and cells (default: %(default)s)")
-    parser.add_argument("--cache-dir", type=Path, default=Path("data/data-efficiency"),
-                        help="data, trained models and per-cell results; a rerun resumes from it (default: %(default)s)")
+    parser.add_argument(
+        "--cache-dir",
+        type=Path,
+        default=Path("data/data-efficiency"),
+        help="data, trained models and per-cell results; a rerun resumes from it (default: %(default)s)",
+    )
     parser.add_argument("--episode-budget", type=float, default=EPISODE_BUDGET_S,
                         help="controller compute (wall-clock s) per episode before it is declared failed (zero torque "
                              "for the rest); another value evaluates beside the default's cells (default: %(default)s)")
@@ -732,7 +767,8 @@ def add_arguments(parser: Any) -> None:
 
 
 def export_mlp(weights: Any, config: Any, energy_body: Any, name: str = "mlp") -> Any:
-    """The MLP baseline (:mod:`benchmarks.mlp_baseline`) as an :class:`~fvin_mpc.control.export.ExportedModel` (``newton_iters = 0``).
+    """The MLP baseline (:mod:`benchmarks.mlp_baseline`) as an
+    :class:`~fvin_mpc.control.export.ExportedModel` (``newton_iters = 0``).
 
     Args:
         energy_body: a closed-form :class:`~fvin_mpc.core.rigid_body.PivotedRigidBody` (e.g.

@@ -65,11 +65,16 @@ def hemisphere_errors(variant: str, stem: Path) -> dict[str, float]:
     upper = learned_profiles(paper_model, checkpoint, HINGE_ANGLES)
     scale = scale_from_potential(upper["potential"], truth)
     errors: dict[str, float] = {"scale": scale}
-    for side, profiles in (("q", upper), ("minus_q", learned_profiles(paper_model, checkpoint, HINGE_ANGLES, mirrored=True))):
+    for side, profiles in (
+        ("q", upper),
+        ("minus_q", learned_profiles(paper_model, checkpoint, HINGE_ANGLES, mirrored=True)),
+    ):
         errors[f"potential_err_{side}"] = float(np.max(np.abs(profiles["potential"] / scale - truth)) / span)
         errors[f"inertia_err_{side}"] = float(np.max(np.abs(profiles["inertia_yy"] / scale / TRUE_INERTIA - 1.0)))
         # the S³ gain is twice the body torque per unit control
-        errors[f"gain_err_{side}"] = float(np.max(np.abs(profiles["gain_y"] / scale / (2.0 * TRUE_TORQUE_PER_CONTROL) - 1.0)))
+        errors[f"gain_err_{side}"] = float(
+            np.max(np.abs(profiles["gain_y"] / scale / (2.0 * TRUE_TORQUE_PER_CONTROL) - 1.0))
+        )
     return errors
 
 
@@ -120,7 +125,9 @@ def climb_trace(cell: str, start_index: int, config: study.StudyConfig) -> list[
     trained_as = study.MLP if model == study.MLP_EXACT else model  # as run_cell: the same network, another MPC
     stem = None if model == study.CLOSED_FORM else config.cache_dir / "models" / (trained_as + cell[len(model):])
     if stem is not None and (model not in study.MODELS or not stem.with_suffix(".json").exists()):
-        raise ValueError(f"no trained model {cell!r} in {config.cache_dir / 'models'} (names as <model>_n<size>_r<draw>)")
+        raise ValueError(
+            f"no trained model {cell!r} in {config.cache_dir / 'models'} (names as <model>_n<size>_r<draw>)"
+        )
     start = study.study_starts(config, start_index + 1)[start_index]
     env = scene_env("pendulum", true_model=True)
     try:
@@ -238,8 +245,12 @@ def add_arguments(parser: Any) -> None:
     parser.add_argument("--seeds", default="0,1", help="draws, comma-separated (default: %(default)s)")
     parser.add_argument("--models", default=",".join(study.S3FVIN_VARIANTS),
                         help="S3FVIN variants, comma-separated (default: %(default)s)")
-    parser.add_argument("--episodes", type=int, default=10,
-                        help="the data-efficiency run's closed-loop starts, which pick its cells (default: %(default)s)")
+    parser.add_argument(
+        "--episodes",
+        type=int,
+        default=10,
+        help="the data-efficiency run's closed-loop starts, which pick its cells (default: %(default)s)",
+    )
     parser.add_argument("--v1-episodes", type=int, default=10,
                         help="the data-efficiency run's Pendulum-v1 seeds, which pick its cells (default: %(default)s)")
     parser.add_argument("--pool", type=int, default=20000, help="the data-efficiency run's pool (default: %(default)s)")

@@ -95,10 +95,13 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 5, model: str = "lear
     good = [r for r in rows if r["swung_up"]]
     if good:
         best = min(good, key=lambda r: r["mpc_ms_median"])
-        notes.insert(1, f"Cheapest successful configuration: **{best['label']}** ({best['horizon_s']:g} s horizon, "
-                        f"{best['mpc_ms_median']:.1f} ms median solve, upright after {best['time_to_upright_s']:.2f} s). "
-                        "`success` = upright (within 0.1 rad) from some time to the end of the episode; `swung_up` = "
-                        "also held within 0.05 rad over the last 3 s.")
+        notes.insert(
+            1,
+            f"Cheapest successful configuration: **{best['label']}** ({best['horizon_s']:g} s horizon, "
+            f"{best['mpc_ms_median']:.1f} ms median solve, upright after {best['time_to_upright_s']:.2f} s). "
+            "`success` = upright (within 0.1 rad) from some time to the end of the episode; `swung_up` = "
+            "also held within 0.05 rad over the last 3 s.",
+        )
 
     def plot(figure: Any, rows_: list[dict[str, Any]]) -> None:
         left, right = figure.subplots(1, 2)
@@ -117,7 +120,8 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 5, model: str = "lear
 
     return StudyResult("horizon", rows,
                        ["model", "h", "N", "horizon_s", "mpc_ms_median", "mpc_ms_p95", "period_ms", "iterations_mean",
-                        "success", "swung_up", "time_to_upright_s", "hold_error_rad", "cost_integral", "solver_failures", "build_s"],
+                        "success", "swung_up", "time_to_upright_s", "hold_error_rad", "cost_integral",
+                        "solver_failures", "build_s"],
                        plot, notes)
 
 

@@ -23,7 +23,8 @@ same early stopping. :func:`benchmarks.data_efficiency.export_mlp` builds the sa
 MPC runs on it.
 
 Energy: the MPC's terminal energy-deficit cost needs the model's energy, which this model does not
-have. :func:`benchmarks.data_efficiency.export_mlp` takes the energy from a closed-form body (the scene's, read off the MJCF)
+have. :func:`benchmarks.data_efficiency.export_mlp` takes the energy from a closed-form body (the scene's,
+read off the MJCF)
 and says so in the model's name: privileged information that favours the baseline.
 
 Float64 throughout (the torch parameters are ``torch.float64``).
@@ -202,7 +203,9 @@ def mlp_step_function(weights: Mapping[str, np.ndarray], config: MLPConfig, name
     arithmetic as :class:`IncrementMLP`'s step."""
     import casadi as ca
 
-    layers = [(ca.DM(np.asarray(w, dtype=float)), ca.DM(np.asarray(b, dtype=float))) for w, b in _layers(weights, config)]
+    layers = [
+        (ca.DM(np.asarray(w, dtype=float)), ca.DM(np.asarray(b, dtype=float))) for w, b in _layers(weights, config)
+    ]
 
     def network(q: Any, omega: Any, u: Any) -> Any:
         hidden = ca.vertcat(q, omega / config.omega_scale, u / config.control_scale)

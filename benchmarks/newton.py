@@ -41,7 +41,8 @@ def rootfinder_step(terms_ca: Any, step_size: float, plugin: str = "newton") -> 
     """``F(x[7], u[m]) -> (x_next[7], residual)`` with the implicit equation solved by CasADi's ``rootfinder``.
 
     Steps 1–2 and 4–5 are :func:`fvin_mpc.core.fvin.fvin_step`'s own (:func:`~fvin_mpc.core.fvin.implicit_problem`,
-    :func:`~fvin_mpc.core.fvin.finish_step`); step 3, ``Φ(ξ) = C``, is solved to convergence (abstol 1e-14) from the first Newton iterate.
+    :func:`~fvin_mpc.core.fvin.finish_step`); step 3, ``Φ(ξ) = C``, is solved to convergence (abstol 1e-14)
+    from the first Newton iterate.
     """
     import casadi as ca
 
@@ -70,7 +71,9 @@ def rootfinder_step(terms_ca: Any, step_size: float, plugin: str = "newton") -> 
 
 
 # ----------------------------------------------------------------------------- evaluation
-def _casadi_rollout(step: Any, q0: np.ndarray, omega0: np.ndarray, controls: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _casadi_rollout(
+    step: Any, q0: np.ndarray, omega0: np.ndarray, controls: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Batched rollout with ``step.map(B)``: states ``(B, T+1, 7)``, residuals ``(B, T)``."""
     batch, steps = controls.shape[:2]
     mapped = step.map(batch)
@@ -136,7 +139,9 @@ def _source(scene: str, model: str, checkpoint: str | None, control_period: floa
                            f"`python -m fvin_mpc.train --data data/{scene}.npz --out checkpoints/{name}`, "
                            "or run the study with --model true")
     if abs(ckpt.config.step_size - base.dt) > 1e-9:
-        raise ValueError(f"checkpoint step {ckpt.config.step_size} s differs from the scene's control period {base.dt} s")
+        raise ValueError(
+            f"checkpoint step {ckpt.config.step_size} s differs from the scene's control period {base.dt} s"
+        )
     return {"kind": "learned", "checkpoint": ckpt, "step_size": ckpt.config.step_size, "env": env, "label": name}
 
 
@@ -181,7 +186,9 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 5, scene: str = "pend
     reference = rootfinder_step(_casadi_terms(source), h, rootfinder)
     ref_one, ref_residual = _casadi_rollout(reference, q_in, w_in, u_in)
     converged = ref_residual[:, 0] < 1e-8
-    configs: list[tuple[str, Any, int | None]] = [(f"K={k}", None, k) for k in ks] + [(f"rootfinder ({rootfinder})", reference, None)]
+    configs: list[tuple[str, Any, int | None]] = [(f"K={k}", None, k) for k in ks] + [
+        (f"rootfinder ({rootfinder})", reference, None)
+    ]
     rows: list[dict[str, Any]] = []
     env = source["env"]
     # Each K costs a closed-loop swing-up (minutes on the 3-D scene): show where the study is.
@@ -193,16 +200,21 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 5, scene: str = "pend
         angle1, omega1 = _errors(one[:, 1], q_next, w_next)
         angle_t, omega_t = _errors(roll, data.q, data.omega)
         row = {
-            "config": label, "K": k if k is not None else "converged",
+            "config": label,
+            "K": k if k is not None else "converged",
             "residual_max": float(max(one_residual.max(), roll_residual.max())),
             "residual_median": float(np.median(one_residual)),
             "vs_converged_omega_max": float(np.abs(one[converged, 1, 4:] - ref_one[converged, 1, 4:]).max()),
             "reference_unconverged": int((~converged).sum()),
-            "one_step_angle_mean": float(angle1.mean()), "one_step_omega_mean": float(omega1.mean()),
+            "one_step_angle_mean": float(angle1.mean()),
+            "one_step_omega_mean": float(omega1.mean()),
             "rollout_angle_final_mean": float(angle_t[:, -1].mean()),
-            "rollout_angle_mean": float(angle_t.mean()), "rollout_omega_final_mean": float(omega_t[:, -1].mean()),
+            "rollout_angle_mean": float(angle_t.mean()),
+            "rollout_omega_final_mean": float(omega_t[:, -1].mean()),
             "rollout_s": data.u.shape[1] * h,
-            "torch_batch_ms": 1e3 * _torch_step_time(source, k, xb[:, :4], xb[:, 4:], ub, repeats) if k is not None else None,
+            "torch_batch_ms": 1e3 * _torch_step_time(source, k, xb[:, :4], xb[:, 4:], ub, repeats)
+            if k is not None
+            else None,
             "casadi_single_us": 1e6 * _casadi_single_time(step, xb, ub, repeats),
             "casadi_map_ms": 1e3 * _casadi_map_time(step, xb, ub, repeats),
         }
@@ -224,7 +236,8 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 5, scene: str = "pend
         "`vs_converged_omega_max` the largest |Δω| of one step against the root finder's, over the "
         "states where the root finder converged (`reference_unconverged` counts the others: no solution "
         "there, e.g. past the solvability limit).",
-        f"Step time: torch (`fvin_step`, no grad, one thread) on a batch of {BATCH}; CasADi `Function` called once per state "
+        f"Step time: torch (`fvin_step`, no grad, one thread) on a batch of {BATCH}; CasADi `Function` called once per "
+        f"state "
         f"(µs per call, Python overhead included) and `map`ped over the {BATCH} states (ms per batch). "
         f"MPC: the scene's settings (`fvin_mpc.control.scene.scene_mpc_settings`), IPOPT, Gauss–Newton Hessian, "
         f"{'interpreted' if quick else 'compiled (cached)'}, primal–dual warm start, N = {mpc_settings.horizon}, "
@@ -236,9 +249,12 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 5, scene: str = "pend
     ]
     if k2 is not None:
         ref_row = rows[-1]
-        notes.insert(1, f"At K = 2 the {data.u.shape[1] * h:g} s rollout error is {k2['rollout_angle_final_mean']:.3g} rad vs "
-                        f"{ref_row['rollout_angle_final_mean']:.3g} rad converged: from K = 2 on, the model's own "
-                        "error (learned terms, discretization) dominates the Newton error.")
+        notes.insert(
+            1,
+            f"At K = 2 the {data.u.shape[1] * h:g} s rollout error is {k2['rollout_angle_final_mean']:.3g} rad vs "
+            f"{ref_row['rollout_angle_final_mean']:.3g} rad converged: from K = 2 on, the model's own "
+            "error (learned terms, discretization) dominates the Newton error.",
+        )
 
     def plot(figure: Any, rows_: list[dict[str, Any]]) -> None:
         left, right = figure.subplots(1, 2)
@@ -252,10 +268,11 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 5, scene: str = "pend
         figure.suptitle(f"Newton iterations — {source['label']}", fontsize=10)
 
     return StudyResult("newton" if scene == "pendulum" else f"newton-{scene}", rows,
-                       ["config", "residual_max", "vs_converged_omega_max", "reference_unconverged", "one_step_angle_mean", "one_step_omega_mean",
-                        "rollout_angle_final_mean", "rollout_omega_final_mean", "torch_batch_ms", "casadi_single_us",
-                        "casadi_map_ms", "mpc_ms_median", "mpc_ms_p95", "iterations_mean", "success",
-                        "time_to_upright_s", "mpc_build_s"], plot, notes)
+                       ["config", "residual_max", "vs_converged_omega_max", "reference_unconverged",
+                        "one_step_angle_mean", "one_step_omega_mean", "rollout_angle_final_mean",
+                        "rollout_omega_final_mean", "torch_batch_ms", "casadi_single_us", "casadi_map_ms",
+                        "mpc_ms_median", "mpc_ms_p95", "iterations_mean", "success", "time_to_upright_s",
+                        "mpc_build_s"], plot, notes)
 
 
 def add_arguments(parser: Any) -> None:
@@ -265,6 +282,8 @@ def add_arguments(parser: Any) -> None:
     parser.add_argument("--checkpoint", default=None, help="checkpoint name or path (default: <scene>_sign-invariant)")
     parser.add_argument("--rootfinder", choices=["newton", "kinsol"], default="newton",
                         help="CasADi rootfinder plugin of the converged reference (default: %(default)s)")
-    parser.add_argument("--horizon", type=int, default=None, help="MPC horizon N (default: the scene's, scene_mpc_settings)")
+    parser.add_argument(
+        "--horizon", type=int, default=None, help="MPC horizon N (default: the scene's, scene_mpc_settings)"
+    )
     parser.add_argument("--duration", type=float, default=8.0, help="closed-loop seconds (default: %(default)s)")
     parser.add_argument("--iters", default="1,2,3,4,5,6", help="comma-separated K values (default: %(default)s)")

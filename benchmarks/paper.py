@@ -227,7 +227,9 @@ def _terms(model: PaperModel, checkpoint: Any) -> Any:
     return model.space.learned_terms(checkpoint.weights, checkpoint.config, get_ops("numpy"))
 
 
-def learned_profiles(model: PaperModel, checkpoint: Any, theta: np.ndarray, mirrored: bool = False) -> dict[str, np.ndarray]:
+def learned_profiles(
+    model: PaperModel, checkpoint: Any, theta: np.ndarray, mirrored: bool = False
+) -> dict[str, np.ndarray]:
     """``J_yy(θ)``, ``g_y(θ)`` and ``U(θ) − U(0)`` of a learned model along the hinge, in its own scale.
 
     ``mirrored``: evaluate an S³ model at ``−q`` (the same rotations) — a plain model may differ."""
@@ -359,7 +361,11 @@ def _figure1_rows(theta: np.ndarray, starts: np.ndarray, steps: int, progress: b
             "free_leaves_plane_after_s": min((t for t in first_left if t is not None), default=None),
             "checkpoint_validation_loss": training.get("final_validation_loss"),
         }
-        curve = {"inertia_yy": inertia.tolist(), "gain_y": gain.tolist(), "energy": (energy / energy[0])[::stride].tolist()}
+        curve = {
+            "inertia_yy": inertia.tolist(),
+            "gain_y": gain.tolist(),
+            "energy": (energy / energy[0])[::stride].tolist(),
+        }
         if model.variant == "plain":
             mirrored = learned_profiles(model, checkpoint, theta, mirrored=True)
             row["inertia_err_max_at_minus_q"] = float(np.max(np.abs(mirrored["inertia_yy"] / scale - TRUE_INERTIA))
@@ -374,10 +380,16 @@ def _figure1_rows(theta: np.ndarray, starts: np.ndarray, steps: int, progress: b
     relative = np.abs(closed - closed[0]) / closed[0]
     tenth = max(1, steps // 10)
     closed_free = uncontrolled_rollout(None, None, starts, steps)
-    rows.append({"model": "closed form (S³ step, true J, U, g)", "space": S3.name, "energy_err_max": float(relative.max()),
-                 "energy_drift": float(np.mean(relative[-tenth:]) - np.mean(relative[:tenth])),
-                 "free_energy_err_max": float(np.max(np.abs(closed_free["energy"] / closed_free["energy"][0] - 1.0))),
-                 "free_off_plane_speed_max": float(closed_free["off_plane_speed"].max())})
+    rows.append(
+        {
+            "model": "closed form (S³ step, true J, U, g)",
+            "space": S3.name,
+            "energy_err_max": float(relative.max()),
+            "energy_drift": float(np.mean(relative[-tenth:]) - np.mean(relative[:tenth])),
+            "free_energy_err_max": float(np.max(np.abs(closed_free["energy"] / closed_free["energy"][0] - 1.0))),
+            "free_off_plane_speed_max": float(closed_free["off_plane_speed"].max()),
+        }
+    )
     curves["closed_form_energy"] = (closed / closed[0])[::stride].tolist()
     return rows, curves
 
@@ -430,47 +442,72 @@ def _claims(rows: list[dict], curves2: dict[str, Any]) -> list[dict[str, str]]:
     fastest = min(reached, key=reached.get) if reached else None
     spreads = {r["model"]: spread(r) for r in (si, fi, pl, so3m, so3q)}
     claims = [
-        ("(1) sign-invariant and (2) fixed-inertia S3FVIN recover J and g",
-         f"max error over θ ∈ [−π, π] after fixing λ on U: J {fmt(si['inertia_err_max'])} / {fmt(fi['inertia_err_max'])}, "
-         f"g {fmt(si['gain_err_max'])} / {fmt(fi['gain_err_max'])} (holds if all ≤ {tolerance})",
-         recovered(si) and recovered(fi)),
-        ("the S³ model's learned g is twice the SO(3) one",
-         f"mean g_y/λ: S3FVIN sign-invariant {fmt(si['gain_scaled_mean'])}, SO3FVIN matrix "
-         f"{fmt(so3m['gain_scaled_mean'])}: ratio {fmt(ratio)} (holds if within 10 % of 2)", abs(ratio - 2.0) <= 0.2),
-        ("(3) plain S3FVIN does not recover J and g",
-         f"plain: J {fmt(pl['inertia_err_max'])}, g {fmt(pl['gain_err_max'])} (at −q: J "
-         f"{fmt(pl.get('inertia_err_max_at_minus_q'))}) (holds if an error > {tolerance})", not recovered(pl)),
-        ("(3) plain S3FVIN drifts in energy (no control)",
-         f"max |E − E₀|/E₀: plain {fmt(pl['energy_err_max'])} vs sign-invariant {fmt(si['energy_err_max'])}, fixed "
-         f"{fmt(fi['energy_err_max'])}; drift (last − first tenth) plain {fmt(pl['energy_drift'])} "
-         "(holds if plain's max error exceeds twice the larger of the other two)",
-         pl["energy_err_max"] > 2.0 * max(si["energy_err_max"], fi["energy_err_max"])),
-        ("(2) fixed-inertia S3FVIN conserves energy best",
-         "max |E − E₀|/E₀: " + ", ".join(f"{k.removeprefix('S3FVIN ')} {fmt(v)}" for k, v in learned_energy.items())
-         + " (holds if fixed-inertia's is the smallest of the learned models)",
-         min(learned_energy, key=learned_energy.get) == fi["model"]),
-        ("sign-invariant S3FVIN's loss converges fastest (Figure 2)",
-         f"median LM iterations to validation loss ≤ {fmt(curves2['target'])} (twice the best median final): "
-         + ", ".join(f"{k} {fmt(v)}" for k, v in iters.items()) + f" — fastest: {fastest}",
-         fastest == si["model"]),
-        ("... and most stably (Figure 2)",
-         "max/min final validation loss over seeds: " + ", ".join(f"{k} {fmt(v)}" for k, v in spreads.items()),
-         min(spreads, key=spreads.get) == si["model"]),
-        ("SO3FVIN is cheaper per iteration (analytic Newton Jacobian)",
-         f"CPU s per full-batch loss + gradient: SO3FVIN matrix {fmt(so3m['loss_grad_cpu_s'])}, quaternion "
-         f"{fmt(so3q['loss_grad_cpu_s'])} vs S3FVIN sign-invariant {fmt(si['loss_grad_cpu_s'])}; LM's CPU s per "
-         f"iteration {fmt(so3m['lm_cpu_s_per_iteration'])} vs {fmt(si['lm_cpu_s_per_iteration'])} (both steps use an "
-         "analytic Jacobian here; holds if SO3FVIN matrix is ≥ 20 % cheaper by both — repeated runs of this study on "
-         "the shared machine moved these figures by about that much)",
-         so3m["loss_grad_cpu_s"] < 0.8 * si["loss_grad_cpu_s"]
-         and so3m["lm_cpu_s_per_iteration"] < 0.8 * si["lm_cpu_s_per_iteration"]),
-        ("SO3FVIN with networks on a quaternion preimage converges nearly like S3FVIN",
-         f"median final validation loss: quaternion {fmt(so3q['lm_final_val_median'])}, matrix "
-         f"{fmt(so3m['lm_final_val_median'])}, S3FVIN sign-invariant {fmt(si['lm_final_val_median'])} "
-         "(holds if quaternion within 1.5× of S3FVIN and closer to it than matrix)",
-         so3q["lm_final_val_median"] <= 1.5 * si["lm_final_val_median"]
-         and abs(np.log(so3q["lm_final_val_median"] / si["lm_final_val_median"]))
-         < abs(np.log(so3m["lm_final_val_median"] / si["lm_final_val_median"]))),
+        (
+            "(1) sign-invariant and (2) fixed-inertia S3FVIN recover J and g",
+            f"max error over θ ∈ [−π, π] after fixing λ on U: J {fmt(si['inertia_err_max'])} / "
+            f"{fmt(fi['inertia_err_max'])}, "
+            f"g {fmt(si['gain_err_max'])} / {fmt(fi['gain_err_max'])} (holds if all ≤ {tolerance})",
+            recovered(si) and recovered(fi),
+        ),
+        (
+            "the S³ model's learned g is twice the SO(3) one",
+            f"mean g_y/λ: S3FVIN sign-invariant {fmt(si['gain_scaled_mean'])}, SO3FVIN matrix "
+            f"{fmt(so3m['gain_scaled_mean'])}: ratio {fmt(ratio)} (holds if within 10 % of 2)",
+            abs(ratio - 2.0) <= 0.2,
+        ),
+        (
+            "(3) plain S3FVIN does not recover J and g",
+            f"plain: J {fmt(pl['inertia_err_max'])}, g {fmt(pl['gain_err_max'])} (at −q: J "
+            f"{fmt(pl.get('inertia_err_max_at_minus_q'))}) (holds if an error > {tolerance})",
+            not recovered(pl),
+        ),
+        (
+            "(3) plain S3FVIN drifts in energy (no control)",
+            f"max |E − E₀|/E₀: plain {fmt(pl['energy_err_max'])} vs sign-invariant {fmt(si['energy_err_max'])}, fixed "
+            f"{fmt(fi['energy_err_max'])}; drift (last − first tenth) plain {fmt(pl['energy_drift'])} "
+            "(holds if plain's max error exceeds twice the larger of the other two)",
+            pl["energy_err_max"] > 2.0 * max(si["energy_err_max"], fi["energy_err_max"]),
+        ),
+        (
+            "(2) fixed-inertia S3FVIN conserves energy best",
+            "max |E − E₀|/E₀: "
+            + ", ".join(f"{k.removeprefix('S3FVIN ')} {fmt(v)}" for k, v in learned_energy.items())
+            + " (holds if fixed-inertia's is the smallest of the learned models)",
+            min(learned_energy, key=learned_energy.get) == fi["model"],
+        ),
+        (
+            "sign-invariant S3FVIN's loss converges fastest (Figure 2)",
+            f"median LM iterations to validation loss ≤ {fmt(curves2['target'])} (twice the best median final): "
+            + ", ".join(f"{k} {fmt(v)}" for k, v in iters.items())
+            + f" — fastest: {fastest}",
+            fastest == si["model"],
+        ),
+        (
+            "... and most stably (Figure 2)",
+            "max/min final validation loss over seeds: " + ", ".join(f"{k} {fmt(v)}" for k, v in spreads.items()),
+            min(spreads, key=spreads.get) == si["model"],
+        ),
+        (
+            "SO3FVIN is cheaper per iteration (analytic Newton Jacobian)",
+            f"CPU s per full-batch loss + gradient: SO3FVIN matrix {fmt(so3m['loss_grad_cpu_s'])}, quaternion "
+            f"{fmt(so3q['loss_grad_cpu_s'])} vs S3FVIN sign-invariant {fmt(si['loss_grad_cpu_s'])}; LM's CPU s per "
+            f"iteration {fmt(so3m['lm_cpu_s_per_iteration'])} vs {fmt(si['lm_cpu_s_per_iteration'])} (both steps use "
+            f"an "
+            "analytic Jacobian here; holds if SO3FVIN matrix is ≥ 20 % cheaper by both — repeated runs of this study "
+            "on "
+            "the shared machine moved these figures by about that much)",
+            so3m["loss_grad_cpu_s"] < 0.8 * si["loss_grad_cpu_s"]
+            and so3m["lm_cpu_s_per_iteration"] < 0.8 * si["lm_cpu_s_per_iteration"],
+        ),
+        (
+            "SO3FVIN with networks on a quaternion preimage converges nearly like S3FVIN",
+            f"median final validation loss: quaternion {fmt(so3q['lm_final_val_median'])}, matrix "
+            f"{fmt(so3m['lm_final_val_median'])}, S3FVIN sign-invariant {fmt(si['lm_final_val_median'])} "
+            "(holds if quaternion within 1.5× of S3FVIN and closer to it than matrix)",
+            so3q["lm_final_val_median"] <= 1.5 * si["lm_final_val_median"]
+            and abs(np.log(so3q["lm_final_val_median"] / si["lm_final_val_median"]))
+            < abs(np.log(so3m["lm_final_val_median"] / si["lm_final_val_median"])),
+        ),
     ]
     return [{"claim": c, "measured here": m, "holds here": "yes" if ok else "**no**"} for c, m, ok in claims]
 
@@ -593,9 +630,25 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 5, seeds: str = "0,1,
         f"+ gradient on the same windows, median of {repeats}) are less sensitive to the load.",
         "**The paper's claims, here**:\n\n" + markdown_table(claims, ["claim", "measured here", "holds here"]),
     ]
-    columns = ["model", "trained_with", "lambda", "inertia_err_max", "gain_scaled_mean", "gain_err_max",
-               "energy_err_max", "energy_drift", "free_energy_err_max", "free_leaves_plane_after_s", "lm_final_val_median", "lm_final_val_min", "lm_final_val_max",
-               "lm_iterations_to_target", "lm_wall_s_to_target", "lm_cpu_s_per_iteration", "loss_grad_cpu_s"]
+    columns = [
+        "model",
+        "trained_with",
+        "lambda",
+        "inertia_err_max",
+        "gain_scaled_mean",
+        "gain_err_max",
+        "energy_err_max",
+        "energy_drift",
+        "free_energy_err_max",
+        "free_leaves_plane_after_s",
+        "lm_final_val_median",
+        "lm_final_val_min",
+        "lm_final_val_max",
+        "lm_iterations_to_target",
+        "lm_wall_s_to_target",
+        "lm_cpu_s_per_iteration",
+        "loss_grad_cpu_s",
+    ]
     rows[0]["figure_curves"] = {"figure1": curves1, "figure2": curves2}
     rows[0]["claims"] = claims
     rows[0]["load_1min_at_start"] = load_before
@@ -603,7 +656,9 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 5, seeds: str = "0,1,
 
 
 def add_arguments(parser: Any) -> None:
-    parser.add_argument("--seeds", default="0,1,2", help="training seeds of Figure 2, comma-separated (default: %(default)s)")
+    parser.add_argument(
+        "--seeds", default="0,1,2", help="training seeds of Figure 2, comma-separated (default: %(default)s)"
+    )
     parser.add_argument("--trajectories", type=int, default=64,
                         help="trajectories of data/pendulum.npz for Figure 2's runs (default: %(default)s)")
     parser.add_argument("--iterations", type=int, default=30, help="most iterations per run (default: %(default)s)")

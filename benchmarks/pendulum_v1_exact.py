@@ -121,7 +121,9 @@ class EpisodeOptimizer:
         equilibrium amplifies a 1e-9 difference by ``e^(√15·10) ≈ 1e17``.)
         """
         controls_guess = np.clip(np.asarray(controls_guess, float).ravel(), -MAX_TORQUE, MAX_TORQUE)
-        states = replay(theta0, theta_dot0, controls_guess)[1] if states_guess is None else np.asarray(states_guess, float)
+        states = (
+            replay(theta0, theta_dot0, controls_guess)[1] if states_guess is None else np.asarray(states_guess, float)
+        )
         raw = states[:-1, 1] + RATE_GAIN_SIN * np.sin(states[:-1, 0]) + RATE_GAIN_TORQUE * controls_guess
         pattern = np.where(raw >= MAX_SPEED, 1.0, np.where(raw <= -MAX_SPEED, -1.0, 0.0))
         best = self._solve(theta0, theta_dot0, controls_guess, states, pattern)

@@ -160,9 +160,18 @@ def run_v1_episode(env: Any, controller: Any, seed: int) -> dict[str, Any]:
         if terminated or truncated:
             break
     final = angle_normalize(float(env.unwrapped.state[0]))
-    return {"seed": seed, "theta0": theta0, "theta_dot0": theta_dot0, "return": total, "controls": controls, "states": states,
-            "final_angle": float(final), "upright_at_end": bool(abs(final) < 0.1),
-            "failures": int(failures), "controller_time_s": wall}
+    return {
+        "seed": seed,
+        "theta0": theta0,
+        "theta_dot0": theta_dot0,
+        "return": total,
+        "controls": controls,
+        "states": states,
+        "final_angle": float(final),
+        "upright_at_end": bool(abs(final) < 0.1),
+        "failures": int(failures),
+        "controller_time_s": wall,
+    }
 
 
 _WORKER: dict[str, Any] = {}
@@ -184,7 +193,8 @@ def _init_polisher() -> None:
 
 
 def reference_task(theta0: float, theta_dot0: float, guesses: dict[str, np.ndarray]) -> dict[str, Any]:
-    """The global reference of one seed from its first guesses (:func:`~benchmarks.pendulum_v1_reference.reference_for_seed`)."""
+    """The global reference of one seed from its first guesses
+    (:func:`~benchmarks.pendulum_v1_reference.reference_for_seed`)."""
 
     return reference_for_seed(theta0, theta_dot0, guesses, _WORKER["polishers"])
 
@@ -293,11 +303,15 @@ def summarize(records: list[dict[str, Any]]) -> dict[str, Any]:
     returns = np.array([r["return"] for r in records])
     calls_ms = 1e3 * np.concatenate([r["controller_time_s"] for r in records])
     summary = {
-        "episodes": len(records), "return_mean": float(returns.mean()), "return_std": float(returns.std()),
-        "return_median": float(np.median(returns)), "return_min": float(returns.min()),
+        "episodes": len(records),
+        "return_mean": float(returns.mean()),
+        "return_std": float(returns.std()),
+        "return_median": float(np.median(returns)),
+        "return_min": float(returns.min()),
         "upright_at_end": int(sum(r["upright_at_end"] for r in records)),
         "failed_solves": int(sum(r["failures"] for r in records)),
-        "controller_time_median_ms": float(np.median(calls_ms)), "controller_time_p95_ms": float(np.percentile(calls_ms, 95)),
+        "controller_time_median_ms": float(np.median(calls_ms)),
+        "controller_time_p95_ms": float(np.percentile(calls_ms, 95)),
     }
     if all("reference_return" in r for r in records):
         reference = np.array([r["reference_return"] for r in records])
@@ -360,21 +374,33 @@ def plot_returns(records: list[dict[str, Any]], path: Path, label: str) -> None:
     plt.close(figure)
 
 
-def write_markdown(summary: dict[str, Any], records: list[dict[str, Any]], config: BenchmarkConfig, command: str,
-                   path: Path, previous: dict[str, Any] | None = None, reference_reused_from: str | None = None) -> None:
+def write_markdown(
+    summary: dict[str, Any],
+    records: list[dict[str, Any]],
+    config: BenchmarkConfig,
+    command: str,
+    path: Path,
+    previous: dict[str, Any] | None = None,
+    reference_reused_from: str | None = None,
+) -> None:
     """``path`` (``.md``) and its ``.json`` twin through the one report writer; ``previous`` (an earlier
     run's JSON) adds its MPC returns and references per seed to the table."""
-
     previous_by_seed = {e["seed"]: e for e in previous["episodes"]} if previous else {}
 
     model = "closed-form pendulum (true model)" if config.true_model else f"learned `{config.checkpoint}`"
+    dynamics = ", " + rti_dynamics(config) + " dynamics" if config.solver == "rti" else ""
+    options = ((", multi-start" if config.multistart else "")
+               + (" ranked by the value" if config.rank_cold_starts else ""))
     lines = [
-             "| controller | episodes | mean return ± std | median | worst | upright at end | failed solves "
-             "| controller ms median / p95 |", "|---|---|---|---|---|---|---|---|",
-             f"| MPC ({config.solver}{', ' + rti_dynamics(config) + ' dynamics' if config.solver == 'rti' else ''}) on {model}, N = {config.horizon}{', multi-start' if config.multistart else ''}{' ranked by the value' if config.rank_cold_starts else ''} | {summary['episodes']} | {summary['return_mean']:.1f} ± "
-             f"{summary['return_std']:.1f} | {summary['return_median']:.1f} | {summary['return_min']:.1f} "
-             f"| {summary['upright_at_end']}/{summary['episodes']} | {summary['failed_solves']} "
-             f"| {summary['controller_time_median_ms']:.1f} / {summary['controller_time_p95_ms']:.1f} |"]
+        "| controller | episodes | mean return ± std | median | worst | upright at end | failed solves "
+        "| controller ms median / p95 |",
+        "|---|---|---|---|---|---|---|---|",
+        f"| MPC ({config.solver}{dynamics}) on {model}, N = {config.horizon}{options} | {summary['episodes']} | "
+        f"{summary['return_mean']:.1f} ± "
+        f"{summary['return_std']:.1f} | {summary['return_median']:.1f} | {summary['return_min']:.1f} "
+        f"| {summary['upright_at_end']}/{summary['episodes']} | {summary['failed_solves']} "
+        f"| {summary['controller_time_median_ms']:.1f} / {summary['controller_time_p95_ms']:.1f} |",
+    ]
     if "reference_mean" in summary:
         lines.append(f"| optimized episode on the exact dynamics (reference) | {summary['episodes']} | "
                      f"{summary['reference_mean']:.1f} ± {summary['reference_std']:.1f} | | | | | |")
@@ -407,41 +433,71 @@ def write_markdown(summary: dict[str, Any], records: list[dict[str, Any]], confi
                   f"{summary['reference_converged']} of {summary['episodes']} seeds"
                   + (f"; not on seeds {', '.join(map(str, summary['reference_unconverged_seeds']))}."
                      if summary["reference_unconverged_seeds"] else ".")]
-    lines += ["", f"![returns per seed]({path.with_suffix('.png').name})", "", "## How this was measured", "",
-              "* Plant: the unmodified `gymnasium.make(\"Pendulum-v1\")` (g = 10), episodes of 200 steps, "
-              f"`env.reset(seed=i)` for i = {config.seed} … {config.seed + config.episodes - 1}; the return is the sum "
-              "of the env's rewards.",
-              "* Model: " + ("the closed-form rod (the continuous-time physics, no learning)." if config.true_model else
-                             f"`{config.checkpoint}`, trained on the MuJoCo `pendulum` scene, whose physics are "
-                             "Pendulum-v1's (θ̈ = 15 sin θ + 3u with θ = 0 upright, |u| ≤ 2) integrated accurately "
-                             "(RK4 at 5 ms). It never saw Pendulum-v1."),
-              "* Model mismatch: Pendulum-v1 is a *discrete* system — semi-implicit Euler at dt = 0.05 and θ̇ "
-              "clipped to ±8 rad/s after every step — while the model predicts the continuous motion. The MPC "
-              "bounds its predicted |ω| by 8 rad/s.",
-              "* MPC cost = the benchmark's reward: 4 sin²(angle/2) (≈ angle²) + 0.1 ω² + 0.001 u² per stage "
-              + "(`benchmark_settings`), terminal weights 40 and 1, terminal energy-deficit weight "
-              f"{benchmark_settings(config.horizon, config.terminal_energy_weight).terminal_energy_weight:g}, "
-              f"horizon {config.horizon} "
-              f"({config.horizon * DT:.2f} s)" + (", cold solves from several first guesses "
-                                                    "(`MPCSettings.cold_starts`)" if config.multistart else "")
-              + ("; the cold call keeps the plan with the lowest estimate of the episode's Pendulum-v1 cost "
-                 "(its stage costs plus the learned model's value after the horizon, DP on a "
-                 f"{config.value_grid[0]} × {config.value_grid[1]} grid: `pendulum_v1_value.plan_score`)."
-                 if config.rank_cold_starts else "."),
-              ("* Reference: not computed in this run (`--no-reference`); the global reference over seeds 0 … 99 "
-               "(`benchmarks/pendulum_v1_reference.py`) and the gap per seed are in `docs/pendulum-v1.md`."
-               if not config.reference else
-               "* Reference (`benchmarks/pendulum_v1_reference.py`): value iteration of the exact map (clip "
-              "included) over the 200 steps on each DP grid above, the minimum over the continuous torque; its "
-              "policy rolled out on the exact map from each seed (an exact, feasible return); " + "on the finest grid also 2 × 32 rollouts with torque noise (σ = 0.1, 0.3), the best 4 per σ kept in two independent halves; each rollout, the MPC's episode and two energy-pumping heuristics polished by the episode NLP (direct multiple shooting, IPOPT from its default start and from a local start; the clip pattern of the guess fixed); the best of all exact returns and converged solutions (every step of those satisfies the exact update to 1e-6; an open-loop replay of 10 s near the unstable upright equilibrium is no check, it amplifies rounding by ~e^39). The grid and family tables above are the check of globality: evidence, not a proof (no rigorous bound on the interpolation error)."
-               + (f" This run reused the search (DP, rollouts, heuristics, their polish; deterministic) of `{reference_reused_from}` "
-                  "and polished only its own MPC episodes: reference = max(that search's best, this MPC's polished episode)."
-                  if reference_reused_from else "")),
-              "* rl-baselines3-zoo: its benchmark table (`benchmark.md`) over 750 evaluation episodes with its "
-              "own seeds; not the same episodes as here.", "", "## Per seed", "",
-              "| seed | θ₀ | θ̇₀ | MPC return | reference | gap |"
-              + (" previous MPC | previous reference | previous reference − reference |" if previous else ""),
-              "|---|---|---|---|---|---|" + ("---|---|---|" if previous else "")]
+    lines += [
+        "",
+        f"![returns per seed]({path.with_suffix('.png').name})",
+        "",
+        "## How this was measured",
+        "",
+        '* Plant: the unmodified `gymnasium.make("Pendulum-v1")` (g = 10), episodes of 200 steps, '
+        f"`env.reset(seed=i)` for i = {config.seed} … {config.seed + config.episodes - 1}; the return is the sum "
+        "of the env's rewards.",
+        "* Model: "
+        + (
+            "the closed-form rod (the continuous-time physics, no learning)."
+            if config.true_model
+            else f"`{config.checkpoint}`, trained on the MuJoCo `pendulum` scene, whose physics are "
+            "Pendulum-v1's (θ̈ = 15 sin θ + 3u with θ = 0 upright, |u| ≤ 2) integrated accurately "
+            "(RK4 at 5 ms). It never saw Pendulum-v1."
+        ),
+        "* Model mismatch: Pendulum-v1 is a *discrete* system — semi-implicit Euler at dt = 0.05 and θ̇ "
+        "clipped to ±8 rad/s after every step — while the model predicts the continuous motion. The MPC "
+        "bounds its predicted |ω| by 8 rad/s.",
+        "* MPC cost = the benchmark's reward: 4 sin²(angle/2) (≈ angle²) + 0.1 ω² + 0.001 u² per stage "
+        + "(`benchmark_settings`), terminal weights 40 and 1, terminal energy-deficit weight "
+        f"{benchmark_settings(config.horizon, config.terminal_energy_weight).terminal_energy_weight:g}, "
+        f"horizon {config.horizon} "
+        f"({config.horizon * DT:.2f} s)"
+        + (", cold solves from several first guesses (`MPCSettings.cold_starts`)" if config.multistart else "")
+        + (
+            "; the cold call keeps the plan with the lowest estimate of the episode's Pendulum-v1 cost "
+            "(its stage costs plus the learned model's value after the horizon, DP on a "
+            f"{config.value_grid[0]} × {config.value_grid[1]} grid: `pendulum_v1_value.plan_score`)."
+            if config.rank_cold_starts
+            else "."
+        ),
+        (
+            "* Reference: not computed in this run (`--no-reference`); the global reference over seeds 0 … 99 "
+            "(`benchmarks/pendulum_v1_reference.py`) and the gap per seed are in `docs/pendulum-v1.md`."
+            if not config.reference
+            else "* Reference (`benchmarks/pendulum_v1_reference.py`): value iteration of the exact map (clip "
+            "included) over the 200 steps on each DP grid above, the minimum over the continuous torque; its "
+            "policy rolled out on the exact map from each seed (an exact, feasible return); "
+            + "on the finest grid also 2 × 32 rollouts with torque noise (σ = 0.1, 0.3), the best 4 per σ kept in two "
+              "independent halves; each rollout, the MPC's episode and two energy-pumping heuristics polished by the "
+              "episode NLP (direct multiple shooting, IPOPT from its default start and from a local start; the clip "
+              "pattern of the guess fixed); the best of all exact returns and converged solutions (every step of those "
+              "satisfies the exact update to 1e-6; an open-loop replay of 10 s near the unstable upright equilibrium "
+              "is no check, it amplifies rounding by ~e^39). The grid and family tables above are the check of "
+              "globality: evidence, not a proof (no rigorous bound on the interpolation error)."
+            + (
+                " This run reused the search (DP, rollouts, heuristics, their polish; deterministic) of "
+                f"`{reference_reused_from}` "
+                "and polished only its own MPC episodes: reference = max(that search's best, this MPC's polished "
+                "episode)."
+                if reference_reused_from
+                else ""
+            )
+        ),
+        "* rl-baselines3-zoo: its benchmark table (`benchmark.md`) over 750 evaluation episodes with its "
+        "own seeds; not the same episodes as here.",
+        "",
+        "## Per seed",
+        "",
+        "| seed | θ₀ | θ̇₀ | MPC return | reference | gap |"
+        + (" previous MPC | previous reference | previous reference − reference |" if previous else ""),
+        "|---|---|---|---|---|---|" + ("---|---|---|" if previous else ""),
+    ]
     for r in records:
         ref = r.get("reference_return")
         line = (f"| {r['seed']} | {r['theta0']:+.2f} | {r['theta_dot0']:+.2f} | {r['return']:.1f} | "

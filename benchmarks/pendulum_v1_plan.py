@@ -272,8 +272,14 @@ def run_seed(seed: int) -> dict[str, Any]:
     return {**record, "swing_up_choice": controller.choice, "simulated_costs": dict(controller.simulated_costs)}
 
 
-def run_swing_up_benchmark(config: SwingUpConfig, workers: int = 1, progress: bool = True, backend: str = "process",
-                           address: str | None = None, reference_from: dict[str, Any] | None = None) -> list[dict[str, Any]]:
+def run_swing_up_benchmark(
+    config: SwingUpConfig,
+    workers: int = 1,
+    progress: bool = True,
+    backend: str = "process",
+    address: str | None = None,
+    reference_from: dict[str, Any] | None = None,
+) -> list[dict[str, Any]]:
     """:func:`~benchmarks.pendulum_v1_mpc.run_benchmark` with :func:`build_swing_up_controller`'s episodes
     (their references the same way: computed, or reused from ``reference_from``)."""
 
@@ -316,6 +322,22 @@ def describe_swing_up(markdown: Path, config: SwingUpConfig, records: list[dict[
     markdown.write_text(text.replace(marker, "\n" + bullet + marker, 1))
 
 
-__all__ = ["DEFAULT_CHOICE_MARGIN", "DEFAULT_LOOKAHEADS", "describe_swing_up", "DEFAULT_SIMULATED_STEPS", "SwingUpConfig", "build_swing_up_controller",
-           "run_swing_up_benchmark", "swing_up_controller", "CAUGHT_ANGLE", "CAUGHT_RATE", "DEFAULT_LOOKAHEAD", "DPSwingUpController", "GREEDY_TORQUES",
-           "SimulatedChoiceController", "caught", "simulate_episode_cost", "v1_angles"]
+__all__ = [
+    "DEFAULT_CHOICE_MARGIN",
+    "DEFAULT_LOOKAHEADS",
+    "describe_swing_up",
+    "DEFAULT_SIMULATED_STEPS",
+    "SwingUpConfig",
+    "build_swing_up_controller",
+    "run_swing_up_benchmark",
+    "swing_up_controller",
+    "CAUGHT_ANGLE",
+    "CAUGHT_RATE",
+    "DEFAULT_LOOKAHEAD",
+    "DPSwingUpController",
+    "GREEDY_TORQUES",
+    "SimulatedChoiceController",
+    "caught",
+    "simulate_episode_cost",
+    "v1_angles",
+]

@@ -47,15 +47,24 @@ def _positive_ints(text: str) -> tuple[int, ...]:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="python -m benchmarks.pendulum_v1_report", description=pendulum_v1_module.__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        prog="python -m benchmarks.pendulum_v1_report",
+        description=pendulum_v1_module.__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     parser.add_argument("--checkpoint", default=BenchmarkConfig.checkpoint, help="learned model (default: %(default)s)")
     parser.add_argument("--true-model", action="store_true", help="plan with the closed-form pendulum instead")
     parser.add_argument("--horizon", type=int, default=30, help="MPC steps (default: %(default)s)")
-    parser.add_argument("--episodes", type=int, default=100, help="episodes, seeds seed … seed+episodes−1 (default: %(default)s)")
+    parser.add_argument(
+        "--episodes", type=int, default=100, help="episodes, seeds seed … seed+episodes−1 (default: %(default)s)"
+    )
     parser.add_argument("--seed", type=int, default=0, help="first env.reset seed (default: %(default)s)")
-    parser.add_argument("--energy-weight", type=float, default=None,
-                        help="terminal energy-deficit weight W_E (default: the scenes' default, DEFAULT_TERMINAL_ENERGY_WEIGHT)")
+    parser.add_argument(
+        "--energy-weight",
+        type=float,
+        default=None,
+        help="terminal energy-deficit weight W_E (default: the scenes' default, DEFAULT_TERMINAL_ENERGY_WEIGHT)",
+    )
     parser.add_argument("--solver", choices=["ipopt", "rti"], default="ipopt",
                         help="ipopt: solved to convergence every step; rti: one real-time iteration per step "
                              "(default: %(default)s)")

@@ -156,7 +156,9 @@ def model_value_table(model: Any, grid: tuple[int, int] = VALUE_GRID, torques: i
     MPC's compile cache (key: the step function's serialization, the grid, torques and steps)."""
 
     torque_values = np.linspace(-max_torque, max_torque, torques)
-    key = hashlib.sha256(model.step.serialize().encode() + repr((grid, torques, steps, tuple(noise), stage_cost, max_torque)).encode()).hexdigest()[:20]
+    key = hashlib.sha256(
+        model.step.serialize().encode() + repr((grid, torques, steps, tuple(noise), stage_cost, max_torque)).encode()
+    ).hexdigest()[:20]
     path = cache_dir() / f"pendulum_v1_value_{key}.npy"
     if cache and path.is_file():
         return np.load(path)
@@ -180,7 +182,9 @@ def model_value_table(model: Any, grid: tuple[int, int] = VALUE_GRID, torques: i
 
 
 def key_transitions(model: Any, grid: tuple[int, int], torques: int, max_torque: float) -> str:
-    return hashlib.sha256(model.step.serialize().encode() + repr((tuple(grid), torques, max_torque)).encode()).hexdigest()[:20]
+    return hashlib.sha256(
+        model.step.serialize().encode() + repr((tuple(grid), torques, max_torque)).encode()
+    ).hexdigest()[:20]
 
 
 def plan_score(table: np.ndarray, stage_cost: str = "v1") -> Callable[[np.ndarray, np.ndarray], float]:
@@ -199,6 +203,14 @@ def plan_score(table: np.ndarray, stage_cost: str = "v1") -> Callable[[np.ndarra
     return score
 
 
-__all__ = ["VALUE_GRID", "VALUE_TORQUES", "grid_axes", "interpolate", "learned_transitions", "model_value_table", "plan_score",
-           "value_iteration"]
+__all__ = [
+    "VALUE_GRID",
+    "VALUE_TORQUES",
+    "grid_axes",
+    "interpolate",
+    "learned_transitions",
+    "model_value_table",
+    "plan_score",
+    "value_iteration",
+]
 

@@ -78,7 +78,9 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 5, duration: float = 
     spec = SCENES["pendulum"]
     duration = 1.0 if quick else duration
     repeats = 2 if quick else repeats
-    integrators = ["EULER", "RK4", "IMPLICIT", "IMPLICITFAST"] + (["DISCRETE"] if hasattr(mujoco.mjtIntegrator, "mjINT_DISCRETE") else [])
+    integrators = ["EULER", "RK4", "IMPLICIT", "IMPLICITFAST"] + (
+        ["DISCRETE"] if hasattr(mujoco.mjtIntegrator, "mjINT_DISCRETE") else []
+    )
     timesteps_ms = [1.0, 5.0] if quick else [0.5, 1.0, 2.0, 5.0, 10.0]
     grid = np.arange(1, int(round(duration / SAMPLE_PERIOD)) + 1) * SAMPLE_PERIOD
     reference = _reference(grid)
@@ -138,7 +140,8 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 5, duration: float = 
         "the shipped scene's setting (RK4, 5 ms).",
         "Scene physics: the same pendulum simulated for "
         f"{steps * 0.005:g} s with only the declared physics vs everything switched on (all disable flags cleared, "
-        "all enable flags but `override` and `ipc` set — energy, forward/inverse comparison, … — and the rod and backdrop made "
+        "all enable flags but `override` and `ipc` set — energy, forward/inverse comparison, … — and the rod and "
+        "backdrop made "
         f"collidable so that collision detection runs every step): everything-on takes **{ratio:.2f}×** the time of "
         f"the declared physics — {verdict} for a one-joint scene, where the dynamics itself is tiny and the "
         f"extras (collision broad phase, inverse-dynamics check) are cheap; the trajectories differ by at most "
@@ -147,9 +150,12 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 5, duration: float = 
         NOISE_NOTE,
     ]
     if fastest_accurate is not None:
-        notes.insert(1, f"Fastest setting with error below 1e-3 rad: **{fastest_accurate['label']}** "
-                        f"({fastest_accurate['max_theta_error_rad']:.1e} rad, {fastest_accurate['wall_ms_median']:.2f} ms "
-                        f"per {duration:g} s simulated).")
+        notes.insert(
+            1,
+            f"Fastest setting with error below 1e-3 rad: **{fastest_accurate['label']}** "
+            f"({fastest_accurate['max_theta_error_rad']:.1e} rad, {fastest_accurate['wall_ms_median']:.2f} ms "
+            f"per {duration:g} s simulated).",
+        )
 
     def plot(figure: Any, rows_: list[dict[str, Any]]) -> None:
         axis = figure.add_subplot()
@@ -159,9 +165,15 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 5, duration: float = 
             group = [r for r in integ if r["integrator"] == name]
             axis.plot([r["wall_ms_median"] for r in group], [max(r["max_theta_error_rad"], 1e-16) for r in group],
                       "o-", label=name, ms=4)
-        plot_pareto(axis, [dict(r, max_theta_error_rad=max(r["max_theta_error_rad"], 1e-16)) for r in integ],
-                    "wall_ms_median", "max_theta_error_rad", "timestep_ms", f"wall time per {duration:g} s simulated (ms)",
-                    "max |θ − θ_ref| (rad)")
+        plot_pareto(
+            axis,
+            [dict(r, max_theta_error_rad=max(r["max_theta_error_rad"], 1e-16)) for r in integ],
+            "wall_ms_median",
+            "max_theta_error_rad",
+            "timestep_ms",
+            f"wall time per {duration:g} s simulated (ms)",
+            "max |θ − θ_ref| (rad)",
+        )
         axis.set_title(f"MuJoCo integrators (labels: step in ms); everything-on / declared = {ratio:.2f}×", fontsize=9)
         axis.legend(fontsize=7)
 

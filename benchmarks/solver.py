@@ -15,7 +15,8 @@ settings (what the commands use): IPOPT in waiting mode (the reference: the simu
 and with measured latency, and the RTI with measured latency (``run_episode(latency="measured")``:
 each torque acts from the first MuJoCo sub-step after the controller's compute time). Per row: the
 whole controller call (feedback plus preparation; median, p99, max), its CPU time, the feedback
-alone (observation to torque), iterations per call, deadline misses, and the swing-up from rest (time to upright, hold error over the last 3 s).
+alone (observation to torque), iterations per call, deadline misses, and the swing-up from rest (time to upright,
+hold error over the last 3 s).
 """
 
 from __future__ import annotations
@@ -56,7 +57,11 @@ def _model(model: str) -> tuple[Any, Any, str]:
     env = make_env("pendulum")
     base = env.unwrapped
     if model == "true":
-        return env, from_rigid_body(from_mujoco(base.model, base.body_name), base.dt, 2, name="true_pendulum"), "closed form"
+        return (
+            env,
+            from_rigid_body(from_mujoco(base.model, base.body_name), base.dt, 2, name="true_pendulum"),
+            "closed form",
+        )
     ckpt = checkpoint_or_none("pendulum_sign-invariant")
     if ckpt is None:
         raise StudySkipped("checkpoint 'pendulum_sign-invariant' not found in checkpoints/; run with --model true")
@@ -102,9 +107,26 @@ REALTIME_SCENES = ("pendulum", "spherical_pendulum")
 #: per point; the sign-invariant default evaluates three networks (``J(q)`` too) at ``q`` and ``−q``,
 #: and ``J`` again at the step's end (docs/realtime.md).
 REALTIME_EXTRA_CHECKPOINTS: dict[str, tuple[str, ...]] = {"pendulum": ("pendulum_fixed-inertia",)}
-REALTIME_COLUMNS = ["scene", "model", "controller", "latency", "call_ms_median", "call_ms_p99", "call_ms_max",
-                    "cpu_ms_median", "learned_vs_true", "feedback_ms_median", "feedback_ms_p99", "feedback_learned_vs_true", "iterations_mean", "deadline_misses", "failures",
-                    "time_to_upright_s", "hold_error_rad", "swung_up"]
+REALTIME_COLUMNS = [
+    "scene",
+    "model",
+    "controller",
+    "latency",
+    "call_ms_median",
+    "call_ms_p99",
+    "call_ms_max",
+    "cpu_ms_median",
+    "learned_vs_true",
+    "feedback_ms_median",
+    "feedback_ms_p99",
+    "feedback_learned_vs_true",
+    "iterations_mean",
+    "deadline_misses",
+    "failures",
+    "time_to_upright_s",
+    "hold_error_rad",
+    "swung_up",
+]
 
 
 def realtime_rows(duration: float = 10.0, seed: int = 0, scenes: tuple[str, ...] = REALTIME_SCENES,
@@ -128,17 +150,28 @@ def realtime_rows(duration: float = 10.0, seed: int = 0, scenes: tuple[str, ...]
                 calls = 1e3 * episode.controller_time_s[np.isfinite(episode.controller_time_s)]
                 feedback = 1e3 * episode.feedback_s[np.isfinite(episode.feedback_s)]
                 iterations = [i["iterations"] for i in episode.controller_info if "iterations" in i]
-                rows.append({
-                    "scene": scene, "model": model_label, "controller": label,
-                    "latency": latency, "call_ms_median": float(np.median(calls)),
-                    "call_ms_p99": float(np.percentile(calls, 99)), "call_ms_max": float(calls.max()),
-                    "feedback_ms_median": float(np.median(feedback)), "feedback_ms_p99": float(np.percentile(feedback, 99)),
-                    "cpu_ms_median": float(np.nanmedian(1e3 * episode.cpu_s)) if episode.cpu_s is not None else None,
-                    "iterations_mean": float(np.mean(iterations)) if iterations else None,
-                    "deadline_misses": metrics["deadline_misses"], "failures": metrics["controller_failures"],
-                    "time_to_upright_s": metrics["time_to_upright_s"], "hold_error_rad": metrics["hold_error_rad"],
-                    "swung_up": metrics["swung_up"],
-                })
+                rows.append(
+                    {
+                        "scene": scene,
+                        "model": model_label,
+                        "controller": label,
+                        "latency": latency,
+                        "call_ms_median": float(np.median(calls)),
+                        "call_ms_p99": float(np.percentile(calls, 99)),
+                        "call_ms_max": float(calls.max()),
+                        "feedback_ms_median": float(np.median(feedback)),
+                        "feedback_ms_p99": float(np.percentile(feedback, 99)),
+                        "cpu_ms_median": float(np.nanmedian(1e3 * episode.cpu_s))
+                        if episode.cpu_s is not None
+                        else None,
+                        "iterations_mean": float(np.mean(iterations)) if iterations else None,
+                        "deadline_misses": metrics["deadline_misses"],
+                        "failures": metrics["controller_failures"],
+                        "time_to_upright_s": metrics["time_to_upright_s"],
+                        "hold_error_rad": metrics["hold_error_rad"],
+                        "swung_up": metrics["swung_up"],
+                    }
+                )
             env.close()
     for row in rows:
         true_row = next(r for r in rows if r["scene"] == row["scene"] and r["controller"] == row["controller"]

@@ -2,7 +2,8 @@
 
 Sub-commands:
 
-* ``collect`` — trajectories as :func:`fvin_mpc.learning.collection.collect` draws them with ``max_speed`` (orientation uniform on
+* ``collect`` — trajectories as :func:`fvin_mpc.learning.collection.collect` draws them with ``max_speed``
+  (orientation uniform on
   S³, ω uniform in a ball, constant or piecewise-constant torques uniform in the actuators' box),
   but a trajectory whose angular velocity leaves ``|ω_i| ≤ --max-speed`` at any step is redrawn.
   Why: the z axis has a tiny inertia (0.017 kg·m² against ≈ 0.5 about x, y), so 1.5 N·m spins it up
@@ -122,8 +123,11 @@ def markdown_tables(results: dict[str, Any]) -> str:
                      f"| {s['success']}/{s['episodes']} | {t} | {s['solve_time_median_ms']:.0f} "
                      f"| {s['solve_time_p95_ms']:.0f} | {s['solve_time_max_ms']:.0f} | {s['controller_failures']} "
                      f"| {s['max_step_residual']:.1e} | {s['max_abs_omega']:.1f} |")
-    lines += ["", "| # | seed | start | \\|ω₀\\| (rad/s) | " + " | ".join(f"{n}: t↑ (s) / hold err (rad)" for n in models) + " |",
-              "|" + "---|" * (4 + len(models))]
+    lines += [
+        "",
+        "| # | seed | start | \\|ω₀\\| (rad/s) | " + " | ".join(f"{n}: t↑ (s) / hold err (rad)" for n in models) + " |",
+        "|" + "---|" * (4 + len(models)),
+    ]
     first = results["models"][models[0]]["episodes"]
     for i, row in enumerate(first):
         start = "rest" if row["index"] == 0 else f"random (≤ {row['max_omega0']:g})"

@@ -26,11 +26,18 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--steps", type=int, default=20, help="control periods per trajectory")
     c.add_argument("--max-omega", type=float, default=6.0, help="largest initial |ω| (rad/s)")
     c.add_argument("--hold-steps", type=int, default=2, help="periods per level of piecewise-constant controls")
-    c.add_argument("--max-speed", type=float, default=15.0, help="redraw a trajectory once some |ω_i| exceeds this (rad/s)")
+    c.add_argument(
+        "--max-speed", type=float, default=15.0, help="redraw a trajectory once some |ω_i| exceeds this (rad/s)"
+    )
     c.add_argument("--near-goal-trajectories", type=int, default=600,
                    help="more trajectories started within --near-goal-angle of upright (default: %(default)s)")
     c.add_argument("--near-goal-angle", type=float, default=1.0, help="rad (default: %(default)s)")
-    c.add_argument("--near-goal-omega", type=float, default=2.0, help="largest initial |ω_i| of those (rad/s; default: %(default)s)")
+    c.add_argument(
+        "--near-goal-omega",
+        type=float,
+        default=2.0,
+        help="largest initial |ω_i| of those (rad/s; default: %(default)s)",
+    )
     c.add_argument("--seed", type=int, default=0)
     c.add_argument("--out", type=Path, default=Path("data") / f"{SCENE}.npz")
     c.add_argument("--quiet", action="store_true")
@@ -44,7 +51,9 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--seed", type=int, default=0)
     e.add_argument("--json", type=Path, default=Path("docs/spherical/closed_loop.json"))
     e.add_argument("--markdown", type=Path, default=Path("docs/spherical/closed_loop.md"))
-    e.add_argument("--indices", default=None, help="run only starts FIRST-LAST (inclusive), e.g. 0-9, to split the work")
+    e.add_argument(
+        "--indices", default=None, help="run only starts FIRST-LAST (inclusive), e.g. 0-9, to split the work"
+    )
     e.add_argument("--quiet", action="store_true")
     mg = sub.add_parser("merge", help="merge closed-loop JSON files (disjoint starts or models) into one table")
     mg.add_argument("parts", type=Path, nargs="+")
@@ -94,8 +103,15 @@ def main(argv: list[str] | None = None) -> int:
                        near_goal_trajectories=args.near_goal_trajectories, near_goal_angle=args.near_goal_angle,
                        near_goal_omega=args.near_goal_omega)
         save_data(args.out, data)
-        print(json.dumps({"out": str(args.out), "wall_clock_s": round(time.perf_counter() - start, 1),
-                          **{k: data.metadata[k] for k in ("trajectories", "transitions", "attempts", "acceptance_rate")}}))
+        print(
+            json.dumps(
+                {
+                    "out": str(args.out),
+                    "wall_clock_s": round(time.perf_counter() - start, 1),
+                    **{k: data.metadata[k] for k in ("trajectories", "transitions", "attempts", "acceptance_rate")},
+                }
+            )
+        )
     return 0
 
 

@@ -101,15 +101,25 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 5, threads: int = 1, 
         pendulum, damped = Path("data/pendulum.npz"), _damped_data(seed)
         targets = [(pendulum, _shipped_validation_loss("pendulum_sign-invariant", pendulum)),
                    (damped, _shipped_validation_loss("pendulum_damped_sign-invariant", damped))]
-        jobs = [(data, target, mode) for data, target in targets if target is not None for mode in optimizers.split(",")]
+        jobs = [
+            (data, target, mode) for data, target in targets if target is not None for mode in optimizers.split(",")
+        ]
         from tqdm.auto import tqdm
 
         with tempfile.TemporaryDirectory() as scratch:
             for data, target, mode in tqdm(jobs, desc="train-speed: fresh processes"):
                 result.rows.append(_fresh_process(data, mode, target, threads, seed, time_limit, Path(scratch)))
-        result.columns = list(result.columns) + ["data", "target_validation_loss", "final_validation_loss",
-                                                 "iterations_to_target", "s_to_target", "launch_to_exit_s", "cpu_s_to_target",
-                                                 "cpu_s_to_train_end", "load_1min"]
+        result.columns = list(result.columns) + [
+            "data",
+            "target_validation_loss",
+            "final_validation_loss",
+            "iterations_to_target",
+            "s_to_target",
+            "launch_to_exit_s",
+            "cpu_s_to_target",
+            "cpu_s_to_train_end",
+            "load_1min",
+        ]
         result.notes.append(
             "**To target**: each row is one `python -m fvin_mpc.train --data <data> --optimizer <mode> --threads "
             f"{threads} --time-limit {time_limit:g}` in a fresh interpreter (defaults otherwise, early stopping on). "
@@ -144,8 +154,11 @@ def _per_iteration(quick: bool, seed: int, repeats: int, modes: list[str]) -> St
         per_iteration = [r for r in rows if r.get("part") == "per iteration"]
         to_target = [r for r in rows if r.get("part") == "to target"]
         left = figure.add_subplot(1, 2 if to_target else 1, 1)
-        left.bar([f"{r['mode']}\n{r['variant']}" for r in per_iteration], [r["s_per_iter_median"] for r in per_iteration],
-                 color="tab:blue")
+        left.bar(
+            [f"{r['mode']}\n{r['variant']}" for r in per_iteration],
+            [r["s_per_iter_median"] for r in per_iteration],
+            color="tab:blue",
+        )
         left.axhline(REFERENCE_SECONDS_PER_ITERATION, color="tab:red", ls="--", label="reference (DESIGN.md)")
         left.set_yscale("log")
         left.set_ylabel("s / iteration (median)")
@@ -163,11 +176,27 @@ def _per_iteration(quick: bool, seed: int, repeats: int, modes: list[str]) -> St
         figure.set_size_inches(13, 5)
         figure.tight_layout()
 
-    notes = [f"**Per iteration**: {windows} windows × {steps} steps, hidden width 10, float64, K = 2, full batch, one Adam "
-             f"iteration; reference ≈ {REFERENCE_SECONDS_PER_ITERATION} s/iteration (DESIGN.md, measured on this machine "
-             "kind). `compile_s` is the one-off cost of `torch.compile` on the first iteration."]
-    return StudyResult("train-speed", rows, ["part", "mode", "variant", "windows", "s_per_iter_median", "s_per_iter_p95",
-                                             "compile_s", "speedup_vs_reference"], plot, notes)
+    notes = [
+        f"**Per iteration**: {windows} windows × {steps} steps, hidden width 10, float64, K = 2, full batch, one Adam "
+        f"iteration; reference ≈ {REFERENCE_SECONDS_PER_ITERATION} s/iteration (DESIGN.md, measured on this machine "
+        "kind). `compile_s` is the one-off cost of `torch.compile` on the first iteration."
+    ]
+    return StudyResult(
+        "train-speed",
+        rows,
+        [
+            "part",
+            "mode",
+            "variant",
+            "windows",
+            "s_per_iter_median",
+            "s_per_iter_p95",
+            "compile_s",
+            "speedup_vs_reference",
+        ],
+        plot,
+        notes,
+    )
 
 
 def add_arguments(parser: Any) -> None:

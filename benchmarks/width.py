@@ -61,8 +61,11 @@ def _trained(data: Any, variant: str, width: int, iterations: int, seed: int, pr
     config = ModelConfig(variant=variant, control_dim=data.u.shape[2], hidden_width=width,
                          step_size=data.control_period)
     settings = TrainSettings(iterations=iterations, seed=seed, eval_every=max(1, iterations // 4), compile=False)
-    digest = hashlib.sha256(json.dumps([config.to_dict(), settings.__dict__]).encode()
-                            + np.ascontiguousarray(data.q).tobytes() + np.ascontiguousarray(data.u).tobytes()).hexdigest()[:16]
+    digest = hashlib.sha256(
+        json.dumps([config.to_dict(), settings.__dict__]).encode()
+        + np.ascontiguousarray(data.q).tobytes()
+        + np.ascontiguousarray(data.u).tobytes()
+    ).hexdigest()[:16]
     stem = cache_dir() / "bench-width" / f"pendulum_w{width}_{variant}_{digest}"
     if stem.with_suffix(".json").is_file() and stem.with_suffix(".safetensors").is_file():
         return load_checkpoint(stem), False
@@ -75,7 +78,9 @@ def _trained(data: Any, variant: str, width: int, iterations: int, seed: int, pr
 _WORKER: dict[str, Any] = {}
 
 
-def _init_worker(data: Any, heldout: Any, iterations: int, seed: int, horizon: int, duration: float, quick: bool) -> None:
+def _init_worker(
+    data: Any, heldout: Any, iterations: int, seed: int, horizon: int, duration: float, quick: bool
+) -> None:
     _WORKER.clear()
     _WORKER.update(data=data, heldout=heldout, iterations=iterations, seed=seed, horizon=horizon, duration=duration,
                    quick=quick, env=make_env("pendulum"))
@@ -146,7 +151,8 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 5, iterations: int = 
     if "env" in _WORKER:  # ran in this process
         _WORKER.pop("env").close()
     notes = [
-        f"Training: {iterations} full-batch Adam iterations (eager torch, one thread, no `torch.compile`: its ≈ 75 s of "
+        f"Training: {iterations} full-batch Adam iterations (eager torch, one thread, no `torch.compile`: its ≈ 75 s "
+        f"of "
         f"compilation per model would exceed the training itself), window 8, on {train_trajectories} trajectories of "
         f"`data/pendulum.npz` (seed {seed}); short on purpose, so the errors are those of briefly trained models. "
         "`train_s` is the wall clock of the real training run (from the cached checkpoint's `training.wall_clock_s`; "
@@ -158,9 +164,12 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 5, iterations: int = 
         NOISE_NOTE,
     ]
     if workers > 1:
-        notes.insert(2, f"Rows ran concurrently on {workers} workers ({backend} backend): each row's timings (training, "
-                        "MPC solves) include the contention of the others; compare them with a `--workers 1` run "
-                        "only as ratios.")
+        notes.insert(
+            2,
+            f"Rows ran concurrently on {workers} workers ({backend} backend): each row's timings (training, "
+            "MPC solves) include the contention of the others; compare them with a `--workers 1` run "
+            "only as ratios.",
+        )
     if compile_failures:
         notes.insert(2, "**Compiling the MPC's functions failed** for " + "; ".join(compile_failures)
                      + " — that row's MPC ran interpreted (`mpc_compile` = none), so its solve time is not comparable "
@@ -176,12 +185,14 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 5, iterations: int = 
 
     return StudyResult("width", rows,
                        ["variant", "width", "parameters", "rollout_angle_final_mean", "validation_loss", "train_s",
-                        "train_s_per_iter", "trained_now", "mpc_compile", "mpc_ms_median", "mpc_ms_p95", "iterations_mean", "success",
-                        "time_to_upright_s", "mpc_build_s"], plot, notes)
+                        "train_s_per_iter", "trained_now", "mpc_compile", "mpc_ms_median", "mpc_ms_p95",
+                        "iterations_mean", "success", "time_to_upright_s", "mpc_build_s"], plot, notes)
 
 
 def add_arguments(parser: Any) -> None:
-    parser.add_argument("--iterations", type=int, default=200, help="training iterations per model (default: %(default)s)")
+    parser.add_argument(
+        "--iterations", type=int, default=200, help="training iterations per model (default: %(default)s)"
+    )
     parser.add_argument("--train-trajectories", type=int, default=32,
                         help="trajectories of data/pendulum.npz used for training (default: %(default)s)")
     parser.add_argument("--horizon", type=int, default=30, help="MPC horizon N (default: %(default)s)")

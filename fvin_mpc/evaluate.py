@@ -43,7 +43,9 @@ def build_parser() -> argparse.ArgumentParser:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     add_scene_arguments(parser, newton_iters=False)
     parser.add_argument("--episodes", type=int, default=50, help="episodes per controller (default: %(default)s)")
-    parser.add_argument("--duration", type=positive_float, default=10.0, help="seconds per episode (default: %(default)s)")
+    parser.add_argument(
+        "--duration", type=positive_float, default=10.0, help="seconds per episode (default: %(default)s)"
+    )
     parser.add_argument("--controllers", default=",".join(CONTROLLERS),
                         help="comma-separated subset of: %(default)s")
     parser.add_argument("--seed", type=int, default=0, help="base seed of the initial states (default: %(default)s)")

@@ -37,7 +37,9 @@ def _size(text: str) -> int | None:
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m fvin_mpc.sweep", description=sweep_module.__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", type=Path, default=DEFAULT_DATA, help="data file from fvin_mpc.collect (default: %(default)s)")
+    parser.add_argument(
+        "--data", type=Path, default=DEFAULT_DATA, help="data file from fvin_mpc.collect (default: %(default)s)"
+    )
     parser.add_argument("--variants", type=_list(str), default=("sign-invariant",),
                         help="comma-separated model variants (default: sign-invariant)")
     parser.add_argument("--widths", type=_list(int), default=(16,), help="comma-separated hidden widths (default: 16)")
@@ -50,8 +52,12 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--hidden-layers", type=int, default=2, help="hidden layers per MLP (default: %(default)s)")
     parser.add_argument("--dissipation", action=argparse.BooleanOptionalAction, default=None,
                         help="learn a damping term −Dω (default: on when the data's scene declares joint damping)")
-    parser.add_argument("--optimizer", choices=OPTIMIZERS, default=None, help="training optimizer (default: train's, lm)")
-    parser.add_argument("--iterations", type=int, default=None, help="most iterations per run (default: the optimizer's)")
+    parser.add_argument(
+        "--optimizer", choices=OPTIMIZERS, default=None, help="training optimizer (default: train's, lm)"
+    )
+    parser.add_argument(
+        "--iterations", type=int, default=None, help="most iterations per run (default: the optimizer's)"
+    )
     parser.add_argument("--patience", type=int, default=None, help="early-stopping patience (default: train's)")
     parser.add_argument("--time-limit", type=float, default=None, help="seconds of training per run (default: none)")
     add_backend_arguments(parser, "runs in parallel: processes, or Ray actors with --backend ray; each run uses one "

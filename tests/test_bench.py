@@ -46,7 +46,9 @@ def test_pareto_mask_keeps_exactly_the_non_dominated_points():
 
 
 def test_write_study_records_the_command(tmp_path):
-    result = StudyResult("demo", [{"a": 1.0, "b": None}], ["a", "b"], lambda figure, rows: figure.add_subplot().plot([0, 1]))
+    result = StudyResult(
+        "demo", [{"a": 1.0, "b": None}], ["a", "b"], lambda figure, rows: figure.add_subplot().plot([0, 1])
+    )
     paths = write_study(result, tmp_path / "out", ["demo", "--quick"])
     saved = json.loads(paths["json"].read_text())
     assert saved["command"] == "python -m benchmarks demo --quick"
@@ -169,8 +171,12 @@ def test_solver_quick(tmp_path):
 def test_realtime_rows_put_every_learned_checkpoint_beside_the_closed_form():
     from benchmarks import solver
 
-    rows = solver.realtime_rows(duration=0.5, scenes=("pendulum",), configs=(("rti", {"solver": "rti", "compile": "none"}, 0.001),),
-                                extra_checkpoints={"pendulum": ("pendulum_fixed-inertia",)})
+    rows = solver.realtime_rows(
+        duration=0.5,
+        scenes=("pendulum",),
+        configs=(("rti", {"solver": "rti", "compile": "none"}, 0.001),),
+        extra_checkpoints={"pendulum": ("pendulum_fixed-inertia",)},
+    )
     assert [r["model"] for r in rows] == ["learned", "closed form", "learned (fixed-inertia)"]
     closed = rows[1]
     assert closed["learned_vs_true"] is None

@@ -50,8 +50,14 @@ def test_mismatched_config_names_the_weight(saved):
         load_checkpoint(stem)
 
 
-@pytest.mark.parametrize("content, message", [("{not json", "not valid JSON"), ('{"format": "other"}', "format"),
-                                              ('{"format": "fvin_mpc.checkpoint/1", "model": {"variant": "bogus"}}', "invalid model config")])
+@pytest.mark.parametrize(
+    "content, message",
+    [
+        ("{not json", "not valid JSON"),
+        ('{"format": "other"}', "format"),
+        ('{"format": "fvin_mpc.checkpoint/1", "model": {"variant": "bogus"}}', "invalid model config"),
+    ],
+)
 def test_malformed_sidecar(saved, content, message):
     stem, *_ = saved
     stem.with_suffix(".json").write_text(content)

@@ -62,7 +62,10 @@ def test_scale_of_the_model_cancels():
     )
     # The actuator gain λ·b means one unit of u is λ times the torque; compare with u scaled back.
     a, b = make(), make(scaled)
-    for q, omega in [(np.array([0.9, 0, 0.43589, 0]), np.array([0, 1.2, 0])), (np.array([0.1, 0, 0.99499, 0]), np.array([0, -0.3, 0]))]:
+    for q, omega in [
+        (np.array([0.9, 0, 0.43589, 0]), np.array([0, 1.2, 0])),
+        (np.array([0.1, 0, 0.99499, 0]), np.array([0, -0.3, 0])),
+    ]:
         ua, _ = a(np.r_[q / np.linalg.norm(q), omega])
         ub, _ = b(np.r_[q / np.linalg.norm(q), omega])
         np.testing.assert_allclose(ua, ub, rtol=1e-6, atol=1e-9)
@@ -99,8 +102,9 @@ def test_lqr_linearization_matches_the_continuous_pendulum():
     # The basis vector of the actuated axis may point along ±y; the reduced coordinates then flip sign together.
     sign = np.sign(design.b[1, 0])
     np.testing.assert_allclose(design.a, exact_a, atol=5 * h**3 * 15)
-    np.testing.assert_allclose(sign * design.b[:, 0], (exact_a - np.eye(2)) @ np.linalg.solve(continuous_a, continuous_b)[:, 0],
-                               rtol=0.05)
+    np.testing.assert_allclose(
+        sign * design.b[:, 0], (exact_a - np.eye(2)) @ np.linalg.solve(continuous_a, continuous_b)[:, 0], rtol=0.05
+    )
 
 
 def test_controller_applies_the_lqr_gain_near_upright_and_its_closed_loop_cost_approaches_xPx():

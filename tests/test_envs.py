@@ -412,7 +412,9 @@ def test_user_mjcf_defaults(tmp_path):
 
 
 def test_user_mjcf_validation(tmp_path):
-    two_bodies = write_mjcf(tmp_path / "two.xml", HINGE_BODY + HINGE_BODY.replace('"link"', '"other"').replace('"j"', '"k"'))
+    two_bodies = write_mjcf(
+        tmp_path / "two.xml", HINGE_BODY + HINGE_BODY.replace('"link"', '"other"').replace('"j"', '"k"')
+    )
     with pytest.raises(ValueError, match="pass body="):
         RigidBodyEnv(two_bodies)
     with pytest.raises(ValueError, match="only degree of freedom"):
@@ -489,7 +491,12 @@ def test_pendulum_v1_torque_direction_agrees():
 
     # Whole trajectories agree up to Pendulum-v1's semi-implicit Euler error (dt = 0.05), while
     # the mirrored convention (θ_scene = π − θ_v1, ω = −θ̇, i.e. the opposite torque sign) does not.
-    for theta_v1, theta_dot, torque in [(np.pi - 0.2, 0.0, 2.0), (np.pi + 0.5, 1.0, -2.0), (0.3, 0.0, 2.0), (2.5, -1.0, -1.5)]:
+    for theta_v1, theta_dot, torque in [
+        (np.pi - 0.2, 0.0, 2.0),
+        (np.pi + 0.5, 1.0, -2.0),
+        (0.3, 0.0, 2.0),
+        (2.5, -1.0, -1.5),
+    ]:
         v1.reset(seed=0)
         v1.state = np.array([theta_v1, theta_dot])
         mirrored = RigidBodyEnv("pendulum")

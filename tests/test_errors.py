@@ -173,13 +173,27 @@ def test_a_checkpoint_of_another_configuration_space_is_refused(capsys):
     assert "R3xS3" in line
 
 
-@pytest.mark.parametrize("command, argv, message", [
-    ("fvin_mpc.quality", ["--checkpoint", "quadrotor_fixed-inertia"], "is a free body and quality needs a body on a pivot"),
-    ("benchmarks.pendulum_v1_report", ["--checkpoint", "quadrotor_fixed-inertia", "--episodes", "1"], "a model on R3xS3"),
-    ("benchmarks.pendulum_v1_report", ["--checkpoint", "spherical_pendulum_sign-invariant", "--episodes", "1"],
-     "has 3 controls"),
-    ("fvin_mpc.export", ["--checkpoint", "no-such-model"], "checkpoint file not found"),
-])
+@pytest.mark.parametrize(
+    "command, argv, message",
+    [
+        (
+            "fvin_mpc.quality",
+            ["--checkpoint", "quadrotor_fixed-inertia"],
+            "is a free body and quality needs a body on a pivot",
+        ),
+        (
+            "benchmarks.pendulum_v1_report",
+            ["--checkpoint", "quadrotor_fixed-inertia", "--episodes", "1"],
+            "a model on R3xS3",
+        ),
+        (
+            "benchmarks.pendulum_v1_report",
+            ["--checkpoint", "spherical_pendulum_sign-invariant", "--episodes", "1"],
+            "has 3 controls",
+        ),
+        ("fvin_mpc.export", ["--checkpoint", "no-such-model"], "checkpoint file not found"),
+    ],
+)
 def test_checkpoint_commands_refuse_a_model_they_cannot_use(command, argv, message, capsys, tmp_path):
     import importlib
 

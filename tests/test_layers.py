@@ -131,12 +131,8 @@ def test_torch_only_in_learning_and_backends_only_in_the_core_backend(path):
 
 def test_the_layer_check_sees_an_offending_import(tmp_path, monkeypatch):
     """The check itself can fail: a core module importing the control layer is caught."""
-    import sys
-
-    monkeypatch.setattr(sys.modules[__name__], "PACKAGE", tmp_path / "fvin_mpc")
-    bad = tmp_path / "fvin_mpc" / "core" / "probe.py"
-    bad.parent.mkdir(parents=True)
-    bad.write_text("def f():\n    from fvin_mpc.control.mpc import MPC\n    from ..control import scene\n")
+    bad = probe_module(tmp_path, monkeypatch, "core/probe.py",
+                       "def f():\n    from fvin_mpc.control.mpc import MPC\n    from ..control import scene\n")
     assert module_layer(bad) == "core"
     assert {"fvin_mpc.control.mpc", "fvin_mpc.control"} <= set(imported_modules(bad))
     with pytest.raises(AssertionError, match="imports"):
@@ -229,13 +225,20 @@ def test_no_private_names_imported_across_modules(path):
     assert not offending, f"{path.name} imports private names {offending}: make them public or move the code"
 
 
-def test_the_private_name_check_sees_one(tmp_path, monkeypatch):
+def probe_module(tmp_path: Path, monkeypatch, relative: str, source: str) -> Path:
+    """A module ``fvin_mpc/<relative>`` of ``source`` in a package tree under ``tmp_path`` the checks read."""
     import sys
 
     monkeypatch.setattr(sys.modules[__name__], "PACKAGE", tmp_path / "fvin_mpc")
-    probe = tmp_path / "fvin_mpc" / "studies" / "probe.py"
+    probe = tmp_path / "fvin_mpc" / relative
     probe.parent.mkdir(parents=True)
-    probe.write_text("from fvin_mpc.control.mpc import MPC, _Plan\nfrom ..core import _secret\n")
+    probe.write_text(source)
+    return probe
+
+
+def test_the_private_name_check_sees_one(tmp_path, monkeypatch):
+    probe = probe_module(tmp_path, monkeypatch, "studies/probe.py",
+                         "from fvin_mpc.control.mpc import MPC, _Plan\nfrom ..core import _secret\n")
     assert private_imports(probe) == [("fvin_mpc.studies.probe", "fvin_mpc.control.mpc", "_Plan"),
                                       ("fvin_mpc.studies.probe", "fvin_mpc.core", "_secret")]
 
@@ -253,7 +256,9 @@ def test_no_two_modules_share_a_file_name():
     for path in SOURCES:
         if path.name not in ("__init__.py", "__main__.py"):
             by_name.setdefault(path.name, []).append(str(path.relative_to(ROOT)))
-    shared = {name: paths for name, paths in by_name.items() if len(paths) > 1 and name not in SHARED_FILE_NAMES_ALLOWED}
+    shared = {
+        name: paths for name, paths in by_name.items() if len(paths) > 1 and name not in SHARED_FILE_NAMES_ALLOWED
+    }
     assert not shared, f"modules that share a file name: {shared}"
 
 
@@ -309,12 +314,9 @@ def test_own_modules_are_imported_at_module_level(path):
 
 
 def test_the_in_function_check_sees_a_light_import_and_lets_a_heavy_one_be(tmp_path, monkeypatch):
-    import sys
-
-    monkeypatch.setattr(sys.modules[__name__], "PACKAGE", tmp_path / "fvin_mpc")
-    probe = tmp_path / "fvin_mpc" / "learning" / "probe.py"
-    probe.parent.mkdir(parents=True)
-    probe.write_text("def f():\n    from fvin_mpc.core import s3\n    from fvin_mpc.learning.model import model_for\n")
+    probe = probe_module(tmp_path, monkeypatch, "learning/probe.py",
+                         "def f():\n    from fvin_mpc.core import s3\n"
+                         "    from fvin_mpc.learning.model import model_for\n")
     assert in_function_imports(probe) == [("fvin_mpc.core.s3", 2), ("fvin_mpc.learning.model", 3)]
     with pytest.raises(AssertionError, match="fvin_mpc.core.s3"):
         test_own_modules_are_imported_at_module_level(probe)

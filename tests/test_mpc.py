@@ -190,8 +190,10 @@ def _stage_cost(settings, states, controls, goal):
         return float(q @ q - (goal @ q) ** 2)
 
     n = len(controls)
-    cost = sum(settings.orientation_weight * orientation(states[k, :4]) + settings.omega_weight * states[k, 4:] @ states[k, 4:]
-               for k in range(n))
+    cost = sum(
+        settings.orientation_weight * orientation(states[k, :4]) + settings.omega_weight * states[k, 4:] @ states[k, 4:]
+        for k in range(n)
+    )
     cost += settings.control_weight * float(np.sum(controls ** 2))
     return cost + settings.terminal_orientation_weight * orientation(states[n, :4]) \
         + settings.terminal_omega_weight * states[n, 4:] @ states[n, 4:]
@@ -217,7 +219,9 @@ def test_energy_cost_gauss_newton_and_exact_hessian_reach_the_same_plan(true_mod
     plans = {}
     for hessian in ("gauss-newton", "exact"):
         settings = replace(MPCSettings(), terminal_energy_weight=100.0, hessian=hessian, tol=1e-10, compile="none")
-        _, plans[hessian] = MPC(true_model, settings, UPRIGHT, [-2.0], [2.0], rest=HANGING)(np.r_[hinge(np.pi - 0.6, 1.0)])
+        _, plans[hessian] = MPC(true_model, settings, UPRIGHT, [-2.0], [2.0], rest=HANGING)(
+            np.r_[hinge(np.pi - 0.6, 1.0)]
+        )
     assert plans["gauss-newton"]["success"] and plans["exact"]["success"]
     np.testing.assert_allclose(plans["gauss-newton"]["controls"], plans["exact"]["controls"], atol=1e-5)
 

@@ -71,7 +71,9 @@ def test_greedy_torque_is_the_argmin_over_the_models_steps(true_model):
         for torque in controller.torques:
             x_next = true_model(x, np.array([torque]))[0]
             next_theta, next_rate = plan.v1_angles(x_next)
-            totals.append(float(exact.v1_cost(theta, theta_dot, torque)) + float(pv.interpolate(table, next_theta, next_rate)[0]))
+            totals.append(
+                float(exact.v1_cost(theta, theta_dot, torque)) + float(pv.interpolate(table, next_theta, next_rate)[0])
+            )
         assert u == pytest.approx(controller.torques[int(np.argmin(totals))])
         np.testing.assert_allclose(next_state, true_model(x, np.array([u]))[0], atol=1e-12)
     with pytest.raises(ValueError):
@@ -135,7 +137,9 @@ def test_choice_runs_the_candidate_cheapest_on_the_model(true_model):
     chooser.reset()
     assert chooser.choice is None
     # A candidate that acts as another is not simulated; one distinct candidate needs no simulation.
-    twin = plan.SimulatedChoiceController(pushes, true_model, 30, same_as=lambda name, x: None if name == "none" else "none")
+    twin = plan.SimulatedChoiceController(
+        pushes, true_model, 30, same_as=lambda name, x: None if name == "none" else "none"
+    )
     before = {name: c.calls for name, c in pushes.items()}
     _, info = twin(x0)
     assert info["choice"] == "none" and info["simulated_costs"] == {}

@@ -56,7 +56,8 @@ def test_two_step_values_are_the_continuous_torque_minimum_within_the_interpolat
     error = tables.values[2] - two_step
     assert np.abs(error[smooth]).max() <= bound
     assert smooth.mean() > 0.8
-    # The interpolant of a convex c over-estimates it: the DP's value is never below the exact minimum by more than rounding.
+    # The interpolant of a convex c over-estimates it: the DP's value is never below the exact minimum by more
+    # than rounding.
     assert error[smooth].min() > -1e-4
 
 

@@ -95,7 +95,9 @@ def test_terminal_cost_hook_reproduces_the_terminal_speed_weight(true_model):
     x = ca.MX.sym("x", 7)
     speed = ca.Function("speed", [x], [3.0 * ca.sumsqr(x[4:])])
     with_weight = MPC(true_model, replace(settings, terminal_omega_weight=3.0), UPRIGHT, [-2.0], [2.0])
-    with_hook = MPC(true_model, replace(settings, terminal_omega_weight=0.0), UPRIGHT, [-2.0], [2.0], terminal_cost=speed)
+    with_hook = MPC(
+        true_model, replace(settings, terminal_omega_weight=0.0), UPRIGHT, [-2.0], [2.0], terminal_cost=speed
+    )
     without = MPC(true_model, replace(settings, terminal_omega_weight=0.0), UPRIGHT, [-2.0], [2.0])
     assert without.terminal_cost is None
     for theta, theta_dot in [(np.pi - 0.3, 0.5), (np.pi + 0.2, -1.0)]:  # near upright: the terminal ω matters
@@ -111,7 +113,9 @@ def test_terminal_cost_hook_reproduces_the_terminal_speed_weight(true_model):
     with pytest.raises(ValueError):
         MPC(true_model, settings, UPRIGHT, [-2.0], [2.0], terminal_cost=ca.Function("bad", [x], [x]))
     with pytest.raises(ValueError):
-        MPC(true_model, replace(settings, solver="fatrop", hessian="exact"), UPRIGHT, [-2.0], [2.0], terminal_cost=speed)
+        MPC(
+            true_model, replace(settings, solver="fatrop", hessian="exact"), UPRIGHT, [-2.0], [2.0], terminal_cost=speed
+        )
 
 
 def test_cold_start_score_ranks_the_cold_plans(true_model):
@@ -143,7 +147,9 @@ def test_plan_score_is_the_stage_costs_plus_the_value():
     rate = np.array([1.0, 2.0, 3.0])
     states = state_from_v1_observation(np.stack([np.cos(theta), np.sin(theta), rate], axis=1))
     controls = np.array([[0.5], [-1.0]])
-    expected = float(np.sum(exact.v1_cost(theta[:2], rate[:2], controls[:, 0]))) + pv.interpolate(table, theta[2], rate[2])
+    expected = float(np.sum(exact.v1_cost(theta[:2], rate[:2], controls[:, 0]))) + pv.interpolate(
+        table, theta[2], rate[2]
+    )
     assert pv.plan_score(table)(states, controls) == pytest.approx(expected, rel=1e-12)
     assert pv.plan_score(table, "mpc")(states, controls) < pv.plan_score(table)(states, controls)  # 4 sin²(θ/2) < θ²
 

@@ -166,7 +166,9 @@ def test_eq_3_6_hold_rule_is_first_order_in_translation_when_the_thrust_turns():
     errs, slopes = orders(QUADROTOR, START, THRUST, force_rule="hold")
     assert np.all((slopes[:, [0, 2]] > 0.75) & (slopes[:, [0, 2]] < 1.25)), (errs, slopes)
     assert np.all((slopes[:, [1, 3]] > 1.85) & (slopes[:, [1, 3]] < 2.15)), (errs, slopes)
-    trapezoid = np.array([errors(rollout(QUADROTOR, START, THRUST, 1 / 400, 400)[0], reference(QUADROTOR, START, THRUST, 1.0))])
+    trapezoid = np.array(
+        [errors(rollout(QUADROTOR, START, THRUST, 1 / 400, 400)[0], reference(QUADROTOR, START, THRUST, 1.0))]
+    )
     assert trapezoid[0, 2] < errs[-1, 2] / 4
 
 

@@ -296,7 +296,9 @@ def test_training_with_dissipation_recovers_the_damping():
     angles = np.linspace(-np.pi, np.pi, 64, endpoint=False)
     axis = np.array([0.0, 1.0, 0.0])
     hinge_quaternions = np.stack([np.cos(angles / 2), 0 * angles, np.sin(angles / 2), 0 * angles], -1)
-    components = compare_components(trained, PENDULUM_DAMPED, hinge_quaternions, axis, rest=np.array([1.0, 0.0, 0.0, 0.0]))
+    components = compare_components(
+        trained, PENDULUM_DAMPED, hinge_quaternions, axis, rest=np.array([1.0, 0.0, 0.0, 0.0])
+    )
     assert components["lambda"] > 0.0
     assert components["dissipation_axis_true"] == pytest.approx(2.0 * PENDULUM_DAMPED.damping)
     # Initial D is 0.01·I; measured after training (seeds 0/3, 1/4, 2/5 of data/training):

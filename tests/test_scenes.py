@@ -105,7 +105,9 @@ def test_the_reference_scales_give_the_tuned_numbers():
     assert derived == replace(MPCSettings(), terminal_energy_weight=DEFAULT_TERMINAL_ENERGY_WEIGHT,
                               cold_starts=COLD_STARTS)
     scales = scene_scales(RigidBodyEnv("pendulum"))
-    assert (scales.energy_span, scales.speed**2, scales.torque, scales.step_size) == pytest.approx((10.0, 60.0, 2.0, 0.05))
+    assert (scales.energy_span, scales.speed**2, scales.torque, scales.step_size) == pytest.approx(
+        (10.0, 60.0, 2.0, 0.05)
+    )
     assert scene_mpc_settings(RigidBodyEnv("pendulum")) == derived
 
 

@@ -157,7 +157,9 @@ def test_inertia_recovery_of_an_exact_scaled_model(env, body):
     weights = init_weights(config, seed=0)
     inertia = scale * np.array(body.inertia) - config.inertia_epsilon * np.eye(3)
     lower = np.linalg.cholesky(inertia)
-    weights["inertia_cholesky"] = np.array([lower[0, 0], lower[1, 1], lower[2, 2], lower[1, 0], lower[2, 0], lower[2, 1]])
+    weights["inertia_cholesky"] = np.array(
+        [lower[0, 0], lower[1, 1], lower[2, 2], lower[1, 0], lower[2, 0], lower[2, 1]]
+    )
     from fvin_mpc.core import s3
 
     rebuilt = np.array(s3.symmetric_from_cholesky(tuple(weights["inertia_cholesky"]), config.inertia_epsilon))
@@ -186,7 +188,9 @@ def test_actuator_referenced_inertia_is_blind_to_a_per_axis_scale(env, body):
     weights = init_weights(config, seed=0)
     inertia = np.diag(mu) @ np.array(body.inertia) - config.inertia_epsilon * np.eye(3)
     lower = np.linalg.cholesky(inertia)
-    weights["inertia_cholesky"] = np.array([lower[0, 0], lower[1, 1], lower[2, 2], lower[1, 0], lower[2, 0], lower[2, 1]])
+    weights["inertia_cholesky"] = np.array(
+        [lower[0, 0], lower[1, 1], lower[2, 2], lower[1, 0], lower[2, 0], lower[2, 1]]
+    )
     weights[f"gain_w{config.hidden_layers}"] = np.zeros_like(weights[f"gain_w{config.hidden_layers}"])
     weights[f"gain_b{config.hidden_layers}"] = (2.0 * np.diag(mu)).ravel()
     result = recover_inertia(Checkpoint(config, weights), body, uniform_quaternions(64, seed=1), env.rest)

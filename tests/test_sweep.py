@@ -32,7 +32,11 @@ def test_sweep_on_ray_equals_local_and_writes_every_checkpoint(data_path, tmp_pa
     on_ray = run_sweep(config, tmp_path / "ray", workers=2, progress=False, backend="ray")
     assert [r["status"] for r in local.runs] == ["ok"] * 2 and not local.failures and not on_ray.failures
     for a, b in zip(local.runs, on_ray.runs, strict=True):
-        assert (a["variant"], a["seed"], a["final_validation_loss"]) == (b["variant"], b["seed"], b["final_validation_loss"])
+        assert (a["variant"], a["seed"], a["final_validation_loss"]) == (
+            b["variant"],
+            b["seed"],
+            b["final_validation_loss"],
+        )
         mine, theirs = load_checkpoint(a["checkpoint"]), load_checkpoint(b["checkpoint"])
         assert mine.weights.keys() == theirs.weights.keys()
         for key in mine.weights:

@@ -66,7 +66,9 @@ def quadrotor_mpc_settings(**overrides: Any) -> MPCSettings:
     return replace(base, **{k: v for k, v in overrides.items() if v is not None})
 
 
-def quadrotor_model(env: Any, checkpoint: Any = None, true_model: bool = False, newton_iters: int | None = None) -> ExportedModel:
+def quadrotor_model(
+    env: Any, checkpoint: Any = None, true_model: bool = False, newton_iters: int | None = None
+) -> ExportedModel:
     """The planning model on the quadrotor ``env``: a learned R³ × S³ ``checkpoint`` (object, shipped
     name or path; default the scene's), or with ``true_model`` the closed form read off the MJCF
     (:func:`fvin_mpc.core.quadrotor.from_mujoco`) at the env's control period.
@@ -78,7 +80,9 @@ def quadrotor_model(env: Any, checkpoint: Any = None, true_model: bool = False, 
     base = env.unwrapped
     if true_model:
         craft = base.space.closed_form(base.model, base.body_name)
-        model = export.from_closed_form(base.space, craft, base.dt, newton_iters or 2, name=f"true_{base.scene_spec.name}")
+        model = export.from_closed_form(
+            base.space, craft, base.dt, newton_iters or 2, name=f"true_{base.scene_spec.name}"
+        )
     else:
         model = export.from_checkpoint(checkpoint or base.scene_spec.default_checkpoint, newton_iters)
     model.require(base.space, by=f"scene {base.scene_spec.name!r}")
@@ -162,7 +166,8 @@ class FigureEight:
         return q / np.linalg.norm(q, axis=1, keepdims=True), norm / self.gravity
 
     def __call__(self, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Reference states ``(T, 13)`` and control scales ``(T,)`` (the :class:`~fvin_mpc.control.rti.Reference` protocol)."""
+        """Reference states ``(T, 13)`` and control scales ``(T,)`` (the
+        :class:`~fvin_mpc.control.rti.Reference` protocol)."""
         times = np.asarray(times, dtype=float)
         position, velocity, _ = self.trajectory(times)
         q, scale = self.attitude(times)
@@ -187,7 +192,10 @@ def recovery_starts(hover_point: Any, count: int = 20, seed: int = 0,
     axis = rng.normal(size=3)
     starts: list[tuple[dict[str, Any], int]] = [
         ({"qpos": upside_down, "qvel": np.zeros(6)}, seed),
-        ({"qpos": upside_down, "qvel": np.concatenate([np.zeros(3), max_omega * axis / np.linalg.norm(axis)])}, seed + 1),
+        (
+            {"qpos": upside_down, "qvel": np.concatenate([np.zeros(3), max_omega * axis / np.linalg.norm(axis)])},
+            seed + 1,
+        ),
     ]
     starts += [({"max_omega": max_omega}, seed + i) for i in range(2, count)]
     return starts[:count]

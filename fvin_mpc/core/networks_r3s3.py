@@ -197,7 +197,9 @@ class LearnedCombinedTerms:
             value, grad = scalar_mlp_value_and_gradient(w, "potential", layers, ops.stack((*x, *q)), ops)
             value, grad = ops.unstack(value)[0], ops.unstack(grad)
             if self.config.sign_invariant:
-                value_m, grad_m = scalar_mlp_value_and_gradient(w, "potential", layers, ops.stack((*x, *s3.negate(q))), ops)
+                value_m, grad_m = scalar_mlp_value_and_gradient(
+                    w, "potential", layers, ops.stack((*x, *s3.negate(q))), ops
+                )
                 grad_m = ops.unstack(grad_m)
                 value = 0.5 * (value + ops.unstack(value_m)[0])
                 # x enters both terms alike, q with opposite signs.

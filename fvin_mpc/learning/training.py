@@ -111,7 +111,9 @@ class TrainSettings:
         if self.threads is not None and self.threads < 1:
             raise ValueError(f"threads must be >= 1, got {self.threads}")
         if self.compile and self.optimizer == "lm":
-            raise ValueError("compile applies to the adam and lbfgs optimizers only (LM differentiates with torch.func)")
+            raise ValueError(
+                "compile applies to the adam and lbfgs optimizers only (LM differentiates with torch.func)"
+            )
 
     @property
     def max_iterations(self) -> int:
@@ -262,7 +264,9 @@ class _EarlyStopping:
             self.reason = f"validation loss reached the target {target:.3g}"
             return True
         if self.settings.patience and self.stale >= self.settings.patience:
-            self.reason = f"validation loss did not improve by {self.settings.min_improvement:.1%} in {self.stale} evaluations"
+            self.reason = (
+                f"validation loss did not improve by {self.settings.min_improvement:.1%} in {self.stale} evaluations"
+            )
             return True
         return False
 
@@ -471,7 +475,9 @@ def _train(data: Any, config: Any, settings: TrainSettings, progress: bool, mode
         lm = _LevenbergMarquardt(model, train_windows, settings)
         advance = lm.step
     elif settings.optimizer == "lbfgs":
-        lbfgs = torch.optim.LBFGS(model.parameters(), lr=1.0, max_iter=4, history_size=50, line_search_fn="strong_wolfe")
+        lbfgs = torch.optim.LBFGS(
+            model.parameters(), lr=1.0, max_iter=4, history_size=50, line_search_fn="strong_wolfe"
+        )
 
         def closure() -> Any:
             lbfgs.zero_grad()

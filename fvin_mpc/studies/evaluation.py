@@ -430,8 +430,11 @@ def plot_phase_portraits(result: EvaluationResult, path: Path) -> None:
 
 def _settings_text(config: EvaluationConfig) -> str:
     settings = mpc_settings(config)
-    return (f"solver {settings.solver}, horizon {settings.horizon}, Hessian {settings.hessian}, max_iter {settings.max_iter}, "
-            f"terminal energy weight {settings.terminal_energy_weight:g}, cold starts {', '.join(settings.cold_starts)}")
+    return (
+        f"solver {settings.solver}, horizon {settings.horizon}, Hessian {settings.hessian}, max_iter "
+        f"{settings.max_iter}, "
+        f"terminal energy weight {settings.terminal_energy_weight:g}, cold starts {', '.join(settings.cold_starts)}"
+    )
 
 
 def write_report(result: EvaluationResult, out_dir: Path, command: str) -> list[Path]:
@@ -467,7 +470,9 @@ controller then applied its fallback).{skipped}
 
 {per_seed_table(result, axis, goal)}
 """
-    write_report_files(out_dir / "evaluation", f"Closed-loop evaluation: `{config.scene}`", result.to_json(), text, command)
+    write_report_files(
+        out_dir / "evaluation", f"Closed-loop evaluation: `{config.scene}`", result.to_json(), text, command
+    )
     env.close()
     return written
 

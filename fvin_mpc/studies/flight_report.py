@@ -75,8 +75,16 @@ def figure_eight(env: Any) -> Any:
     return FigureEight(center=tuple(env.unwrapped.hover_point), amplitude=0.5, period=3.0, ramp_s=1.0)
 
 
-def run_recovery(env: Any, controller: Any, episodes: int, seed: int, latency: Any, duration_s: float = RECOVERY_DURATION_S,
-                 progress: bool = True, render_first: bool = False) -> tuple[list[dict[str, Any]], list[Any], list[np.ndarray]]:
+def run_recovery(
+    env: Any,
+    controller: Any,
+    episodes: int,
+    seed: int,
+    latency: Any,
+    duration_s: float = RECOVERY_DURATION_S,
+    progress: bool = True,
+    render_first: bool = False,
+) -> tuple[list[dict[str, Any]], list[Any], list[np.ndarray]]:
     """Recovery episodes from :func:`~fvin_mpc.control.flight.recovery_starts`; per-episode metrics,
     the episodes, and the first episode's frames when ``render_first``."""
     from tqdm.auto import tqdm
@@ -109,7 +117,11 @@ def run_figure_eight(env: Any, controller: Any, latency: Any, progress: bool = T
                                   description=f"figure-eight {controller.model.name}", latency=latency)
     settle = reference.ramp_s + FIGURE_EIGHT_SETTLE_LOOPS * reference.period
     metrics = flight_metrics(episode, reference, settle_s=settle)
-    return {**metrics, "settle_s": settle, "amplitude_m": reference.amplitude, "period_s": reference.period}, episode, frames
+    return (
+        {**metrics, "settle_s": settle, "amplitude_m": reference.amplitude, "period_s": reference.period},
+        episode,
+        frames,
+    )
 
 
 def summarize(model_kind: str, recovery: list[dict[str, Any]] | None, tracking: dict[str, Any] | None,
@@ -185,8 +197,13 @@ def side_by_side(out_dir: Path, argv: Sequence[str], episodes: int = 20, seed: i
                        ["index", *[f"{kind} {key}" for kind in models for key in ("recovered", "time_to_recover_s")],
                         "initial_omega", "initial_angle"]),
     ])
-    write_report(out_dir / "quadrotor", "Quadrotor: recovery and figure-eight with the real-time MPC, learned vs closed form",
-                 results, body, command)
+    write_report(
+        out_dir / "quadrotor",
+        "Quadrotor: recovery and figure-eight with the real-time MPC, learned vs closed form",
+        results,
+        body,
+        command,
+    )
     env.close()
     return results
 

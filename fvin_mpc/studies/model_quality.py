@@ -13,7 +13,8 @@
   actuator), i.e. ``λ = Σ⟨g_learned, g_true⟩ / Σ‖g_true‖²`` over sampled states.
 
 **Ball joints** (3-D, :func:`report`: the command's report on checkpoints of a body on a ball joint,
-scene ``spherical_pendulum``), against the closed-form body read off the scene's MJCF (:func:`fvin_mpc.core.rigid_body.from_mujoco`):
+scene ``spherical_pendulum``), against the closed-form body read off the scene's MJCF
+(:func:`fvin_mpc.core.rigid_body.from_mujoco`):
 
 * **Held-out rollouts** — open loop from unseen initial states under the recorded torques, geodesic
   angle error and ‖Δω‖ (:func:`rollout_error`), with the closed-form model through
@@ -59,7 +60,9 @@ def rollout(terms: Any, step_size: float, newton_iters: int, q0: np.ndarray, ome
     q, omega = _components(q0), _components(omega0)
     qs, omegas, residuals = [q0], [omega0], []
     for k in range(controls.shape[1]):
-        out = fvin.fvin_step(q, omega, _components(controls[:, k]), terms, step_size, newton_iters, NP, with_residual=True)
+        out = fvin.fvin_step(
+            q, omega, _components(controls[:, k]), terms, step_size, newton_iters, NP, with_residual=True
+        )
         q, omega = out.q, out.omega
         qs.append(np.stack(q, -1))
         omegas.append(np.stack(omega, -1))
@@ -88,10 +91,15 @@ def rollout_error(checkpoint: Checkpoint, data: Trajectories, horizon: int | Non
     angle = s3.geodesic_angle(_components(q_hat), _components(data.q[:, : steps + 1]), NP)
     omega_error = np.linalg.norm(omega_hat - data.omega[:, : steps + 1], axis=-1)
     return {
-        "trajectories": int(data.q.shape[0]), "steps": int(steps), "seconds": steps * checkpoint.config.step_size,
-        "angle_error_final_mean": float(angle[:, -1].mean()), "angle_error_final_median": float(np.median(angle[:, -1])),
-        "angle_error_final_p90": float(np.percentile(angle[:, -1], 90)), "angle_error_mean": float(angle.mean()),
-        "omega_error_final_mean": float(omega_error[:, -1].mean()), "omega_error_mean": float(omega_error.mean()),
+        "trajectories": int(data.q.shape[0]),
+        "steps": int(steps),
+        "seconds": steps * checkpoint.config.step_size,
+        "angle_error_final_mean": float(angle[:, -1].mean()),
+        "angle_error_final_median": float(np.median(angle[:, -1])),
+        "angle_error_final_p90": float(np.percentile(angle[:, -1], 90)),
+        "angle_error_mean": float(angle.mean()),
+        "omega_error_final_mean": float(omega_error[:, -1].mean()),
+        "omega_error_mean": float(omega_error.mean()),
         "max_newton_residual": float(residual.max()),
         "angle_error_per_step_mean": angle.mean(0).tolist(),
     }
@@ -264,8 +272,11 @@ def recover_inertia(checkpoint: Checkpoint, body: Any, quaternions: np.ndarray, 
     result = {
         "samples": int(quaternions.shape[0]),
         "lambda": scale,
-        "lambda_per_body_axis_from_gain": (np.diag(g_mean) / np.diag(2.0 * np.array(body.actuator_axes, dtype=float))).tolist()
-        if g_mean.shape == (3, 3) else None,
+        "lambda_per_body_axis_from_gain": (
+            np.diag(g_mean) / np.diag(2.0 * np.array(body.actuator_axes, dtype=float))
+        ).tolist()
+        if g_mean.shape == (3, 3)
+        else None,
         "lambda_from_potential": lambda_potential,
         "potential_rms_error_lambda_from_potential": float(np.sqrt(np.mean((u_raw / lambda_potential - u_true) ** 2))),
         "inertia_true": j_true.tolist(),
@@ -296,7 +307,9 @@ def recover_inertia(checkpoint: Checkpoint, body: Any, quaternions: np.ndarray, 
     return result
 
 
-def energy_drift(checkpoint: Checkpoint, body: Any, count: int, steps: int, max_omega: float, seed: int) -> dict[str, Any]:
+def energy_drift(
+    checkpoint: Checkpoint, body: Any, count: int, steps: int, max_omega: float, seed: int
+) -> dict[str, Any]:
     """Unforced rollouts of the learned model from ``count`` random states (|ω| ≤ ``max_omega``)."""
     terms = learned_terms(checkpoint)
     true = body.terms(NP)
@@ -338,13 +351,17 @@ def solvability_limit(inertia: np.ndarray, step_size: float, directions: np.ndar
     rhs = tuple(-(step_size / 2.0) * (np.asarray(j[i]) @ omega.T) for i in range(3))
     xi = fvin.solve_implicit(rhs, j, newton_iters, NP)
     phi = fvin.implicit_lhs(xi, j, NP)
-    residual = np.linalg.norm(np.stack(phi, -1) - np.stack(rhs, -1), axis=-1) / np.linalg.norm(np.stack(rhs, -1), axis=-1)
+    residual = np.linalg.norm(np.stack(phi, -1) - np.stack(rhs, -1), axis=-1) / np.linalg.norm(
+        np.stack(rhs, -1), axis=-1
+    )
     solved = (residual <= tolerance).reshape(d.shape)
     first_failure = np.where(solved.all(1), radii.size, np.argmin(solved, axis=1))
     return np.where(first_failure > 0, radii[np.maximum(first_failure - 1, 0)], 0.0)
 
 
-def true_rollout_error(body: Any, step_size: float, newton_iters: int, data: Trajectories, horizon: int) -> dict[str, Any]:
+def true_rollout_error(
+    body: Any, step_size: float, newton_iters: int, data: Trajectories, horizon: int
+) -> dict[str, Any]:
     """:func:`rollout_error` of the closed-form body (the integrator's own error)."""
 
     q_hat, omega_hat, residual = rollout(body.terms(NP), step_size, newton_iters, data.q[:, 0], data.omega[:, 0],
@@ -387,7 +404,9 @@ def solvability_summary(checkpoint: Checkpoint, body: Any, seed: int = 0, direct
     sampled = uniform_quaternions(directions, seed + 1)[:, 1:]
     sampled = np.vstack([np.eye(3), sampled / np.linalg.norm(sampled, axis=1, keepdims=True)])
     learned = learned_terms(checkpoint)
-    j_learned = np.moveaxis(np.array(learned.inertia(_components(uniform_quaternions(256, seed))), dtype=float), -1, 0).mean(0)
+    j_learned = np.moveaxis(
+        np.array(learned.inertia(_components(uniform_quaternions(256, seed))), dtype=float), -1, 0
+    ).mean(0)
     out: dict[str, Any] = {"step_size": h, "isotropic_limit": 1.0 / h}
     for name, inertia in (("true", np.array(body.inertia)), ("learned", j_learned)):
         limits = solvability_limit(inertia, h, sampled)

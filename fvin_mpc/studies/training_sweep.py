@@ -226,8 +226,11 @@ def sweep_table(result: SweepResult) -> str:
         lines.append(f"| {r['variant']} | {r['width']} | {r['trajectories']} | {r['seed']} | {r['iterations']} "
                      f"| {r['stopped']} | {_fmt(r['final_train_loss'])} | {_fmt(r['final_validation_loss'])} "
                      f"| {r['wall_clock_s']:.1f} | `{Path(r['checkpoint']).name}` |")
-    lines += ["", "| variant | width | trajectories | runs ok | validation loss mean | min | max | wall clock mean (s) |",
-              "|---|---|---|---|---|---|---|---|"]
+    lines += [
+        "",
+        "| variant | width | trajectories | runs ok | validation loss mean | min | max | wall clock mean (s) |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     for s in summarize(result.runs):
         lines.append(f"| {s['variant']} | {s['width']} | {_fmt(s['size']) if s['size'] else 'all'} "
                      f"| {s['ok']}/{s['runs']} | {_fmt(s['validation_loss_mean'])} | {_fmt(s['validation_loss_min'])} "

@@ -70,7 +70,9 @@ def time_scale(body, omega0, u):
 
 
 def error(states, ref, rate):
-    dq = np.minimum(np.linalg.norm(states[:, :4] - ref[:, :4], axis=1), np.linalg.norm(states[:, :4] + ref[:, :4], axis=1))
+    dq = np.minimum(
+        np.linalg.norm(states[:, :4] - ref[:, :4], axis=1), np.linalg.norm(states[:, :4] + ref[:, :4], axis=1)
+    )
     return np.max(dq + np.linalg.norm(states[:, 4:] - ref[:, 4:], axis=1) / rate)
 
 
