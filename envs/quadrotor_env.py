@@ -179,11 +179,7 @@ class QuadrotorEnv(MujocoBodyEnv):
 
     # ------------------------------------------------------------------ gymnasium API
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
-        super().reset(seed=seed)
-        options = {} if options is None else dict(options)
-        unknown = set(options) - _RESET_OPTIONS
-        if unknown:
-            raise ValueError(f"unknown reset options {sorted(unknown)}; expected some of {sorted(_RESET_OPTIONS)}")
+        options = self._reset_options(seed, options, _RESET_OPTIONS)
         exact = {"qpos", "qvel", "hover"} & set(options)
         random_bounds = {"max_omega", "max_speed", "max_offset"} & set(options)
         if exact and random_bounds:

@@ -157,6 +157,15 @@ class MujocoBodyEnv(gymnasium.Env):
             self._renderer.close()
             self._renderer = None
 
+    def _reset_options(self, seed: int | None, options: dict[str, Any] | None, known: frozenset[str]) -> dict[str, Any]:
+        """``reset``'s start: gymnasium's seeding, then ``options`` (a copy) checked against the ``known`` names."""
+        super().reset(seed=seed)
+        options = {} if options is None else dict(options)
+        unknown = set(options) - known
+        if unknown:
+            raise ValueError(f"unknown reset options {sorted(unknown)}; expected some of {sorted(known)}")
+        return options
+
     def _reset_to(self, qpos: Any, qvel: Any) -> tuple[np.ndarray, dict[str, Any]]:
         """``reset``'s end: MuJoCo's data reset to the joint state ``qpos``, ``qvel``; its observation
         and info. Validated before the simulation is touched, so a bad option leaves it as it was."""
@@ -423,11 +432,7 @@ class RigidBodyEnv(MujocoBodyEnv):
 
     # ------------------------------------------------------------------ gymnasium API
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
-        super().reset(seed=seed)
-        options = {} if options is None else dict(options)
-        unknown = set(options) - _RESET_OPTIONS
-        if unknown:
-            raise ValueError(f"unknown reset options {sorted(unknown)}; expected some of {sorted(_RESET_OPTIONS)}")
+        options = self._reset_options(seed, options, _RESET_OPTIONS)
         if options.get("random", False):
             if "qpos" in options or "qvel" in options:
                 raise ValueError("reset options: give either 'random' or 'qpos'/'qvel', not both")
