@@ -19,6 +19,7 @@ imports and holds the line). Every module, one line each:
 * ``rigid_body`` — closed-form bodies on a fixed pivot, read off an MJCF.
 * ``quadrotor`` — the closed-form quadrotor (R³ × S³) and a geometric controller.
 * ``state`` — array checks at numeric boundaries and the pivoted state's split.
+* ``errors`` — the user-facing errors, one root every command reports as one line.
 * ``checkpoint`` — safetensors weights + JSON sidecar; where the shipped checkpoints are.
 * ``data`` — trajectory data sets of any configuration space (``.npz``), one container.
 

@@ -15,15 +15,19 @@ backend touches torch or CasADi. Nothing in the package imports ``benchmarks``.
 Also held here: no import cycle between modules (in-function imports included: they used to hide
 one), no private name (``_x``) imported from another module, no two modules with one file name, and
 imports of the package's own modules at module level — inside a function only where the module
-imported brings an optional heavy package (torch, CasADi, matplotlib, Ray) with it.
+imported brings an optional heavy package (torch, CasADi, matplotlib, Ray) with it; and the package
+map (``fvin_mpc/__init__.py``) names exactly the modules there are.
 """
 
 from __future__ import annotations
 
 import ast
+import re
 from pathlib import Path
 
 import pytest
+
+import fvin_mpc
 
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGE, ENVS, BENCHMARKS = ROOT / "fvin_mpc", ROOT / "envs", ROOT / "benchmarks"
@@ -320,3 +324,12 @@ def test_the_in_function_check_sees_a_light_import_and_lets_a_heavy_one_be(tmp_p
     assert in_function_imports(probe) == [("fvin_mpc.core.s3", 2), ("fvin_mpc.learning.model", 3)]
     with pytest.raises(AssertionError, match="fvin_mpc.core.s3"):
         test_own_modules_are_imported_at_module_level(probe)
+
+
+def test_the_package_map_lists_every_module_and_no_other():
+    """``fvin_mpc/__init__.py``'s docstring, the package map, names every module and none that does not exist."""
+    package_map = fvin_mpc.__doc__
+    modules = {path.stem for path in SOURCES if not path.is_relative_to(BENCHMARKS)} - {"__init__", "__main__"}
+    listed = set(re.findall(r"^\* ``(\w+)``", package_map, re.M))
+    assert sorted(modules - listed) == [], "modules the package map does not list"
+    assert sorted(listed - modules) == [], "the package map lists modules that do not exist"
