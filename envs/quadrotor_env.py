@@ -21,7 +21,7 @@ from fvin_mpc.core.space import R3S3, ConfigurationSpace
 from fvin_mpc.core.state import as_float_array, unit_quaternion
 
 from .rigid_body_env import MujocoBodyEnv, geodesic_angle
-from .scenes import SceneSpec, ScenePhysics
+from .scenes import ScenePhysics, SceneSpec
 
 #: Largest initial |ω| (rad/s) of a default reset: a tumbling craft (the recovery task of ``python -m fvin_mpc.fly``).
 DEFAULT_RESET_MAX_OMEGA = 10.0
@@ -179,15 +179,13 @@ class QuadrotorEnv(MujocoBodyEnv):
 
     # ------------------------------------------------------------------ gymnasium API
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
-        super().reset(seed=seed)
-        options = {} if options is None else dict(options)
-        unknown = set(options) - _RESET_OPTIONS
-        if unknown:
-            raise ValueError(f"unknown reset options {sorted(unknown)}; expected some of {sorted(_RESET_OPTIONS)}")
+        options = self._reset_options(seed, options, _RESET_OPTIONS)
         exact = {"qpos", "qvel", "hover"} & set(options)
         random_bounds = {"max_omega", "max_speed", "max_offset"} & set(options)
         if exact and random_bounds:
-            raise ValueError(f"reset options: {sorted(random_bounds)} apply to the random start only, not with {sorted(exact)}")
+            raise ValueError(
+                f"reset options: {sorted(random_bounds)} apply to the random start only, not with {sorted(exact)}"
+            )
         if options.get("hover", False):
             if "qpos" in options or "qvel" in options:
                 raise ValueError("reset options: give either 'hover' or 'qpos'/'qvel', not both")
@@ -199,11 +197,7 @@ class QuadrotorEnv(MujocoBodyEnv):
             qpos, qvel = self._random_joint_state(float(options.get("max_omega", DEFAULT_RESET_MAX_OMEGA)),
                                                   float(options.get("max_speed", 0.0)),
                                                   float(options.get("max_offset", 0.0)))
-        qpos = as_float_array(qpos, (7,), "qpos")
-        qvel = as_float_array(qvel, (6,), "qvel")
-        mujoco.mj_resetData(self._model, self._data)
-        self.set_state(qpos, qvel)
-        return self._observation(), self._info()
+        return self._reset_to(qpos, qvel)  # the free joint's (7,) and (6,)
 
     def step(self, action: Any, substeps: int | None = None):
         """One control period (``frame_skip`` MuJoCo sub-steps) under ``action``; ``substeps`` runs
@@ -241,7 +235,9 @@ class QuadrotorEnv(MujocoBodyEnv):
             "energy": float(self._data.energy.sum()),
         }
 
-    def _random_joint_state(self, max_omega: float, max_speed: float, max_offset: float) -> tuple[np.ndarray, np.ndarray]:
+    def _random_joint_state(
+        self, max_omega: float, max_speed: float, max_offset: float
+    ) -> tuple[np.ndarray, np.ndarray]:
         for name, value in (("max_omega", max_omega), ("max_speed", max_speed), ("max_offset", max_offset)):
             if not (math.isfinite(value) and value >= 0.0):
                 raise ValueError(f"reset option {name} must be finite and >= 0, got {value!r}")
@@ -263,7 +259,9 @@ def _free_body(model: mujoco.MjModel, body: str) -> tuple[int, int]:
     if body_id < 0:
         names = [mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, b) for b in range(1, model.nbody)]
         raise ValueError(f"no body named {body!r} in the MJCF; bodies: {names}")
-    if model.body_jntnum[body_id] != 1 or int(model.jnt_type[model.body_jntadr[body_id]]) != int(mujoco.mjtJoint.mjJNT_FREE):
+    if model.body_jntnum[body_id] != 1 or int(model.jnt_type[model.body_jntadr[body_id]]) != int(
+        mujoco.mjtJoint.mjJNT_FREE
+    ):
         raise ValueError(f"body {body!r} must have exactly one joint, a free joint")
     if model.nv != 6 or model.body_parentid[body_id] != 0:
         raise ValueError(f"the free joint of body {body!r} (a child of the world) must be the model's only "

@@ -16,11 +16,11 @@ import mujoco
 import numpy as np
 from gymnasium import spaces
 
-from fvin_mpc.core.space import S3, ConfigurationSpace
 from fvin_mpc.core.errors import SceneError, UsageError
+from fvin_mpc.core.space import S3, ConfigurationSpace
 from fvin_mpc.core.state import as_float_array, split_state, unit_quaternion
 
-from .scenes import MIN_CONTROL_PERIOD, SceneSpec, ScenePhysics, build_model, resolve_scene
+from .scenes import MIN_CONTROL_PERIOD, ScenePhysics, SceneSpec, build_model, resolve_scene
 
 #: Largest initial |ω| (rad/s) of ``reset(options={"random": True})`` unless ``"max_omega"`` is given
 #: (Pendulum-v1 draws θ̇ from [−1, 1]).
@@ -156,6 +156,24 @@ class MujocoBodyEnv(gymnasium.Env):
         if self._renderer is not None:
             self._renderer.close()
             self._renderer = None
+
+    def _reset_options(self, seed: int | None, options: dict[str, Any] | None, known: frozenset[str]) -> dict[str, Any]:
+        """``reset``'s start: gymnasium's seeding, then ``options`` (a copy) checked against the ``known`` names."""
+        super().reset(seed=seed)
+        options = {} if options is None else dict(options)
+        unknown = set(options) - known
+        if unknown:
+            raise ValueError(f"unknown reset options {sorted(unknown)}; expected some of {sorted(known)}")
+        return options
+
+    def _reset_to(self, qpos: Any, qvel: Any) -> tuple[np.ndarray, dict[str, Any]]:
+        """``reset``'s end: MuJoCo's data reset to the joint state ``qpos``, ``qvel``; its observation
+        and info. Validated before the simulation is touched, so a bad option leaves it as it was."""
+        qpos = as_float_array(qpos, (self._model.nq,), "qpos")
+        qvel = as_float_array(qvel, (self._model.nv,), "qvel")
+        mujoco.mj_resetData(self._model, self._data)
+        self.set_state(qpos, qvel)
+        return self._observation(), self._info()
 
 
 class RigidBodyEnv(MujocoBodyEnv):
@@ -376,7 +394,9 @@ class RigidBodyEnv(MujocoBodyEnv):
             samples = []
             for angle in (0.0, 0.5 * math.pi, math.pi, 1.5 * math.pi):
                 self._set_joint_state(np.array([angle]), np.zeros(1))
-                samples.append(-float(self._model.body_mass[self._body_id]) * float(gravity @ data.xipos[self._body_id]))
+                samples.append(
+                    -float(self._model.body_mass[self._body_id]) * float(gravity @ data.xipos[self._body_id])
+                )
             a, b = 0.5 * (samples[0] - samples[2]), 0.5 * (samples[1] - samples[3])
             if math.hypot(a, b) < 1e-12:
                 self._no_task()
@@ -402,8 +422,9 @@ class RigidBodyEnv(MujocoBodyEnv):
         """The joint position at which the body has ``orientation`` (a ball joint: exactly; a hinge:
         the angle about its axis nearest to it)."""
         parent = self._data.xquat[self._model.body_parentid[self._body_id]]
-        local = _quaternion_product(_quaternion_conjugate(_quaternion_product(parent, self._model.body_quat[self._body_id])),
-                                    orientation)
+        local = _quaternion_product(
+            _quaternion_conjugate(_quaternion_product(parent, self._model.body_quat[self._body_id])), orientation
+        )
         if self._joint_type == "ball":
             return local / np.linalg.norm(local)
         axis = self._model.jnt_axis[self._joint_id]
@@ -411,11 +432,7 @@ class RigidBodyEnv(MujocoBodyEnv):
 
     # ------------------------------------------------------------------ gymnasium API
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
-        super().reset(seed=seed)
-        options = {} if options is None else dict(options)
-        unknown = set(options) - _RESET_OPTIONS
-        if unknown:
-            raise ValueError(f"unknown reset options {sorted(unknown)}; expected some of {sorted(_RESET_OPTIONS)}")
+        options = self._reset_options(seed, options, _RESET_OPTIONS)
         if options.get("random", False):
             if "qpos" in options or "qvel" in options:
                 raise ValueError("reset options: give either 'random' or 'qpos'/'qvel', not both")
@@ -425,12 +442,7 @@ class RigidBodyEnv(MujocoBodyEnv):
                 raise ValueError("reset option 'max_omega' only applies with 'random': True")
             qpos = options.get("qpos", self._rest_qpos)
             qvel = options.get("qvel", np.zeros(self._model.nv))
-        # Validate before touching the simulation, so a bad option leaves it as it was.
-        qpos = as_float_array(qpos, (self._model.nq,), "qpos")
-        qvel = as_float_array(qvel, (self._model.nv,), "qvel")
-        mujoco.mj_resetData(self._model, self._data)
-        self.set_state(qpos, qvel)
-        return self._observation(), self._info()
+        return self._reset_to(qpos, qvel)
 
     def step(self, action: Any, substeps: int | None = None):
         """One control period (``frame_skip`` MuJoCo sub-steps) under ``action``; ``substeps`` runs
@@ -499,7 +511,9 @@ def _validate_body_and_joint(model: mujoco.MjModel, body: str) -> tuple[int, int
         names = [mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, b) for b in range(1, model.nbody)]
         raise SceneError(f"no body named {body!r} in the MJCF; bodies: {names}")
     if model.body_jntnum[body_id] != 1:
-        raise SceneError(f"body {body!r} must have exactly one joint (a hinge or a ball), it has {model.body_jntnum[body_id]}")
+        raise SceneError(
+            f"body {body!r} must have exactly one joint (a hinge or a ball), it has {model.body_jntnum[body_id]}"
+        )
     joint_id = int(model.body_jntadr[body_id])
     joint_type = int(model.jnt_type[joint_id])
     if joint_type not in _JOINT_TYPES:
@@ -518,7 +532,9 @@ def _validate_body_and_joint(model: mujoco.MjModel, body: str) -> tuple[int, int
         if model.actuator_trntype[a] != mujoco.mjtTrn.mjTRN_JOINT or model.actuator_trnid[a, 0] != joint_id:
             raise SceneError(f"actuator {name!r} must drive the joint of body {body!r} directly")
     if model.na > 0:
-        raise SceneError("actuators with internal state (dyntype != none) are not supported: (q, ω) would not be the whole state")
+        raise SceneError(
+            "actuators with internal state (dyntype != none) are not supported: (q, ω) would not be the whole state"
+        )
     return body_id, joint_id
 
 

@@ -30,8 +30,8 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
-from fvin_mpc.core.space import R3S3, S3, ConfigurationSpace
 from fvin_mpc.core.errors import SceneError
+from fvin_mpc.core.space import R3S3, S3, ConfigurationSpace
 
 SCENE_DIR = Path(__file__).resolve().parent / "scenes"
 
@@ -256,7 +256,8 @@ def _can_collide(model: mujoco.MjModel) -> bool:
             parent_child = weld_i == weld_parent[weld_j] or weld_j == weld_parent[weld_i]
             if filter_parent and parent_child and weld_i != 0 and weld_j != 0:
                 continue
-            if (model.geom_contype[i] & model.geom_conaffinity[j]) or (model.geom_contype[j] & model.geom_conaffinity[i]):
+            contype, conaffinity = model.geom_contype, model.geom_conaffinity
+            if (contype[i] & conaffinity[j]) or (contype[j] & conaffinity[i]):
                 return True
     return False
 

@@ -19,6 +19,7 @@ imports and holds the line). Every module, one line each:
 * ``rigid_body`` — closed-form bodies on a fixed pivot, read off an MJCF.
 * ``quadrotor`` — the closed-form quadrotor (R³ × S³) and a geometric controller.
 * ``state`` — array checks at numeric boundaries and the pivoted state's split.
+* ``errors`` — the user-facing errors, one root every command reports as one line.
 * ``checkpoint`` — safetensors weights + JSON sidecar; where the shipped checkpoints are.
 * ``data`` — trajectory data sets of any configuration space (``.npz``), one container.
 
@@ -37,9 +38,8 @@ installed under this name):
 * ``model`` — the trainable torch model, one shell parametrized by the configuration space (fast
   rollouts for S³ and SO(3)).
 * ``space_training`` — what training does per space: settings, loss scales, the free body's report.
-* ``mlp_baseline`` — the unstructured MLP baseline.
 * ``training`` — one training loop for every model (``python -m fvin_mpc.train``).
-* ``timing`` — torch-side thread and step-timing helpers for the studies.
+* ``timing`` — torch-side thread and step-timing helpers (training; the repository's ``benchmarks/``).
 
 :mod:`fvin_mpc.control` — the control runtime, no torch:
 
@@ -51,27 +51,17 @@ installed under this name):
 * ``energy_shaping`` — energy-shaping swing-up with an LQR catch from ``J``, ``U``, ``g``.
 * ``closed_loop`` — closed-loop episodes (waiting or latency-aware) and their metrics.
 * ``scene`` — a scene's env, model, MPC and settings (the one path every command takes).
-* ``quadrotor`` — the quadrotor's settings, references and metrics.
+* ``flight`` — the quadrotor's MPC settings, references and flight metrics.
 
-:mod:`fvin_mpc.studies` — studies and reports:
+:mod:`fvin_mpc.studies` — evaluation, sweeps and reports:
 
 * ``evaluation`` — closed-loop evaluation over seeded episodes.
-* ``pendulum_v1`` — the MPC on Gymnasium's ``Pendulum-v1``.
-* ``pendulum_v1_reference`` — a global reference for ``Pendulum-v1`` (DP on the exact map, polished).
-* ``pendulum_v1_value`` — a value function of the learned model for ``Pendulum-v1``'s cost.
-* ``pendulum_v1_plan`` — the learned model's DP swing-up handing over to the MPC.
-* ``data_efficiency`` — how much data control needs.
-* ``data_efficiency_terms`` — why a data-efficiency cell costs more: its learned terms.
-* ``quality`` — a checkpoint's model quality.
-* ``inertia`` — 3-D model quality and the recovered inertia.
-* ``spherical`` — the ball-joint study.
-* ``quadrotor`` — the quadrotor's recovery and figure-eight study.
-* ``sweep`` — training sweeps.
+* ``model_quality`` — a checkpoint's model quality: planar on a hinge, the recovered inertia on a ball joint.
+* ``flight_report`` — the quadrotor's recovery and figure-eight study.
+* ``training_sweep`` — training sweeps.
 * ``pool`` — the one way to run many tasks (in order, process pool or Ray).
 * ``starts`` — the episodes' initial conditions.
 * ``report`` — the one report writer.
-* ``bench`` — the accuracy-vs-time studies: ``common`` (shared helpers), ``horizon``, ``newton``, ``ops``,
-  ``paper``, ``rti``, ``sim``, ``solver``, ``train_speed``, ``width``.
 
 The commands, thin over the library (``python -m fvin_mpc.<name>``):
 
@@ -81,13 +71,13 @@ The commands, thin over the library (``python -m fvin_mpc.<name>``):
 * ``train`` — train a model on trajectory data (needs the ``train`` extra: torch).
 * ``export`` — write a checkpoint's step as a CasADi file.
 * ``evaluate`` — closed-loop evaluation of the controllers.
-* ``pendulum_v1`` — the MPC on Gymnasium's ``Pendulum-v1``.
-* ``quality`` — a checkpoint's model quality.
-* ``inertia`` — 3-D model quality and the recovered inertia.
-* ``spherical_report`` — the ball-joint study.
+* ``quality`` — model quality of checkpoints (hinge or ball joint).
 * ``sweep`` — a training sweep.
-* ``bench`` — the accuracy-vs-time studies (``python -m fvin_mpc.bench <study>``).
 * ``_cli`` — the command-line options the commands share.
+
+The research studies (accuracy against time, the paper's figures, data efficiency, Pendulum-v1, the
+ball joint) are not part of the package: they live in the repository's ``benchmarks/`` folder and run
+from a clone (``python -m benchmarks <study>``; ``benchmarks/README.md``).
 
 The shipped checkpoints are ``fvin_mpc.checkpoints`` (the repository's ``checkpoints/`` folder,
 installed as package data).

@@ -6,7 +6,10 @@ import argparse
 import sys
 from typing import Any
 
+from fvin_mpc.core.checkpoint import CheckpointError, checkpoint_exists, load_checkpoint
 from fvin_mpc.core.errors import SceneError, UsageError, run_command  # noqa: F401 (every command's wrapper)
+from fvin_mpc.envs.scenes import FREE_BODY_SCENES, SCENES, existing_scene, resolve_scene
+from fvin_mpc.studies.pool import TasksFailed
 
 #: ``--option`` → :class:`~fvin_mpc.control.mpc.MPCSettings` field, for the settings a user may need
 #: to change on a new scene (every one defaults to the scene's value).
@@ -138,8 +141,6 @@ def exit_status(error: Exception) -> int:
     (:class:`~fvin_mpc.studies.pool.TasksFailed`, their inputs listed), 2 for input the command refused."""
     import sys
 
-    from fvin_mpc.studies.pool import TasksFailed
-
     print(f"error: {error}", file=sys.stderr)
     return 1 if isinstance(error, TasksFailed) else 2
 
@@ -148,7 +149,6 @@ def _scene_identity(spec: Any) -> tuple[str, str]:
     """``("built-in", name)`` or ``("file", stem)``: a user's ``pendulum.xml`` is not the built-in ``pendulum``.
     Files are told apart by their stem only, as a checkpoint records the path it was trained from
     as written then (often relative to another working directory)."""
-    from fvin_mpc.envs.scenes import FREE_BODY_SCENES, SCENES
 
     built_in = any(spec is known for known in (*SCENES.values(), *FREE_BODY_SCENES.values()))
     return ("built-in" if built_in else "file", spec.name)
@@ -156,7 +156,6 @@ def _scene_identity(spec: Any) -> tuple[str, str]:
 
 def _recorded_scene(scene: str) -> tuple[str, str]:
     """The identity of the scene a checkpoint's sidecar names (its MJCF may be gone: only the name is read)."""
-    from fvin_mpc.envs.scenes import resolve_scene
 
     try:
         return _scene_identity(resolve_scene(scene))
@@ -179,8 +178,6 @@ def checked_scene_and_checkpoint(scene: Any, checkpoint: Any = None, true_model:
         SceneError: the scene is neither built in nor an existing MJCF file.
         CheckpointError: no such checkpoint, an unreadable one, or one for another space or scene.
     """
-    from fvin_mpc.core.checkpoint import CheckpointError, checkpoint_exists, load_checkpoint
-    from fvin_mpc.envs.scenes import existing_scene
 
     spec = existing_scene(scene)
     if command is not None and not spec.space.pivoted:

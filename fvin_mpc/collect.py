@@ -13,9 +13,11 @@ tumble (upside down included, ``|ω|`` up to ``--max-omega``, default 10 rad/s t
 """
 
 from __future__ import annotations
+
 import argparse
 import json
 from pathlib import Path
+
 from fvin_mpc._cli import run_command
 from fvin_mpc.core.data import save_data
 from fvin_mpc.envs.scenes import existing_scene
@@ -28,8 +30,12 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--scene", default="pendulum", help="built-in scene name or MJCF path (default: %(default)s)")
     parser.add_argument("--body", default=None, help="body to observe (default: the scene's)")
     parser.add_argument("--trajectories", type=int, default=None, help="default: 320 (free body: 300)")
-    parser.add_argument("--steps", type=int, default=None, help="control periods per trajectory (default: 20; free body: 50)")
-    parser.add_argument("--max-omega", type=float, default=None, help="largest initial |ω| (rad/s; default: 6; free body: 10)")
+    parser.add_argument(
+        "--steps", type=int, default=None, help="control periods per trajectory (default: 20; free body: 50)"
+    )
+    parser.add_argument(
+        "--max-omega", type=float, default=None, help="largest initial |ω| (rad/s; default: 6; free body: 10)"
+    )
     parser.add_argument("--hold-steps", type=int, default=4, help="periods per level of piecewise-constant controls")
     parser.add_argument("--control-period", type=float, default=None,
                         help="seconds per step (default: the scene's; a whole multiple of its MJCF timestep)")
@@ -42,7 +48,12 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--near-goal-omega", type=float, default=2.0,
                         help="their largest initial |ω_i| (rad/s; default: %(default)s)")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--out", type=Path, default=None, help="output .npz (default: data/<scene name>.npz, the MJCF's stem for a path)")
+    parser.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        help="output .npz (default: data/<scene name>.npz, the MJCF's stem for a path)",
+    )
     parser.add_argument("--quiet", action="store_true")
     return parser
 
@@ -68,7 +79,14 @@ def main(argv: list[str] | None = None) -> int:
                    near_goal_omega=args.near_goal_omega)
     out = args.out or Path("data") / f"{spec.name}.npz"
     save_data(out, data)
-    print(json.dumps({"out": str(out), **{k: data.metadata[k] for k in ("scene", "trajectories", "transitions", "control_period")}}))
+    print(
+        json.dumps(
+            {
+                "out": str(out),
+                **{k: data.metadata[k] for k in ("scene", "trajectories", "transitions", "control_period")},
+            }
+        )
+    )
     return 0
 
 

@@ -13,10 +13,28 @@ from pathlib import Path
 from typing import Sequence
 
 import fvin_mpc.studies.evaluation as evaluation_module
-from fvin_mpc._cli import (add_backend_arguments, add_closed_loop_arguments, add_scene_arguments, backend_options,
-                           checked_scene_and_checkpoint, exit_status, mpc_overrides, positive_float, run_command)
-from fvin_mpc.studies.evaluation import (CONTROLLERS, DEFAULT_MAX_OMEGA, EvaluationConfig, evaluate, make_env,
-                                         summary_table, write_report)
+from fvin_mpc._cli import (
+    add_backend_arguments,
+    add_closed_loop_arguments,
+    add_scene_arguments,
+    backend_options,
+    checked_scene_and_checkpoint,
+    exit_status,
+    mpc_overrides,
+    positive_float,
+    run_command,
+)
+from fvin_mpc.core.checkpoint import checkpoint_exists
+from fvin_mpc.envs.scenes import existing_scene
+from fvin_mpc.studies.evaluation import (
+    CONTROLLERS,
+    DEFAULT_MAX_OMEGA,
+    EvaluationConfig,
+    evaluate,
+    make_env,
+    summary_table,
+    write_report,
+)
 from fvin_mpc.studies.pool import TasksFailed
 
 
@@ -25,7 +43,9 @@ def build_parser() -> argparse.ArgumentParser:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     add_scene_arguments(parser, newton_iters=False)
     parser.add_argument("--episodes", type=int, default=50, help="episodes per controller (default: %(default)s)")
-    parser.add_argument("--duration", type=positive_float, default=10.0, help="seconds per episode (default: %(default)s)")
+    parser.add_argument(
+        "--duration", type=positive_float, default=10.0, help="seconds per episode (default: %(default)s)"
+    )
     parser.add_argument("--controllers", default=",".join(CONTROLLERS),
                         help="comma-separated subset of: %(default)s")
     parser.add_argument("--seed", type=int, default=0, help="base seed of the initial states (default: %(default)s)")
@@ -43,8 +63,6 @@ def build_parser() -> argparse.ArgumentParser:
 def _check_scene_and_checkpoint(config: EvaluationConfig) -> None:
     """The scene, and the checkpoint if a learned controller will run, before any episode: a missing
     default checkpoint is no error here (the learned controllers are skipped), a wrong one is."""
-    from fvin_mpc.core.checkpoint import checkpoint_exists
-    from fvin_mpc.envs.scenes import existing_scene
 
     learned = any(name.endswith("-learned") for name in config.controllers)
     explicit = config.checkpoint is not None

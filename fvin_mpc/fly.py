@@ -1,6 +1,6 @@
 """Fly the quadrotor with the real-time MPC: ``python -m fvin_mpc.fly``.
 
-The command line of :mod:`fvin_mpc.studies.quadrotor`, whose docstring is this command's ``--help``.
+The command line of :mod:`fvin_mpc.studies.flight_report`, whose docstring is this command's ``--help``.
 """
 
 from __future__ import annotations
@@ -11,8 +11,9 @@ import sys
 from pathlib import Path
 from typing import Sequence
 
-import fvin_mpc.studies.quadrotor as study
+import fvin_mpc.studies.flight_report as study
 from fvin_mpc._cli import add_latency_argument, checked_scene_and_checkpoint, run_command
+from fvin_mpc.control.closed_loop import write_video
 from fvin_mpc.core.errors import UsageError
 
 
@@ -80,7 +81,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         args.json.write_text(json.dumps({"command": "python -m fvin_mpc.fly " + " ".join(argv), **data}, indent=1,
                                         default=float) + "\n")
     if args.video:
-        from fvin_mpc.control.closed_loop import write_video
 
         args.video.parent.mkdir(parents=True, exist_ok=True)
         write_video(frames, args.video, fps=1.0 / env.dt)

@@ -1,6 +1,6 @@
 """Training sweep: a grid of models trained as one job: ``python -m fvin_mpc.sweep``.
 
-The command line of :mod:`fvin_mpc.studies.sweep`, whose docstring (the method) is this command's ``--help``.
+The command line of :mod:`fvin_mpc.studies.training_sweep`, whose docstring (the method) is this command's ``--help``.
 """
 
 from __future__ import annotations
@@ -12,9 +12,10 @@ import sys
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
-import fvin_mpc.studies.sweep as sweep_module
+import fvin_mpc.studies.training_sweep as sweep_module
 from fvin_mpc._cli import add_backend_arguments, backend_options, run_command
-from fvin_mpc.studies.sweep import SweepConfig, run_sweep, sweep_table, write_report
+from fvin_mpc.learning.training import DEFAULT_DATA, OPTIMIZERS
+from fvin_mpc.studies.training_sweep import SweepConfig, run_sweep, sweep_table, write_report
 
 
 def _list(kind: Callable[[str], Any]) -> Callable[[str], tuple[Any, ...]]:
@@ -34,11 +35,11 @@ def _size(text: str) -> int | None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from fvin_mpc.learning.training import DEFAULT_DATA, OPTIMIZERS
-
     parser = argparse.ArgumentParser(prog="python -m fvin_mpc.sweep", description=sweep_module.__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", type=Path, default=DEFAULT_DATA, help="data file from fvin_mpc.collect (default: %(default)s)")
+    parser.add_argument(
+        "--data", type=Path, default=DEFAULT_DATA, help="data file from fvin_mpc.collect (default: %(default)s)"
+    )
     parser.add_argument("--variants", type=_list(str), default=("sign-invariant",),
                         help="comma-separated model variants (default: sign-invariant)")
     parser.add_argument("--widths", type=_list(int), default=(16,), help="comma-separated hidden widths (default: 16)")
@@ -51,8 +52,12 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--hidden-layers", type=int, default=2, help="hidden layers per MLP (default: %(default)s)")
     parser.add_argument("--dissipation", action=argparse.BooleanOptionalAction, default=None,
                         help="learn a damping term −Dω (default: on when the data's scene declares joint damping)")
-    parser.add_argument("--optimizer", choices=OPTIMIZERS, default=None, help="training optimizer (default: train's, lm)")
-    parser.add_argument("--iterations", type=int, default=None, help="most iterations per run (default: the optimizer's)")
+    parser.add_argument(
+        "--optimizer", choices=OPTIMIZERS, default=None, help="training optimizer (default: train's, lm)"
+    )
+    parser.add_argument(
+        "--iterations", type=int, default=None, help="most iterations per run (default: the optimizer's)"
+    )
     parser.add_argument("--patience", type=int, default=None, help="early-stopping patience (default: train's)")
     parser.add_argument("--time-limit", type=float, default=None, help="seconds of training per run (default: none)")
     add_backend_arguments(parser, "runs in parallel: processes, or Ray actors with --backend ray; each run uses one "

@@ -19,8 +19,14 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from fvin_mpc._cli import (add_closed_loop_arguments, add_scene_arguments, checked_scene_and_checkpoint,
-                           mpc_overrides, positive_float, run_command)
+from fvin_mpc._cli import (
+    add_closed_loop_arguments,
+    add_scene_arguments,
+    checked_scene_and_checkpoint,
+    mpc_overrides,
+    positive_float,
+    run_command,
+)
 from fvin_mpc.control.closed_loop import HOLD_WINDOW_S, episode_metrics, plot_episode, run_episode, write_video
 from fvin_mpc.control.scene import SceneScales, scene_env, scene_model, scene_mpc, scene_mpc_settings, scene_scales
 from fvin_mpc.core.errors import UsageError
@@ -106,16 +112,31 @@ def main(argv: Sequence[str] | None = None) -> int:
                                   description=f"swing-up {model.name}", latency=args.latency)
     metrics = episode_metrics(episode)
     summary = {
-        "swung_up": metrics["swung_up"], "time_to_upright_s": metrics["time_to_upright_s"],
-        "hold_error_rad": metrics["hold_error_rad"], "solve_time_ms": metrics["solve_time_ms"],
-        "control_period_s": metrics["control_period_s"], "solver_failures": metrics["controller_failures"],
-        "solver": settings.solver, "latency": args.latency, "deadline_misses": metrics["deadline_misses"],
-        "newton_iters": model.newton_iters, "horizon": settings.horizon, "horizon_s": settings.horizon * model.step_size,
-        "hessian": settings.hessian, "terminal_energy_weight": settings.terminal_energy_weight,
-        "cold_starts": list(settings.cold_starts), "max_abs_torque": metrics["max_abs_torque"],
-        "accumulated_cost": metrics["accumulated_cost"], "model": model.name, "true_model": args.true_model,
-        "scene": str(args.scene), "init": args.init, "seed": args.seed, "duration_s": metrics["duration_s"],
-        "build_s": controller.build_s, "compiled_from_cache": report.cached if report else None,
+        "swung_up": metrics["swung_up"],
+        "time_to_upright_s": metrics["time_to_upright_s"],
+        "hold_error_rad": metrics["hold_error_rad"],
+        "solve_time_ms": metrics["solve_time_ms"],
+        "control_period_s": metrics["control_period_s"],
+        "solver_failures": metrics["controller_failures"],
+        "solver": settings.solver,
+        "latency": args.latency,
+        "deadline_misses": metrics["deadline_misses"],
+        "newton_iters": model.newton_iters,
+        "horizon": settings.horizon,
+        "horizon_s": settings.horizon * model.step_size,
+        "hessian": settings.hessian,
+        "terminal_energy_weight": settings.terminal_energy_weight,
+        "cold_starts": list(settings.cold_starts),
+        "max_abs_torque": metrics["max_abs_torque"],
+        "accumulated_cost": metrics["accumulated_cost"],
+        "model": model.name,
+        "true_model": args.true_model,
+        "scene": str(args.scene),
+        "init": args.init,
+        "seed": args.seed,
+        "duration_s": metrics["duration_s"],
+        "build_s": controller.build_s,
+        "compiled_from_cache": report.cached if report else None,
     }
     text = json.dumps(summary, indent=2)
     print(text)
@@ -123,8 +144,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(text + "\n")
     if str(args.plot) not in ("", "."):
-        plot_episode(episode, args.plot, title=f"{model.name} on {env.scene_spec.name}: swung up = {summary['swung_up']}",
-                     torque_bound=float(np.max(np.abs(env.torque_high))))
+        plot_episode(
+            episode,
+            args.plot,
+            title=f"{model.name} on {env.scene_spec.name}: swung up = {summary['swung_up']}",
+            torque_bound=float(np.max(np.abs(env.torque_high))),
+        )
         print(f"plot: {args.plot}", file=sys.stderr)
     if args.video:
         write_video(frames, args.video, fps=1.0 / episode.control_period)

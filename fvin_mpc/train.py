@@ -25,13 +25,14 @@ from typing import Any
 
 _START = time.perf_counter()
 
-import numpy as np  # noqa: E402
+import numpy as np
 
-from fvin_mpc._cli import run_command  # noqa: E402
-from fvin_mpc.core.data import load_data  # noqa: E402
-from fvin_mpc.core.space import space_for_variant, space_of_config, spaces  # noqa: E402
-from fvin_mpc.learning.space_training import train_model, training_for  # noqa: E402
-from fvin_mpc.learning.training import (  # noqa: E402
+from fvin_mpc._cli import run_command
+from fvin_mpc.core.checkpoint import load_checkpoint, save_checkpoint
+from fvin_mpc.core.data import load_data
+from fvin_mpc.core.space import space_for_variant, space_of_config, spaces
+from fvin_mpc.learning.space_training import train_model, training_for
+from fvin_mpc.learning.training import (
     DEFAULT_DATA,
     DEFAULT_ITERATIONS,
     OPTIMIZERS,
@@ -50,55 +51,108 @@ ALL_VARIANTS = tuple(dict.fromkeys(variant for space in spaces() for variant in 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m fvin_mpc.train", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", type=Path, default=DEFAULT_DATA, help="data file from fvin_mpc.collect (default: %(default)s)")
+    parser.add_argument(
+        "--data", type=Path, default=DEFAULT_DATA, help="data file from fvin_mpc.collect (default: %(default)s)"
+    )
     parser.add_argument("--test-data", type=Path, default=None,
                         help="held-out data for the space's report (a free body: the 1 s open-loop error)")
-    parser.add_argument("--out", type=Path, default=None,
-                        help="checkpoint stem (default: checkpoints/<scene stem>_<variant>, e.g. checkpoints/arm_sign-invariant "
-                             "for data collected from /any/path/arm.xml, the scene's default model; data in a file "
-                             "named otherwise, e.g. data/arm_big.npz, give checkpoints/arm_big_<variant>). The default "
-                             "never replaces an existing checkpoint (a shipped one included) unless --force")
+    parser.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        help="checkpoint stem (default: checkpoints/<scene stem>_<variant>, e.g. checkpoints/arm_sign-invariant "
+        "for data collected from /any/path/arm.xml, the scene's default model; data in a file "
+        "named otherwise, e.g. data/arm_big.npz, give checkpoints/arm_big_<variant>). The default "
+        "never replaces an existing checkpoint (a shipped one included) unless --force",
+    )
     parser.add_argument("--force", action="store_true",
                         help="let the default --out replace an existing checkpoint")
     parser.add_argument("--variant", choices=ALL_VARIANTS, default=None,
                         help="model variant (default: the data's space's first: sign-invariant on a pivot, "
                              "fixed-inertia for a free body; so3-matrix/so3-quaternion: the SO(3) baseline)")
-    parser.add_argument("--hidden-width", type=int, default=None, help="width of every hidden layer (default: the config's)")
+    parser.add_argument(
+        "--hidden-width", type=int, default=None, help="width of every hidden layer (default: the config's)"
+    )
     parser.add_argument("--hidden-layers", type=int, default=None, help="hidden layers per MLP (default: the config's)")
-    parser.add_argument("--newton-iters", type=int, default=None, help="Newton iterations K per step (default: the config's)")
-    parser.add_argument("--dissipation", action=argparse.BooleanOptionalAction, default=None,
-                        help="learn a damping term −Dω (S³ models; default: on when the data's scene declares joint damping)")
+    parser.add_argument(
+        "--newton-iters", type=int, default=None, help="Newton iterations K per step (default: the config's)"
+    )
+    parser.add_argument(
+        "--dissipation",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="learn a damping term −Dω (S³ models; default: on when the data's scene declares joint damping)",
+    )
     parser.add_argument("--trajectories", type=int, default=None, help="train on the first N trajectories only")
-    parser.add_argument("--init", default=None, metavar="CHECKPOINT",
-                        help="continue training from this checkpoint (its architecture; --variant and the widths are ignored)")
-    parser.add_argument("--evaluate", default=None, metavar="CHECKPOINT",
-                        help="no training: the space's evaluation of this checkpoint on --test-data (free bodies: open "
-                             "loop over 0.2, 0.5 and 1 s, learned beside closed form; recovered mass, inertia, hover thrust)")
+    parser.add_argument(
+        "--init",
+        default=None,
+        metavar="CHECKPOINT",
+        help="continue training from this checkpoint (its architecture; --variant and the widths are ignored)",
+    )
+    parser.add_argument(
+        "--evaluate",
+        default=None,
+        metavar="CHECKPOINT",
+        help="no training: the space's evaluation of this checkpoint on --test-data (free bodies: open "
+        "loop over 0.2, 0.5 and 1 s, learned beside closed form; recovered mass, inertia, hover thrust)",
+    )
     parser.add_argument("--optimizer", choices=OPTIMIZERS, default=None,
                         help="lm: Levenberg–Marquardt (default), lbfgs: full-batch L-BFGS, adam: full-batch Adam")
     parser.add_argument("--iterations", type=int, default=None,
                         help="most iterations (default: " + ", ".join(f"{k} {v}" for k, v in DEFAULT_ITERATIONS.items())
                              + "); early stopping usually ends sooner")
-    parser.add_argument("--patience", type=int, default=None,
-                        help="stop after this many validation evaluations without a relative improvement of "
-                             f"--min-improvement; 0: never stop early (default: {TrainSettings.patience}; free bodies 6)")
-    parser.add_argument("--min-improvement", type=float, default=None,
-                        help=f"relative validation-loss decrease that counts as progress (default: {TrainSettings.min_improvement})")
+    parser.add_argument(
+        "--patience",
+        type=int,
+        default=None,
+        help="stop after this many validation evaluations without a relative improvement of "
+        f"--min-improvement; 0: never stop early (default: {TrainSettings.patience}; free bodies 6)",
+    )
+    parser.add_argument(
+        "--min-improvement",
+        type=float,
+        default=None,
+        help=f"relative validation-loss decrease that counts as progress (default: {TrainSettings.min_improvement})",
+    )
     parser.add_argument("--target-loss", type=float, default=None, help="stop once the validation loss is at most this")
     parser.add_argument("--time-limit", type=float, default=None, help="stop after this many seconds of training")
-    parser.add_argument("--eval-every", type=int, default=None, help="iterations between validation evaluations (default: lm/lbfgs 1, adam 25)")
-    parser.add_argument("--jacobian-windows", type=int, default=None,
-                        help=f"windows sampled per LM iteration for the Gauss–Newton matrix (default: {TrainSettings.jacobian_windows})")
-    parser.add_argument("--lr", type=float, default=None, help=f"Adam learning rate (default: {TrainSettings.learning_rate})")
-    parser.add_argument("--window", type=int, default=None, help=f"rollout steps per training window (default: {TrainSettings.window})")
+    parser.add_argument(
+        "--eval-every",
+        type=int,
+        default=None,
+        help="iterations between validation evaluations (default: lm/lbfgs 1, adam 25)",
+    )
+    parser.add_argument(
+        "--jacobian-windows",
+        type=int,
+        default=None,
+        help="windows sampled per LM iteration for the Gauss–Newton matrix (default: "
+             f"{TrainSettings.jacobian_windows})",
+    )
+    parser.add_argument(
+        "--lr", type=float, default=None, help=f"Adam learning rate (default: {TrainSettings.learning_rate})"
+    )
+    parser.add_argument(
+        "--window", type=int, default=None, help=f"rollout steps per training window (default: {TrainSettings.window})"
+    )
     parser.add_argument("--omega-weight", type=float, default=None,
                         help=f"weight of the angular-velocity error (default: {TrainSettings.omega_weight})")
-    parser.add_argument("--threads", type=int, default=None,
-                        help="torch intra-op threads (default: free bodies 1; else the cores the 1-minute load average leaves "
-                             f"at least half free, at least 1; now {safe_thread_count()})")
-    parser.add_argument("--compile", action="store_true",
-                        help="torch.compile the step (adam/lbfgs only): ≈75–200 s of compilation, then ≈3× faster iterations")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the initialization, split and LM samples (default: %(default)s)")
+    parser.add_argument(
+        "--threads",
+        type=int,
+        default=None,
+        help="torch intra-op threads (default: free bodies 1; else the cores the 1-minute load average leaves "
+        f"at least half free, at least 1; now {safe_thread_count()})",
+    )
+    parser.add_argument(
+        "--compile",
+        action="store_true",
+        help="torch.compile the step (adam/lbfgs only): ≈75–200 s of compilation, then ≈3× faster iterations",
+    )
+    parser.add_argument(
+        "--seed", type=int, default=0, help="seed of the initialization, split and LM samples (default: %(default)s)"
+    )
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     return parser
 
@@ -114,8 +168,6 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
 
-    from fvin_mpc.core.checkpoint import load_checkpoint, save_checkpoint
-
     if args.evaluate is not None:
         if args.test_data is None:
             parser.error("--evaluate needs --test-data")
@@ -123,7 +175,9 @@ def main(argv: list[str] | None = None) -> int:
         evaluate = training_for(checkpoint.space).evaluate
         if evaluate is None:
             parser.error(f"--evaluate: models on {checkpoint.space.description} have no evaluation here")
-        print(json.dumps({**evaluate(checkpoint, load_data(args.test_data)), "test_data": str(args.test_data)}, indent=2))
+        print(
+            json.dumps({**evaluate(checkpoint, load_data(args.test_data)), "test_data": str(args.test_data)}, indent=2)
+        )
         return 0
 
     data = load_data(args.data)
@@ -133,7 +187,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.init is not None:
         start = load_checkpoint(args.init)
         if start.space.layout != data.space.layout:
-            parser.error(f"--init {args.init}: a model on {start.space.description}, the data are on {data.space.description}")
+            parser.error(
+                f"--init {args.init}: a model on {start.space.description}, the data are on {data.space.description}"
+            )
         config, initial = start.config, {name: np.array(value) for name, value in start.weights.items()}
         previous = dict(start.metadata.get("training", {}))
     else:
@@ -144,7 +200,9 @@ def main(argv: list[str] | None = None) -> int:
         config = _model_config(parser, args, space, data)
     space = space_of_config(config)
     preset = training_for(space)
-    given = {field: getattr(args, option) for option, field in _SETTINGS_OPTIONS.items() if getattr(args, option) is not None}
+    given = {
+        field: getattr(args, option) for option, field in _SETTINGS_OPTIONS.items() if getattr(args, option) is not None
+    }
     try:
         settings = TrainSettings(**{**preset.settings, **given, "seed": args.seed, "compile": args.compile})
     except ValueError as error:
@@ -175,11 +233,20 @@ def main(argv: list[str] | None = None) -> int:
               "control_period": data.control_period},
         training=report, **({"evaluation": evaluation} if evaluation else {}), versions=package_versions(),
     )
-    summary = {"checkpoint": str(stem), "space": space.name, "variant": config.variant, "optimizer": report["optimizer"],
-               "iterations": report["iterations"], "stopped": report["stopped"], "threads": report["threads"],
-               "final_train_loss": report["final_train_loss"], "final_validation_loss": report["final_validation_loss"],
-               "wall_clock_s": round(report["wall_clock_s"], 1), "cpu_s": report.get("cpu_s"),
-               "process_s": round(time.perf_counter() - _START, 1)}
+    summary = {
+        "checkpoint": str(stem),
+        "space": space.name,
+        "variant": config.variant,
+        "optimizer": report["optimizer"],
+        "iterations": report["iterations"],
+        "stopped": report["stopped"],
+        "threads": report["threads"],
+        "final_train_loss": report["final_train_loss"],
+        "final_validation_loss": report["final_validation_loss"],
+        "wall_clock_s": round(report["wall_clock_s"], 1),
+        "cpu_s": report.get("cpu_s"),
+        "process_s": round(time.perf_counter() - _START, 1),
+    }
     if "dissipation" in _field_names(config):
         summary["dissipation"] = config.dissipation
     print(json.dumps({**summary, **evaluation}, indent=2))

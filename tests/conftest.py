@@ -7,9 +7,8 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import pytest  # noqa: E402
-from hypothesis import HealthCheck, settings  # noqa: E402
-
 import strategies  # noqa: E402  (tests/strategies.py; tests/ is on sys.path via this conftest)
+from hypothesis import HealthCheck, settings  # noqa: E402
 
 # ----------------------------------------------------------------------------- hypothesis profiles
 # ci (default): derandomized, so every CI run checks the same examples and a failure reproduces

@@ -66,4 +66,6 @@ def synthetic_hinge_data(body, trajectories=48, steps=10, seed=0):
             q, omega = out.q, out.omega
         qs.append(np.stack(q, -1))
         omegas.append(np.stack(omega, -1))
-    return Trajectories.from_parts(np.stack(qs, 1), np.stack(omegas, 1), u, {"control_period": 0.05, "scene": "synthetic"})
+    return Trajectories.from_parts(
+        np.stack(qs, 1), np.stack(omegas, 1), u, {"control_period": 0.05, "scene": "synthetic"}
+    )

@@ -16,9 +16,8 @@ import os
 from typing import Any, Callable
 
 import numpy as np
-from hypothesis import strategies as st
-
 from helpers import hinge  # noqa: F401  (one definition, also reached as S.hinge)
+from hypothesis import strategies as st
 
 # --------------------------------------------------------------------------- bookkeeping
 #: Examples run in this process (one xdist worker, or the whole session without xdist).

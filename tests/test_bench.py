@@ -1,4 +1,4 @@
-"""The accuracy-vs-time studies (``python -m fvin_mpc.bench``): their ``--quick`` variants run
+"""The accuracy-vs-time studies (``python -m benchmarks``): their ``--quick`` variants run
 end to end here, so the scripts stay alive, and their measurements obey the math they report.
 No timing is asserted (the machines are shared); only that times are positive and finite."""
 
@@ -10,9 +10,9 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from fvin_mpc.studies.report import StudyResult, write_study
-from fvin_mpc.bench.__main__ import STUDIES, build_parser, main
-from fvin_mpc.studies.bench.common import pareto_mask
+from benchmarks.__main__ import STUDIES, build_parser, main
+from benchmarks.common import pareto_mask
+from benchmarks.study import StudyResult, write_study
 
 
 @pytest.fixture(autouse=True)
@@ -46,11 +46,13 @@ def test_pareto_mask_keeps_exactly_the_non_dominated_points():
 
 
 def test_write_study_records_the_command(tmp_path):
-    result = StudyResult("demo", [{"a": 1.0, "b": None}], ["a", "b"], lambda figure, rows: figure.add_subplot().plot([0, 1]))
+    result = StudyResult(
+        "demo", [{"a": 1.0, "b": None}], ["a", "b"], lambda figure, rows: figure.add_subplot().plot([0, 1])
+    )
     paths = write_study(result, tmp_path / "out", ["demo", "--quick"])
     saved = json.loads(paths["json"].read_text())
-    assert saved["command"] == "python -m fvin_mpc.bench demo --quick"
-    assert "`python -m fvin_mpc.bench demo --quick`" in paths["md"].read_text()
+    assert saved["command"] == "python -m benchmarks demo --quick"
+    assert "`python -m benchmarks demo --quick`" in paths["md"].read_text()
     assert paths["png"].stat().st_size > 0
 
 
@@ -73,9 +75,9 @@ def test_sim_quick_via_cli(tmp_path, capsys):
 
 
 def test_rootfinder_step_matches_converged_newton():
-    from fvin_mpc.core.backend import get_ops
-    from fvin_mpc.studies.bench.newton import rootfinder_step
+    from benchmarks.newton import rootfinder_step
     from fvin_mpc.control.export import from_rigid_body
+    from fvin_mpc.core.backend import get_ops
     from fvin_mpc.core.rigid_body import PENDULUM
 
     reference = rootfinder_step(PENDULUM.terms(get_ops("casadi")), 0.05, "newton")
@@ -92,7 +94,7 @@ def test_rootfinder_step_matches_converged_newton():
 
 
 def test_newton_quick_residual_falls_with_k(tmp_path):
-    from fvin_mpc.studies.bench import newton
+    from benchmarks import newton
 
     result = newton.run(quick=True)
     rows = {r["config"]: r for r in result.rows}
@@ -113,7 +115,7 @@ def test_newton_skips_with_a_message_when_the_checkpoint_is_absent(tmp_path, cap
 
 
 def test_horizon_quick(tmp_path):
-    from fvin_mpc.studies.bench import horizon
+    from benchmarks import horizon
 
     result = horizon.run(quick=True)
     for row in result.rows:
@@ -124,7 +126,7 @@ def test_horizon_quick(tmp_path):
 
 
 def test_rti_quick_pairs_learned_with_closed_form(tmp_path):
-    from fvin_mpc.studies.bench import rti
+    from benchmarks import rti_knobs as rti
 
     result = rti.run(quick=True)
     assert [(r["config"], r["model"]) for r in result.rows] == [
@@ -141,7 +143,7 @@ def test_rti_quick_pairs_learned_with_closed_form(tmp_path):
 
 def test_ops_counts_order_the_structures(tmp_path):
     """Fewer networks, fewer evaluations of each, a constant inertia: fewer operations per stage."""
-    from fvin_mpc.studies.bench import ops
+    from benchmarks import ops
 
     result = ops.run(quick=True)
     by_model = {r["model"]: r["step_jacobian_ops"] for r in result.rows}
@@ -156,7 +158,7 @@ def test_ops_counts_order_the_structures(tmp_path):
 
 
 def test_solver_quick(tmp_path):
-    from fvin_mpc.studies.bench import solver
+    from benchmarks import solver
 
     result = solver.run(quick=True)
     assert {r["solver"] for r in result.rows} == {"ipopt", "sqpmethod", "fatrop"}
@@ -167,10 +169,14 @@ def test_solver_quick(tmp_path):
 
 
 def test_realtime_rows_put_every_learned_checkpoint_beside_the_closed_form():
-    from fvin_mpc.studies.bench import solver
+    from benchmarks import solver
 
-    rows = solver.realtime_rows(duration=0.5, scenes=("pendulum",), configs=(("rti", {"solver": "rti", "compile": "none"}, 0.001),),
-                                extra_checkpoints={"pendulum": ("pendulum_fixed-inertia",)})
+    rows = solver.realtime_rows(
+        duration=0.5,
+        scenes=("pendulum",),
+        configs=(("rti", {"solver": "rti", "compile": "none"}, 0.001),),
+        extra_checkpoints={"pendulum": ("pendulum_fixed-inertia",)},
+    )
     assert [r["model"] for r in rows] == ["learned", "closed form", "learned (fixed-inertia)"]
     closed = rows[1]
     assert closed["learned_vs_true"] is None
@@ -212,7 +218,7 @@ def test_fatrop_setting_is_validated():
 
 
 def test_width_quick_caches_the_trained_model(tmp_path):
-    from fvin_mpc.studies.bench import width
+    from benchmarks import width
 
     first = width.run(quick=True)
     second = width.run(quick=True)
@@ -225,7 +231,7 @@ def test_width_quick_caches_the_trained_model(tmp_path):
 
 
 def test_train_speed_quick(tmp_path):
-    from fvin_mpc.studies.bench import train_speed
+    from benchmarks import train_speed
 
     result = train_speed.run(quick=True)
     _positive_times(result.rows, "s_per_iter_median")
@@ -249,9 +255,9 @@ def test_compiled_mpc_accepts_a_model_name_with_dots():
 def test_heldout_data_never_overwrites_a_different_set(tmp_path):
     """A file at the held-out path that holds other data is refused, not silently replaced
     (the spherical set, speed-bounded, was once overwritten by an unbounded collection)."""
-    from fvin_mpc.studies.bench.common import heldout_data
-    from fvin_mpc.learning.collection import collect
+    from benchmarks.common import heldout_data
     from fvin_mpc.core.data import save_data
+    from fvin_mpc.learning.collection import collect
 
     path = tmp_path / "data" / "pendulum_heldout.npz"
     save_data(path, collect("pendulum", 2, 3, 7, progress=False))  # seed 7, not the held-out seed 1
@@ -262,7 +268,7 @@ def test_heldout_data_never_overwrites_a_different_set(tmp_path):
 
 
 def test_spherical_heldout_data_is_speed_bounded(tmp_path):
-    from fvin_mpc.studies.bench.common import BOUNDED_HELDOUT, heldout_data
+    from benchmarks.common import BOUNDED_HELDOUT, heldout_data
 
     path = tmp_path / "spherical.npz"
     data = heldout_data("spherical_pendulum", seed=1, trajectories=3, steps=5, path=path)

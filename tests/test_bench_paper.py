@@ -1,13 +1,13 @@
-"""``python -m fvin_mpc.bench paper`` (the paper's Figures 1 and 2): its ``--quick`` run end to end
+"""``python -m benchmarks paper`` (the paper's Figures 1 and 2): its ``--quick`` run end to end
 on the shipped checkpoints, and the pieces whose math can be checked exactly."""
 
 import json
 
 import numpy as np
 
-from fvin_mpc.bench.__main__ import main
+from benchmarks import paper
+from benchmarks.__main__ import main
 from fvin_mpc.core.space import S3
-from fvin_mpc.studies.bench import paper
 
 
 def test_scale_fit_recovers_the_scale_of_a_scaled_potential():
@@ -33,8 +33,10 @@ def test_closed_form_energy_stays_near_its_start_without_control():
 
 
 def test_band_holds_each_run_at_its_last_value():
-    runs = [[{"iteration": 1, "validation": 4.0}, {"iteration": 2, "validation": 2.0}],
-            [{"iteration": 1, "validation": 8.0}, {"iteration": 2, "validation": 6.0}, {"iteration": 3, "validation": 1.0}]]
+    runs = [
+        [{"iteration": 1, "validation": 4.0}, {"iteration": 2, "validation": 2.0}],
+        [{"iteration": 1, "validation": 8.0}, {"iteration": 2, "validation": 6.0}, {"iteration": 3, "validation": 1.0}],
+    ]
     median, low, high = paper._band(runs, "iteration", np.array([1.0, 2.0, 3.0]))
     np.testing.assert_allclose(low, [4.0, 2.0, 1.0])
     np.testing.assert_allclose(high, [8.0, 6.0, 2.0])
@@ -43,7 +45,12 @@ def test_band_holds_each_run_at_its_last_value():
 
 def test_checkpoints_repeat_the_shipped_sign_invariant_settings():
     settings = paper.reference_settings()
-    assert (settings.optimizer, settings.iterations, settings.learning_rate, settings.patience) == ("adam", 600, 0.01, 0)
+    assert (settings.optimizer, settings.iterations, settings.learning_rate, settings.patience) == (
+        "adam",
+        600,
+        0.01,
+        0,
+    )
 
 
 def test_quick_run_writes_figures_table_and_claims(tmp_path):

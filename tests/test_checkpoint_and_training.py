@@ -4,13 +4,13 @@ import json
 
 import numpy as np
 import pytest
+from helpers import synthetic_hinge_data
 
 from fvin_mpc.core.backend import get_ops
 from fvin_mpc.core.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from fvin_mpc.core.data import load_data, save_data
 from fvin_mpc.core.networks import ModelConfig, init_weights
 from fvin_mpc.core.rigid_body import PENDULUM
-from helpers import synthetic_hinge_data
 
 NP = get_ops("numpy")
 
@@ -50,8 +50,14 @@ def test_mismatched_config_names_the_weight(saved):
         load_checkpoint(stem)
 
 
-@pytest.mark.parametrize("content, message", [("{not json", "not valid JSON"), ('{"format": "other"}', "format"),
-                                              ('{"format": "fvin_mpc.checkpoint/1", "model": {"variant": "bogus"}}', "invalid model config")])
+@pytest.mark.parametrize(
+    "content, message",
+    [
+        ("{not json", "not valid JSON"),
+        ('{"format": "other"}', "format"),
+        ('{"format": "fvin_mpc.checkpoint/1", "model": {"variant": "bogus"}}', "invalid model config"),
+    ],
+)
 def test_malformed_sidecar(saved, content, message):
     stem, *_ = saved
     stem.with_suffix(".json").write_text(content)

@@ -1,4 +1,4 @@
-"""The data-efficiency study (fvin_mpc.studies.data_efficiency): its training sets are whole
+"""The data-efficiency study (benchmarks.data_efficiency): its training sets are whole
 trajectories of the pool, nested per draw; its headline logic; and its --quick path end to end
 through the bench CLI (resumable from its per-cell cache)."""
 
@@ -10,7 +10,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from fvin_mpc.studies import data_efficiency as study
+from benchmarks import data_efficiency as study
 
 
 @pytest.fixture(scope="module")
@@ -53,7 +53,9 @@ def test_config_rejects_unknown_models_and_partial_trajectories():
 
 def test_episode_budget_reaches_the_config_and_separates_the_cells(tmp_path):
     def config(**budget):
-        return study.study_config(False, 0, "250", "3", "sign-invariant", 8, 0, tmp_path, "cached", 10.0, 20000, **budget)
+        return study.study_config(
+            False, 0, "250", "3", "sign-invariant", 8, 0, tmp_path, "cached", 10.0, 20000, **budget
+        )
 
     default, unbounded = config(), config(episode_budget=1000.0)
     assert default.episode_budget_s == study.EPISODE_BUDGET_S and unbounded.episode_budget_s == 1000.0
@@ -64,7 +66,9 @@ def test_episode_budget_reaches_the_config_and_separates_the_cells(tmp_path):
 
 def test_torque_reserve_reaches_both_mpcs_and_separates_the_cells(tmp_path):
     def config(**reserve):
-        return study.study_config(False, 0, "250", "3", "sign-invariant", 8, 0, tmp_path, "cached", 10.0, 20000, **reserve)
+        return study.study_config(
+            False, 0, "250", "3", "sign-invariant", 8, 0, tmp_path, "cached", 10.0, 20000, **reserve
+        )
 
     default, reserved = config(), config(torque_reserve=0.05)
     assert "mpc_overrides" not in default.evaluation_fingerprint()  # the cells cached before the option stay valid
@@ -88,8 +92,8 @@ def test_headline_counts_from_where_it_holds_at_every_larger_size():
 
 
 def test_quick_study_via_the_bench_cli_and_resumes_from_its_cache(tmp_path, monkeypatch):
-    from fvin_mpc.bench.__main__ import main
-    from fvin_mpc.studies import pendulum_v1
+    from benchmarks import pendulum_v1_mpc as pendulum_v1
+    from benchmarks.__main__ import main
 
     monkeypatch.chdir(tmp_path)
     monkeypatch.setenv("FVIN_MPC_CACHE", str(tmp_path / "casadi"))
@@ -127,7 +131,9 @@ def test_quick_study_via_the_bench_cli_and_resumes_from_its_cache(tmp_path, monk
     # data-efficiency-terms reads the same cells (and one plain cell more) without computing any
     assert main(["data-efficiency", "--quick", "--sizes", "20", "--models", "plain", "--out-dir", "out",
                  "--cache-dir", "cache"]) == 0
-    assert main(["data-efficiency-terms", "--quick", "--sizes", "20,40", "--out-dir", "out", "--cache-dir", "cache"]) == 0
+    assert (
+        main(["data-efficiency-terms", "--quick", "--sizes", "20,40", "--out-dir", "out", "--cache-dir", "cache"]) == 0
+    )
     terms = json.loads((tmp_path / "out" / "data-efficiency-terms.json").read_text())
     by_cell = {(r["model"], r["transitions"]): r for r in terms["rows"]}
     assert set(by_cell) == {("sign-invariant", 20), ("sign-invariant", 40), ("plain", 20)}
@@ -237,15 +243,22 @@ def test_trained_models_are_reused_only_when_training_settings_and_weights_match
     stem = _fake_trained_cell(config, "sign-invariant", "sign-invariant_n250_r0", {"iterations": 7})
     assert study.trained_before("sign-invariant", 250, 0, config, stem) == {"iterations": 7}  # older cell: by date
     assert study.trained_before("sign-invariant", 250, 0, replace(config, jacobian_windows=8), stem) is None
-    assert study.trained_before("sign-invariant", 500, 0, config, tmp_path / "models" / "sign-invariant_n500_r0") is None
+    assert (
+        study.trained_before("sign-invariant", 500, 0, config, tmp_path / "models" / "sign-invariant_n500_r0") is None
+    )
     # weights newer than the cell that recorded them (retrained since, say by an aborted run): not reused
     stem = _fake_trained_cell(config, "sign-invariant", "sign-invariant_n250_r1", {"iterations": 3},
                               write_cell_after_weights=False)
     assert study.trained_before("sign-invariant", 250, 1, config, stem) is None
     # a recorded digest decides, whatever the dates
     digest = study.weights_digest("sign-invariant", stem)
-    stem = _fake_trained_cell(config, "sign-invariant", "sign-invariant_n250_r1", {"iterations": 3, "weights_sha256": digest},
-                              write_cell_after_weights=False)
+    stem = _fake_trained_cell(
+        config,
+        "sign-invariant",
+        "sign-invariant_n250_r1",
+        {"iterations": 3, "weights_sha256": digest},
+        write_cell_after_weights=False,
+    )
     assert study.trained_before("sign-invariant", 250, 1, config, stem)["iterations"] == 3
     study.model_files("sign-invariant", stem)[0].write_bytes(b"other weights")
     assert study.trained_before("sign-invariant", 250, 1, config, stem) is None

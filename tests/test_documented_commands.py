@@ -1,11 +1,13 @@
 """Every command line the README and ``docs/`` show parses with its command's own parser.
 
-The commands are discovered, not listed: each ``python -m fvin_mpc.<module> ...`` in a fenced code
-block (backslash continuations joined) or an inline code span (which may wrap across lines) is
-parsed by ``fvin_mpc.<module>.build_parser()``, without running anything. A command whose options
-were renamed or removed, or whose documented values its parser refuses, fails here with the file
-and line it is written on. Sub-commands (``bench <study>``, ``spherical_report collect``) are parsed
-by the top-level parser, which hands them to the sub-command's.
+The commands are discovered, not listed: each ``python -m fvin_mpc.<module> ...`` — and each
+research study's ``python -m benchmarks ...`` or ``python -m benchmarks.<module> ...``, run from a
+clone — in a fenced code block (backslash continuations joined) or an inline code span (which may
+wrap across lines) is parsed by that module's ``build_parser()`` (``benchmarks/__main__.py``'s for
+``python -m benchmarks``), without running anything. A command whose options were renamed or
+removed, or whose documented values its parser refuses, fails here with the file and line it is
+written on. Sub-commands (``benchmarks <study>``, ``benchmarks.spherical_report collect``) are
+parsed by the top-level parser, which hands them to the sub-command's.
 
 Left out, and counted: templates rather than command lines — a ``<placeholder>``, an ALL-CAPS
 metavariable (``--variant V``) or an ellipsis stands for values the reader fills in.
@@ -24,7 +26,8 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-COMMAND = re.compile(r"python -m fvin_mpc\.([A-Za-z_][\w.]*)")
+#: The module a documented command runs: ``fvin_mpc.<module>``, ``benchmarks`` or ``benchmarks.<module>``.
+COMMAND = re.compile(r"python -m ((?:fvin_mpc|benchmarks)\b(?:\.[A-Za-z_][\w.]*)?)")
 FENCE = re.compile(r"^\s*(```|~~~)")
 INLINE_CODE = re.compile(r"(`+)(.+?)\1", re.S)
 #: Where a documented command's own arguments end: a shell comment or operator, then a redirection
@@ -40,11 +43,11 @@ METAVARIABLE = re.compile(r"^[A-Z][A-Z0-9_]*$")
 class DocumentedCommand:
     source: str
     line: int
-    module: str
+    module: str  # the full module name: fvin_mpc.swingup, benchmarks, benchmarks.spherical_report
     text: str | None  # the arguments as written, up to the end of the command; None: a template
 
     def __str__(self) -> str:
-        return f"{self.source}:{self.line}: python -m fvin_mpc.{self.module} {self.text}".rstrip()
+        return f"{self.source}:{self.line}: python -m {self.module} {self.text}".rstrip()
 
 
 def markdown_files() -> list[Path]:
@@ -115,24 +118,24 @@ COMMAND_LINES = [command for command in COMMANDS if command.text is not None]
 
 
 def parser_for(command: DocumentedCommand, argv: list[str]):
-    """The parser the command line goes to (``bench``'s sub-commands through its top-level parser)."""
-    module = importlib.import_module(f"fvin_mpc.{command.module}")
-    if command.module == "bench":
-        module = importlib.import_module("fvin_mpc.bench.__main__")
-    assert hasattr(module, "build_parser"), f"{command}: fvin_mpc.{command.module} has no build_parser()"
+    """The parser the command line goes to (the studies' sub-commands through ``benchmarks``' top-level parser)."""
+    module = importlib.import_module("benchmarks.__main__" if command.module == "benchmarks" else command.module)
+    assert hasattr(module, "build_parser"), f"{command}: {command.module} has no build_parser()"
     return module.build_parser()
 
 
 def test_the_documents_hold_command_lines():
-    """The discovery itself works: the README alone shows dozens, and every command module appears."""
+    """The discovery itself works: the README alone shows dozens, and every command module appears,
+    the research studies' commands in ``benchmarks/`` among them."""
     assert len(COMMAND_LINES) > 100
     documented = {command.module for command in COMMAND_LINES}
-    assert {"swingup", "train", "collect", "evaluate", "bench", "fly"} <= documented
+    assert {f"fvin_mpc.{name}" for name in ("swingup", "train", "collect", "evaluate", "fly")} <= documented
+    assert {"benchmarks", "benchmarks.pendulum_v1_report", "benchmarks.spherical_report"} <= documented
 
 
 def test_a_stale_option_is_caught(capsys):
     """The check can fail: an option no parser knows is refused."""
-    stale = DocumentedCommand("probe.md", 1, "swingup", "--scene pendulum --no-such-option 3")
+    stale = DocumentedCommand("probe.md", 1, "fvin_mpc.swingup", "--scene pendulum --no-such-option 3")
     with pytest.raises(AssertionError, match="no-such-option"):
         test_the_documented_command_parses(stale)
 
@@ -141,13 +144,14 @@ def test_discovery_joins_continuations_and_wrapped_inline_code(tmp_path):
     document = tmp_path / "doc.md"
     document.write_text("Run `python -m fvin_mpc.swingup\n--duration 12` or\n\n```bash\n"
                         "OMP_NUM_THREADS=1 python -m fvin_mpc.train --data data/a.npz \\\n    --quiet  # comment\n"
-                        "python -m fvin_mpc.bench <study> --help\n"
-                        'S="python -m fvin_mpc.bench ops --quick"; $S > out.txt\n```\n'
-                        "See `python -m fvin_mpc.fly`.\n")
+                        "python -m benchmarks <study> --help\n"
+                        'S="python -m benchmarks ops --quick"; $S > out.txt\n```\n'
+                        "See `python -m fvin_mpc.fly`, `python -m benchmarks.spherical_report collect --seed 1`.\n")
     found = documented_commands(document, tmp_path)
     assert [(c.module, c.text, c.line) for c in found] == [
-        ("train", "--data data/a.npz --quiet", 5), ("bench", None, 7), ("bench", "ops --quick", 8),
-        ("swingup", "--duration 12", 1), ("fly", "", 10)]
+        ("fvin_mpc.train", "--data data/a.npz --quiet", 5), ("benchmarks", None, 7), ("benchmarks", "ops --quick", 8),
+        ("fvin_mpc.swingup", "--duration 12", 1), ("fvin_mpc.fly", "", 10),
+        ("benchmarks.spherical_report", "collect --seed 1", 10)]
 
 
 @pytest.mark.parametrize("command", COMMANDS, ids=str)

@@ -3,12 +3,12 @@
 import numpy as np
 import pytest
 import scipy.linalg
+from helpers import hinge
 
+from fvin_mpc.control.energy_shaping import EnergyShapingController
 from fvin_mpc.core import fvin, s3
 from fvin_mpc.core.backend import get_ops
-from fvin_mpc.control.energy_shaping import EnergyShapingController
 from fvin_mpc.core.rigid_body import PENDULUM, PivotedRigidBody
-from helpers import hinge
 
 NP = get_ops("numpy")
 GOAL = np.array([0.0, 0.0, 1.0, 0.0])
@@ -62,7 +62,10 @@ def test_scale_of_the_model_cancels():
     )
     # The actuator gain λ·b means one unit of u is λ times the torque; compare with u scaled back.
     a, b = make(), make(scaled)
-    for q, omega in [(np.array([0.9, 0, 0.43589, 0]), np.array([0, 1.2, 0])), (np.array([0.1, 0, 0.99499, 0]), np.array([0, -0.3, 0]))]:
+    for q, omega in [
+        (np.array([0.9, 0, 0.43589, 0]), np.array([0, 1.2, 0])),
+        (np.array([0.1, 0, 0.99499, 0]), np.array([0, -0.3, 0])),
+    ]:
         ua, _ = a(np.r_[q / np.linalg.norm(q), omega])
         ub, _ = b(np.r_[q / np.linalg.norm(q), omega])
         np.testing.assert_allclose(ua, ub, rtol=1e-6, atol=1e-9)
@@ -99,8 +102,9 @@ def test_lqr_linearization_matches_the_continuous_pendulum():
     # The basis vector of the actuated axis may point along ±y; the reduced coordinates then flip sign together.
     sign = np.sign(design.b[1, 0])
     np.testing.assert_allclose(design.a, exact_a, atol=5 * h**3 * 15)
-    np.testing.assert_allclose(sign * design.b[:, 0], (exact_a - np.eye(2)) @ np.linalg.solve(continuous_a, continuous_b)[:, 0],
-                               rtol=0.05)
+    np.testing.assert_allclose(
+        sign * design.b[:, 0], (exact_a - np.eye(2)) @ np.linalg.solve(continuous_a, continuous_b)[:, 0], rtol=0.05
+    )
 
 
 def test_controller_applies_the_lqr_gain_near_upright_and_its_closed_loop_cost_approaches_xPx():
@@ -151,10 +155,9 @@ def test_scene_energy_shaping_rejects_a_ball_joint_with_a_reason():
 
 
 def test_true_model_swings_up_the_mujoco_pendulum_from_rest():
-    from fvin_mpc.envs import RigidBodyEnv
-
     from fvin_mpc.control.closed_loop import episode_metrics, run_episode
     from fvin_mpc.control.scene import scene_energy_shaping, scene_model
+    from fvin_mpc.envs import RigidBodyEnv
 
     env = RigidBodyEnv("pendulum")
     controller = scene_energy_shaping(env, scene_model(env, true_model=True))
@@ -165,10 +168,9 @@ def test_true_model_swings_up_the_mujoco_pendulum_from_rest():
 
 def test_learned_model_swings_up_the_mujoco_pendulum_from_rest():
     """Energy shaping from the shipped learned J, U, g alone (its own E*, its own LQR) on MuJoCo."""
-    from fvin_mpc.envs import RigidBodyEnv
-
     from fvin_mpc.control.closed_loop import episode_metrics, run_episode
     from fvin_mpc.control.scene import scene_energy_shaping, scene_model
+    from fvin_mpc.envs import RigidBodyEnv
 
     env = RigidBodyEnv("pendulum")
     controller = scene_energy_shaping(env, scene_model(env))  # the scene's shipped checkpoint; missing = failure

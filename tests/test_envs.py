@@ -11,6 +11,7 @@ import mujoco
 import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
+from helpers import assert_same_rotation, hinge_quaternion
 from scipy.integrate import solve_ivp
 
 from fvin_mpc import envs
@@ -21,7 +22,6 @@ from fvin_mpc.envs.pendulum_v1 import (
     v1_angle_from_scene,
     v1_observation_from_state,
 )
-from helpers import assert_same_rotation, hinge_quaternion
 
 BUILT_IN = sorted(SCENES)
 HINGE_AXIS_Y = np.array([0.0, 1.0, 0.0])
@@ -412,7 +412,9 @@ def test_user_mjcf_defaults(tmp_path):
 
 
 def test_user_mjcf_validation(tmp_path):
-    two_bodies = write_mjcf(tmp_path / "two.xml", HINGE_BODY + HINGE_BODY.replace('"link"', '"other"').replace('"j"', '"k"'))
+    two_bodies = write_mjcf(
+        tmp_path / "two.xml", HINGE_BODY + HINGE_BODY.replace('"link"', '"other"').replace('"j"', '"k"')
+    )
     with pytest.raises(ValueError, match="pass body="):
         RigidBodyEnv(two_bodies)
     with pytest.raises(ValueError, match="only degree of freedom"):
@@ -489,7 +491,12 @@ def test_pendulum_v1_torque_direction_agrees():
 
     # Whole trajectories agree up to Pendulum-v1's semi-implicit Euler error (dt = 0.05), while
     # the mirrored convention (θ_scene = π − θ_v1, ω = −θ̇, i.e. the opposite torque sign) does not.
-    for theta_v1, theta_dot, torque in [(np.pi - 0.2, 0.0, 2.0), (np.pi + 0.5, 1.0, -2.0), (0.3, 0.0, 2.0), (2.5, -1.0, -1.5)]:
+    for theta_v1, theta_dot, torque in [
+        (np.pi - 0.2, 0.0, 2.0),
+        (np.pi + 0.5, 1.0, -2.0),
+        (0.3, 0.0, 2.0),
+        (2.5, -1.0, -1.5),
+    ]:
         v1.reset(seed=0)
         v1.state = np.array([theta_v1, theta_dot])
         mirrored = RigidBodyEnv("pendulum")

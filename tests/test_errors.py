@@ -19,7 +19,9 @@ from fvin_mpc.core.errors import FvinMpcError, SceneError, UsageError
 
 ROOT = Path(__file__).resolve().parents[1]
 WEAK_PENDULUM = ROOT / "tests" / "data" / "weak_pendulum.xml"
-COMMAND_MODULES = sorted([*(ROOT / "fvin_mpc").glob("[!_]*.py"), ROOT / "fvin_mpc" / "bench" / "__main__.py"])
+#: The package's commands and the research studies' (``benchmarks/``: the dispatcher and the two with their own parser).
+COMMAND_MODULES = sorted([*(ROOT / "fvin_mpc").glob("[!_]*.py"), *(ROOT / "benchmarks").glob("*_report.py"),
+                          ROOT / "benchmarks" / "__main__.py"])
 
 
 def one_error_line(stderr: str) -> str:
@@ -102,12 +104,12 @@ def test_the_command_line_prints_one_line_and_exits_2(tmp_path):
 
 # ---------------------------------------------------------------------- nonsensical values, before any work
 @pytest.mark.parametrize("value", ["0", "-1", "nan", "inf", "ten"])
-@pytest.mark.parametrize("command, argv", [("swingup", []), ("evaluate", []),
-                                           ("spherical_report", ["closed-loop"])])
+@pytest.mark.parametrize("command, argv", [("fvin_mpc.swingup", []), ("fvin_mpc.evaluate", []),
+                                           ("benchmarks.spherical_report", ["closed-loop"])])
 def test_a_duration_that_is_not_positive_is_refused_while_parsing(command, argv, value, capsys):
     import importlib
 
-    main = importlib.import_module(f"fvin_mpc.{command}").main
+    main = importlib.import_module(command).main
     line = refused_by_argparse(main, [*argv, "--duration", value], capsys)
     assert "--duration" in line and ("must be > 0" in line or "expected a number > 0" in line)
 
@@ -151,12 +153,12 @@ def test_a_bad_init_is_refused_before_the_controller_is_built(capsys, monkeypatc
 
 @pytest.mark.parametrize("command, argv, message", [
     ("fly", ["--episodes", "0"], "--episodes must be >= 1"),
-    ("bench", ["ops", "--repeats", "0"], "--repeats must be >= 1"),
+    ("benchmarks", ["ops", "--repeats", "0"], "--repeats must be >= 1"),
 ])
 def test_other_bad_counts_are_one_line_errors(command, argv, message, capsys):
     import importlib
 
-    module = importlib.import_module("fvin_mpc.bench.__main__" if command == "bench" else f"fvin_mpc.{command}")
+    module = importlib.import_module("benchmarks.__main__" if command == "benchmarks" else f"fvin_mpc.{command}")
     assert message in refused(module.main, argv, capsys)
 
 
@@ -171,22 +173,38 @@ def test_a_checkpoint_of_another_configuration_space_is_refused(capsys):
     assert "R3xS3" in line
 
 
-@pytest.mark.parametrize("command, argv, message", [
-    ("quality", ["--checkpoint", "quadrotor_fixed-inertia"], "is a free body and quality needs a body on a pivot"),
-    ("pendulum_v1", ["--checkpoint", "quadrotor_fixed-inertia", "--episodes", "1"], "a model on R3xS3"),
-    ("pendulum_v1", ["--checkpoint", "spherical_pendulum_sign-invariant", "--episodes", "1"], "has 3 controls"),
-    ("export", ["--checkpoint", "no-such-model"], "checkpoint file not found"),
-])
+@pytest.mark.parametrize(
+    "command, argv, message",
+    [
+        (
+            "fvin_mpc.quality",
+            ["--checkpoint", "quadrotor_fixed-inertia"],
+            "is a free body and quality needs a body on a pivot",
+        ),
+        (
+            "benchmarks.pendulum_v1_report",
+            ["--checkpoint", "quadrotor_fixed-inertia", "--episodes", "1"],
+            "a model on R3xS3",
+        ),
+        (
+            "benchmarks.pendulum_v1_report",
+            ["--checkpoint", "spherical_pendulum_sign-invariant", "--episodes", "1"],
+            "has 3 controls",
+        ),
+        ("fvin_mpc.export", ["--checkpoint", "no-such-model"], "checkpoint file not found"),
+    ],
+)
 def test_checkpoint_commands_refuse_a_model_they_cannot_use(command, argv, message, capsys, tmp_path):
     import importlib
 
-    main = importlib.import_module(f"fvin_mpc.{command}").main
-    assert message in refused(main, [*argv, "--out" if command == "pendulum_v1" else "--seed",
-                                     str(tmp_path / "out.md") if command == "pendulum_v1" else "0"], capsys)
+    main = importlib.import_module(command).main
+    writes_a_report = command == "benchmarks.pendulum_v1_report"
+    assert message in refused(main, [*argv, "--out" if writes_a_report else "--seed",
+                                     str(tmp_path / "out.md") if writes_a_report else "0"], capsys)
     assert not list(tmp_path.iterdir())
 
 
-@pytest.mark.parametrize("command", ["train", "inertia", "sweep"])
+@pytest.mark.parametrize("command", ["train", "quality", "sweep"])
 def test_a_missing_data_file_is_a_one_line_error(command, capsys, tmp_path):
     import importlib
 

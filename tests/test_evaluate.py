@@ -1,18 +1,14 @@
-"""Closed-loop evaluation CLI/library, the multi-start MPC, and the Pendulum-v1 benchmark's exact dynamics."""
+"""Closed-loop evaluation CLI/library and the multi-start MPC."""
 
 import json
 from dataclasses import replace
 
-import gymnasium
 import numpy as np
 import pytest
+from helpers import hinge
 
 from fvin_mpc import evaluate as evaluate_cli
 from fvin_mpc.studies import evaluation as ev
-from fvin_mpc.studies import pendulum_v1 as v1
-from helpers import hinge
-
-
 
 
 # ---------------------------------------------------------------------- evaluate
@@ -138,39 +134,6 @@ def test_multistart_rejects_unknown_guesses():
         MPCSettings(cold_starts=())
 
 
-# ---------------------------------------------------------------------- Pendulum-v1
-def test_v1_step_replicates_gymnasium_exactly():
-    env = gymnasium.make("Pendulum-v1")
-    rng = np.random.default_rng(0)
-    for seed in range(3):
-        env.reset(seed=seed)
-        clipped = 0
-        for _ in range(200):  # pumping (torque along θ̇, beyond the bound) reaches the speed clip
-            theta, theta_dot = (float(x) for x in env.unwrapped.state)
-            u = float(np.float32(np.copysign(2.5, theta_dot) + rng.uniform(-0.3, 0.3)))
-            _, reward, *_ = env.step(np.array([u], dtype=np.float32))
-            theta, theta_dot, expected = v1.v1_step(theta, theta_dot, u)
-            # One step from the same state; gymnasium mixes in the float32 action, hence 1e-6.
-            assert expected == pytest.approx(reward, rel=1e-6, abs=1e-9)
-            np.testing.assert_allclose(env.unwrapped.state, [theta, theta_dot], rtol=1e-6, atol=1e-9)
-            clipped += abs(theta_dot) == v1.MAX_SPEED
-        assert clipped > 0
-
-
-def test_benchmark_settings_cost_matches_the_reward_near_upright():
-    """4 sin²(a/2) ≈ a² and the ω, u weights are Pendulum-v1's; the speed bound is its clip."""
-    settings = v1.benchmark_settings()
-    for angle in (0.01, 0.1, 0.3):
-        assert settings.orientation_weight * np.sin(angle / 2) ** 2 == pytest.approx(angle**2, rel=0.01)
-    assert (settings.omega_weight, settings.control_weight) == (0.1, 0.001)
-    assert settings.omega_bound_fraction / v1.DT == pytest.approx(v1.MAX_SPEED)
-    # The terminal energy weight is the scenes' default unless given: one place to tune it.
-    from fvin_mpc.control.scene import DEFAULT_TERMINAL_ENERGY_WEIGHT
-
-    assert settings.terminal_energy_weight == DEFAULT_TERMINAL_ENERGY_WEIGHT > 0
-    assert v1.benchmark_settings(terminal_energy_weight=0.0).terminal_energy_weight == 0.0
-
-
 def test_evaluation_mpc_settings_follow_the_scene_and_the_overrides():
     from fvin_mpc.control.mpc import COLD_STARTS
     from fvin_mpc.control.scene import scene_env, scene_mpc_settings
@@ -180,25 +143,3 @@ def test_evaluation_mpc_settings_follow_the_scene_and_the_overrides():
     assert default.cold_starts == COLD_STARTS  # multi-start is the evaluated MPC unless --single-start
     override = ev.mpc_settings(ev.EvaluationConfig(mpc=(("horizon", 40), ("terminal_energy_weight", 0.0))))
     assert (override.horizon, override.terminal_energy_weight) == (40, 0.0)
-
-
-def test_episode_optimizer_beats_its_guess_and_its_return_is_replayable():
-    optimizer = v1.EpisodeOptimizer(steps=60)
-    theta0, theta_dot0 = 0.8, -0.3  # θ = 0 upright in Pendulum-v1
-    guess = np.zeros(60)
-    guess_return, _ = v1.replay(theta0, theta_dot0, guess)
-    total, controls, status, defect = optimizer.solve(theta0, theta_dot0, guess)
-    assert status in ("Solve_Succeeded", "Solved_To_Acceptable_Level") and defect < 1e-8
-    assert total > guess_return + 10.0
-    # Over 3 s the open-loop replay stays close to the optimized trajectory; its return is the NLP's value.
-    assert total == pytest.approx(v1.replay(theta0, theta_dot0, controls)[0], rel=1e-4)
-    # The reference's polish (pendulum_v1_reference) keeps the better of the guess and its optimum.
-    from fvin_mpc.studies.pendulum_v1_reference import best_of, polish
-
-    value, source = best_of(polish(theta0, theta_dot0, {"zero": guess}, [optimizer]))
-    assert value == pytest.approx(total) and source == "zero (polished)"
-    # Optimality check against simple perturbations of the optimum (a local optimum of a smooth problem).
-    rng = np.random.default_rng(1)
-    for _ in range(5):
-        perturbed = np.clip(controls + 0.05 * rng.normal(size=60), -2, 2)
-        assert v1.replay(theta0, theta_dot0, perturbed)[0] <= total + 1e-6

@@ -3,14 +3,12 @@
 import casadi as ca
 import numpy as np
 import pytest
+from helpers import random_states
 
 from fvin_mpc.control import export
 from fvin_mpc.core.checkpoint import save_checkpoint
 from fvin_mpc.core.networks import ModelConfig, init_weights
 from fvin_mpc.core.rigid_body import PENDULUM
-from helpers import random_states
-
-
 
 
 @pytest.fixture(params=[("sign-invariant", 1, False), ("fixed-inertia", 1, False), ("plain", 3, True)],
@@ -62,8 +60,11 @@ def test_derivatives_finite_at_zero_increment():
     x_sym, u_sym = ca.SX.sym("x", 7), ca.SX.sym("u", 1)
     x_next, residual = model.step(x_sym, u_sym)
     xu = ca.vertcat(x_sym, u_sym)
-    derivatives = ca.Function("step_derivatives", [x_sym, u_sym], [ca.jacobian(x_next, xu), ca.hessian(ca.sumsqr(x_next), xu)[0],
-                                                     ca.jacobian(residual, xu)])
+    derivatives = ca.Function(
+        "step_derivatives",
+        [x_sym, u_sym],
+        [ca.jacobian(x_next, xu), ca.hessian(ca.sumsqr(x_next), xu)[0], ca.jacobian(residual, xu)],
+    )
     for x in ([1.0, 0, 0, 0, 0, 0, 0], [0.0, 0, 1.0, 0, 0, 0, 0]):  # hanging and upright: ∇U·H = 0
         x_next_value, _ = model(np.array(x), np.zeros(1))
         np.testing.assert_allclose(x_next_value, x, atol=1e-15)

@@ -7,7 +7,6 @@ import dataclasses
 import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
-
 from strategies import quat_multiply
 
 from fvin_mpc.core import fvin, s3
@@ -162,16 +161,23 @@ def test_newton_jacobian_matches_finite_differences():
             minus = np.array(fvin.implicit_lhs(tuple(xi0 - d), inertia, NP), dtype=float)
             numeric[:, j] = (plus - minus) / (2 * eps)
         np.testing.assert_allclose(np.array(jac, dtype=float), numeric, atol=1e-8)
-        np.testing.assert_allclose(np.array(phi, dtype=float), np.array(fvin.implicit_lhs(tuple(xi0), inertia, NP), dtype=float))
+        np.testing.assert_allclose(
+            np.array(phi, dtype=float), np.array(fvin.implicit_lhs(tuple(xi0), inertia, NP), dtype=float)
+        )
     # ∂Φ/∂ξ(0) = −J (DESIGN.md)
-    np.testing.assert_allclose(np.array(fvin.implicit_lhs_jacobian((0.0, 0.0, 0.0), inertia, NP)[1], dtype=float), -inertia_matrix, atol=1e-15)
+    np.testing.assert_allclose(
+        np.array(fvin.implicit_lhs_jacobian((0.0, 0.0, 0.0), inertia, NP)[1], dtype=float), -inertia_matrix, atol=1e-15
+    )
 
 
 def test_newton_converges_quadratically_below_the_solvability_limit():
     q, omega = hinge_state(np.array([0.3]), np.array([8.0]))
     u = (np.array([1.5]),)
     reference = fvin.fvin_step(q, omega, u, TRUE, 0.05, 12, NP)
-    errors = [abs(float(fvin.fvin_step(q, omega, u, TRUE, 0.05, k, NP).omega[1][0] - reference.omega[1][0])) for k in (1, 2, 3)]
+    errors = [
+        abs(float(fvin.fvin_step(q, omega, u, TRUE, 0.05, k, NP).omega[1][0] - reference.omega[1][0]))
+        for k in (1, 2, 3)
+    ]
     assert errors[0] > 1e-2 and errors[1] < 1e-2 * errors[0] and errors[2] < 1e-6
     assert float(fvin.fvin_step(q, omega, u, TRUE, 0.05, 5, NP, with_residual=True).residual[0]) < 1e-12
 
@@ -202,7 +208,9 @@ def test_learned_potential_gradient_matches_finite_differences():
     terms = LearnedTerms(init_weights(config, seed=5), config, NP)
     q = np.array([0.3, -0.2, 0.8, 0.1])
     grad = np.array(terms.potential_gradient(tuple(q)), dtype=float)
-    numeric = np.array([(terms.potential(tuple(q + e)) - terms.potential(tuple(q - e))) / 2e-6 for e in 1e-6 * np.eye(4)], dtype=float)
+    numeric = np.array(
+        [(terms.potential(tuple(q + e)) - terms.potential(tuple(q - e))) / 2e-6 for e in 1e-6 * np.eye(4)], dtype=float
+    )
     np.testing.assert_allclose(grad, numeric.ravel(), atol=1e-9)
 
 

@@ -13,10 +13,10 @@ from fvin_mpc.control import export, implicit_dynamics
 from fvin_mpc.control.closed_loop import episode_metrics, run_episode
 from fvin_mpc.control.rti import local_state, retract, retract_state
 from fvin_mpc.control.scene import scene_env, scene_model, scene_mpc, scene_mpc_settings
-from fvin_mpc.core.space import PIVOTED
 from fvin_mpc.core.backend import get_ops
 from fvin_mpc.core.networks import LearnedTerms, ModelConfig, init_weights
 from fvin_mpc.core.rigid_body import PENDULUM_DAMPED
+from fvin_mpc.core.space import PIVOTED
 
 CA = get_ops("casadi")
 

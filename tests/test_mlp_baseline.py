@@ -1,4 +1,4 @@
-"""The unstructured baseline (fvin_mpc.learning.mlp_baseline): its CasADi export is its torch step,
+"""The unstructured baseline (benchmarks.mlp_baseline): its CasADi export is its torch step,
 it is sign-equivariant when asked (and only then), it trains through the package's loop, and the
 package's MPC runs on it."""
 
@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from fvin_mpc.learning.mlp_baseline import (
+from benchmarks.data_efficiency import export_mlp
+from benchmarks.mlp_baseline import (
     IncrementMLP,
     MLPConfig,
     init_mlp_weights,
@@ -17,7 +18,6 @@ from fvin_mpc.learning.mlp_baseline import (
     save_mlp,
     train_mlp,
 )
-from fvin_mpc.studies.data_efficiency import export_mlp
 
 
 def _lively_weights(config: MLPConfig, seed: int = 0) -> dict[str, np.ndarray]:

@@ -28,9 +28,8 @@ def controller(true_model):
 
 
 def test_swings_up_the_mujoco_pendulum_from_rest_and_holds(true_model):
-    from fvin_mpc.envs import RigidBodyEnv
-
     from fvin_mpc.control.closed_loop import episode_metrics, run_episode
+    from fvin_mpc.envs import RigidBodyEnv
 
     env = RigidBodyEnv("pendulum")
     mpc = MPC(true_model, MPCSettings(), env.goal, env.torque_low, env.torque_high)
@@ -194,8 +193,10 @@ def _stage_cost(settings, states, controls, goal):
         return float(q @ q - (goal @ q) ** 2)
 
     n = len(controls)
-    cost = sum(settings.orientation_weight * orientation(states[k, :4]) + settings.omega_weight * states[k, 4:] @ states[k, 4:]
-               for k in range(n))
+    cost = sum(
+        settings.orientation_weight * orientation(states[k, :4]) + settings.omega_weight * states[k, 4:] @ states[k, 4:]
+        for k in range(n)
+    )
     cost += settings.control_weight * float(np.sum(controls ** 2))
     return cost + settings.terminal_orientation_weight * orientation(states[n, :4]) \
         + settings.terminal_omega_weight * states[n, 4:] @ states[n, 4:]
@@ -221,7 +222,9 @@ def test_energy_cost_gauss_newton_and_exact_hessian_reach_the_same_plan(true_mod
     plans = {}
     for hessian in ("gauss-newton", "exact"):
         settings = replace(MPCSettings(), terminal_energy_weight=100.0, hessian=hessian, tol=1e-10, compile="none")
-        _, plans[hessian] = MPC(true_model, settings, UPRIGHT, [-2.0], [2.0], rest=HANGING)(np.r_[hinge(np.pi - 0.6, 1.0)])
+        _, plans[hessian] = MPC(true_model, settings, UPRIGHT, [-2.0], [2.0], rest=HANGING)(
+            np.r_[hinge(np.pi - 0.6, 1.0)]
+        )
     assert plans["gauss-newton"]["success"] and plans["exact"]["success"]
     np.testing.assert_allclose(plans["gauss-newton"]["controls"], plans["exact"]["controls"], atol=1e-5)
 
@@ -229,9 +232,8 @@ def test_energy_cost_gauss_newton_and_exact_hessian_reach_the_same_plan(true_mod
 def test_energy_cost_pumps_where_the_short_horizon_stalls(true_model):
     """0.35 rad from hanging, 0.27 rad/s (evaluation episode 33): the 1.5 s plan without the
     energy term keeps deferring the swing-up; with it the controller pumps and ends upright."""
-    from fvin_mpc.envs import RigidBodyEnv
-
     from fvin_mpc.control.closed_loop import episode_metrics, run_episode
+    from fvin_mpc.envs import RigidBodyEnv
 
     env = RigidBodyEnv(scene="pendulum")
     start = {"random": True, "max_omega": 2.0}  # with seed 33: the evaluation's episode 33

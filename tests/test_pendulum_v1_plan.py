@@ -3,13 +3,14 @@
 import numpy as np
 import pytest
 
+from benchmarks import pendulum_v1_exact as exact
+from benchmarks import pendulum_v1_mpc as v1
+from benchmarks import pendulum_v1_plan as plan
+from benchmarks import pendulum_v1_value as pv
+from benchmarks.pendulum_v1_report import build_parser, main
 from fvin_mpc.control import export
 from fvin_mpc.core.rigid_body import PENDULUM
 from fvin_mpc.envs.pendulum_v1 import state_from_v1_observation
-from fvin_mpc.pendulum_v1 import build_parser, main
-from fvin_mpc.studies import pendulum_v1 as v1
-from fvin_mpc.studies import pendulum_v1_plan as plan
-from fvin_mpc.studies import pendulum_v1_value as pv
 
 
 @pytest.fixture(scope="module")
@@ -70,7 +71,9 @@ def test_greedy_torque_is_the_argmin_over_the_models_steps(true_model):
         for torque in controller.torques:
             x_next = true_model(x, np.array([torque]))[0]
             next_theta, next_rate = plan.v1_angles(x_next)
-            totals.append(float(v1.v1_cost(theta, theta_dot, torque)) + float(pv.interpolate(table, next_theta, next_rate)[0]))
+            totals.append(
+                float(exact.v1_cost(theta, theta_dot, torque)) + float(pv.interpolate(table, next_theta, next_rate)[0])
+            )
         assert u == pytest.approx(controller.torques[int(np.argmin(totals))])
         np.testing.assert_allclose(next_state, true_model(x, np.array([u]))[0], atol=1e-12)
     with pytest.raises(ValueError):
@@ -116,7 +119,7 @@ def test_simulated_episode_cost_is_the_summed_v1_cost(true_model):
     expected, state = 0.0, x0
     for u in controls:
         theta, rate = plan.v1_angles(state)
-        expected += float(v1.v1_cost(theta[0], rate[0], u))
+        expected += float(exact.v1_cost(theta[0], rate[0], u))
         state = true_model(state, np.array([u]))[0]
         state[4:] = np.clip(state[4:], -8.0, 8.0)
     assert total == pytest.approx(expected, rel=1e-12)
@@ -134,7 +137,9 @@ def test_choice_runs_the_candidate_cheapest_on_the_model(true_model):
     chooser.reset()
     assert chooser.choice is None
     # A candidate that acts as another is not simulated; one distinct candidate needs no simulation.
-    twin = plan.SimulatedChoiceController(pushes, true_model, 30, same_as=lambda name, x: None if name == "none" else "none")
+    twin = plan.SimulatedChoiceController(
+        pushes, true_model, 30, same_as=lambda name, x: None if name == "none" else "none"
+    )
     before = {name: c.calls for name, c in pushes.items()}
     _, info = twin(x0)
     assert info["choice"] == "none" and info["simulated_costs"] == {}

@@ -7,8 +7,9 @@ import itertools
 import numpy as np
 import pytest
 
-from fvin_mpc.studies import pendulum_v1 as v1
-from fvin_mpc.studies import pendulum_v1_reference as ref
+from benchmarks import pendulum_v1_exact as exact
+from benchmarks import pendulum_v1_mpc as v1
+from benchmarks import pendulum_v1_reference as ref
 
 
 def brute_force(theta0: float, rate0: float, levels: np.ndarray, steps: int) -> tuple[float, np.ndarray]:
@@ -17,8 +18,8 @@ def brute_force(theta0: float, rate0: float, levels: np.ndarray, steps: int) -> 
     theta, rate = np.full(len(sequences), theta0), np.full(len(sequences), rate0)
     returns = np.zeros(len(sequences))
     for k in range(steps):
-        returns -= v1.v1_cost(theta, rate, sequences[:, k])
-        theta, rate = v1.v1_map(theta, rate, sequences[:, k])
+        returns -= exact.v1_cost(theta, rate, sequences[:, k])
+        theta, rate = exact.v1_map(theta, rate, sequences[:, k])
     best = int(np.argmax(returns))
     return float(returns[best]), sequences[best]
 
@@ -26,11 +27,11 @@ def brute_force(theta0: float, rate0: float, levels: np.ndarray, steps: int) -> 
 def test_vectorized_map_is_the_scalar_step():
     rng = np.random.default_rng(0)
     theta, rate, u = rng.uniform(-4, 4, 50), rng.uniform(-9, 9, 50), rng.uniform(-2, 2, 50)
-    new_theta, new_rate = v1.v1_map(theta, rate, u)
-    cost = v1.v1_cost(theta, rate, u)
+    new_theta, new_rate = exact.v1_map(theta, rate, u)
+    cost = exact.v1_cost(theta, rate, u)
     for i in range(50):
-        assert (new_theta[i], new_rate[i], -cost[i]) == pytest.approx(v1.v1_step(theta[i], rate[i], u[i]), abs=1e-14)
-    assert np.abs(new_rate).max() == v1.MAX_SPEED  # the clip is exercised
+        assert (new_theta[i], new_rate[i], -cost[i]) == pytest.approx(exact.v1_step(theta[i], rate[i], u[i]), abs=1e-14)
+    assert np.abs(new_rate).max() == exact.MAX_SPEED  # the clip is exercised
 
 
 def test_two_step_values_are_the_continuous_torque_minimum_within_the_interpolation_bound():
@@ -42,20 +43,21 @@ def test_two_step_values_are_the_continuous_torque_minimum_within_the_interpolat
     theta = -np.pi + 2 * np.pi * np.arange(n_theta) / n_theta
     rate = np.linspace(-8, 8, n_rate)
     grid_theta, grid_rate = np.meshgrid(theta, rate, indexing="ij")
-    np.testing.assert_allclose(tables.values[1], v1.v1_cost(grid_theta, grid_rate, 0.0), rtol=1e-6)
+    np.testing.assert_allclose(tables.values[1], exact.v1_cost(grid_theta, grid_rate, 0.0), rtol=1e-6)
     torques = np.linspace(-2, 2, 4001)
-    next_theta, next_rate = v1.v1_map(grid_theta[..., None], grid_rate[..., None], torques)
-    exact = v1.v1_cost(grid_theta, grid_rate, 0.0) + (
-        0.001 * torques**2 + v1.v1_cost(next_theta, next_rate, 0.0)).min(axis=-1)
+    next_theta, next_rate = exact.v1_map(grid_theta[..., None], grid_rate[..., None], torques)
+    two_step = exact.v1_cost(grid_theta, grid_rate, 0.0) + (
+        0.001 * torques**2 + exact.v1_cost(next_theta, next_rate, 0.0)).min(axis=-1)
     d_theta, d_rate = 2 * np.pi / n_theta, 16 / (n_rate - 1)
-    breakpoint_term = 0.001 * (d_rate / v1.RATE_GAIN_TORQUE / 2) ** 2
+    breakpoint_term = 0.001 * (d_rate / exact.RATE_GAIN_TORQUE / 2) ** 2
     bound = (2 * d_theta**2 + 0.2 * d_rate**2) / 8 + breakpoint_term + 1e-4  # + float32 storage
     # c has a kink at θ = ±π (angle_normalize wraps): away from it the bound holds.
     smooth = np.abs(np.abs(next_theta.mean(axis=-1)) - np.pi) > 3 * d_theta
-    error = tables.values[2] - exact
+    error = tables.values[2] - two_step
     assert np.abs(error[smooth]).max() <= bound
     assert smooth.mean() > 0.8
-    # The interpolant of a convex c over-estimates it: the DP's value is never below the exact minimum by more than rounding.
+    # The interpolant of a convex c over-estimates it: the DP's value is never below the exact minimum by more
+    # than rounding.
     assert error[smooth].min() > -1e-4
 
 
@@ -81,8 +83,8 @@ def test_polish_keeps_the_clip_and_refines_a_bang_bang_guess_in_place():
     steps = 60
     theta0, rate0 = np.pi - 0.3, 6.0  # near hanging, fast: full torque along θ̇ reaches the clip
     guess = np.full(steps, 2.0)
-    guess_return, states = v1.replay(theta0, rate0, guess)
-    assert np.abs(states[:, 1]).max() == v1.MAX_SPEED
+    guess_return, states = exact.replay(theta0, rate0, guess)
+    assert np.abs(states[:, 1]).max() == exact.MAX_SPEED
     results = ref.polish(theta0, rate0, {"guess": guess}, ref.polishers(steps))
     assert results["guess"]["guess"] == pytest.approx(guess_return)
     assert results["guess"]["polished"] >= guess_return - 1e-9

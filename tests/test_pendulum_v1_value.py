@@ -6,14 +6,15 @@ from itertools import product
 import casadi as ca
 import numpy as np
 import pytest
+from helpers import hinge
 
+from benchmarks import pendulum_v1_exact as exact
+from benchmarks import pendulum_v1_mpc as v1
+from benchmarks import pendulum_v1_value as pv
 from fvin_mpc.control import export
 from fvin_mpc.control.mpc import MPC, MPCSettings
 from fvin_mpc.core.rigid_body import PENDULUM
 from fvin_mpc.envs.pendulum_v1 import state_from_v1_observation
-from fvin_mpc.studies import pendulum_v1 as v1
-from fvin_mpc.studies import pendulum_v1_value as pv
-from helpers import hinge
 
 UPRIGHT = np.array([0.0, 0.0, 1.0, 0.0])
 
@@ -43,7 +44,7 @@ def test_value_iteration_equals_brute_force_on_a_lattice():
         for sequence in product(range(len(torques)), repeat=steps):
             i, j, total = i0, j0, 0.0
             for k in sequence:
-                total += float(v1.v1_cost(thetas[i], rates[j], torques[k]))
+                total += float(exact.v1_cost(thetas[i], rates[j], torques[k]))
                 j_next = int(next_j[i, j, k])
                 i, j = (i + j_next - 2) % n_theta, j_next
             best = min(best, total)
@@ -71,19 +72,6 @@ def test_interpolation_is_periodic_in_theta_and_exact_at_grid_points():
     np.testing.assert_allclose(pv.interpolate(table, theta + 2 * np.pi, rate), pv.interpolate(table, theta, rate))
 
 
-def test_terminal_cost_is_the_table_sign_invariant_and_continuous_at_hanging():
-    thetas, rates = pv.grid_axes(64, 33)
-    table = (1 - np.cos(thetas))[:, None] * (1 + 0.05 * rates[None, :]) + 0.1 * rates[None, :] ** 2
-    cost = pv.terminal_cost_function(table)
-    for i, j in [(32, 16), (10, 3), (50, 30), (0, 16)]:
-        x = state_from_v1_observation([np.cos(thetas[i]), np.sin(thetas[i]), rates[j]])
-        assert float(cost(x)) == pytest.approx(table[i, j], abs=1e-9)
-        assert float(cost(np.r_[-x[:4], x[4:]])) == pytest.approx(float(cost(x)), abs=1e-12)
-    # Across the branch cut of atan2 (hanging, θ = ±π) the spline is continuous.
-    near = [float(cost(state_from_v1_observation([np.cos(t), np.sin(t), 1.0]))) for t in (np.pi - 1e-6, -np.pi + 1e-6)]
-    assert near[0] == pytest.approx(near[1], abs=1e-4)
-
-
 def test_learned_transitions_are_the_models_steps(true_model):
     thetas, rates, torques = np.array([0.0, 1.0, -2.5]), np.array([-3.0, 0.5]), np.array([-2.0, 1.0])
     next_theta, next_rate = pv.learned_transitions(true_model, thetas, rates, torques, chunk=5)
@@ -107,7 +95,9 @@ def test_terminal_cost_hook_reproduces_the_terminal_speed_weight(true_model):
     x = ca.MX.sym("x", 7)
     speed = ca.Function("speed", [x], [3.0 * ca.sumsqr(x[4:])])
     with_weight = MPC(true_model, replace(settings, terminal_omega_weight=3.0), UPRIGHT, [-2.0], [2.0])
-    with_hook = MPC(true_model, replace(settings, terminal_omega_weight=0.0), UPRIGHT, [-2.0], [2.0], terminal_cost=speed)
+    with_hook = MPC(
+        true_model, replace(settings, terminal_omega_weight=0.0), UPRIGHT, [-2.0], [2.0], terminal_cost=speed
+    )
     without = MPC(true_model, replace(settings, terminal_omega_weight=0.0), UPRIGHT, [-2.0], [2.0])
     assert without.terminal_cost is None
     for theta, theta_dot in [(np.pi - 0.3, 0.5), (np.pi + 0.2, -1.0)]:  # near upright: the terminal ω matters
@@ -123,7 +113,9 @@ def test_terminal_cost_hook_reproduces_the_terminal_speed_weight(true_model):
     with pytest.raises(ValueError):
         MPC(true_model, settings, UPRIGHT, [-2.0], [2.0], terminal_cost=ca.Function("bad", [x], [x]))
     with pytest.raises(ValueError):
-        MPC(true_model, replace(settings, solver="fatrop", hessian="exact"), UPRIGHT, [-2.0], [2.0], terminal_cost=speed)
+        MPC(
+            true_model, replace(settings, solver="fatrop", hessian="exact"), UPRIGHT, [-2.0], [2.0], terminal_cost=speed
+        )
 
 
 def test_cold_start_score_ranks_the_cold_plans(true_model):
@@ -155,7 +147,9 @@ def test_plan_score_is_the_stage_costs_plus_the_value():
     rate = np.array([1.0, 2.0, 3.0])
     states = state_from_v1_observation(np.stack([np.cos(theta), np.sin(theta), rate], axis=1))
     controls = np.array([[0.5], [-1.0]])
-    expected = float(np.sum(v1.v1_cost(theta[:2], rate[:2], controls[:, 0]))) + pv.interpolate(table, theta[2], rate[2])
+    expected = float(np.sum(exact.v1_cost(theta[:2], rate[:2], controls[:, 0]))) + pv.interpolate(
+        table, theta[2], rate[2]
+    )
     assert pv.plan_score(table)(states, controls) == pytest.approx(expected, rel=1e-12)
     assert pv.plan_score(table, "mpc")(states, controls) < pv.plan_score(table)(states, controls)  # 4 sin²(θ/2) < θ²
 
@@ -164,8 +158,8 @@ def test_reused_reference_is_the_search_or_the_polished_mpc_episode():
     """reuse_references: reference = max(the earlier search without its MPC, this MPC's polished episode); a
     different grid or a missing seed is refused; the MPC never beats the reference."""
     theta0, theta_dot0 = 0.8, -0.3
-    controls = np.zeros(v1.EPISODE_STEPS)
-    guess_return, states = v1.replay(theta0, theta_dot0, controls)
+    controls = np.zeros(exact.EPISODE_STEPS)
+    guess_return, states = exact.replay(theta0, theta_dot0, controls)
     record = {"seed": 7, "theta0": theta0, "theta_dot0": theta_dot0, "return": guess_return,
               "controls": controls.tolist(), "states": states.tolist()}
     families = {"greedy": -200.0, "noisy-a": -150.0, "noisy-b": -150.0, "heuristic": -300.0, "mpc": -400.0}

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from fvin_mpc.control.export import from_closed_form
+from fvin_mpc.control.flight import quadrotor_mpc_settings
 from fvin_mpc.control.mpc import MPC, MPCSettings, _Plan
 from fvin_mpc.control.problem import ConstantReference, control_bounds
-from fvin_mpc.control.quadrotor import quadrotor_mpc_settings
 from fvin_mpc.control.rti import RealTimeMPC
 from fvin_mpc.control.scene import scene_env, scene_model, scene_mpc, scene_mpc_settings
 from fvin_mpc.core.quadrotor import QUADROTOR

@@ -169,6 +169,8 @@ def test_collected_flights_are_seeded_stay_in_range_and_round_trip(tmp_path):
     for k in range(12):
         np.testing.assert_allclose(env.step(data.u[0, k])[0], data.state[0, k + 1], rtol=0, atol=1e-12)
     out = tmp_path / "q.npz"
-    assert collect.main(["--scene", "quadrotor", "--trajectories", "3", "--steps", "5", "--out", str(out), "--quiet"]) == 0
+    assert (
+        collect.main(["--scene", "quadrotor", "--trajectories", "3", "--steps", "5", "--out", str(out), "--quiet"]) == 0
+    )
     loaded = load_data(out)
     assert loaded.state.shape == (3, 6, 13) and loaded.metadata["configuration_space"] == "R3xS3"

@@ -36,7 +36,9 @@ def lively_weights(config: R3S3Config, seed: int) -> dict[str, np.ndarray]:
 
 def random_state(rng: np.random.Generator) -> np.ndarray:
     q = rng.normal(size=4)
-    return np.concatenate([rng.normal(size=3), q / np.linalg.norm(q), rng.normal(size=3), rng.normal(scale=4.0, size=3)])
+    return np.concatenate(
+        [rng.normal(size=3), q / np.linalg.norm(q), rng.normal(size=3), rng.normal(scale=4.0, size=3)]
+    )
 
 
 CONFIGS = [R3S3Config(variant=v, hidden_width=6, step_size=H, newton_iters=3) for v in

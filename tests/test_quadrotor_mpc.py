@@ -1,5 +1,5 @@
 """The real-time MPC on the free body (``fvin_mpc.control.rti`` with ``(x, q, v, ω)`` states,
-``fvin_mpc.control.quadrotor``): the R³ × S³ chart, recovery to hover on the closed-form model with
+``fvin_mpc.control.flight``): the R³ × S³ chart, recovery to hover on the closed-form model with
 MuJoCo as the plant, the flip from exactly upside down, the safe fallback, the offset-free estimate
 against a known mass error (oracle) and the figure-eight reference against its own derivatives.
 Behaviour only: no timings are asserted."""
@@ -11,12 +11,10 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from fvin_mpc.control import export
+from fvin_mpc.control import export, flight
 from fvin_mpc.control.closed_loop import run_episode
-from fvin_mpc.control.quadrotor import (FigureEight, flight_metrics, hover_reference, quadrotor_model, quadrotor_mpc,
-                                        quadrotor_mpc_settings, recovery_starts)
-from fvin_mpc.core.space import FREE_BODY, PIVOTED, R3S3, S3
 from fvin_mpc.core.quadrotor import from_mujoco
+from fvin_mpc.core.space import FREE_BODY, PIVOTED, R3S3, S3
 from fvin_mpc.envs.quadrotor_env import QuadrotorEnv
 
 #: The task's settings (its compiled library is shared with the commands through the on-disk cache).
@@ -27,14 +25,17 @@ DETERMINISTIC = {"rti_cold_budget_s": 60.0}
 @pytest.fixture(scope="module")
 def craft():
     env = QuadrotorEnv()
-    return env, quadrotor_model(env, true_model=True)
+    return env, flight.quadrotor_model(env, true_model=True)
 
 
 def tilted(env, angle=1.0, offset=(0.3, -0.2, 0.1), omega=(2.0, -1.0, 0.5)):
     """Reset options: tilted by ``angle`` about an oblique axis, off the hover point, turning."""
     axis = np.array([1.0, 1.0, 0.0]) / np.sqrt(2.0)
     q = np.concatenate([[np.cos(angle / 2)], np.sin(angle / 2) * axis])
-    return {"qpos": np.concatenate([env.hover_point + np.asarray(offset), q]), "qvel": np.concatenate([np.zeros(3), omega])}
+    return {
+        "qpos": np.concatenate([env.hover_point + np.asarray(offset), q]),
+        "qvel": np.concatenate([np.zeros(3), omega]),
+    }
 
 
 def test_layouts():
@@ -46,9 +47,9 @@ def test_layouts():
 def test_recovers_to_hover_from_a_tilted_start(craft):
     """Closed-form model, MuJoCo plant, fixed 10 ms latency: tilted 1 rad, 0.4 m off, turning."""
     env, model = craft
-    controller = quadrotor_mpc(env, model, quadrotor_mpc_settings(**DETERMINISTIC))
+    controller = flight.quadrotor_mpc(env, model, flight.quadrotor_mpc_settings(**DETERMINISTIC))
     episode, _ = run_episode(env, controller, 3.0, tilted(env), latency=0.01)
-    metrics = flight_metrics(episode, hover_reference(env))
+    metrics = flight.flight_metrics(episode, flight.hover_reference(env))
     assert metrics["recovered"], metrics
     assert metrics["final_position_m"] < 0.01 and metrics["final_angle_rad"] < 0.01
     assert metrics["controller_failures"] == 0 and metrics["deadline_misses"] == 0
@@ -58,20 +59,20 @@ def test_flips_from_exactly_upside_down_at_rest(craft):
     """Upside down at rest is a stationary point of the projector residual's Gauss–Newton model; the
     rotation-vector residual turns the craft over (differential thrust on the first call) and recovers."""
     env, model = craft
-    options, seed = recovery_starts(env.hover_point, count=1)[0]
+    options, seed = flight.recovery_starts(env.hover_point, count=1)[0]
     np.testing.assert_allclose(options["qpos"][3:], [0.0, 1.0, 0.0, 0.0])
-    controller = quadrotor_mpc(env, model, quadrotor_mpc_settings(**DETERMINISTIC))
+    controller = flight.quadrotor_mpc(env, model, flight.quadrotor_mpc_settings(**DETERMINISTIC))
     x0, _ = env.reset(seed=seed, options=options)
     u, info = controller(x0)
     assert info["success"]
     assert np.ptp(u) > 0.1  # a torque, not a symmetric thrust
     episode, _ = run_episode(env, controller, 4.0, options, seed=seed, latency=0.01)
-    assert flight_metrics(episode, hover_reference(env))["recovered"]
+    assert flight.flight_metrics(episode, flight.hover_reference(env))["recovered"]
 
 
 def test_failed_qp_delivers_the_shifted_previous_plan_clipped(craft):
     env, model = craft
-    controller = quadrotor_mpc(env, model, quadrotor_mpc_settings(**DETERMINISTIC))
+    controller = flight.quadrotor_mpc(env, model, flight.quadrotor_mpc_settings(**DETERMINISTIC))
     x0, _ = env.reset(options=tilted(env))
     controller(x0)
     previous = controller._plan.controls.copy()
@@ -92,29 +93,37 @@ def test_disturbance_estimate_absorbs_a_mass_error(craft):
     heavy = replace(true, mass=1.1 * true.mass)
     model = export.from_quadrotor(heavy, env.dt, 2, name="heavy_quadrotor")
     start = tilted(env, angle=0.3, offset=(0.1, 0.0, 0.0), omega=(0.0, 0.0, 0.0))
-    controller = quadrotor_mpc(env, model, quadrotor_mpc_settings(**DETERMINISTIC))
+    controller = flight.quadrotor_mpc(env, model, flight.quadrotor_mpc_settings(**DETERMINISTIC))
     episode, _ = run_episode(env, controller, 4.0, start, latency=0.01)
     expected = (heavy.mass - true.mass) * true.gravity / 4
     np.testing.assert_allclose(episode.controller_info[-1]["disturbance"], expected, rtol=0.02, atol=1e-3)
-    offset_free = flight_metrics(episode, hover_reference(env))["final_position_m"]
-    plain, _ = run_episode(env, quadrotor_mpc(env, model, quadrotor_mpc_settings(**DETERMINISTIC, disturbance_gain=0.0)), 4.0,
-                           start, latency=0.01)
-    assert offset_free < 2e-3 < flight_metrics(plain, hover_reference(env))["final_position_m"]
+    offset_free = flight.flight_metrics(episode, flight.hover_reference(env))["final_position_m"]
+    plain, _ = run_episode(
+        env,
+        flight.quadrotor_mpc(env, model, flight.quadrotor_mpc_settings(**DETERMINISTIC, disturbance_gain=0.0)),
+        4.0,
+        start,
+        latency=0.01,
+    )
+    assert offset_free < 2e-3 < flight.flight_metrics(plain, flight.hover_reference(env))["final_position_m"]
 
 
 def test_figure_eight_reference_is_consistent():
     """Velocity and acceleration are the position's derivatives; the reference attitude points the
     body z axis along ``p̈ + g e_z`` with no yaw, the control scale is its length over ``g``; ``ω`` is the
     attitude's body rate (``q̇ = ½ q ⊗ (0, ω)``)."""
-    reference = FigureEight(center=(0.0, 0.0, 1.0), amplitude=0.5, period=3.0, ramp_s=1.0)
+    reference = flight.FigureEight(center=(0.0, 0.0, 1.0), amplitude=0.5, period=3.0, ramp_s=1.0)
     t = np.linspace(0.0, 6.0, 241)
     dt = 1e-5
     position, velocity, acceleration = reference.trajectory(t)
     later = t[1:]  # central differences need t − dt inside the path (it starts at t = 0)
     np.testing.assert_allclose(velocity[1:], (reference.trajectory(later + dt)[0] - reference.trajectory(later - dt)[0])
                                / (2 * dt), atol=1e-6)
-    np.testing.assert_allclose(acceleration[1:], (reference.trajectory(later + dt)[1] - reference.trajectory(later - dt)[1])
-                               / (2 * dt), atol=1e-5)
+    np.testing.assert_allclose(
+        acceleration[1:],
+        (reference.trajectory(later + dt)[1] - reference.trajectory(later - dt)[1]) / (2 * dt),
+        atol=1e-5,
+    )
     states, scale = reference(t)
     np.testing.assert_allclose(states[:, :3], position)
     np.testing.assert_allclose(states[:, 7:10], velocity)
@@ -144,7 +153,7 @@ def test_a_skipped_observation_does_not_feed_the_disturbance_estimate(craft):
     """After a deadline miss the next measurement is two periods after the last prediction: comparing
     them would read the missed period as a disturbance. ``set_time`` with a jump drops the prediction."""
     env, model = craft
-    controller = quadrotor_mpc(env, model, quadrotor_mpc_settings(**DETERMINISTIC))
+    controller = flight.quadrotor_mpc(env, model, flight.quadrotor_mpc_settings(**DETERMINISTIC))
     x0, _ = env.reset(options={"hover": True})
     u, _ = controller(x0)
     controller.prepare()

@@ -10,13 +10,13 @@ The reference dynamics are written here from the physics (``strategies.rotation_
 import casadi as ca
 import numpy as np
 import pytest
+import strategies as S
 import torch
+from helpers import random_unit_quaternions
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.integrate import solve_ivp
 
-import strategies as S
-from helpers import random_unit_quaternions
 from fvin_mpc.core import fvin_r3s3
 from fvin_mpc.core.backend import get_ops
 from fvin_mpc.core.quadrotor import QUADROTOR, Quadrotor
@@ -166,7 +166,9 @@ def test_eq_3_6_hold_rule_is_first_order_in_translation_when_the_thrust_turns():
     errs, slopes = orders(QUADROTOR, START, THRUST, force_rule="hold")
     assert np.all((slopes[:, [0, 2]] > 0.75) & (slopes[:, [0, 2]] < 1.25)), (errs, slopes)
     assert np.all((slopes[:, [1, 3]] > 1.85) & (slopes[:, [1, 3]] < 2.15)), (errs, slopes)
-    trapezoid = np.array([errors(rollout(QUADROTOR, START, THRUST, 1 / 400, 400)[0], reference(QUADROTOR, START, THRUST, 1.0))])
+    trapezoid = np.array(
+        [errors(rollout(QUADROTOR, START, THRUST, 1 / 400, 400)[0], reference(QUADROTOR, START, THRUST, 1.0))]
+    )
     assert trapezoid[0, 2] < errs[-1, 2] / 4
 
 

@@ -4,9 +4,9 @@ import mujoco
 import numpy as np
 import pytest
 
+from fvin_mpc.core.rigid_body import PENDULUM, PENDULUM_DAMPED, from_mujoco
 from fvin_mpc.envs import RigidBodyEnv
 from fvin_mpc.envs.scenes import SCENE_DIR
-from fvin_mpc.core.rigid_body import PENDULUM, PENDULUM_DAMPED, from_mujoco
 
 
 @pytest.mark.parametrize("scene, expected", [("pendulum", PENDULUM), ("pendulum_damped", PENDULUM_DAMPED)])

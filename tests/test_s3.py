@@ -44,7 +44,9 @@ def test_rotation_matrix_is_orthonormal_sign_invariant_and_a_homomorphism():
     q = components(random_unit_quaternions(30, 4))
     R = lambda a: np.moveaxis(np.array(s3.rotation_matrix(a)), -1, 0)  # noqa: E731
     np.testing.assert_allclose(R(q), R(s3.negate(q)), atol=0)
-    np.testing.assert_allclose(np.einsum("nji,njk->nik", R(q), R(q)), np.broadcast_to(np.eye(3), (30, 3, 3)), atol=1e-14)
+    np.testing.assert_allclose(
+        np.einsum("nji,njk->nik", R(q), R(q)), np.broadcast_to(np.eye(3), (30, 3, 3)), atol=1e-14
+    )
     np.testing.assert_allclose(np.linalg.det(R(q)), 1.0, atol=1e-14)
     np.testing.assert_allclose(R(s3.multiply(p, q)), R(p) @ R(q), atol=1e-14)
     # R(q) x = Im(q ⊗ (0,x) ⊗ q*)
@@ -95,7 +97,9 @@ def test_sign_invariant_distance_and_geodesic_angle():
     np.testing.assert_allclose(angle, s3.geodesic_angle(s3.negate(q), p, NP))
     R = lambda a: np.moveaxis(np.array(s3.rotation_matrix(a)), -1, 0)  # noqa: E731
     relative = np.einsum("nji,njk->nik", R(q), R(p))
-    np.testing.assert_allclose(angle, np.arccos(np.clip((np.trace(relative, axis1=1, axis2=2) - 1) / 2, -1, 1)), atol=1e-7)
+    np.testing.assert_allclose(
+        angle, np.arccos(np.clip((np.trace(relative, axis1=1, axis2=2) - 1) / 2, -1, 1)), atol=1e-7
+    )
 
 
 def test_solve3_inverts_random_matrices():
@@ -103,7 +107,9 @@ def test_solve3_inverts_random_matrices():
     m = rng.normal(size=(25, 3, 3)) + 3 * np.eye(3)
     r = rng.normal(size=(25, 3))
     mat = tuple(tuple(m[:, i, j] for j in range(3)) for i in range(3))
-    np.testing.assert_allclose(np.stack(s3.solve3(mat, components(r)), -1), np.linalg.solve(m, r[..., None])[..., 0], atol=1e-13)
+    np.testing.assert_allclose(
+        np.stack(s3.solve3(mat, components(r)), -1), np.linalg.solve(m, r[..., None])[..., 0], atol=1e-13
+    )
 
 
 def test_torch_gradients_finite_at_zero_rotation():
@@ -139,10 +145,9 @@ def test_casadi_derivatives_finite_at_zero_rotation():
 import functools  # noqa: E402
 import math  # noqa: E402
 
+import strategies as S  # noqa: E402
 from hypothesis import given, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
-
-import strategies as S  # noqa: E402
 
 BACKENDS = ["numpy", "torch", "casadi-sx", "casadi-dm"]
 

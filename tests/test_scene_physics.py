@@ -14,15 +14,15 @@ from pathlib import Path
 import mujoco
 import numpy as np
 import pytest
+from helpers import synthetic_hinge_data
 from scipy.integrate import solve_ivp
 
-from fvin_mpc.envs import SCENES, RigidBodyEnv, ScenePhysics
-from fvin_mpc.envs.scenes import ALWAYS_DISABLED, build_model, infer_physics
 from fvin_mpc.core.backend import get_ops
 from fvin_mpc.core.data import Trajectories
 from fvin_mpc.core.networks import ModelConfig
 from fvin_mpc.core.rigid_body import PENDULUM_DAMPED, from_mujoco
-from helpers import synthetic_hinge_data
+from fvin_mpc.envs import SCENES, RigidBodyEnv, ScenePhysics
+from fvin_mpc.envs.scenes import ALWAYS_DISABLED, build_model, infer_physics
 
 NP = get_ops("numpy")
 DSBL = mujoco.mjtDisableBit
@@ -281,8 +281,8 @@ def test_training_with_dissipation_recovers_the_damping():
     along the hinge, after fixing the scale λ on g, is the true 2·0.1 (factor of two: DESIGN.md)."""
     pytest.importorskip("torch")
     from fvin_mpc.core.checkpoint import Checkpoint
-    from fvin_mpc.studies.quality import compare_components
     from fvin_mpc.learning.training import TrainSettings, train
+    from fvin_mpc.studies.model_quality import compare_components
 
     data = synthetic_damped_data(trajectories=24, steps=10, seed=0)
     settings = TrainSettings(iterations=80, window=2, learning_rate=3e-2, seed=3, eval_every=80)
@@ -296,7 +296,9 @@ def test_training_with_dissipation_recovers_the_damping():
     angles = np.linspace(-np.pi, np.pi, 64, endpoint=False)
     axis = np.array([0.0, 1.0, 0.0])
     hinge_quaternions = np.stack([np.cos(angles / 2), 0 * angles, np.sin(angles / 2), 0 * angles], -1)
-    components = compare_components(trained, PENDULUM_DAMPED, hinge_quaternions, axis, rest=np.array([1.0, 0.0, 0.0, 0.0]))
+    components = compare_components(
+        trained, PENDULUM_DAMPED, hinge_quaternions, axis, rest=np.array([1.0, 0.0, 0.0, 0.0])
+    )
     assert components["lambda"] > 0.0
     assert components["dissipation_axis_true"] == pytest.approx(2.0 * PENDULUM_DAMPED.damping)
     # Initial D is 0.01·I; measured after training (seeds 0/3, 1/4, 2/5 of data/training):

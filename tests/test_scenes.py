@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import assert_same_rotation, hinge_quaternion
 
 from fvin_mpc.control.mpc import COLD_STARTS, MPCSettings
 from fvin_mpc.control.scene import (
@@ -22,7 +23,6 @@ from fvin_mpc.control.scene import (
 from fvin_mpc.core.space import S3
 from fvin_mpc.envs import SCENES, RigidBodyEnv
 from fvin_mpc.envs.scenes import SCENE_DIR, resolve_scene
-from helpers import assert_same_rotation, hinge_quaternion
 
 WEAK_PENDULUM = Path(__file__).resolve().parent / "data" / "weak_pendulum.xml"
 
@@ -105,7 +105,9 @@ def test_the_reference_scales_give_the_tuned_numbers():
     assert derived == replace(MPCSettings(), terminal_energy_weight=DEFAULT_TERMINAL_ENERGY_WEIGHT,
                               cold_starts=COLD_STARTS)
     scales = scene_scales(RigidBodyEnv("pendulum"))
-    assert (scales.energy_span, scales.speed**2, scales.torque, scales.step_size) == pytest.approx((10.0, 60.0, 2.0, 0.05))
+    assert (scales.energy_span, scales.speed**2, scales.torque, scales.step_size) == pytest.approx(
+        (10.0, 60.0, 2.0, 0.05)
+    )
     assert scene_mpc_settings(RigidBodyEnv("pendulum")) == derived
 
 
@@ -168,8 +170,8 @@ def test_evaluate_accepts_an_explicit_checkpoint_whose_name_has_dots(tmp_path):
 
 def test_a_corrupted_checkpoint_is_not_reported_missing(tmp_path):
     """Regression: the studies' checkpoint_or_none turned a corrupted file into 'not found'."""
+    from benchmarks.common import checkpoint_or_none
     from fvin_mpc.core.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
-    from fvin_mpc.studies.bench.common import checkpoint_or_none
 
     shipped = load_checkpoint("pendulum_sign-invariant")
     stem = save_checkpoint(tmp_path / "model", shipped.config, shipped.weights)
@@ -181,13 +183,22 @@ def test_a_corrupted_checkpoint_is_not_reported_missing(tmp_path):
         checkpoint_or_none(str(stem))
 
 
-def test_quality_refuses_a_ball_joint_checkpoint_instead_of_comparing_it_with_a_planar_rod(capsys):
-    """Regression: the planar report compared every checkpoint with the rod about y."""
+def test_quality_gives_a_ball_joint_checkpoint_the_3d_report_not_the_planar_one(monkeypatch, tmp_path, capsys):
+    """Regression: the planar report compared every checkpoint with the rod about y. ``quality`` (which
+    absorbed the former ``inertia`` command) sends ball-joint checkpoints to the 3-D report."""
     from fvin_mpc import quality
 
-    with pytest.raises(SystemExit) as exit_info:
-        quality.main(["--checkpoint", "spherical_pendulum_sign-invariant"])
-    assert exit_info.value.code == 2 and "fvin_mpc.inertia" in capsys.readouterr().err
+    calls = []
+    monkeypatch.setattr(quality, "load_data", lambda path: calls.append(("data", str(path))) or "held-out")
+    monkeypatch.setattr(quality, "report", lambda name, data, horizon, samples, energy_steps, seed:
+                        calls.append(("report", name, data, horizon, energy_steps)) or {"rollout": {}})
+    monkeypatch.setattr(quality, "hinge_report", lambda *args: pytest.fail("the planar report ran"))
+    assert quality.main(["--checkpoint", "spherical_pendulum_sign-invariant", "--json", str(tmp_path / "q.json")]) == 0
+    assert calls == [("data", "data/spherical_pendulum_heldout.npz"),
+                     ("report", "spherical_pendulum_sign-invariant", "held-out", 20, 400)]
+    with pytest.raises(SystemExit) as exit_info:  # the planar report takes one checkpoint
+        quality.main(["--checkpoint", "pendulum_sign-invariant", "pendulum_fixed-inertia"])
+    assert exit_info.value.code == 2 and "one --checkpoint" in capsys.readouterr().err
 
 
 def test_envs_installs_inside_the_package_not_as_a_top_level_envs(tmp_path):

@@ -6,9 +6,8 @@ and torch ↔ NumPy parity."""
 
 import numpy as np
 import pytest
-from scipy.integrate import solve_ivp
-
 from helpers import random_states
+from scipy.integrate import solve_ivp
 
 from fvin_mpc.core import fvin, fvin_so3, s3, so3
 from fvin_mpc.core.backend import get_ops
@@ -144,7 +143,9 @@ def test_newton_jacobian_matches_finite_differences_and_is_finite_at_zero():
         np.testing.assert_allclose(np.array(jacobian, dtype=float), numeric, atol=1e-8)
         np.testing.assert_allclose(np.array(gamma, dtype=float),
                                    np.array(fvin_so3.implicit_lhs(tuple(f0), inertia, NP), dtype=float))
-    np.testing.assert_allclose(np.array(fvin_so3.implicit_lhs_jacobian((0.0, 0.0, 0.0), inertia, NP)[1]), _A, atol=1e-15)
+    np.testing.assert_allclose(
+        np.array(fvin_so3.implicit_lhs_jacobian((0.0, 0.0, 0.0), inertia, NP)[1]), _A, atol=1e-15
+    )
 
 
 def test_exp_is_rodrigues_and_quaternion_preimage_maps_back():
@@ -169,7 +170,9 @@ def test_torch_gradients_are_finite_at_zero_rotation_and_at_half_turns():
     f = torch.zeros(3, dtype=torch.float64, requires_grad=True)
     inertia = tuple(map(tuple, _A))
     gamma, jacobian = fvin_so3.implicit_lhs_jacobian(tuple(f.unbind()), inertia, ops)
-    (sum(gamma) + sum(sum(row) for row in jacobian) + sum(sum(row) for row in so3.exp(tuple(f.unbind()), ops))).backward()
+    (
+        sum(gamma) + sum(sum(row) for row in jacobian) + sum(sum(row) for row in so3.exp(tuple(f.unbind()), ops))
+    ).backward()
     assert torch.isfinite(f.grad).all()
     q = torch.tensor([[1.0, 0, 0, 0], [0, 1.0, 0, 0], [0, 0, 0, 1.0], [0.5, 0.5, 0.5, 0.5]], dtype=torch.float64,
                      requires_grad=True)

@@ -62,7 +62,9 @@ def violations(path: Path, root: Path = ROOT) -> list[str]:
             strings = {o.value for o in operands if isinstance(o, ast.Constant) and isinstance(o.value, str)}
             for container in operands:  # x in ("S3", "SO3")
                 if isinstance(container, (ast.Tuple, ast.List, ast.Set)):
-                    strings |= {e.value for e in container.elts if isinstance(e, ast.Constant) and isinstance(e.value, str)}
+                    strings |= {
+                        e.value for e in container.elts if isinstance(e, ast.Constant) and isinstance(e.value, str)
+                    }
             if strings & SPACE_NAMES:
                 found.append(f"{where}: compares with a space's name {sorted(strings & SPACE_NAMES)}")
             if any(_name(o) in ("configuration_space", "CONFIGURATION_SPACE") for o in operands):

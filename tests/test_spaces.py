@@ -83,7 +83,9 @@ class SO3Body:
 
 
 # ----------------------------------------------------------------------------- ODE oracles (independent of the package)
-def _rotation_rhs(body: PivotedRigidBody, q: np.ndarray, omega: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _rotation_rhs(
+    body: PivotedRigidBody, q: np.ndarray, omega: np.ndarray, u: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """``q̇ = ½ q ⊗ (0, ω)``, ``J ω̇ = Jω × ω + τ_gravity + B u − d ω``."""
     inertia = np.array(body.inertia)
     torque = np.cross(inertia @ omega, omega) + S.physical_torque(body, q / np.linalg.norm(q), omega, u)
@@ -542,7 +544,9 @@ def test_unrolled_stage_linearization_matches_finite_differences(case):
         for j in range(nd + m):
             d = np.zeros(nd + m)
             d[j] = eps
-            ends = [layout.local(x_next, model(layout.retract(x_bar, s * d[:nd]), u_bar + s * d[nd:])[0]) for s in (1, -1)]
+            ends = [
+                layout.local(x_next, model(layout.retract(x_bar, s * d[:nd]), u_bar + s * d[nd:])[0]) for s in (1, -1)
+            ]
             numeric[:, j] = (ends[0] - ends[1]) / (2 * eps)
         np.testing.assert_allclose(ab, numeric, rtol=1e-6, atol=1e-6 * np.max(np.abs(ab)))
 

@@ -10,11 +10,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fvin_mpc.envs import RigidBodyEnv
+from fvin_mpc.control.export import from_rigid_body
 from fvin_mpc.core import fvin
 from fvin_mpc.core.backend import get_ops
-from fvin_mpc.control.export import from_rigid_body
 from fvin_mpc.core.rigid_body import from_mujoco
+from fvin_mpc.envs import RigidBodyEnv
 
 NP = get_ops("numpy")
 SCENE = "spherical_pendulum"
@@ -149,15 +149,17 @@ def test_bounded_collection_respects_speed_limit():
 def test_inertia_recovery_of_an_exact_scaled_model(env, body):
     """A fixed-inertia model holding λ·J_true and λ·g_true: λ, principal moments and axes come back."""
     from fvin_mpc.core.checkpoint import Checkpoint
-    from fvin_mpc.studies.inertia import recover_inertia, uniform_quaternions
     from fvin_mpc.core.networks import ModelConfig, init_weights
+    from fvin_mpc.studies.model_quality import recover_inertia, uniform_quaternions
 
     scale = 3.0
     config = ModelConfig(variant="fixed-inertia", control_dim=3, inertia_epsilon=1e-3)
     weights = init_weights(config, seed=0)
     inertia = scale * np.array(body.inertia) - config.inertia_epsilon * np.eye(3)
     lower = np.linalg.cholesky(inertia)
-    weights["inertia_cholesky"] = np.array([lower[0, 0], lower[1, 1], lower[2, 2], lower[1, 0], lower[2, 0], lower[2, 1]])
+    weights["inertia_cholesky"] = np.array(
+        [lower[0, 0], lower[1, 1], lower[2, 2], lower[1, 0], lower[2, 0], lower[2, 1]]
+    )
     from fvin_mpc.core import s3
 
     rebuilt = np.array(s3.symmetric_from_cholesky(tuple(weights["inertia_cholesky"]), config.inertia_epsilon))
@@ -178,15 +180,17 @@ def test_actuator_referenced_inertia_is_blind_to_a_per_axis_scale(env, body):
     """Scaling the z row of J and of g by μ (what the data barely constrain: gravity has no torque about
     body z) moves the global-λ comparison but not J_act = sym(2 ḡ⁻¹ J̄) nor the x/y per-axis λ."""
     from fvin_mpc.core.checkpoint import Checkpoint
-    from fvin_mpc.studies.inertia import recover_inertia, uniform_quaternions
     from fvin_mpc.core.networks import ModelConfig, init_weights
+    from fvin_mpc.studies.model_quality import recover_inertia, uniform_quaternions
 
     mu = np.array([1.0, 1.0, 2.5])
     config = ModelConfig(variant="fixed-inertia", control_dim=3, inertia_epsilon=1e-3)
     weights = init_weights(config, seed=0)
     inertia = np.diag(mu) @ np.array(body.inertia) - config.inertia_epsilon * np.eye(3)
     lower = np.linalg.cholesky(inertia)
-    weights["inertia_cholesky"] = np.array([lower[0, 0], lower[1, 1], lower[2, 2], lower[1, 0], lower[2, 0], lower[2, 1]])
+    weights["inertia_cholesky"] = np.array(
+        [lower[0, 0], lower[1, 1], lower[2, 2], lower[1, 0], lower[2, 0], lower[2, 1]]
+    )
     weights[f"gain_w{config.hidden_layers}"] = np.zeros_like(weights[f"gain_w{config.hidden_layers}"])
     weights[f"gain_b{config.hidden_layers}"] = (2.0 * np.diag(mu)).ravel()
     result = recover_inertia(Checkpoint(config, weights), body, uniform_quaternions(64, seed=1), env.rest)
@@ -196,8 +200,8 @@ def test_actuator_referenced_inertia_is_blind_to_a_per_axis_scale(env, body):
 
 
 def test_shipped_checkpoint_loads_and_exports():
-    from fvin_mpc.core.checkpoint import load_checkpoint
     from fvin_mpc.control.export import from_checkpoint
+    from fvin_mpc.core.checkpoint import load_checkpoint
 
     checkpoint = load_checkpoint("spherical_pendulum_sign-invariant")
     assert checkpoint.config.control_dim == 3 and checkpoint.scene == SCENE

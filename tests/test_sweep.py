@@ -1,4 +1,4 @@
-"""Training sweep (fvin_mpc.studies.sweep, python -m fvin_mpc.sweep): every grid entry trained and
+"""Training sweep (fvin_mpc.studies.training_sweep, python -m fvin_mpc.sweep): every grid entry trained and
 written with its sidecar, one table; the same weights on a real local Ray cluster as here; a run
 that fails is listed while the others are written."""
 
@@ -6,11 +6,12 @@ import json
 
 import numpy as np
 import pytest
+from test_pool import ray_cluster  # noqa: F401  (the session's local Ray cluster)
 
 import fvin_mpc.learning.training
+import fvin_mpc.studies.training_sweep
 from fvin_mpc.core.checkpoint import load_checkpoint
-from fvin_mpc.studies.sweep import SweepConfig, run_sweep, sweep_table, write_report
-from test_pool import ray_cluster  # noqa: F401  (the session's local Ray cluster)
+from fvin_mpc.studies.training_sweep import SweepConfig, run_sweep, sweep_table, write_report
 
 TRAIN = (("optimizer", "adam"), ("iterations", 3))
 
@@ -31,7 +32,11 @@ def test_sweep_on_ray_equals_local_and_writes_every_checkpoint(data_path, tmp_pa
     on_ray = run_sweep(config, tmp_path / "ray", workers=2, progress=False, backend="ray")
     assert [r["status"] for r in local.runs] == ["ok"] * 2 and not local.failures and not on_ray.failures
     for a, b in zip(local.runs, on_ray.runs, strict=True):
-        assert (a["variant"], a["seed"], a["final_validation_loss"]) == (b["variant"], b["seed"], b["final_validation_loss"])
+        assert (a["variant"], a["seed"], a["final_validation_loss"]) == (
+            b["variant"],
+            b["seed"],
+            b["final_validation_loss"],
+        )
         mine, theirs = load_checkpoint(a["checkpoint"]), load_checkpoint(b["checkpoint"])
         assert mine.weights.keys() == theirs.weights.keys()
         for key in mine.weights:
@@ -53,7 +58,7 @@ def test_a_failed_run_is_listed_and_the_others_are_written(data_path, tmp_path, 
             raise FloatingPointError("training loss became nan at iteration 2")
         return real_train(data, config, settings, progress)
 
-    monkeypatch.setattr(fvin_mpc.learning.training, "train", train)
+    monkeypatch.setattr(fvin_mpc.studies.training_sweep, "train", train)  # the name the sweep calls
     config = SweepConfig(data=str(data_path), widths=(4,), seeds=(0, 1, 2), train=TRAIN)
     result = run_sweep(config, tmp_path, progress=False)  # serial: the patch applies in this process
     assert [r["status"] for r in result.runs] == ["ok", "failed", "ok"]

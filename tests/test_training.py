@@ -5,17 +5,23 @@ import json
 
 import numpy as np
 import pytest
+from helpers import synthetic_hinge_data
 
 from fvin_mpc.core.data import Trajectories, save_data
 from fvin_mpc.core.networks import ModelConfig
 from fvin_mpc.core.rigid_body import PENDULUM
-from helpers import synthetic_hinge_data
 
 torch = pytest.importorskip("torch")
 
 from fvin_mpc.learning.training import (  # noqa: E402
-    TrainSettings, default_checkpoint_stem, rollout_loss, rollout_residuals, safe_thread_count, scene_has_joint_damping,
-    scene_stem, train,
+    TrainSettings,
+    default_checkpoint_stem,
+    rollout_loss,
+    rollout_residuals,
+    safe_thread_count,
+    scene_has_joint_damping,
+    scene_stem,
+    train,
 )
 
 SMALL = ModelConfig(hidden_width=6)
@@ -57,7 +63,10 @@ def test_rollout_is_the_loop_of_steps(variant, dissipation):
     generator = torch.Generator().manual_seed(1)
     q = torch.randn(7, 4, generator=generator, dtype=DTYPE)
     q = q / q.norm(dim=-1, keepdim=True)
-    omega, u = torch.randn(7, 3, generator=generator, dtype=DTYPE), torch.randn(7, 5, 2, generator=generator, dtype=DTYPE)
+    omega, u = (
+        torch.randn(7, 3, generator=generator, dtype=DTYPE),
+        torch.randn(7, 5, 2, generator=generator, dtype=DTYPE),
+    )
     with torch.no_grad():
         q_roll, omega_roll = model.rollout(q, omega, u)
         qs, omegas = [q], [omega]
@@ -115,7 +124,9 @@ def test_lm_window_jacobian_matches_the_loss_gradient(data):
 def test_lm_needs_far_fewer_iterations_than_adam(data):
     common = dict(iterations=8, window=3, seed=3, patience=0, threads=1)
     _, lm = train(data, SMALL, TrainSettings(optimizer="lm", **common), progress=False)
-    _, adam = train(data, SMALL, TrainSettings(optimizer="adam", learning_rate=2e-2, eval_every=1, **common), progress=False)
+    _, adam = train(
+        data, SMALL, TrainSettings(optimizer="adam", learning_rate=2e-2, eval_every=1, **common), progress=False
+    )
     initial = lm["history"][0]["train"]
     assert initial == adam["history"][0]["train"]  # same seed, same start
     assert lm["final_train_loss"] < 0.02 * initial, lm["history"]
@@ -150,7 +161,9 @@ def test_compile_is_refused_for_lm():
         TrainSettings(optimizer="lm", compile=True)
 
 
-@pytest.mark.parametrize("cores, load, threads", [(2, 0.05, 2), (2, 0.6, 1), (2, 1.2, 1), (2, 7.0, 1), (8, 2.5, 6), (8, 0.0, 8), (1, 0.0, 1)])
+@pytest.mark.parametrize(
+    "cores, load, threads", [(2, 0.05, 2), (2, 0.6, 1), (2, 1.2, 1), (2, 7.0, 1), (8, 2.5, 6), (8, 0.0, 8), (1, 0.0, 1)]
+)
 def test_safe_thread_count_leaves_busy_cores_alone(cores, load, threads):
     assert safe_thread_count(cores, load) == threads
 
@@ -175,7 +188,9 @@ def run_cli(tmp_path, monkeypatch, data, *args, data_file="d.npz"):
 
     monkeypatch.chdir(tmp_path)
     path = save_data(tmp_path / data_file, data)
-    assert main(["--data", str(path), "--iterations", "2", "--hidden-width", "4", "--window", "3", "--quiet", *args]) == 0
+    assert (
+        main(["--data", str(path), "--iterations", "2", "--hidden-width", "4", "--window", "3", "--quiet", *args]) == 0
+    )
     checkpoints = sorted((tmp_path / "checkpoints").glob("*.json"))
     assert len(checkpoints) == 1, checkpoints
     return checkpoints[0], load_checkpoint(checkpoints[0])

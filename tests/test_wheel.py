@@ -63,6 +63,11 @@ def test_wheel_ships_checkpoints_and_scenes_and_needs_no_torch(wheel):
     assert [name for name in scenes if f"fvin_mpc/envs/scenes/{name}" not in names] == []
     torch_requirements = [line for line in requirements if line.split()[1].lower().startswith("torch")]
     assert torch_requirements and all("extra ==" in line for line in torch_requirements), torch_requirements
+    # The research studies stay in the clone: neither benchmarks/ nor the studies moved there ship.
+    research = [name for name in names if name.startswith("benchmarks/") or name.endswith(
+        ("/data_efficiency.py", "/mlp_baseline.py", "/pendulum_v1_reference.py", "/spherical_report.py"))]
+    assert research == []
+    assert {"fvin_mpc/quality.py", "fvin_mpc/studies/model_quality.py", "fvin_mpc/studies/evaluation.py"} <= names
 
 
 @pytest.mark.slow

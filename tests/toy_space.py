@@ -47,7 +47,9 @@ class ToyConfig(networks.DictConfig):
         if self.variant not in TOY_VARIANTS:
             raise ValueError(f"unknown toy variant {self.variant!r}; expected one of {TOY_VARIANTS}")
         if self.control_dim < 2:
-            raise ValueError(f"the toy has a rail force and at least one torque: control_dim >= 2, got {self.control_dim}")
+            raise ValueError(
+                f"the toy has a rail force and at least one torque: control_dim >= 2, got {self.control_dim}"
+            )
 
     def rotation_config(self) -> networks.ModelConfig:
         return networks.ModelConfig(variant=self.variant, control_dim=self.control_dim - 1,
@@ -119,7 +121,10 @@ def toy_weight_shapes(config: ToyConfig) -> dict[str, tuple[int, ...]]:
 def toy_init_weights(config: ToyConfig, seed: int) -> dict[str, np.ndarray]:
     """The rotation's S3FVIN initialization and rail constants near ``m = 0.8``, ``k = 3``, ``g = 9``."""
     weights = networks.init_weights(config.rotation_config(), seed)
-    inverse_softplus = lambda y: np.log(np.expm1(y))
+
+    def inverse_softplus(y: float) -> float:
+        return np.log(np.expm1(y))
+
     weights["rail"] = (np.array([inverse_softplus(0.8), inverse_softplus(3.0), 9.0])
                        + 0.05 * np.random.default_rng(seed).normal(size=3))
     return weights

@@ -42,7 +42,10 @@ def main() -> int:
     from fvin_mpc.control import rti as after
 
     before = load_before(args.before)
-    print("| scene | model | calls | before: CPU ms median / p90 | after: CPU ms median / p90 | after / before | same controls |")
+    print(
+        "| scene | model | calls | before: CPU ms median / p90 | after: CPU ms median / p90 | after / before | same "
+        "controls |"
+    )
     print("|---|---|---|---|---|---|---|")
     for scene in ("pendulum", "spherical_pendulum"):
         for learned in (True, False):
@@ -50,8 +53,10 @@ def main() -> int:
             model = scene_model(env, true_model=not learned)
             settings = scene_mpc_settings(env, solver="rti", rti_cold_budget_s=60.0)
             base = env.unwrapped
-            controllers = {name: module.RealTimeMPC(model, settings, base.goal, base.torque_low, base.torque_high,
-                                                    rest=base.rest) for name, module in (("before", before), ("after", after))}
+            controllers = {
+                name: module.RealTimeMPC(model, settings, base.goal, base.torque_low, base.torque_high, rest=base.rest)
+                for name, module in (("before", before), ("after", after))
+            }
             episode, _ = run_episode(env, controllers["after"], 6.0, latency=0.01)
             times = {name: [] for name in controllers}
             controls = {name: [] for name in controllers}
@@ -69,9 +74,12 @@ def main() -> int:
             cpu = {name: 1e3 * np.array(values).reshape(args.repeats, calls)[:, 1:] for name, values in times.items()}
             same = np.array_equal(np.array(controls["before"]), np.array(controls["after"]))
             b, a = (np.median(cpu[name]) for name in ("before", "after"))
-            print(f"| {scene} | {'learned' if learned else 'closed form'} | {calls - 1} × {args.repeats} | "
-                  f"{b:.3f} / {np.percentile(cpu['before'], 90):.3f} | {a:.3f} / {np.percentile(cpu['after'], 90):.3f} | "
-                  f"{a / b:.3f} | {same} |", flush=True)
+            print(
+                f"| {scene} | {'learned' if learned else 'closed form'} | {calls - 1} × {args.repeats} | "
+                f"{b:.3f} / {np.percentile(cpu['before'], 90):.3f} | {a:.3f} / {np.percentile(cpu['after'], 90):.3f} | "
+                f"{a / b:.3f} | {same} |",
+                flush=True,
+            )
     return 0
 
 

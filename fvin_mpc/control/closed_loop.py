@@ -42,7 +42,16 @@ NOT_MEASURED = "not measured"
 
 #: The scalar entries of a controller's ``info`` an :class:`Episode` keeps per period (the plan
 #: itself is left out: it would make episodes heavy).
-RECORDED_INFO = ("status", "iterations", "solve_time_s", "step_residual", "fallback", "cold_start", "disturbance", "qp_iterations")
+RECORDED_INFO = (
+    "status",
+    "iterations",
+    "solve_time_s",
+    "step_residual",
+    "fallback",
+    "cold_start",
+    "disturbance",
+    "qp_iterations",
+)
 
 #: ``run_episode``'s ``latency``: ``"none"`` (the simulator waits for the controller), ``"measured"``
 #: (the controller's wall-clock compute time delays its torque) or a fixed delay in seconds.
@@ -145,7 +154,7 @@ def run_episode(env: Any, controller: Controller, duration_s: float, reset_optio
     """
     from tqdm.auto import tqdm
 
-    fixed_delay = _check_latency(latency)
+    fixed_delay = check_latency(latency)
     base = env.unwrapped
     periods = int(round(duration_s / base.dt))
     frame_skip = int(base.frame_skip)
@@ -231,18 +240,31 @@ def run_episode(env: Any, controller: Controller, duration_s: float, reset_optio
             break
     states = np.array(observations)
     episode = Episode(
-        time=np.asarray(times) - times[0], q=states[:, layout.quaternion], omega=states[:, layout.omega],
+        time=np.asarray(times) - times[0],
+        q=states[:, layout.quaternion],
+        omega=states[:, layout.omega],
         u=np.array(controls),
-        angle_from_goal=np.array(angle), energy=np.array(energy), reward=np.array(rewards),
-        controller_time_s=np.array(wall), controller_success=np.array(success), fallback=fallback,
-        control_period=float(base.dt), controller_info=recorded, latency=latency,
-        compute_s=np.array(compute), busy_s=np.array(busy), cpu_s=np.array(cpu), feedback_s=np.array(feedbacks), deadline_misses=misses, skipped=skipped,
+        angle_from_goal=np.array(angle),
+        energy=np.array(energy),
+        reward=np.array(rewards),
+        controller_time_s=np.array(wall),
+        controller_success=np.array(success),
+        fallback=fallback,
+        control_period=float(base.dt),
+        controller_info=recorded,
+        latency=latency,
+        compute_s=np.array(compute),
+        busy_s=np.array(busy),
+        cpu_s=np.array(cpu),
+        feedback_s=np.array(feedbacks),
+        deadline_misses=misses,
+        skipped=skipped,
         states=states,
     )
     return episode, frames
 
 
-def _check_latency(latency: Any) -> float | None:
+def check_latency(latency: Any) -> float | None:
     """``None`` for ``"none"``/``"measured"``, else the fixed delay in seconds; ``ValueError`` if invalid."""
     if isinstance(latency, str):
         if latency not in ("none", "measured"):

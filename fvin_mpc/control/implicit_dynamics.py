@@ -5,7 +5,7 @@ linearizes the exported step ``x_{k+1} = F(x_k, u_k)`` — K Newton iterations u
 stage. Its Jacobian differentiates the learned terms ``J``, ``∇U``, ``g`` twice per stage (at
 ``q_k`` and at the step's end ``q_{k+1} = F(x_k)``) in all 7 directions of ``(δ_k, Δu_k)``, and
 a sign-invariant model evaluates each network twice more (``±q``): that is most of a learned
-model's period (``python -m fvin_mpc.bench ops``).
+model's period (``python -m benchmarks ops``).
 
 ``rti_dynamics="implicit"`` imposes instead the step's equations between consecutive plan nodes,
 :func:`fvin_mpc.core.fvin.step_residual` ``G(x_k, u_k, x_{k+1}) = 0`` (the discrete

@@ -57,7 +57,12 @@ import numpy as np
 
 from fvin_mpc.control.export import CompileReport, ExportedModel, compile_functions
 from fvin_mpc.control.problem import (
-    ConstantReference, DisturbanceEstimate, Reference, control_bounds, predict_function, residual_functions,
+    ConstantReference,
+    DisturbanceEstimate,
+    Reference,
+    control_bounds,
+    predict_function,
+    residual_functions,
 )
 from fvin_mpc.core import s3
 from fvin_mpc.core.backend import get_ops
@@ -233,7 +238,8 @@ class MPCSettings:
         if self.solver not in ("ipopt", "sqpmethod", "fatrop", "rti"):
             raise ValueError(f"unknown solver {self.solver!r}")
         if self.rti_max_iter < 1 or self.rti_cold_iter < 1:
-            raise ValueError(f"rti_max_iter and rti_cold_iter must be >= 1, got {self.rti_max_iter}, {self.rti_cold_iter}")
+            raise ValueError("rti_max_iter and rti_cold_iter must be >= 1, "
+                             f"got {self.rti_max_iter}, {self.rti_cold_iter}")
         if not (self.rti_budget_s >= 0.0 and self.rti_cold_budget_s >= 0.0 and self.rti_regularization >= 0.0
                 and self.rti_omega_penalty >= 0.0):
             raise ValueError("rti_budget_s, rti_cold_budget_s, rti_regularization and rti_omega_penalty must be >= 0")
@@ -300,7 +306,8 @@ class MPC:
         if terminal_cost is not None:
             if terminal_cost.n_in() != 1 or terminal_cost.size_in(0) != (model.state_dim, 1) \
                     or terminal_cost.n_out() != 1 or terminal_cost.size_out(0) != (1, 1):
-                raise ValueError(f"terminal_cost must map the state ({model.state_dim},) to a scalar, got {terminal_cost}")
+                raise ValueError(f"terminal_cost must map the state ({model.state_dim},) to a scalar, "
+                                 f"got {terminal_cost}")
             if settings.solver not in ("ipopt", "sqpmethod"):
                 raise ValueError(f"terminal_cost needs solver 'ipopt' or 'sqpmethod', got {settings.solver!r}")
         self.terminal_cost = terminal_cost
@@ -518,21 +525,27 @@ class MPC:
             # IPOPT's interface insists on being able to differentiate f and g (for lam_p, which
             # calc_lam_p=False never computes); finite differences satisfy it and are never run.
             compiled, self.compile_report = compile_functions(
-                oracles, prefix=re.sub(r"[^0-9A-Za-z_]", "_", f"mpc_{self.model.name}"), external_options={"enable_fd": True})
+                oracles, prefix=re.sub(r"[^0-9A-Za-z_]", "_", f"mpc_{self.model.name}"),
+                external_options={"enable_fd": True})
             self._predict = compiled["mpc_predict"]
             x, p = ca.MX.sym("x", decision.shape[0]), ca.MX.sym("p", self._num_parameters)
-            f, g = (compiled["nlp_f"](x, p), compiled["nlp_g"](x, p)) if s.solver == "ipopt" else compiled["nlp_fg"](x, p)
+            if s.solver == "ipopt":
+                f, g = compiled["nlp_f"](x, p), compiled["nlp_g"](x, p)
+            else:
+                f, g = compiled["nlp_fg"](x, p)
             self._nlp = {"x": x, "p": p, "f": f, "g": g}
             self._oracle_options = {"grad_f": compiled["nlp_grad_f"], "jac_g": compiled["nlp_jac_g"]} \
                 if s.solver == "ipopt" else {"jac_fg": compiled["nlp_jac_fg"]}
             if "nlp_hess_l" in compiled:
                 self._oracle_options["hess_lag"] = compiled["nlp_hess_l"]
-        self._cold = ca.nlpsol("mpc_cold", s.solver, self._nlp, {**self._oracle_options, **self._ipopt_options(warm=False)})
+        self._cold = ca.nlpsol("mpc_cold", s.solver, self._nlp,
+                               {**self._oracle_options, **self._ipopt_options(warm=False)})
         warm = s.warm_start == "primal-dual" and s.solver == "ipopt"
-        self._warm = ca.nlpsol("mpc_warm", s.solver, self._nlp, {**self._oracle_options, **self._ipopt_options(warm=warm)}) \
-            if warm else self._cold
+        self._warm = self._cold if not warm else ca.nlpsol(
+            "mpc_warm", s.solver, self._nlp, {**self._oracle_options, **self._ipopt_options(warm=warm)})
 
-    def _build_fatrop(self, states: ca.MX, controls: ca.MX, parameters: ca.MX, objective: ca.MX, defects: ca.MX) -> None:
+    def _build_fatrop(self, states: ca.MX, controls: ca.MX, parameters: ca.MX, objective: ca.MX,
+                      defects: ca.MX) -> None:
         """The same NLP for fatrop: variables stage by stage ``(x_0, u_0, x_1, …, x_N)`` and the
         dynamics as gap-closing constraints ``x_{k+1} − F(x_k, u_k) = 0``, the form its structure
         detection requires. ``self._order`` maps the stage-wise vector to the default layout."""
@@ -557,7 +570,8 @@ class MPC:
     def _ipopt_options(self, warm: bool) -> dict[str, Any]:
         s = self.settings
         if s.solver == "sqpmethod":
-            return {"qpsol": "qrqp", "qpsol_options": {"print_iter": False, "print_header": False, "error_on_fail": False},
+            quiet = {"print_iter": False, "print_header": False, "error_on_fail": False}
+            return {"qpsol": "qrqp", "qpsol_options": quiet,
                     "hessian_approximation": "limited-memory" if s.hessian == "limited-memory" else "exact",
                     "max_iter": s.max_iter, "tol_pr": s.tol, "tol_du": s.tol, "print_header": False,
                     "print_iteration": False, "print_status": False, "print_time": False, "error_on_fail": False,
@@ -584,7 +598,8 @@ class MPC:
             references, targets = self.reference_window()
             states = references.copy()
             q0 = x0[layout.quaternion]
-            q_ref = references[:, layout.quaternion] * np.where(references[:, layout.quaternion] @ q0 >= 0, 1.0, -1.0)[:, None]
+            q_ref = references[:, layout.quaternion]
+            q_ref = q_ref * np.where(q_ref @ q0 >= 0, 1.0, -1.0)[:, None]  # each on q0's side of S³
             relative = s3.multiply(s3.conjugate(tuple(q0)), tuple(q_ref.T))
             turn = np.array(s3.log(relative, NP))  # (3, N+1): q_ref = q0 ⊗ exp(turn)
             weights = np.clip(np.arange(n + 1) / max(1, n // 3), 0.0, 1.0)

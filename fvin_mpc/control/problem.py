@@ -161,7 +161,8 @@ class DisturbanceEstimate:
         if 2.0 * np.arccos(cosine) > self.region_rad or np.max(np.abs(x0[layout.omega])) > self.region_speed:
             return
         predicted, inverse = self._last
-        self.value = np.clip(self.value + self.gain * (inverse @ (x0[layout.rates] - predicted)), -self.limit, self.limit)
+        step = inverse @ (x0[layout.rates] - predicted)
+        self.value = np.clip(self.value + self.gain * step, -self.limit, self.limit)
 
 
 class Reference(Protocol):

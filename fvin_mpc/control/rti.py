@@ -49,7 +49,9 @@ an unbiased model). Solved differently (Diehl's real-time iteration, as in acado
 * **offset-free** (``disturbance_gain = α > 0``) — the model is ``x⁺ = F(x, u + d)`` with a
   constant input disturbance ``d``. After each step the prediction ``F(x_prev, u_prev + d̂)`` is
   compared with the measured ``ω``: ``d̂ ← d̂ + α·B⁺(ω − ω̂)`` (``B = ∂ω⁺/∂u``, least squares),
-  within ``disturbance_region_rad`` of the reference attitude and below ``disturbance_region_speed`` only, ``|d̂|`` at most half the torque range. The
+  within ``disturbance_region_rad`` of the reference attitude and below ``disturbance_region_speed``
+  only, ``|d̂|`` at most half the torque range (:class:`fvin_mpc.control.problem.DisturbanceEstimate`,
+  shared with the IPOPT MPC). The
   control cost is ``|u − u_s|²`` with ``u_s = u_goal − d̂`` the torque that holds the goal in the
   model (``F(goal, 0, u_goal) = (goal, 0)``): at the goal the MPC has no reason to move, and the
   plant's steady state is where the corrected model agrees with it — no steady error from a
@@ -72,7 +74,6 @@ from fvin_mpc.control.buffered import BufferedFunction
 from fvin_mpc.control.export import ExportedModel, compile_functions
 from fvin_mpc.control.mpc import MPC, MPCSettings, _Plan
 from fvin_mpc.control.problem import control_bounds, predict_function, residual_functions
-from fvin_mpc.core import s3
 from fvin_mpc.core.backend import get_ops
 from fvin_mpc.core.space import StateLayout, chart_local, chart_retract
 
@@ -245,7 +246,8 @@ def riccati_feedback_function(layout: StateLayout, n: int, m: int, low: np.ndarr
     steps = ca.fmin(ca.fmax(deltas, -bound), bound)
     moved = retracted(states[:, 1:], steps)
     omega = ns - 3
-    new_states = ca.horzcat(x0, ca.vertcat(moved[:omega, :], ca.fmin(ca.fmax(moved[omega:, :], -omega_valid), omega_valid)))
+    clipped_omega = ca.fmin(ca.fmax(moved[omega:, :], -omega_valid), omega_valid)
+    new_states = ca.horzcat(x0, ca.vertcat(moved[:omega, :], clipped_omega))
     new_controls = ca.fmin(ca.fmax(controls + v, ca.DM(stage_low)), ca.DM(stage_high))
     step = ca.fmax(ca.mmax(ca.fabs(v) / ca.DM(np.minimum(stage_high - stage_low, 1e6))),
                    ca.mmax(ca.fabs(steps) / bound))
@@ -412,34 +414,6 @@ class RealTimeMPC(MPC):
             targets = np.clip(scales[:, None] * self._u_goal - self.disturbance, self.torque_low, self.torque_high)
             cached = self._targets_cache = (key, targets.T)
         return self._linearize(plan.states.T, plan.controls.T, references, self.disturbance, cached[1])
-
-    def _first_guess(self, x0: np.ndarray, start: str) -> _Plan:
-        """A pivoted body's guesses are :class:`~fvin_mpc.control.mpc.MPC`'s. A free body's:
-        ``"goal"`` — the reference, the orientation turned from the measured one to the reference's
-        along the geodesic over the first third of the horizon, the reference's target controls;
-        ``"rollout±"`` — the model rolled out under ``±f·u_max`` (clipped; for a quadrotor with a
-        2 g thrust range ``+`` is about hover thrust, ``−`` free fall), ``ω`` clipped to its bound."""
-        if self.model.space.pivoted:
-            return super()._first_guess(x0, start)
-        n, layout = self.horizon, self.layout
-        if start == "goal":
-            references, targets = self.reference_window()
-            states = references.copy()
-            q0 = x0[layout.quaternion]
-            q_ref = references[:, layout.quaternion] * np.where(references[:, layout.quaternion] @ q0 >= 0, 1.0, -1.0)[:, None]
-            relative = s3.multiply(s3.conjugate(tuple(q0)), tuple(q_ref.T))
-            turn = np.array(s3.log(relative, NP))  # (3, N+1): q_ref = q0 ⊗ exp(turn)
-            weights = np.clip(np.arange(n + 1) / max(1, n // 3), 0.0, 1.0)
-            states[:, layout.quaternion] = np.array(s3.multiply(tuple(q0), s3.exp(tuple(weights * turn), NP))).T
-            states[:, layout.omega] = 0.0
-            states[0] = x0
-            return _Plan(states, targets.copy(), None, None)
-        sign = 1.0 if start == "rollout+" else -1.0
-        controls = np.clip(np.tile(sign * self.settings.initial_torque_fraction * self.torque_high, (n, 1)),
-                           self.torque_low, self.torque_high)
-        states = self.model.rollout(x0, controls)
-        states[1:, layout.omega] = np.clip(states[1:, layout.omega], -self.omega_bound, self.omega_bound)
-        return _Plan(states, controls, None, None)
 
     # ------------------------------------------------------------------ one SQP iteration
     def _iterate(self, plan: _Plan, linearization: tuple[Any, ...], x0: np.ndarray) -> tuple[_Plan | None, str]:

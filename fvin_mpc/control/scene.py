@@ -34,8 +34,8 @@ import numpy as np
 
 from fvin_mpc.control.energy_shaping import EnergyShapingController, EnergyShapingNotApplicable, EnergyShapingSettings
 from fvin_mpc.control.export import ExportedModel, from_checkpoint, from_closed_form
-from fvin_mpc.control.presets import preset_for
 from fvin_mpc.control.mpc import COLD_STARTS, MPC, MPCSettings
+from fvin_mpc.control.presets import preset_for
 from fvin_mpc.core.checkpoint import Checkpoint, CheckpointError, load_checkpoint
 
 
@@ -164,11 +164,13 @@ def scene_model(env: Any, checkpoint: Any = None, true_model: bool = False,
         return from_closed_form(base.space, body, base.dt, newton_iters or 2, name=f"true_{base.scene_spec.name}")
     model = from_checkpoint(_checkpoint(checkpoint or base.scene_spec.default_checkpoint), newton_iters)
     if model.space.layout != base.space.layout:
-        raise ValueError(f"model {model.name!r} is on {model.space.description}, states {model.space.layout.name}; "
-                         f"scene {base.scene_spec.name!r} observes {base.space.layout.name}")
+        raise CheckpointError(f"model {model.name!r} is on {model.space.description}, states "
+                              f"{model.space.layout.name}; scene {base.scene_spec.name!r} observes "
+                              f"{base.space.layout.name}")
     if abs(model.step_size - base.dt) > 1e-9:
-        raise CheckpointError(f"the model's step {model.step_size} s differs from the scene's control period {base.dt} s; "
-                         "make the env with scene_env(..., checkpoint=...) or pass a matching control period")
+        raise CheckpointError(f"the model's step {model.step_size} s differs from the scene's control period "
+                              f"{base.dt} s; make the env with scene_env(..., checkpoint=...) or pass a matching "
+                              "control period")
     if model.control_dim != base.action_space.shape[0]:
         raise CheckpointError(f"the model has {model.control_dim} controls, the scene {base.action_space.shape[0]}")
     return model

@@ -148,7 +148,10 @@ def load_checkpoint(name_or_path: str | Path) -> Checkpoint:
     except (json.JSONDecodeError, UnicodeDecodeError) as error:
         raise CheckpointError(f"{sidecar_path}: not valid JSON ({error})") from None
     if not isinstance(sidecar, dict) or sidecar.get("format") != FORMAT:
-        raise CheckpointError(f"{sidecar_path}: not a {FORMAT} sidecar (format field is {sidecar.get('format') if isinstance(sidecar, dict) else None!r})")
+        raise CheckpointError(
+            f"{sidecar_path}: not a {FORMAT} sidecar (format field is "
+            f"{sidecar.get('format') if isinstance(sidecar, dict) else None!r})"
+        )
     try:
         config = _config_from_dict(sidecar["model"], sidecar.get("configuration_space"))
     except (KeyError, TypeError, ValueError) as error:
@@ -162,7 +165,9 @@ def load_checkpoint(name_or_path: str | Path) -> Checkpoint:
         raise CheckpointError(f"{weights_path}: unreadable or truncated safetensors file ({error})") from None
     expected_digest = sidecar.get("weights_sha256")
     if expected_digest is not None and expected_digest != weights_digest(weights_path):
-        raise CheckpointError(f"{weights_path}: SHA-256 differs from the sidecar's weights_sha256 (corrupted or replaced)")
+        raise CheckpointError(
+            f"{weights_path}: SHA-256 differs from the sidecar's weights_sha256 (corrupted or replaced)"
+        )
     try:
         space_of_config(config).check_weights(weights, config)
     except ValueError as error:

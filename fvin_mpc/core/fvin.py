@@ -118,11 +118,11 @@ def solve_implicit(rhs: s3.Vec3, inertia: s3.Mat3, newton_iters: int, ops: Ops) 
     """``K = newton_iters`` Newton iterations on ``Φ(ξ) = C`` from ``ξ = 0``."""
     if newton_iters < 1:
         raise ValueError(f"newton_iters must be >= 1, got {newton_iters}")
-    xi = _clamp_increment(s3.scale(-1.0, s3.solve3(inertia, rhs)), ops)  # exact first iterate: ∂Φ/∂ξ(0) = −J
+    xi = clamp_increment(s3.scale(-1.0, s3.solve3(inertia, rhs)), ops)  # exact first iterate: ∂Φ/∂ξ(0) = −J
     det_floor = SINGULAR_JACOBIAN * s3.determinant(inertia)
     for _ in range(newton_iters - 1):
         phi, jacobian = implicit_lhs_jacobian(xi, inertia, ops)
-        xi = _clamp_increment(s3.sub(xi, _guarded_solve3(jacobian, s3.sub(phi, rhs), det_floor, ops)), ops)
+        xi = clamp_increment(s3.sub(xi, guarded_solve3(jacobian, s3.sub(phi, rhs), det_floor, ops)), ops)
     return xi
 
 
@@ -132,7 +132,7 @@ def solve_implicit(rhs: s3.Vec3, inertia: s3.Mat3, newton_iters: int, ops: Ops) 
 SINGULAR_JACOBIAN = 1e-12
 
 
-def _guarded_solve3(m: s3.Mat3, r: s3.Vec3, det_floor: Any, ops: Ops) -> s3.Vec3:
+def guarded_solve3(m: s3.Mat3, r: s3.Vec3, det_floor: Any, ops: Ops) -> s3.Vec3:
     """``m⁻¹ r`` by Cramer's rule with ``|det m|`` floored at ``det_floor`` (inactive when regular)."""
     c0, c1, c2 = s3.cross(m[1], m[2]), s3.cross(m[2], m[0]), s3.cross(m[0], m[1])
     det = s3.dot(m[0], c0)
@@ -149,7 +149,7 @@ def _guarded_solve3(m: s3.Mat3, r: s3.Vec3, det_floor: Any, ops: Ops) -> s3.Vec3
 MAX_INCREMENT = 3.0 * math.pi / 8.0
 
 
-def _clamp_increment(xi: s3.Vec3, ops: Ops) -> s3.Vec3:
+def clamp_increment(xi: s3.Vec3, ops: Ops) -> s3.Vec3:
     """``ξ`` scaled back onto ``|ξ| = 3π/8`` when longer; the identity (value and derivatives) inside."""
     t = s3.dot(xi, xi)
     outside = t > MAX_INCREMENT * MAX_INCREMENT

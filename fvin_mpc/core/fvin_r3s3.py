@@ -129,7 +129,9 @@ def r3s3_step(x: s3.Vec3, q: s3.Quat, v: s3.Vec3, omega: s3.Vec3, u: tuple[Any, 
     rotation = fvin.finish_step(q, xi, problem, RotationAt(terms, x_next), h, ops, with_residual)
     q_next = rotation.q
     # Step 3: p_{k+1} by the trapezoid of ∇ₓU (π_{k+1} was step 5 inside finish_step).
-    force_plus = force_minus if force_rule == "hold" else s3.scale(h / 2.0, terms.translational_force(x_next, q_next, u))
+    force_plus = (
+        force_minus if force_rule == "hold" else s3.scale(h / 2.0, terms.translational_force(x_next, q_next, u))
+    )
     grad_x_next = terms.potential_gradient_x(x_next, q_next)
     impulse = s3.sub(s3.add(force_minus, force_plus), s3.scale(h / 2.0, s3.add(grad_x, grad_x_next)))
     v_next = s3.add(v, s3.solve3(mass, impulse))

@@ -33,7 +33,7 @@ from typing import Any, Protocol
 
 from fvin_mpc.core import s3, so3
 from fvin_mpc.core.backend import Ops
-from fvin_mpc.core.fvin import SINGULAR_JACOBIAN, _clamp_increment, _guarded_solve3
+from fvin_mpc.core.fvin import SINGULAR_JACOBIAN, clamp_increment, guarded_solve3
 
 
 class RotationTerms(Protocol):
@@ -111,13 +111,13 @@ def solve_implicit(rhs: so3.Vec3, inertia: so3.Mat3, newton_iters: int, ops: Ops
         raise ValueError(f"newton_iters must be >= 1, got {newton_iters}")
 
     def clamp(f: so3.Vec3) -> so3.Vec3:
-        return s3.scale(2.0, _clamp_increment(s3.scale(0.5, f), ops))  # type: ignore[return-value]
+        return s3.scale(2.0, clamp_increment(s3.scale(0.5, f), ops))  # type: ignore[return-value]
 
     f = clamp(s3.solve3(inertia, rhs))  # exact first iterate: ∂Γ/∂f(0) = J
     det_floor = SINGULAR_JACOBIAN * s3.determinant(inertia)
     for _ in range(newton_iters - 1):
         gamma, jacobian = implicit_lhs_jacobian(f, inertia, ops)
-        f = clamp(s3.sub(f, _guarded_solve3(jacobian, s3.sub(gamma, rhs), det_floor, ops)))
+        f = clamp(s3.sub(f, guarded_solve3(jacobian, s3.sub(gamma, rhs), det_floor, ops)))
     return f
 
 

@@ -37,7 +37,9 @@ import numpy as np
 
 from fvin_mpc.core import networks, s3
 from fvin_mpc.core.backend import Ops
+from fvin_mpc.core.fvin_r3s3 import FORCE_RULES
 from fvin_mpc.core.networks import VARIANTS, Variant, mlp, scalar_mlp_value_and_gradient
+
 
 @dataclass(frozen=True)
 class R3S3Config(networks.DictConfig):
@@ -70,8 +72,6 @@ class R3S3Config(networks.DictConfig):
     inertia_epsilon: float = 1e-8
 
     def __post_init__(self) -> None:
-        from fvin_mpc.core.fvin_r3s3 import FORCE_RULES
-
         if self.variant not in VARIANTS:
             raise ValueError(f"unknown variant {self.variant!r}; expected one of {VARIANTS}")
         if self.force_frame not in ("body", "world"):
@@ -197,7 +197,9 @@ class LearnedCombinedTerms:
             value, grad = scalar_mlp_value_and_gradient(w, "potential", layers, ops.stack((*x, *q)), ops)
             value, grad = ops.unstack(value)[0], ops.unstack(grad)
             if self.config.sign_invariant:
-                value_m, grad_m = scalar_mlp_value_and_gradient(w, "potential", layers, ops.stack((*x, *s3.negate(q))), ops)
+                value_m, grad_m = scalar_mlp_value_and_gradient(
+                    w, "potential", layers, ops.stack((*x, *s3.negate(q))), ops
+                )
                 grad_m = ops.unstack(grad_m)
                 value = 0.5 * (value + ops.unstack(value_m)[0])
                 # x enters both terms alike, q with opposite signs.

@@ -126,7 +126,9 @@ class LearnedSO3Terms:
 
     def _net(self, name: str, r: so3.Mat3) -> tuple[Any, ...]:
         ops = self.ops
-        return ops.unstack(networks.mlp(self.weights, name, self.config.hidden_layers, ops.stack(self.features(r)), ops))
+        return ops.unstack(
+            networks.mlp(self.weights, name, self.config.hidden_layers, ops.stack(self.features(r)), ops)
+        )
 
     def inertia(self, r: so3.Mat3) -> so3.Mat3:
         return s3.symmetric_from_cholesky(self._net("inertia", r), self.config.inertia_epsilon)

@@ -138,7 +138,9 @@ def from_mujoco(model: Any, body: str) -> PivotedRigidBody:
     frame = np.zeros(9)
     mujoco.mju_quat2Mat(frame, np.asarray(model.body_iquat[body_id], dtype=float))
     frame = frame.reshape(3, 3)
-    inertia = frame @ np.diag(model.body_inertia[body_id]) @ frame.T + mass * (com @ com * np.eye(3) - np.outer(com, com))
+    inertia = frame @ np.diag(model.body_inertia[body_id]) @ frame.T + mass * (
+        com @ com * np.eye(3) - np.outer(com, com)
+    )
     dof = int(model.jnt_dofadr[joint])
     actuators = [a for a in range(model.nu) if model.actuator_trnid[a, 0] == joint]
     if int(model.jnt_type[joint]) == hinge:
@@ -155,7 +157,9 @@ def from_mujoco(model: Any, body: str) -> PivotedRigidBody:
     friction_on = not model.opt.disableflags & mujoco.mjtDisableBit.mjDSBL_FRICTIONLOSS
     joint_dofs = slice(dof, dof + (1 if int(model.jnt_type[joint]) == hinge else 3))
     if friction_on and np.any(model.dof_frictionloss[joint_dofs] > 0):
-        raise ValueError(f"body {body!r}'s joint has dry friction (frictionloss), which a PivotedRigidBody cannot represent")
+        raise ValueError(
+            f"body {body!r}'s joint has dry friction (frictionloss), which a PivotedRigidBody cannot represent"
+        )
     gravity = np.asarray(model.opt.gravity, dtype=float)
     if gravity[0] != 0.0 or gravity[1] != 0.0:
         raise ValueError(f"gravity must point along −z, got {gravity}")

@@ -85,9 +85,9 @@ def solve3(m: Mat3, r: Vec3) -> Vec3:
     return tuple((c0[i] * r[0] + c1[i] * r[1] + c2[i] * r[2]) / det for i in range(3))  # type: ignore[return-value]
 
 
-def symmetric_from_cholesky(l: Sequence[Any], epsilon: float = 0.0) -> Mat3:
-    """``L Lᵀ + εI`` from the lower triangle ``l = (L00, L11, L22, L10, L20, L21)``."""
-    l00, l11, l22, l10, l20, l21 = l
+def symmetric_from_cholesky(lower: Sequence[Any], epsilon: float = 0.0) -> Mat3:
+    """``L Lᵀ + εI`` from the lower triangle ``lower = (L00, L11, L22, L10, L20, L21)``."""
+    l00, l11, l22, l10, l20, l21 = lower
     j00 = l00 * l00 + epsilon
     j11 = l10 * l10 + l11 * l11 + epsilon
     j22 = l20 * l20 + l21 * l21 + l22 * l22 + epsilon

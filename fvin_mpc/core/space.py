@@ -289,7 +289,9 @@ def get_space(name: str | ConfigurationSpace | None) -> ConfigurationSpace:
     try:
         return ConfigurationSpace.registry["S3" if name is None else name]
     except (KeyError, TypeError):
-        raise ValueError(f"unknown configuration space {name!r}; known: {sorted(ConfigurationSpace.registry)}") from None
+        raise ValueError(
+            f"unknown configuration space {name!r}; known: {sorted(ConfigurationSpace.registry)}"
+        ) from None
 
 
 def space_of_config(config: Any) -> ConfigurationSpace:
@@ -386,13 +388,22 @@ class _SO3ClosedForm:
         return fvin_so3.PivotedRigidBodySO3Terms(self.body, ops)
 
 
-SO3 = register(ConfigurationSpace(
-    name="SO3", description="SO(3) (the paper's SO3FVIN baseline on a pivoted body)", layout=PIVOTED,
-    config_type=networks_so3.SO3ModelConfig, pivoted=True, variants=networks_so3.SO3_VARIANTS, _step=_so3_step, _energy=_so3_energy,
-    _learned_terms=networks_so3.LearnedSO3Terms, _weight_shapes=networks_so3.weight_shapes,
-    _init_weights=networks_so3.init_weights,
-    _closed_form=lambda model, body: _SO3ClosedForm(rigid_body.from_mujoco(model, body)),
-))
+SO3 = register(
+    ConfigurationSpace(
+        name="SO3",
+        description="SO(3) (the paper's SO3FVIN baseline on a pivoted body)",
+        layout=PIVOTED,
+        config_type=networks_so3.SO3ModelConfig,
+        pivoted=True,
+        variants=networks_so3.SO3_VARIANTS,
+        _step=_so3_step,
+        _energy=_so3_energy,
+        _learned_terms=networks_so3.LearnedSO3Terms,
+        _weight_shapes=networks_so3.weight_shapes,
+        _init_weights=networks_so3.init_weights,
+        _closed_form=lambda model, body: _SO3ClosedForm(rigid_body.from_mujoco(model, body)),
+    )
+)
 
 
 # ----------------------------------------------------------------------------- R³ × S³: a free body

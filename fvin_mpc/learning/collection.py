@@ -19,6 +19,9 @@ import numpy as np
 
 from fvin_mpc.core import s3
 from fvin_mpc.core.data import Trajectories
+from fvin_mpc.core.quadrotor import GeometricController, from_mujoco
+from fvin_mpc.envs import QuadrotorEnv, RigidBodyEnv
+from fvin_mpc.envs.quadrotor_env import uniform_in_ball
 
 
 def _joint_kind(env: Any) -> str:
@@ -99,8 +102,6 @@ def collect(scene: str = "pendulum", trajectories: int = 320, steps: int = 20, s
         RuntimeError: fewer than one in ``max_attempts_factor`` rollouts is accepted.
     """
     from tqdm.auto import tqdm
-
-    from fvin_mpc.envs import RigidBodyEnv
 
     if max_speed is not None and not (math.isfinite(max_speed) and max_speed > 0):
         raise ValueError(f"max_speed must be finite and > 0, got {max_speed!r}")
@@ -184,11 +185,6 @@ def collect_quadrotor(scene: str = "quadrotor", trajectories: int = 300, steps: 
     from dataclasses import replace as _replace
 
     from tqdm.auto import tqdm
-
-    from fvin_mpc.core import s3
-    from fvin_mpc.core.quadrotor import GeometricController, from_mujoco
-    from fvin_mpc.envs import QuadrotorEnv
-    from fvin_mpc.envs.quadrotor_env import uniform_in_ball
 
     env = QuadrotorEnv(scene=scene)
     body = from_mujoco(env.model, env.body_name)

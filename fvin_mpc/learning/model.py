@@ -150,7 +150,10 @@ class LearnedModel(nn.Module):
         weights = init_weights(config, seed) if weights is None else weights
         check_weights(weights, config)
         self.weights = nn.ParameterDict(
-            {name: nn.Parameter(torch.as_tensor(np.asarray(value), dtype=DTYPE).clone()) for name, value in weights.items()}
+            {
+                name: nn.Parameter(torch.as_tensor(np.asarray(value), dtype=DTYPE).clone())
+                for name, value in weights.items()
+            }
         )
 
     def numpy_weights(self) -> dict[str, np.ndarray]:

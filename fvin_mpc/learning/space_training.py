@@ -26,6 +26,7 @@ from fvin_mpc.core.networks_r3s3 import LearnedCombinedTerms, R3S3Config, physic
 from fvin_mpc.core.quadrotor import from_mujoco
 from fvin_mpc.core.space import R3S3, ConfigurationSpace, space_of_config
 from fvin_mpc.envs import QuadrotorEnv
+from fvin_mpc.learning.training import train
 
 #: Position and velocity scales of the free body's loss (1/m, s/m): 1 mm of position error weighs as 0.03 rad/s.
 POSITION_SCALE, VELOCITY_SCALE = 30.0, 10.0
@@ -56,8 +57,11 @@ def free_body_report(weights: Mapping[str, Any], config: R3S3Config, data: Traje
                      test: Trajectories | None) -> dict[str, Any]:
     """The recovered mass and inertia against the scene's closed form, and with held-out ``test``
     data the open-loop errors of the learned and the closed-form model."""
-    report: dict[str, Any] = {"recovered": recovered_parameters(weights, config,
-                                                                scene_quadrotor(str(data.metadata.get("scene", "quadrotor"))))}
+    report: dict[str, Any] = {
+        "recovered": recovered_parameters(
+            weights, config, scene_quadrotor(str(data.metadata.get("scene", "quadrotor")))
+        )
+    }
     if test is not None:
         report.update(compare_open_loop(weights, config, test, str(test.metadata.get("scene", "quadrotor"))))
     return report
@@ -97,7 +101,6 @@ def train_model(data: Trajectories, config: Any, settings: Any, progress: bool =
     training layout (its ``rest_scale``), from ``initial_weights`` when given (continued training)
     or the seeded initialization; the report records the scales."""
     from fvin_mpc.learning.model import model_for
-    from fvin_mpc.learning.training import train
 
     space = space_of_config(config)
     preset = training_for(space)
@@ -147,10 +150,13 @@ def recovered_parameters(weights: Mapping[str, Any], config: R3S3Config, body: A
     inertia = inertia / rotational_scale
     true_inertia = np.array(body.inertia)
     result.update(
-        rotational_scale=rotational_scale, inertia=inertia.tolist(),
+        rotational_scale=rotational_scale,
+        inertia=inertia.tolist(),
         mass_relative_error=float(np.abs(np.linalg.eigvalsh(mass) / body.mass - 1.0).max()),
         inertia_relative_error=float(np.abs(np.diag(inertia) / np.diag(true_inertia) - 1.0).max()),
-        inertia_off_diagonal_relative=float(np.abs(inertia - np.diag(np.diag(inertia))).max() / np.trace(true_inertia) * 3),
+        inertia_off_diagonal_relative=float(
+            np.abs(inertia - np.diag(np.diag(inertia))).max() / np.trace(true_inertia) * 3
+        ),
     )
     return result
 
@@ -167,7 +173,9 @@ def open_loop_errors(step: Any, data: Trajectories, horizon_steps: int) -> dict[
     for k in range(horizon_steps):
         predicted.append(step(predicted[-1], data.u[:, k]))
     final, truth = predicted[-1], states[:, -1]
-    alignment = np.clip(np.abs(np.sum(final[:, 3:7] * truth[:, 3:7], axis=1) / np.linalg.norm(final[:, 3:7], axis=1)), 0, 1)
+    alignment = np.clip(
+        np.abs(np.sum(final[:, 3:7] * truth[:, 3:7], axis=1) / np.linalg.norm(final[:, 3:7], axis=1)), 0, 1
+    )
     errors = {
         "position_m": np.linalg.norm(final[:, :3] - truth[:, :3], axis=1),
         "orientation_rad": 2.0 * np.arccos(alignment),
@@ -176,7 +184,9 @@ def open_loop_errors(step: Any, data: Trajectories, horizon_steps: int) -> dict[
     }
     summary: dict[str, Any] = {name: {"median": float(np.median(e)), "p90": float(np.percentile(e, 90)),
                                       "max": float(np.max(e))} for name, e in errors.items()}
-    summary["max_unit_norm_error"] = float(max(np.abs(np.linalg.norm(p[:, 3:7], axis=1) - 1.0).max() for p in predicted))
+    summary["max_unit_norm_error"] = float(
+        max(np.abs(np.linalg.norm(p[:, 3:7], axis=1) - 1.0).max() for p in predicted)
+    )
     summary["all_finite"] = bool(all(np.all(np.isfinite(p)) for p in predicted))
     summary["horizon_s"] = horizon_steps * data.control_period
     summary["trajectories"] = data.num_trajectories

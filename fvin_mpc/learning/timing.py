@@ -11,6 +11,9 @@ from typing import Any, Callable, Iterator
 
 import numpy as np
 
+from fvin_mpc.core import fvin
+from fvin_mpc.core.backend import get_ops
+
 
 @contextmanager
 def torch_threads(threads: int) -> Iterator[None]:
@@ -32,11 +35,8 @@ def batched_step_call(terms_of: Callable[[Any], Any], step_size: float, newton_i
                       omega: np.ndarray, u: np.ndarray) -> Callable[[], None]:
     """A no-grad call of the torch step on the batch ``q (B, 4)``, ``ω (B, 3)``, ``u (B, m)``;
     ``terms_of(ops)`` builds the rigid-body terms on the torch backend (learned weights as float64
-    tensors, or a closed-form body). For timing with :func:`fvin_mpc.studies.report.median_time`."""
+    tensors, or a closed-form body). For timing with :func:`benchmarks.study.median_time` (the repository's studies)."""
     import torch
-
-    from fvin_mpc.core import fvin
-    from fvin_mpc.core.backend import get_ops
 
     ops = get_ops("torch")
     terms = terms_of(ops)
@@ -56,27 +56,3 @@ def tensor_weights(weights: dict[str, np.ndarray]) -> dict[str, Any]:
     import torch
 
     return {name: torch.as_tensor(value, dtype=torch.float64) for name, value in weights.items()}
-
-
-def loss_and_gradient_cpu_s(config: Any, data: Any, repeats: int, seed: int = 0) -> float:
-    """Median thread CPU seconds of one full-batch rollout loss with its gradient — the least any
-    optimizer iteration pays — for a freshly initialized model of ``config``'s space on ``data``'s
-    windows (the training's default window and weight), one torch thread."""
-    import time
-
-    import torch
-
-    from fvin_mpc.learning.model import DTYPE, model_for
-    from fvin_mpc.learning.training import TrainSettings, rollout_loss
-
-    settings = TrainSettings()
-    windows = tuple(torch.as_tensor(a, dtype=DTYPE) for a in data.windows(settings.window))
-    network = model_for(config, seed=seed)
-    times = []
-    with torch_threads(1):
-        for _ in range(repeats + 1):  # the first call warms up
-            network.zero_grad()
-            start = time.thread_time()
-            rollout_loss(network, *windows, settings.omega_weight).backward()
-            times.append(time.thread_time() - start)
-    return float(np.median(times[1:]))

@@ -36,8 +36,11 @@ from typing import Any, Callable, Literal, Mapping
 
 import numpy as np
 
+from fvin_mpc.core import s3
 from fvin_mpc.core.data import Trajectories
+from fvin_mpc.core.errors import UsageError
 from fvin_mpc.core.networks import ModelConfig
+from fvin_mpc.envs import RigidBodyEnv
 from fvin_mpc.learning.timing import torch_threads
 
 DEFAULT_DATA = Path("data/pendulum.npz")
@@ -108,7 +111,9 @@ class TrainSettings:
         if self.threads is not None and self.threads < 1:
             raise ValueError(f"threads must be >= 1, got {self.threads}")
         if self.compile and self.optimizer == "lm":
-            raise ValueError("compile applies to the adam and lbfgs optimizers only (LM differentiates with torch.func)")
+            raise ValueError(
+                "compile applies to the adam and lbfgs optimizers only (LM differentiates with torch.func)"
+            )
 
     @property
     def max_iterations(self) -> int:
@@ -169,7 +174,6 @@ def default_output_stem(data: Trajectories, data_path: str | Path, variant: str,
 def refuse_to_overwrite(stem: Path, force: bool) -> None:
     """``UsageError`` if a checkpoint (either of its files) is at ``stem`` and not ``force``: a default
     output name must not silently replace a shipped or earlier model."""
-    from fvin_mpc.core.errors import UsageError
 
     existing = [path for path in (stem.parent / f"{stem.name}.json", stem.parent / f"{stem.name}.safetensors")
                 if path.exists()]
@@ -189,8 +193,6 @@ def scene_has_joint_damping(metadata: Mapping[str, Any]) -> bool | None:
     if not scene:
         return None
     try:
-        from fvin_mpc.envs import RigidBodyEnv
-
         env = RigidBodyEnv(scene=scene, body=metadata.get("body"))
     except (ValueError, FileNotFoundError, OSError):
         return None
@@ -222,8 +224,6 @@ def rollout_residuals(q_hat: Any, omega_hat: Any, q: Any, omega: Any, omega_weig
     changes the residuals' sign, not their squares, ``JᵀJ`` or ``Jᵀr``); velocity:
     ``√omega_weight·(ω̂ − ω)``."""
     import torch
-
-    from fvin_mpc.core import s3
 
     a, b = q_hat[:, 1:].unbind(-1), q[:, 1:].unbind(-1)
     orientation = torch.stack(s3.imaginary(s3.multiply(s3.conjugate(b), a)), dim=-1)
@@ -264,7 +264,9 @@ class _EarlyStopping:
             self.reason = f"validation loss reached the target {target:.3g}"
             return True
         if self.settings.patience and self.stale >= self.settings.patience:
-            self.reason = f"validation loss did not improve by {self.settings.min_improvement:.1%} in {self.stale} evaluations"
+            self.reason = (
+                f"validation loss did not improve by {self.settings.min_improvement:.1%} in {self.stale} evaluations"
+            )
             return True
         return False
 
@@ -473,7 +475,9 @@ def _train(data: Any, config: Any, settings: TrainSettings, progress: bool, mode
         lm = _LevenbergMarquardt(model, train_windows, settings)
         advance = lm.step
     elif settings.optimizer == "lbfgs":
-        lbfgs = torch.optim.LBFGS(model.parameters(), lr=1.0, max_iter=4, history_size=50, line_search_fn="strong_wolfe")
+        lbfgs = torch.optim.LBFGS(
+            model.parameters(), lr=1.0, max_iter=4, history_size=50, line_search_fn="strong_wolfe"
+        )
 
         def closure() -> Any:
             lbfgs.zero_grad()

@@ -37,6 +37,12 @@ from typing import Any
 
 import numpy as np
 
+from fvin_mpc.control.closed_loop import NOT_MEASURED, ZeroController, check_latency, episode_metrics, run_episode
+from fvin_mpc.control.energy_shaping import EnergyShapingNotApplicable
+from fvin_mpc.control.mpc import MPCSettings
+from fvin_mpc.control.scene import scene_energy_shaping, scene_env, scene_model, scene_mpc, scene_mpc_settings
+from fvin_mpc.core.checkpoint import checkpoint_exists, resolve_checkpoint_path
+from fvin_mpc.envs.scenes import resolve_scene
 from fvin_mpc.studies import starts
 from fvin_mpc.studies.pool import run_tasks
 from fvin_mpc.studies.report import write_report as write_report_files
@@ -92,10 +98,8 @@ class EvaluationConfig:
             raise ValueError(f"unknown controllers {unknown}; choose from {', '.join(CONTROLLERS)}")
         if not (math.isfinite(self.max_omega) and self.max_omega >= 0):
             raise ValueError(f"max_omega must be finite and >= 0, got {self.max_omega}")
-        from fvin_mpc.control.closed_loop import _check_latency
-        from fvin_mpc.control.mpc import MPCSettings
 
-        _check_latency(self.latency)
+        check_latency(self.latency)
         try:  # validate the overrides (names and values) now, not in a worker
             MPCSettings(**dict(self.mpc))
         except TypeError as error:
@@ -103,8 +107,6 @@ class EvaluationConfig:
 
     @property
     def checkpoint_name(self) -> str:
-        from fvin_mpc.envs.scenes import resolve_scene
-
         return self.checkpoint or resolve_scene(self.scene).default_checkpoint
 
 
@@ -116,7 +118,6 @@ def episode_starts(config: EvaluationConfig) -> list[EpisodeStart]:
 # ---------------------------------------------------------------------- controllers
 def make_env(config: EvaluationConfig) -> Any:
     """The scene's env at the configuration's control period (:func:`fvin_mpc.control.scene.scene_env`)."""
-    from fvin_mpc.control.scene import scene_env
 
     learned = any(name.endswith("-learned") for name in config.controllers)
     has_checkpoint = learned and _checkpoint_exists(config)
@@ -126,9 +127,6 @@ def make_env(config: EvaluationConfig) -> Any:
 
 def build_controller(name: str, env: Any, config: EvaluationConfig) -> Any:
     """The controller called ``name`` for ``env``; :class:`ControllerSkipped` if it does not apply."""
-    from fvin_mpc.control.closed_loop import ZeroController
-    from fvin_mpc.control.energy_shaping import EnergyShapingNotApplicable
-    from fvin_mpc.control.scene import scene_energy_shaping, scene_model, scene_mpc
 
     learned = name.endswith("-learned")
     if learned:
@@ -148,20 +146,16 @@ def build_controller(name: str, env: Any, config: EvaluationConfig) -> Any:
 
 def mpc_settings(config: EvaluationConfig, env: Any = None) -> Any:
     """The MPC settings of the scene (:func:`fvin_mpc.control.scene.scene_mpc_settings`), ``config.mpc`` applied."""
-    from fvin_mpc.control.scene import scene_mpc_settings
 
     return scene_mpc_settings(make_env(config) if env is None else env, **dict(config.mpc))
 
 
 def _checkpoint_exists(config: EvaluationConfig) -> bool:
-    from fvin_mpc.core.checkpoint import checkpoint_exists
-
     return checkpoint_exists(config.checkpoint_name)
 
 
 def _check_checkpoint(config: EvaluationConfig) -> None:
     """A missing *default* checkpoint skips the learned controllers; a missing explicit one is an error."""
-    from fvin_mpc.core.checkpoint import resolve_checkpoint_path
 
     if _checkpoint_exists(config):
         return
@@ -199,7 +193,6 @@ def _worker_controller(name: str) -> Any:
 
 def run_task(name: str, start: EpisodeStart) -> dict[str, Any]:
     """One episode of controller ``name`` (in the current worker's env); metrics and a light trajectory."""
-    from fvin_mpc.control.closed_loop import episode_metrics, run_episode
 
     env, config = _WORKER["env"], _WORKER["config"]
     controller = _worker_controller(name)
@@ -245,7 +238,6 @@ class EvaluationResult:
 
 def summarize(records: list[dict[str, Any]]) -> dict[str, Any]:
     """Aggregate one controller's episode records."""
-    from fvin_mpc.control.closed_loop import NOT_MEASURED
 
     metrics = [r["metrics"] for r in records]
     successes = [m for m in metrics if m["success"]]
@@ -438,8 +430,11 @@ def plot_phase_portraits(result: EvaluationResult, path: Path) -> None:
 
 def _settings_text(config: EvaluationConfig) -> str:
     settings = mpc_settings(config)
-    return (f"solver {settings.solver}, horizon {settings.horizon}, Hessian {settings.hessian}, max_iter {settings.max_iter}, "
-            f"terminal energy weight {settings.terminal_energy_weight:g}, cold starts {', '.join(settings.cold_starts)}")
+    return (
+        f"solver {settings.solver}, horizon {settings.horizon}, Hessian {settings.hessian}, max_iter "
+        f"{settings.max_iter}, "
+        f"terminal energy weight {settings.terminal_energy_weight:g}, cold starts {', '.join(settings.cold_starts)}"
+    )
 
 
 def write_report(result: EvaluationResult, out_dir: Path, command: str) -> list[Path]:
@@ -475,7 +470,9 @@ controller then applied its fallback).{skipped}
 
 {per_seed_table(result, axis, goal)}
 """
-    write_report_files(out_dir / "evaluation", f"Closed-loop evaluation: `{config.scene}`", result.to_json(), text, command)
+    write_report_files(
+        out_dir / "evaluation", f"Closed-loop evaluation: `{config.scene}`", result.to_json(), text, command
+    )
     env.close()
     return written
 

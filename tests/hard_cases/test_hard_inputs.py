@@ -12,16 +12,16 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import strategies as S
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-import strategies as S
+from fvin_mpc.control.energy_shaping import EnergyShapingController
 from fvin_mpc.core.backend import get_ops
 from fvin_mpc.core.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
-from fvin_mpc.control.energy_shaping import EnergyShapingController
-from fvin_mpc.core.state import UNIT_NORM_TOLERANCE
 from fvin_mpc.core.networks import ModelConfig, init_weights
 from fvin_mpc.core.rigid_body import PENDULUM
+from fvin_mpc.core.state import UNIT_NORM_TOLERANCE
 
 NP = get_ops("numpy")
 

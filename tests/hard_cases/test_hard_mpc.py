@@ -10,14 +10,14 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+import strategies as S
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
-import strategies as S
 from fvin_mpc.control import export
 from fvin_mpc.control.mpc import MPC, SUCCESS_STATUSES, MPCSettings
-from fvin_mpc.core.state import UNIT_NORM_TOLERANCE
 from fvin_mpc.core.rigid_body import PENDULUM
+from fvin_mpc.core.state import UNIT_NORM_TOLERANCE
 
 UPRIGHT = np.array([0.0, 0.0, 1.0, 0.0])
 LOW, HIGH = np.array([-2.0]), np.array([2.0])
@@ -133,10 +133,9 @@ def test_learned_checkpoint_swings_up_from_exact_rest():
     """Closed loop on MuJoCo from exact rest with the MPC planning on the shipped learned
     ``pendulum_sign-invariant`` model (slow: builds and compiles the learned-model NLP once).
     A missing shipped checkpoint is a failure, not a skip."""
-    from fvin_mpc.envs import RigidBodyEnv
-
     from fvin_mpc.control.closed_loop import episode_metrics, run_episode
     from fvin_mpc.control.scene import scene_model, scene_mpc
+    from fvin_mpc.envs import RigidBodyEnv
 
     env = RigidBodyEnv("pendulum")
     controller = scene_mpc(env, scene_model(env, "pendulum_sign-invariant"))

@@ -9,16 +9,16 @@ unit ``exp(ξ)``, so it preserves ``‖q‖`` exactly (to rounding) whatever ``�
 import casadi as ca
 import numpy as np
 import pytest
+import strategies as S
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
-import strategies as S
 from fvin_mpc.control import export
 from fvin_mpc.core import fvin
 from fvin_mpc.core.backend import get_ops
+from fvin_mpc.core.rigid_body import PENDULUM
 from fvin_mpc.core.space import S3
 from fvin_mpc.core.state import UNIT_NORM_TOLERANCE
-from fvin_mpc.core.rigid_body import PENDULUM
 
 H = 0.05
 NP = get_ops("numpy")

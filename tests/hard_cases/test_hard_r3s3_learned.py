@@ -6,10 +6,10 @@ quadrotor's hard cases are in ``tests/test_r3s3.py``.
 """
 
 import numpy as np
+import strategies as S
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-import strategies as S
 from fvin_mpc.core import fvin_r3s3
 from fvin_mpc.core.backend import get_ops
 from fvin_mpc.core.networks_r3s3 import LearnedCombinedTerms, R3S3Config, init_weights

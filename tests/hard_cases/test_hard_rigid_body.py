@@ -12,11 +12,11 @@ energy error (unforced) scales the same way and ``|q|`` stays 1.
 
 import numpy as np
 import pytest
+import strategies as S
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 from scipy.integrate import solve_ivp
 
-import strategies as S
 from fvin_mpc.core import fvin
 from fvin_mpc.core.backend import get_ops
 
@@ -70,7 +70,9 @@ def time_scale(body, omega0, u):
 
 
 def error(states, ref, rate):
-    dq = np.minimum(np.linalg.norm(states[:, :4] - ref[:, :4], axis=1), np.linalg.norm(states[:, :4] + ref[:, :4], axis=1))
+    dq = np.minimum(
+        np.linalg.norm(states[:, :4] - ref[:, :4], axis=1), np.linalg.norm(states[:, :4] + ref[:, :4], axis=1)
+    )
     return np.max(dq + np.linalg.norm(states[:, 4:] - ref[:, 4:], axis=1) / rate)
 
 

@@ -4,15 +4,15 @@ The MPC's cost and torque under ``q → −q`` and ``goal → −goal`` are in `
 
 import numpy as np
 import pytest
+import strategies as S
+import torch  # noqa: E402  (a dependency: a missing torch is a failure, not a skip)
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-import strategies as S
 from fvin_mpc.control import export
 from fvin_mpc.core.checkpoint import save_checkpoint
 from fvin_mpc.core.networks import ModelConfig, init_weights
 
-import torch  # noqa: E402  (a dependency: a missing torch is a failure, not a skip)
 WEIGHT_SEEDS = (0, 1, 2)
 
 
@@ -40,7 +40,9 @@ def as_batch(array):
     return torch.as_tensor(array, dtype=torch.float64)[None]
 
 
-states = st.tuples(S.unit_quaternions(), S.vectors(3, -8.0, 8.0), S.vectors(3, -2.0, 2.0), st.sampled_from(WEIGHT_SEEDS))
+states = st.tuples(
+    S.unit_quaternions(), S.vectors(3, -8.0, 8.0), S.vectors(3, -2.0, 2.0), st.sampled_from(WEIGHT_SEEDS)
+)
 
 
 @settings(max_examples=S.budget(150))
@@ -53,7 +55,9 @@ def test_torch_sign_invariant_step_is_the_same_motion_for_q_and_minus_q(models, 
         plus = model.step(as_batch(q), as_batch(omega), as_batch(u[:m]), with_residual=True)
         minus = model.step(as_batch(-q), as_batch(omega), as_batch(u[:m]), with_residual=True)
     np.testing.assert_allclose(minus.q.numpy(), -plus.q.numpy(), atol=1e-13)
-    np.testing.assert_allclose(minus.omega.numpy(), plus.omega.numpy(), atol=1e-12 * (1 + np.abs(plus.omega.numpy()).max()))
+    np.testing.assert_allclose(
+        minus.omega.numpy(), plus.omega.numpy(), atol=1e-12 * (1 + np.abs(plus.omega.numpy()).max())
+    )
     np.testing.assert_allclose(minus.residual.numpy(), plus.residual.numpy(), atol=1e-12)
 
 

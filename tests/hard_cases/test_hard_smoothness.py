@@ -10,17 +10,17 @@ that is smooth at 0").
 import casadi as ca
 import numpy as np
 import pytest
+import strategies as S
+import torch  # noqa: E402  (a dependency: a missing torch is a failure, not a skip)
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-import strategies as S
 from fvin_mpc.control import export
 from fvin_mpc.core import fvin, s3
 from fvin_mpc.core.backend import get_ops
 from fvin_mpc.core.networks import LearnedTerms, ModelConfig, init_weights
 from fvin_mpc.core.rigid_body import PENDULUM
 
-import torch  # noqa: E402  (a dependency: a missing torch is a failure, not a skip)
 H = 0.05
 RESTS = [np.array([1.0, 0, 0, 0]), np.array([-1.0, 0, 0, 0]), np.array([0, 0, 1.0, 0]), np.array([0, 0, -1.0, 0])]
 

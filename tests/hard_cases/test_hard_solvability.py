@@ -13,11 +13,11 @@ the physical torques (``tests/strategies.py``), not from the package's step.
 import casadi as ca
 import numpy as np
 import pytest
+import strategies as S
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 from scipy.optimize import root
 
-import strategies as S
 from fvin_mpc.control import export
 from fvin_mpc.core import fvin, s3
 from fvin_mpc.core.backend import get_ops

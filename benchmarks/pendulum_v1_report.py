@@ -1,6 +1,6 @@
-"""The learned model's MPC on Gymnasium's own ``Pendulum-v1``: ``python -m fvin_mpc.pendulum_v1``.
+"""The learned model's MPC on Gymnasium's own ``Pendulum-v1``: ``python -m benchmarks.pendulum_v1_report``.
 
-The command line of :mod:`fvin_mpc.studies.pendulum_v1`, whose docstring (the method) is this command's ``--help``.
+The command line of :mod:`benchmarks.pendulum_v1_mpc`, whose docstring (the method) is this command's ``--help``.
 """
 
 from __future__ import annotations
@@ -12,10 +12,17 @@ import sys
 from pathlib import Path
 from typing import Sequence
 
-import fvin_mpc.studies.pendulum_v1 as pendulum_v1_module
+import benchmarks.pendulum_v1_mpc as pendulum_v1_module
+from benchmarks.pendulum_v1_mpc import (
+    REFERENCE_GRIDS,
+    BenchmarkConfig,
+    plot_returns,
+    run_benchmark,
+    summarize,
+    write_markdown,
+)
+from benchmarks.pendulum_v1_plan import SwingUpConfig, describe_swing_up, run_swing_up_benchmark
 from fvin_mpc._cli import add_backend_arguments, backend_options, checked_scene_and_checkpoint, exit_status, run_command
-from fvin_mpc.studies.pendulum_v1 import (REFERENCE_GRIDS, BenchmarkConfig, plot_returns, run_benchmark,
-                                          summarize, write_markdown)
 from fvin_mpc.studies.pool import TasksFailed
 
 
@@ -40,15 +47,24 @@ def _positive_ints(text: str) -> tuple[int, ...]:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="python -m fvin_mpc.pendulum_v1", description=pendulum_v1_module.__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        prog="python -m benchmarks.pendulum_v1_report",
+        description=pendulum_v1_module.__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     parser.add_argument("--checkpoint", default=BenchmarkConfig.checkpoint, help="learned model (default: %(default)s)")
     parser.add_argument("--true-model", action="store_true", help="plan with the closed-form pendulum instead")
     parser.add_argument("--horizon", type=int, default=30, help="MPC steps (default: %(default)s)")
-    parser.add_argument("--episodes", type=int, default=100, help="episodes, seeds seed … seed+episodes−1 (default: %(default)s)")
+    parser.add_argument(
+        "--episodes", type=int, default=100, help="episodes, seeds seed … seed+episodes−1 (default: %(default)s)"
+    )
     parser.add_argument("--seed", type=int, default=0, help="first env.reset seed (default: %(default)s)")
-    parser.add_argument("--energy-weight", type=float, default=None,
-                        help="terminal energy-deficit weight W_E (default: the scenes' default, DEFAULT_TERMINAL_ENERGY_WEIGHT)")
+    parser.add_argument(
+        "--energy-weight",
+        type=float,
+        default=None,
+        help="terminal energy-deficit weight W_E (default: the scenes' default, DEFAULT_TERMINAL_ENERGY_WEIGHT)",
+    )
     parser.add_argument("--solver", choices=["ipopt", "rti"], default="ipopt",
                         help="ipopt: solved to convergence every step; rti: one real-time iteration per step "
                              "(default: %(default)s)")
@@ -60,10 +76,6 @@ def build_parser() -> argparse.ArgumentParser:
                              "default: the pendulum scene's RTI setting)")
     parser.add_argument("--single-start", action="store_true",
                         help="plain MPC: one first guess per episode instead of the multi-start")
-    parser.add_argument("--terminal-value", action="store_true",
-                        help="experimental: the terminal cost is the learned model's value function for Pendulum-v1's "
-                             "cost (DP on the model, fvin_mpc.studies.pendulum_v1_value) instead of the terminal "
-                             "orientation, speed and energy terms; worse on the seeds tried (docs/pendulum-v1.md)")
     parser.add_argument("--rank-cold-starts", action="store_true",
                         help="the multi-start cold call keeps the plan with the lowest estimate of the episode's "
                              "Pendulum-v1 cost (stage costs + the learned model's value after the horizon) instead "
@@ -72,7 +84,7 @@ def build_parser() -> argparse.ArgumentParser:
                         help="per episode, simulate on the learned model the plain MPC and a swing-up by the "
                              "learned model's DP policy handing over to the MPC once the swing-up fits in the "
                              "horizon; the swing-up runs if cheaper there by more than --dp-choice-margin, else "
-                             "the MPC (fvin_mpc.studies.pendulum_v1_plan; learned model only)")
+                             "the MPC (benchmarks.pendulum_v1_plan; learned model only)")
     parser.add_argument("--dp-lookahead", type=_positive_ints, default=None,
                         help="with --dp-swing-up: the handover's greedy-rollout lookaheads, one candidate each, "
                              "as N[,N...] (default: 30)")
@@ -82,7 +94,7 @@ def build_parser() -> argparse.ArgumentParser:
                         help="with --dp-swing-up: a swing-up runs only if its simulated cost is lower than the plain "
                              "MPC's by more than this (default: 10)")
     parser.add_argument("--value-grid", type=_grids, default=((256, 129),),
-                        help="with --terminal-value, --rank-cold-starts or --dp-swing-up: the value's DP grid THETAxRATE "
+                        help="with --rank-cold-starts or --dp-swing-up: the value's DP grid THETAxRATE "
                              "(default: 256x129)")
     parser.add_argument("--no-reference", action="store_true", help="skip the per-seed global reference")
     parser.add_argument("--reference-grids", type=_grids, default=REFERENCE_GRIDS,
@@ -108,14 +120,13 @@ def main(argv: Sequence[str] | None = None) -> int:
                        episodes=args.episodes, seed=args.seed, reference=not args.no_reference,
                        multistart=not args.single_start, terminal_energy_weight=args.energy_weight,
                        solver=args.solver, rti_cold_solver=args.rti_cold_solver, rti_dynamics=args.rti_dynamics,
-                       reference_grids=args.reference_grids, terminal_value=args.terminal_value,
+                       reference_grids=args.reference_grids,
                        rank_cold_starts=args.rank_cold_starts, value_grid=args.value_grid[0])
         swing_up = {"dp_lookaheads": args.dp_lookahead, "dp_simulated_steps": args.dp_simulated_steps,
                     "dp_choice_margin": args.dp_choice_margin}
         if not args.dp_swing_up and any(v is not None for v in swing_up.values()):
             raise ValueError("--dp-lookahead, --dp-simulated-steps and --dp-choice-margin need --dp-swing-up")
         if args.dp_swing_up:
-            from fvin_mpc.studies.pendulum_v1_plan import SwingUpConfig
 
             config = SwingUpConfig(**options, **{k: v for k, v in swing_up.items() if v is not None})
         else:
@@ -126,7 +137,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         backend = backend_options(args)
         reference_from = json.loads(args.reference_from.read_text()) if args.reference_from else None
         if args.dp_swing_up:
-            from fvin_mpc.studies.pendulum_v1_plan import run_swing_up_benchmark
 
             records = run_swing_up_benchmark(config, args.workers, progress=not args.quiet,
                                              reference_from=reference_from, **backend)
@@ -136,14 +146,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (ValueError, FileNotFoundError, TasksFailed) as error:
         return exit_status(error)
     summary = summarize(records)
-    command = "python -m fvin_mpc.pendulum_v1 " + " ".join(shlex.quote(a) for a in argv)
+    command = "python -m benchmarks.pendulum_v1_report " + " ".join(shlex.quote(a) for a in argv)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     label = "MPC (true model)" if config.true_model else "MPC (learned)"
     plot_returns(records, args.out.with_suffix(".png"), label)
     write_markdown(summary, records, config, command.strip(), args.out, previous,
                    str(args.reference_from) if args.reference_from else None)
     if args.dp_swing_up:
-        from fvin_mpc.studies.pendulum_v1_plan import describe_swing_up
 
         describe_swing_up(args.out, config, records)
     print(json.dumps(summary, indent=2))

@@ -4,7 +4,7 @@ The MPC's horizon (30 steps, 1.5 s) is shorter than a swing-up from near hanging
 cold call decides how to pump (which way first, how many swings) with only a local picture of
 the rest of the episode, and some of those decisions cost a whole extra swing (seeds 53, 34, 93 of
 ``docs/pendulum-v1.md``: 40–60 each). The learned model's value function
-(:mod:`fvin_mpc.studies.pendulum_v1_value`: DP on the model's own map, Pendulum-v1's cost) sees the
+(:mod:`benchmarks.pendulum_v1_value`: DP on the model's own map, Pendulum-v1's cost) sees the
 whole episode, but as the MPC's terminal cost it made the plans end on knife edges.
 
 This controller uses the value where it is global and the MPC where it is precise:
@@ -39,7 +39,11 @@ from typing import Any
 
 import numpy as np
 
-from fvin_mpc.studies.pendulum_v1 import EPISODE_STEPS, MAX_SPEED, MAX_TORQUE, BenchmarkConfig, v1_cost
+from benchmarks.pendulum_v1_exact import EPISODE_STEPS, MAX_SPEED, MAX_TORQUE, v1_cost
+from benchmarks.pendulum_v1_mpc import BenchmarkConfig, add_references, build_mpc, reuse_references, run_v1_episode
+from benchmarks.pendulum_v1_value import interpolate, model_value_table
+from fvin_mpc.envs.pendulum_v1 import v1_observation_from_state
+from fvin_mpc.studies.pool import run_tasks
 
 #: Torques the greedy policy tries per step (spacing 0.05 on [−2, 2]).
 GREEDY_TORQUES = 81
@@ -58,7 +62,6 @@ def caught(theta: np.ndarray, rate: np.ndarray) -> bool:
 
 def v1_angles(states: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Pendulum-v1's ``(θ, θ̇)`` of model states ``(…, 7)`` (θ in ``[−π, π)``, 0 upright)."""
-    from fvin_mpc.envs.pendulum_v1 import v1_observation_from_state
 
     observed = v1_observation_from_state(np.asarray(states, float).reshape(-1, 7))
     return np.arctan2(observed[:, 1], observed[:, 0]), observed[:, 2]
@@ -71,7 +74,7 @@ class DPSwingUpController:
         mpc: the MPC that catches and balances (called as ``mpc(x) -> (u, info)``, ``mpc.reset()``).
         model: the learned model (its ``step`` CasADi function, ``x (7,), u (1,) -> x'``).
         table: the learned model's value ``(n_theta, n_rate)`` for Pendulum-v1's cost
-            (:func:`~fvin_mpc.studies.pendulum_v1_value.model_value_table`).
+            (:func:`~benchmarks.pendulum_v1_value.model_value_table`).
         torques: torques tried per greedy step, evenly on ``[−2, 2]``.
         lookahead: steps of the greedy rollout that decides the handover (≥ 1).
     """
@@ -92,7 +95,6 @@ class DPSwingUpController:
 
     def greedy_torque(self, state: np.ndarray) -> tuple[float, np.ndarray]:
         """``argmin_u c(x, u) + V(F(x, u))`` over :attr:`torques` and the model's next state under it."""
-        from fvin_mpc.studies.pendulum_v1_value import interpolate
 
         state = np.asarray(state, float).ravel()
         next_states = np.asarray(self._mapped_step(np.tile(state[:, None], (1, len(self.torques))),
@@ -228,7 +230,7 @@ def swing_up_controller(mpc: Any, model: Any, table: np.ndarray, lookaheads: tup
 
 @dataclass(frozen=True)
 class SwingUpConfig(BenchmarkConfig):
-    """:class:`~fvin_mpc.studies.pendulum_v1.BenchmarkConfig` with the learned-DP swing-up (module docstring)."""
+    """:class:`~benchmarks.pendulum_v1_mpc.BenchmarkConfig` with the learned-DP swing-up (module docstring)."""
 
     dp_lookaheads: tuple[int, ...] = DEFAULT_LOOKAHEADS
     dp_simulated_steps: int = DEFAULT_SIMULATED_STEPS
@@ -245,9 +247,7 @@ class SwingUpConfig(BenchmarkConfig):
 
 
 def build_swing_up_controller(config: SwingUpConfig) -> SimulatedChoiceController:
-    """The benchmark's MPC (:func:`~fvin_mpc.studies.pendulum_v1.build_mpc`) with the learned-DP swing-up."""
-    from fvin_mpc.studies.pendulum_v1 import build_mpc
-    from fvin_mpc.studies.pendulum_v1_value import model_value_table
+    """The benchmark's MPC (:func:`~benchmarks.pendulum_v1_mpc.build_mpc`) with the learned-DP swing-up."""
 
     mpc = build_mpc(config)
     table = model_value_table(mpc.model, config.value_grid, steps=EPISODE_STEPS - config.horizon, stage_cost="v1")
@@ -266,19 +266,22 @@ def _init_worker(config: SwingUpConfig) -> None:
 
 def run_seed(seed: int) -> dict[str, Any]:
     """The swing-up controller's episode on ``seed``, with its choice and the simulated costs."""
-    from fvin_mpc.studies.pendulum_v1 import run_v1_episode
 
     controller = _WORKER["controller"]
     record = run_v1_episode(_WORKER["env"], controller, seed)
     return {**record, "swing_up_choice": controller.choice, "simulated_costs": dict(controller.simulated_costs)}
 
 
-def run_swing_up_benchmark(config: SwingUpConfig, workers: int = 1, progress: bool = True, backend: str = "process",
-                           address: str | None = None, reference_from: dict[str, Any] | None = None) -> list[dict[str, Any]]:
-    """:func:`~fvin_mpc.studies.pendulum_v1.run_benchmark` with :func:`build_swing_up_controller`'s episodes
+def run_swing_up_benchmark(
+    config: SwingUpConfig,
+    workers: int = 1,
+    progress: bool = True,
+    backend: str = "process",
+    address: str | None = None,
+    reference_from: dict[str, Any] | None = None,
+) -> list[dict[str, Any]]:
+    """:func:`~benchmarks.pendulum_v1_mpc.run_benchmark` with :func:`build_swing_up_controller`'s episodes
     (their references the same way: computed, or reused from ``reference_from``)."""
-    from fvin_mpc.studies.pendulum_v1 import add_references, reuse_references
-    from fvin_mpc.studies.pool import run_tasks
 
     if workers > 1 or backend != "process":
         build_swing_up_controller(config)  # compiles the MPC's library and the value into the disk cache once
@@ -293,7 +296,7 @@ def run_swing_up_benchmark(config: SwingUpConfig, workers: int = 1, progress: bo
 
 def describe_swing_up(markdown: Path, config: SwingUpConfig, records: list[dict[str, Any]]) -> None:
     """Name the swing-up in the report ``markdown`` written by
-    :func:`~fvin_mpc.studies.pendulum_v1.write_markdown`: the controller's row and a bullet on the choice."""
+    :func:`~benchmarks.pendulum_v1_mpc.write_markdown`: the controller's row and a bullet on the choice."""
     text = markdown.read_text()
     lookaheads = ", ".join(map(str, config.dp_lookaheads))
     label = "| MPC (" + config.solver + ")"
@@ -303,7 +306,7 @@ def describe_swing_up(markdown: Path, config: SwingUpConfig, records: list[dict[
     chosen = [r for r in records if r["swing_up_choice"] != "mpc"]
     simulated = [r for r in records if r["simulated_costs"]]
     first_call_s = np.array([r["controller_time_s"][0] for r in records])
-    bullet = (f"* Swing-up (`--dp-swing-up`, `fvin_mpc/studies/pendulum_v1_plan.py`): at each episode's first call the "
+    bullet = (f"* Swing-up (`--dp-swing-up`, `benchmarks/pendulum_v1_plan.py`): at each episode's first call the "
               f"plain MPC and the learned model's DP policy (greedy on its value, {GREEDY_TORQUES} torques) handing "
               f"over to the MPC once its {lookaheads}-step rollout on the model is caught (|θ| < {CAUGHT_ANGLE}, "
               f"|θ̇| < {CAUGHT_RATE}) are simulated in closed loop on the learned model for "
@@ -319,6 +322,22 @@ def describe_swing_up(markdown: Path, config: SwingUpConfig, records: list[dict[
     markdown.write_text(text.replace(marker, "\n" + bullet + marker, 1))
 
 
-__all__ = ["DEFAULT_CHOICE_MARGIN", "DEFAULT_LOOKAHEADS", "describe_swing_up", "DEFAULT_SIMULATED_STEPS", "SwingUpConfig", "build_swing_up_controller",
-           "run_swing_up_benchmark", "swing_up_controller", "CAUGHT_ANGLE", "CAUGHT_RATE", "DEFAULT_LOOKAHEAD", "DPSwingUpController", "GREEDY_TORQUES",
-           "SimulatedChoiceController", "caught", "simulate_episode_cost", "v1_angles"]
+__all__ = [
+    "DEFAULT_CHOICE_MARGIN",
+    "DEFAULT_LOOKAHEADS",
+    "describe_swing_up",
+    "DEFAULT_SIMULATED_STEPS",
+    "SwingUpConfig",
+    "build_swing_up_controller",
+    "run_swing_up_benchmark",
+    "swing_up_controller",
+    "CAUGHT_ANGLE",
+    "CAUGHT_RATE",
+    "DEFAULT_LOOKAHEAD",
+    "DPSwingUpController",
+    "GREEDY_TORQUES",
+    "SimulatedChoiceController",
+    "caught",
+    "simulate_episode_cost",
+    "v1_angles",
+]

@@ -15,7 +15,8 @@ settings (what the commands use): IPOPT in waiting mode (the reference: the simu
 and with measured latency, and the RTI with measured latency (``run_episode(latency="measured")``:
 each torque acts from the first MuJoCo sub-step after the controller's compute time). Per row: the
 whole controller call (feedback plus preparation; median, p99, max), its CPU time, the feedback
-alone (observation to torque), iterations per call, deadline misses, and the swing-up from rest (time to upright, hold error over the last 3 s).
+alone (observation to torque), iterations per call, deadline misses, and the swing-up from rest (time to upright,
+hold error over the last 3 s).
 """
 
 from __future__ import annotations
@@ -25,8 +26,15 @@ import tempfile
 from dataclasses import replace
 from typing import Any
 
-from fvin_mpc.studies.report import StudyResult, StudySkipped
-from fvin_mpc.studies.bench.common import NOISE_NOTE, checkpoint_or_none, make_env, plot_pareto, solve_stats
+from benchmarks.common import NOISE_NOTE, checkpoint_or_none, make_env, plot_pareto, solve_stats
+from benchmarks.study import StudyResult, StudySkipped
+from fvin_mpc.control.closed_loop import episode_metrics, run_episode
+from fvin_mpc.control.export import cache_dir, from_checkpoint, from_rigid_body
+from fvin_mpc.control.mpc import MPC, MPCSettings
+from fvin_mpc.control.scene import scene_env, scene_model, scene_mpc, scene_mpc_settings
+from fvin_mpc.core.checkpoint import load_checkpoint
+from fvin_mpc.core.rigid_body import from_mujoco
+from fvin_mpc.studies.report import markdown_table
 
 #: (label, settings overrides) — IPOPT (the default solver) first.
 CONFIGS: tuple[tuple[str, dict[str, Any]], ...] = (
@@ -46,13 +54,14 @@ QUICK = ("ipopt GN cached pd (default)", "sqpmethod GN cached pd", "fatrop exact
 
 
 def _model(model: str) -> tuple[Any, Any, str]:
-    from fvin_mpc.control.export import from_checkpoint, from_rigid_body
-    from fvin_mpc.core.rigid_body import from_mujoco
-
     env = make_env("pendulum")
     base = env.unwrapped
     if model == "true":
-        return env, from_rigid_body(from_mujoco(base.model, base.body_name), base.dt, 2, name="true_pendulum"), "closed form"
+        return (
+            env,
+            from_rigid_body(from_mujoco(base.model, base.body_name), base.dt, 2, name="true_pendulum"),
+            "closed form",
+        )
     ckpt = checkpoint_or_none("pendulum_sign-invariant")
     if ckpt is None:
         raise StudySkipped("checkpoint 'pendulum_sign-invariant' not found in checkpoints/; run with --model true")
@@ -65,9 +74,6 @@ def _cold_build_s(exported: Any, settings: Any) -> float:
     The library it compiles is then copied into the real cache, so the next build is a cached one."""
     import shutil
     from pathlib import Path
-
-    from fvin_mpc.control.export import cache_dir
-    from fvin_mpc.control.mpc import MPC
 
     previous = os.environ.get("FVIN_MPC_CACHE")
     with tempfile.TemporaryDirectory(prefix="fvin_mpc_cold_") as empty:
@@ -101,9 +107,26 @@ REALTIME_SCENES = ("pendulum", "spherical_pendulum")
 #: per point; the sign-invariant default evaluates three networks (``J(q)`` too) at ``q`` and ``−q``,
 #: and ``J`` again at the step's end (docs/realtime.md).
 REALTIME_EXTRA_CHECKPOINTS: dict[str, tuple[str, ...]] = {"pendulum": ("pendulum_fixed-inertia",)}
-REALTIME_COLUMNS = ["scene", "model", "controller", "latency", "call_ms_median", "call_ms_p99", "call_ms_max",
-                    "cpu_ms_median", "learned_vs_true", "feedback_ms_median", "feedback_ms_p99", "feedback_learned_vs_true", "iterations_mean", "deadline_misses", "failures",
-                    "time_to_upright_s", "hold_error_rad", "swung_up"]
+REALTIME_COLUMNS = [
+    "scene",
+    "model",
+    "controller",
+    "latency",
+    "call_ms_median",
+    "call_ms_p99",
+    "call_ms_max",
+    "cpu_ms_median",
+    "learned_vs_true",
+    "feedback_ms_median",
+    "feedback_ms_p99",
+    "feedback_learned_vs_true",
+    "iterations_mean",
+    "deadline_misses",
+    "failures",
+    "time_to_upright_s",
+    "hold_error_rad",
+    "swung_up",
+]
 
 
 def realtime_rows(duration: float = 10.0, seed: int = 0, scenes: tuple[str, ...] = REALTIME_SCENES,
@@ -112,9 +135,6 @@ def realtime_rows(duration: float = 10.0, seed: int = 0, scenes: tuple[str, ...]
     """One swing-up from rest per scene × model (learned, closed form, and ``extra_checkpoints[scene]``,
     labelled ``learned (<variant>)``) × configuration."""
     import numpy as np
-
-    from fvin_mpc.control.closed_loop import episode_metrics, run_episode
-    from fvin_mpc.control.scene import scene_env, scene_model, scene_mpc, scene_mpc_settings
 
     rows: list[dict[str, Any]] = []
     for scene in scenes:
@@ -130,17 +150,28 @@ def realtime_rows(duration: float = 10.0, seed: int = 0, scenes: tuple[str, ...]
                 calls = 1e3 * episode.controller_time_s[np.isfinite(episode.controller_time_s)]
                 feedback = 1e3 * episode.feedback_s[np.isfinite(episode.feedback_s)]
                 iterations = [i["iterations"] for i in episode.controller_info if "iterations" in i]
-                rows.append({
-                    "scene": scene, "model": model_label, "controller": label,
-                    "latency": latency, "call_ms_median": float(np.median(calls)),
-                    "call_ms_p99": float(np.percentile(calls, 99)), "call_ms_max": float(calls.max()),
-                    "feedback_ms_median": float(np.median(feedback)), "feedback_ms_p99": float(np.percentile(feedback, 99)),
-                    "cpu_ms_median": float(np.nanmedian(1e3 * episode.cpu_s)) if episode.cpu_s is not None else None,
-                    "iterations_mean": float(np.mean(iterations)) if iterations else None,
-                    "deadline_misses": metrics["deadline_misses"], "failures": metrics["controller_failures"],
-                    "time_to_upright_s": metrics["time_to_upright_s"], "hold_error_rad": metrics["hold_error_rad"],
-                    "swung_up": metrics["swung_up"],
-                })
+                rows.append(
+                    {
+                        "scene": scene,
+                        "model": model_label,
+                        "controller": label,
+                        "latency": latency,
+                        "call_ms_median": float(np.median(calls)),
+                        "call_ms_p99": float(np.percentile(calls, 99)),
+                        "call_ms_max": float(calls.max()),
+                        "feedback_ms_median": float(np.median(feedback)),
+                        "feedback_ms_p99": float(np.percentile(feedback, 99)),
+                        "cpu_ms_median": float(np.nanmedian(1e3 * episode.cpu_s))
+                        if episode.cpu_s is not None
+                        else None,
+                        "iterations_mean": float(np.mean(iterations)) if iterations else None,
+                        "deadline_misses": metrics["deadline_misses"],
+                        "failures": metrics["controller_failures"],
+                        "time_to_upright_s": metrics["time_to_upright_s"],
+                        "hold_error_rad": metrics["hold_error_rad"],
+                        "swung_up": metrics["swung_up"],
+                    }
+                )
             env.close()
     for row in rows:
         true_row = next(r for r in rows if r["scene"] == row["scene"] and r["controller"] == row["controller"]
@@ -154,7 +185,6 @@ def realtime_rows(duration: float = 10.0, seed: int = 0, scenes: tuple[str, ...]
 
 def _variant(checkpoint: str) -> str:
     """The checkpoint's variant, from its metadata (``pendulum_fixed-inertia`` → ``fixed-inertia``)."""
-    from fvin_mpc.core.checkpoint import load_checkpoint
 
     return load_checkpoint(checkpoint).config.variant
 
@@ -162,7 +192,6 @@ def _variant(checkpoint: str) -> str:
 def run(quick: bool = False, seed: int = 0, repeats: int = 5, model: str = "learned", horizon: int = 30,
         duration: float = 8.0, cold: bool = True, realtime: bool = True, realtime_duration: float = 10.0,
         **_: Any) -> StudyResult:
-    from fvin_mpc.control.mpc import MPCSettings
 
     model = "true" if quick else model
     env, exported, label = _model(model)
@@ -203,7 +232,6 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 5, model: str = "lear
         NOISE_NOTE,
     ]
     if realtime and not quick:
-        from fvin_mpc.studies.report import markdown_table
 
         load = os.getloadavg()
         realtime_table = realtime_rows(realtime_duration, seed)

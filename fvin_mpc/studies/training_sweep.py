@@ -24,6 +24,12 @@ from typing import Any
 
 import numpy as np
 
+from fvin_mpc.core.checkpoint import save_checkpoint
+from fvin_mpc.core.data import load_data
+from fvin_mpc.core.networks import VARIANTS, ModelConfig
+from fvin_mpc.learning.training import TrainSettings, package_versions, scene_has_joint_damping, scene_stem, train
+from fvin_mpc.studies.pool import TasksFailed, run_tasks
+
 #: Keys of :class:`~fvin_mpc.learning.training.TrainSettings` a sweep may set for all its runs.
 TRAIN_OPTIONS: tuple[str, ...] = ("optimizer", "iterations", "patience", "window", "omega_weight", "learning_rate",
                                   "time_limit_s", "eval_every")
@@ -57,9 +63,6 @@ class SweepConfig:
     train: tuple[tuple[str, Any], ...] = ()
 
     def __post_init__(self) -> None:
-        from fvin_mpc.core.networks import VARIANTS
-        from fvin_mpc.learning.training import TrainSettings
-
         unknown = [v for v in self.variants if v not in VARIANTS]
         if unknown or not self.variants:
             raise ValueError(f"unknown variants {unknown}; choose from {', '.join(VARIANTS)}")
@@ -116,8 +119,6 @@ def subset(data: Any, size: int | None, seed: int) -> Any:
 
 def train_run(variant: str, width: int, size: int | None, seed: int) -> dict[str, Any]:
     """Train one grid entry in this worker (one torch thread); weights and report."""
-    from fvin_mpc.core.networks import ModelConfig
-    from fvin_mpc.learning.training import TrainSettings, train
 
     config: SweepConfig = _WORKER["config"]
     data = subset(_WORKER["data"], size, config.subset_seed)
@@ -132,8 +133,6 @@ def train_run(variant: str, width: int, size: int | None, seed: int) -> dict[str
 
 # ---------------------------------------------------------------------- the sweep
 def checkpoint_stem(out_dir: Path, scene: str, variant: str, width: int, trajectories: int, seed: int) -> Path:
-    from fvin_mpc.learning.training import scene_stem
-
     return Path(out_dir) / f"{scene_stem(scene)}_{variant}_w{width}_n{trajectories}_s{seed}"
 
 
@@ -141,11 +140,6 @@ def run_sweep(config: SweepConfig, out_dir: Path, workers: int = 1, progress: bo
               address: str | None = None) -> SweepResult:
     """Train every run of ``config``, write the checkpoints under ``out_dir``; failed runs are in
     :attr:`SweepResult.failures` and their rows carry the error (the others are written)."""
-    from fvin_mpc.core.checkpoint import save_checkpoint
-    from fvin_mpc.core.data import load_data
-    from fvin_mpc.core.networks import ModelConfig
-    from fvin_mpc.learning.training import package_versions, scene_has_joint_damping
-    from fvin_mpc.studies.pool import TasksFailed, run_tasks
 
     data = load_data(config.data)
     sizes = [size for size in config.sizes if size is not None]
@@ -232,8 +226,11 @@ def sweep_table(result: SweepResult) -> str:
         lines.append(f"| {r['variant']} | {r['width']} | {r['trajectories']} | {r['seed']} | {r['iterations']} "
                      f"| {r['stopped']} | {_fmt(r['final_train_loss'])} | {_fmt(r['final_validation_loss'])} "
                      f"| {r['wall_clock_s']:.1f} | `{Path(r['checkpoint']).name}` |")
-    lines += ["", "| variant | width | trajectories | runs ok | validation loss mean | min | max | wall clock mean (s) |",
-              "|---|---|---|---|---|---|---|---|"]
+    lines += [
+        "",
+        "| variant | width | trajectories | runs ok | validation loss mean | min | max | wall clock mean (s) |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     for s in summarize(result.runs):
         lines.append(f"| {s['variant']} | {s['width']} | {_fmt(s['size']) if s['size'] else 'all'} "
                      f"| {s['ok']}/{s['runs']} | {_fmt(s['validation_loss_mean'])} | {_fmt(s['validation_loss_min'])} "

@@ -2,13 +2,13 @@
 
 The MPC's horizon (30 steps, 1.5 s) is shorter than a swing-up from near hanging; with only a
 local terminal cost (orientation, speed, energy deficit) it cannot tell one pump swing from two,
-or the left swing from the right. This module estimates the cost of the rest of the episode. Three
+or the left swing from the right. This module estimates the cost of the rest of the episode. Two
 uses, measured in ``docs/pendulum-v1.md``: ranking the cold call's multi-start plans
 (:func:`plan_score`, ``--rank-cold-starts``: seed 53 +41, no other seed changed); its greedy policy
 as the swing-up before the MPC's catch, chosen per episode by simulation on the model
-(:mod:`fvin_mpc.studies.pendulum_v1_plan`, ``--dp-swing-up``); and, experimental and far worse, as
-the MPC's terminal cost (:func:`terminal_cost_function`, ``--terminal-value``: its plans end on
-knife edges that the model/plant mismatch breaks).
+(:mod:`benchmarks.pendulum_v1_plan`, ``--dp-swing-up``). As the MPC's terminal cost it measured far
+worse (its plans end on knife edges that the model/plant mismatch breaks; docs/pendulum-v1.md), and
+that option was removed.
 
 1. **Transitions** (:func:`learned_transitions`): the learned model's step ``F(x, u)`` (the MPC's own
    exported step, no knowledge of Pendulum-v1's map) from every point of a grid ``θ_i`` (periodic,
@@ -20,12 +20,6 @@ knife edges that the model/plant mismatch breaks).
    and ``c`` Pendulum-v1's stage cost ``angle² + 0.1 θ̇² + 0.001 u²`` — the benchmark's objective, the
    cost the reference minimizes. ``τ = steps`` (default 200 − the MPC's horizon) time to go; the
    swing-ups end long before, so the value has settled (the MPC uses one table at every step).
-3. **Terminal cost** (:func:`terminal_cost_function`): ``V_steps`` as a CasADi cubic B-spline
-   (``casadi.interpolant(…, "bspline")``, the grid tiled a few points beyond ±π so that the spline is
-   periodic where it is used) of the model state ``x = (q, ω)``: ``θ = atan2(sin θ, cos θ)`` from ``q``
-   (sign invariant, the branch cut at hanging, where the periodic spline is continuous) and
-   ``θ̇ = ω_y``. Smooth, so IPOPT can take its derivatives; C code generation works (the MPC's
-   functions are compiled).
 
 The MPC stays a local solver over its horizon on the learned model; the value only ranks the
 states where its plans end. Nothing here reads Pendulum-v1's own map.
@@ -39,17 +33,17 @@ from typing import Any, Callable
 
 import numpy as np
 
-from fvin_mpc.studies.pendulum_v1 import EPISODE_STEPS, MAX_SPEED, MAX_TORQUE, v1_cost
+from benchmarks.pendulum_v1_exact import EPISODE_STEPS, MAX_SPEED, MAX_TORQUE, v1_cost
+from fvin_mpc.control.export import cache_dir
+from fvin_mpc.envs.pendulum_v1 import state_from_v1_observation, v1_observation_from_state
 
 #: Grid of the learned model's value function: ``(n_theta, n_rate)`` and torques per state.
 VALUE_GRID: tuple[int, int] = (256, 129)
 VALUE_TORQUES = 21
-#: Points of the θ grid repeated beyond each end of ``[−π, π)`` for the spline (periodicity).
-SPLINE_PAD = 4
 
 
 def mpc_stage_cost(theta: Any, theta_dot: Any, u: Any) -> Any:
-    """The benchmark MPC's stage cost (:func:`~fvin_mpc.studies.pendulum_v1.benchmark_settings`) in
+    """The benchmark MPC's stage cost (:func:`~benchmarks.pendulum_v1_mpc.benchmark_settings`) in
     Pendulum-v1's angle: ``4 sin²(θ/2) + 0.1 θ̇² + 0.001 u²`` (``≈ θ²`` near upright, 4 hanging)."""
     return 4.0 * np.sin(0.5 * theta) ** 2 + 0.1 * theta_dot**2 + 0.001 * u**2
 
@@ -70,7 +64,6 @@ def learned_transitions(model: Any, thetas: np.ndarray, rates: np.ndarray, torqu
                         chunk: int = 200_000) -> tuple[np.ndarray, np.ndarray]:
     """The model's next ``(θ', θ̇')`` (Pendulum-v1 angles, θ' wrapped to ``[−π, π)``), each of shape
     ``(n_theta, n_rate, n_torque)``, from every grid state under every torque (``model.step`` mapped)."""
-    from fvin_mpc.envs.pendulum_v1 import state_from_v1_observation, v1_observation_from_state
 
     theta, rate, torque = np.meshgrid(thetas, rates, torques, indexing="ij")
     observation = np.stack([np.cos(theta), np.sin(theta), rate], axis=-1).reshape(-1, 3)
@@ -161,10 +154,11 @@ def model_value_table(model: Any, grid: tuple[int, int] = VALUE_GRID, torques: i
                       stage_cost: str = "mpc", max_torque: float = MAX_TORQUE, cache: bool = True) -> np.ndarray:
     """``V_steps`` of the learned ``model`` for Pendulum-v1's cost on ``grid``; cached on disk under the
     MPC's compile cache (key: the step function's serialization, the grid, torques and steps)."""
-    from fvin_mpc.control.export import cache_dir
 
     torque_values = np.linspace(-max_torque, max_torque, torques)
-    key = hashlib.sha256(model.step.serialize().encode() + repr((grid, torques, steps, tuple(noise), stage_cost, max_torque)).encode()).hexdigest()[:20]
+    key = hashlib.sha256(
+        model.step.serialize().encode() + repr((grid, torques, steps, tuple(noise), stage_cost, max_torque)).encode()
+    ).hexdigest()[:20]
     path = cache_dir() / f"pendulum_v1_value_{key}.npy"
     if cache and path.is_file():
         return np.load(path)
@@ -188,40 +182,15 @@ def model_value_table(model: Any, grid: tuple[int, int] = VALUE_GRID, torques: i
 
 
 def key_transitions(model: Any, grid: tuple[int, int], torques: int, max_torque: float) -> str:
-    return hashlib.sha256(model.step.serialize().encode() + repr((tuple(grid), torques, max_torque)).encode()).hexdigest()[:20]
-
-
-def value_spline(table: np.ndarray, pad: int = SPLINE_PAD) -> Any:
-    """``table (n_theta, n_rate)`` as a CasADi cubic B-spline of ``(θ, θ̇)``, the θ grid tiled ``pad``
-    points beyond each end so that the spline is (nearly) periodic on ``[−π, π]``."""
-    import casadi as ca
-
-    n_theta, n_rate = table.shape
-    thetas, rates = grid_axes(n_theta, n_rate)
-    d_theta = 2 * np.pi / n_theta
-    index = np.arange(-pad, n_theta + pad + 1)  # one more point: θ = π is the grid's first, wrapped
-    padded_thetas = -np.pi + d_theta * index
-    padded = np.asarray(table, float)[index % n_theta]
-    return ca.interpolant("pendulum_v1_value", "bspline", [padded_thetas, rates], padded.ravel(order="F"))
-
-
-def terminal_cost_function(table: np.ndarray, scale: float = 1.0) -> Any:
-    """``x = (q, ω) ↦ scale · V(θ, θ̇)``: the terminal cost for :class:`~fvin_mpc.control.mpc.MPC`
-    (module docstring, step 3), θ and θ̇ read as :func:`fvin_mpc.envs.pendulum_v1.v1_observation_from_state`."""
-    import casadi as ca
-
-    spline = value_spline(table)
-    x = ca.MX.sym("x", 7)
-    w, y = x[0], x[2]
-    theta = ca.atan2(-2 * w * y, -(w * w - y * y))  # Pendulum-v1's θ (0 upright); norm cancels
-    return ca.Function("pendulum_v1_terminal_value", [x], [scale * spline(ca.vertcat(theta, x[5]))], ["x"], ["V"])
+    return hashlib.sha256(
+        model.step.serialize().encode() + repr((tuple(grid), torques, max_torque)).encode()
+    ).hexdigest()[:20]
 
 
 def plan_score(table: np.ndarray, stage_cost: str = "v1") -> Callable[[np.ndarray, np.ndarray], float]:
     """``(states (N+1, 7), controls (N, 1)) ↦ Σ_k c(x_k, u_k) + V(x_N)``: a plan's estimate of the whole
     episode's cost (the stage cost over the horizon, the value ``table`` bilinear after it), to rank the
     MPC's cold-start plans (:class:`~fvin_mpc.control.mpc.MPC`'s ``cold_start_score``)."""
-    from fvin_mpc.envs.pendulum_v1 import v1_observation_from_state
 
     cost = STAGE_COSTS[stage_cost]
 
@@ -234,6 +203,14 @@ def plan_score(table: np.ndarray, stage_cost: str = "v1") -> Callable[[np.ndarra
     return score
 
 
-__all__ = ["VALUE_GRID", "VALUE_TORQUES", "grid_axes", "interpolate", "learned_transitions", "model_value_table", "plan_score",
-           "terminal_cost_function", "value_iteration", "value_spline"]
+__all__ = [
+    "VALUE_GRID",
+    "VALUE_TORQUES",
+    "grid_axes",
+    "interpolate",
+    "learned_transitions",
+    "model_value_table",
+    "plan_score",
+    "value_iteration",
+]
 

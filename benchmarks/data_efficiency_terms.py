@@ -32,9 +32,22 @@ from typing import Any
 
 import numpy as np
 
+from benchmarks import data_efficiency as study
+from benchmarks.paper import (
+    MODELS,
+    TRUE_INERTIA,
+    TRUE_TORQUE_PER_CONTROL,
+    learned_profiles,
+    scale_from_potential,
+    true_potential,
+)
+from benchmarks.study import StudyResult
+from fvin_mpc.control.closed_loop import run_episode
+from fvin_mpc.control.scene import scene_env, scene_mpc
+from fvin_mpc.core import s3
+from fvin_mpc.core.backend import get_ops
+from fvin_mpc.core.checkpoint import load_checkpoint
 from fvin_mpc.core.space import S3
-from fvin_mpc.studies import data_efficiency as study
-from fvin_mpc.studies.report import StudyResult
 
 #: A start "costs more" when its cost exceeds the closed form's on that start by this factor.
 COSTLY_FACTOR = 1.25
@@ -44,15 +57,6 @@ HINGE_ANGLES = np.linspace(-np.pi, np.pi, 181)
 
 def hemisphere_errors(variant: str, stem: Path) -> dict[str, float]:
     """The scale-fixed term errors of the checkpoint at ``stem`` at ``q`` and ``−q`` (module docstring)."""
-    from fvin_mpc.core.checkpoint import load_checkpoint
-    from fvin_mpc.studies.bench.paper import (
-        MODELS,
-        TRUE_INERTIA,
-        TRUE_TORQUE_PER_CONTROL,
-        learned_profiles,
-        scale_from_potential,
-        true_potential,
-    )
 
     paper_model = next(m for m in MODELS if m.space is S3 and m.variant == variant)
     checkpoint = load_checkpoint(stem)
@@ -61,11 +65,16 @@ def hemisphere_errors(variant: str, stem: Path) -> dict[str, float]:
     upper = learned_profiles(paper_model, checkpoint, HINGE_ANGLES)
     scale = scale_from_potential(upper["potential"], truth)
     errors: dict[str, float] = {"scale": scale}
-    for side, profiles in (("q", upper), ("minus_q", learned_profiles(paper_model, checkpoint, HINGE_ANGLES, mirrored=True))):
+    for side, profiles in (
+        ("q", upper),
+        ("minus_q", learned_profiles(paper_model, checkpoint, HINGE_ANGLES, mirrored=True)),
+    ):
         errors[f"potential_err_{side}"] = float(np.max(np.abs(profiles["potential"] / scale - truth)) / span)
         errors[f"inertia_err_{side}"] = float(np.max(np.abs(profiles["inertia_yy"] / scale / TRUE_INERTIA - 1.0)))
         # the S³ gain is twice the body torque per unit control
-        errors[f"gain_err_{side}"] = float(np.max(np.abs(profiles["gain_y"] / scale / (2.0 * TRUE_TORQUE_PER_CONTROL) - 1.0)))
+        errors[f"gain_err_{side}"] = float(
+            np.max(np.abs(profiles["gain_y"] / scale / (2.0 * TRUE_TORQUE_PER_CONTROL) - 1.0))
+        )
     return errors
 
 
@@ -111,16 +120,14 @@ def term_rows(config: study.StudyConfig, progress: bool = True) -> tuple[list[di
 def climb_trace(cell: str, start_index: int, config: study.StudyConfig) -> list[dict[str, Any]]:
     """One episode of ``cell`` (a cached model, or ``closed-form``) from the study's start
     ``start_index``: per control period, the angle from upright, ``u`` and the plan's closest approach."""
-    from fvin_mpc.control.closed_loop import run_episode
-    from fvin_mpc.control.scene import scene_env, scene_mpc
-    from fvin_mpc.core import s3
-    from fvin_mpc.core.backend import get_ops
 
     model = study.CLOSED_FORM if cell == study.CLOSED_FORM else cell.split("_n")[0]
     trained_as = study.MLP if model == study.MLP_EXACT else model  # as run_cell: the same network, another MPC
     stem = None if model == study.CLOSED_FORM else config.cache_dir / "models" / (trained_as + cell[len(model):])
     if stem is not None and (model not in study.MODELS or not stem.with_suffix(".json").exists()):
-        raise ValueError(f"no trained model {cell!r} in {config.cache_dir / 'models'} (names as <model>_n<size>_r<draw>)")
+        raise ValueError(
+            f"no trained model {cell!r} in {config.cache_dir / 'models'} (names as <model>_n<size>_r<draw>)"
+        )
     start = study.study_starts(config, start_index + 1)[start_index]
     env = scene_env("pendulum", true_model=True)
     try:
@@ -220,7 +227,7 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 1, sizes: str = study
             "plan made at that period (its first state is the measured one).")])
     rows, missing = term_rows(config, progress)
     if not rows:
-        raise ValueError(f"none of the cells is in {config.cache_dir}: run `python -m fvin_mpc.bench data-efficiency` "
+        raise ValueError(f"none of the cells is in {config.cache_dir}: run `python -m benchmarks data-efficiency` "
                          "with the same options first")
     notes = [(
         "Errors after fixing the scale λ on the w ≥ 0 hemisphere: `potential_err_*` as a fraction of the energy "
@@ -238,8 +245,12 @@ def add_arguments(parser: Any) -> None:
     parser.add_argument("--seeds", default="0,1", help="draws, comma-separated (default: %(default)s)")
     parser.add_argument("--models", default=",".join(study.S3FVIN_VARIANTS),
                         help="S3FVIN variants, comma-separated (default: %(default)s)")
-    parser.add_argument("--episodes", type=int, default=10,
-                        help="the data-efficiency run's closed-loop starts, which pick its cells (default: %(default)s)")
+    parser.add_argument(
+        "--episodes",
+        type=int,
+        default=10,
+        help="the data-efficiency run's closed-loop starts, which pick its cells (default: %(default)s)",
+    )
     parser.add_argument("--v1-episodes", type=int, default=10,
                         help="the data-efficiency run's Pendulum-v1 seeds, which pick its cells (default: %(default)s)")
     parser.add_argument("--pool", type=int, default=20000, help="the data-efficiency run's pool (default: %(default)s)")

@@ -1,4 +1,4 @@
-"""The learned model's MPC on Gymnasium's own ``Pendulum-v1``: ``python -m fvin_mpc.pendulum_v1``.
+"""The learned model's MPC on Gymnasium's own ``Pendulum-v1``: ``python -m benchmarks.pendulum_v1_report``.
 
 The plant is the unmodified ``gymnasium.make("Pendulum-v1")``; its observation
 ``[cos θ, sin θ, θ̇]`` is converted to the model's ``(q, ω)`` by :mod:`envs.pendulum_v1`.
@@ -13,7 +13,7 @@ respects as a bound ``|ω| ≤ 8`` on its predictions). The MPC's cost is the be
 reward: ``orientation_weight = 4`` on ``sin²(angle/2)`` (≈ angle²), ``0.1|ω|²``, ``0.001u²``.
 
 Reference per seed (on unless ``--no-reference``): the best return found for the 200-step episode on
-the *exact* discrete map above, by :mod:`fvin_mpc.studies.pendulum_v1_reference` — value iteration
+the *exact* discrete map above, by :mod:`benchmarks.pendulum_v1_reference` — value iteration
 on grids of the exact map, its policy rolled out (greedy and with torque noise), every rollout, the
 MPC's own episode and two energy-pumping heuristics polished by the episode NLP
 (:class:`EpisodeOptimizer`, direct multiple shooting, IPOPT). The episode is deterministic given the
@@ -22,7 +22,7 @@ search's parts agree (its check of globality) and the gap is what the MPC leaves
 
 ``--rank-cold-starts``: the cold call keeps the plan with the lowest estimate of the episode's
 Pendulum-v1 cost (stage costs over the horizon + the learned model's value after it,
-:mod:`fvin_mpc.studies.pendulum_v1_value`) instead of the lowest NLP cost. ``--reference-from``:
+:mod:`benchmarks.pendulum_v1_value`) instead of the lowest NLP cost. ``--reference-from``:
 reuse an earlier run's reference search (it does not depend on the MPC) and polish only this run's
 MPC episodes.
 
@@ -38,15 +38,25 @@ from typing import Any
 
 import numpy as np
 
-from fvin_mpc.envs.scenes import resolve_scene
-from fvin_mpc.control.mpc import MPCSettings
+from benchmarks.pendulum_v1_exact import DT, EPISODE_STEPS, MAX_SPEED, MAX_TORQUE, angle_normalize
+from benchmarks.pendulum_v1_reference import (
+    REFERENCE_GRIDS,
+    best_of,
+    converged,
+    polish,
+    polishers,
+    reference_for_seed,
+    rollout_guesses,
+)
+from benchmarks.pendulum_v1_value import model_value_table, plan_score
+from fvin_mpc.control.mpc import COLD_STARTS, MPC, MPCSettings
 from fvin_mpc.control.presets import PRESETS
+from fvin_mpc.control.scene import DEFAULT_TERMINAL_ENERGY_WEIGHT, scene_env, scene_model, scene_mpc
+from fvin_mpc.envs.pendulum_v1 import state_from_v1_observation
+from fvin_mpc.envs.scenes import resolve_scene
+from fvin_mpc.studies.pool import run_tasks
+from fvin_mpc.studies.report import write_report
 
-#: Pendulum-v1's constants (gymnasium.envs.classic_control.pendulum, g = 10 as ``make`` uses).
-DT, MAX_SPEED, MAX_TORQUE, GRAVITY, MASS, LENGTH = 0.05, 8.0, 2.0, 10.0, 1.0, 1.0
-EPISODE_STEPS = 200
-#: The reference's DP grids ``(n_theta, n_rate)`` (:mod:`fvin_mpc.studies.pendulum_v1_reference`), coarse to fine.
-REFERENCE_GRIDS: tuple[tuple[int, int], ...] = ((256, 129), (512, 257), (1024, 513))
 #: rl-baselines3-zoo's best Pendulum-v1 entry (benchmark.md): TQC, mean ± std over 750 episodes.
 ZOO_BEST = {"algorithm": "TQC", "mean": -151.3, "std": 87.9, "episodes": 750}
 
@@ -61,142 +71,12 @@ def benchmark_settings(horizon: int = 30, terminal_energy_weight: float | None =
     every first guess unless ``multistart=False`` (a single constant-torque guess lets a pendulum
     that starts near upright fall through a full turn: cost ≈ 128 instead of ≈ 0.4).
     """
-    from fvin_mpc.control.mpc import COLD_STARTS
-    from fvin_mpc.control.scene import DEFAULT_TERMINAL_ENERGY_WEIGHT
 
     energy_weight = DEFAULT_TERMINAL_ENERGY_WEIGHT if terminal_energy_weight is None else terminal_energy_weight
     return replace(MPCSettings(), horizon=horizon, orientation_weight=4.0, omega_weight=0.1, control_weight=0.001,
                    omega_bound_fraction=MAX_SPEED * DT, terminal_energy_weight=energy_weight,
                    cold_starts=COLD_STARTS if multistart else COLD_STARTS[:1])
 
-
-# ---------------------------------------------------------------------- exact dynamics
-def angle_normalize(theta: Any) -> Any:
-    """Pendulum-v1's ``((θ + π) mod 2π) − π``."""
-    return ((theta + np.pi) % (2 * np.pi)) - np.pi
-
-
-#: The map's rate increments per step: ``a sin θ + b u`` with ``a = 3g/(2l)·dt``, ``b = 3/(ml²)·dt``.
-RATE_GAIN_SIN = 3 * GRAVITY / (2 * LENGTH) * DT
-RATE_GAIN_TORQUE = 3.0 / (MASS * LENGTH**2) * DT
-
-
-def v1_cost(theta: Any, theta_dot: Any, u: Any) -> Any:
-    """Pendulum-v1's stage cost (minus its reward), ``angle_normalize(θ)² + 0.1θ̇² + 0.001u²``; arrays broadcast."""
-    return angle_normalize(theta) ** 2 + 0.1 * theta_dot**2 + 0.001 * u**2
-
-
-def v1_map(theta: Any, theta_dot: Any, u: Any) -> tuple[Any, Any]:
-    """Pendulum-v1's update of ``(θ, θ̇)`` under ``u`` (already within ±2); numpy arrays broadcast."""
-    new_theta_dot = np.clip(theta_dot + RATE_GAIN_SIN * np.sin(theta) + RATE_GAIN_TORQUE * u, -MAX_SPEED, MAX_SPEED)
-    return theta + new_theta_dot * DT, new_theta_dot
-
-
-def v1_step(theta: float, theta_dot: float, u: float) -> tuple[float, float, float]:
-    """Pendulum-v1's update and reward, exactly as ``PendulumEnv.step``: ``(θ', θ̇', reward)``."""
-    u = float(np.clip(u, -MAX_TORQUE, MAX_TORQUE))
-    new_theta, new_theta_dot = v1_map(theta, theta_dot, u)
-    return float(new_theta), float(new_theta_dot), -float(v1_cost(theta, theta_dot, u))
-
-
-def replay(theta0: float, theta_dot0: float, controls: np.ndarray) -> tuple[float, np.ndarray]:
-    """Return of ``controls`` from ``(θ₀, θ̇₀)`` under :func:`v1_step`, and the states ``(T+1, 2)``."""
-    states, total = [(theta0, theta_dot0)], 0.0
-    for u in np.asarray(controls, float).ravel():
-        theta, theta_dot, reward = v1_step(*states[-1], u)
-        states.append((theta, theta_dot))
-        total += reward
-    return total, np.array(states)
-
-
-def heuristic_controls(theta0: float, theta_dot0: float, direction: float, steps: int = EPISODE_STEPS) -> np.ndarray:
-    """A swing-up guess on the exact dynamics: energy pumping (first push in ``direction``) + PD near upright."""
-    theta, theta_dot, controls = theta0, theta_dot0, []
-    for _ in range(steps):
-        phi = angle_normalize(theta)
-        energy = 0.5 * theta_dot**2 / 3.0 + 5.0 * (np.cos(phi) - 1.0)  # zero upright at rest (J = 1/3, mgl/2 = 5)
-        if abs(phi) < 0.6:
-            u = -(20.0 * phi + 5.0 * theta_dot)
-        elif abs(theta_dot) < 1e-3:
-            u = direction * MAX_TORQUE
-        else:
-            u = -10.0 * energy * np.sign(theta_dot)
-        u = float(np.clip(u, -MAX_TORQUE, MAX_TORQUE))
-        controls.append(u)
-        theta, theta_dot, _ = v1_step(theta, theta_dot, u)
-    return np.array(controls)
-
-
-class EpisodeOptimizer:
-    """The whole episode as one NLP on Pendulum-v1's exact update (direct multiple shooting).
-
-    Decision variables ``θ_0…θ_T``, ``θ̇_0…θ̇_T``, ``u_0…u_{T−1}``; objective the episode's
-    cost ``Σ angle_normalize(θ_k)² + 0.1θ̇_k² + 0.001u_k²``; dynamics the semi-implicit Euler
-    step; bounds ``|u| ≤ 2``, ``|θ̇_k| ≤ 8`` for ``k ≥ 1``, ``(θ_0, θ̇_0)`` fixed.
-
-    The speed clip is non-smooth, so each solve fixes which steps it clips (a parameter
-    ``c_k ∈ {−1, 0, +1}``): an unclipped step is the plain update (``θ̇_{k+1} = r_k``,
-    ``r_k = θ̇_k + a sin θ_k + b u_k``, within the bound ±8); a clipped one sets
-    ``θ̇_{k+1} = 8 c_k`` and keeps ``c_k r_k ≥ 8``. Every solution is then a trajectory of the
-    clipped map. :meth:`solve` takes the pattern from the guess's replay and, if it clips,
-    also tries never clipping.
-    """
-
-    def __init__(self, steps: int = EPISODE_STEPS, max_iter: int = 500, ipopt_options: dict | None = None) -> None:
-        import casadi as ca
-
-        self.steps = steps
-        theta, rate, u = ca.SX.sym("theta", steps + 1), ca.SX.sym("rate", steps + 1), ca.SX.sym("u", steps)
-        clip = ca.SX.sym("clip", steps)  # c_k: 0 the plain update, ±1 clipped at ±8
-        wrapped = theta[:steps] - 2 * np.pi * ca.floor((theta[:steps] + np.pi) / (2 * np.pi))
-        objective = ca.sumsqr(wrapped) + 0.1 * ca.sumsqr(rate[:steps]) + 0.001 * ca.sumsqr(u)
-        raw_rate = rate[:steps] + RATE_GAIN_SIN * ca.sin(theta[:steps]) + RATE_GAIN_TORQUE * u
-        next_rate = (1 - clip**2) * raw_rate + MAX_SPEED * clip
-        defects = ca.vertcat(rate[1:] - next_rate, theta[1:] - (theta[:steps] + rate[1:] * DT))
-        excess = clip * raw_rate - clip**2 * MAX_SPEED  # ≥ 0: a clipped step really exceeds the clip
-        self._solver = ca.nlpsol("episode", "ipopt", {"x": ca.vertcat(theta, rate, u), "p": clip, "f": objective,
-                                                      "g": ca.vertcat(defects, excess)},
-                                 {"ipopt": {"print_level": 0, "sb": "yes", "max_iter": max_iter, "tol": 1e-8,
-                                            **(ipopt_options or {})},
-                                  "print_time": False, "error_on_fail": False})
-
-    def solve(self, theta0: float, theta_dot0: float, controls_guess: np.ndarray,
-              states_guess: np.ndarray | None = None) -> tuple[float, np.ndarray, str, float]:
-        """Optimize from a control guess and its states ``(T+1, 2)`` (by default the controls replayed;
-        a closed-loop episode's own states are a better start: replaying its controls open loop
-        diverges near upright); the better of the guess's clip pattern and no clipping (class docstring).
-
-        Returns ``(return, controls, status, max_defect)``: the return is minus the NLP's objective,
-        i.e. the cost of the optimized trajectory, whose every step satisfies the exact update to
-        ``max_defect``. (Replaying the controls open loop is no check: over 10 s the upright
-        equilibrium amplifies a 1e-9 difference by ``e^(√15·10) ≈ 1e17``.)
-        """
-        controls_guess = np.clip(np.asarray(controls_guess, float).ravel(), -MAX_TORQUE, MAX_TORQUE)
-        states = replay(theta0, theta_dot0, controls_guess)[1] if states_guess is None else np.asarray(states_guess, float)
-        raw = states[:-1, 1] + RATE_GAIN_SIN * np.sin(states[:-1, 0]) + RATE_GAIN_TORQUE * controls_guess
-        pattern = np.where(raw >= MAX_SPEED, 1.0, np.where(raw <= -MAX_SPEED, -1.0, 0.0))
-        best = self._solve(theta0, theta_dot0, controls_guess, states, pattern)
-        if pattern.any():
-            plain = self._solve(theta0, theta_dot0, controls_guess, states, np.zeros_like(pattern))
-            if plain[2] in ("Solve_Succeeded", "Solved_To_Acceptable_Level") and (
-                    best[2] not in ("Solve_Succeeded", "Solved_To_Acceptable_Level") or plain[0] > best[0]):
-                best = plain
-        return best
-
-    def _solve(self, theta0: float, theta_dot0: float, controls_guess: np.ndarray, states: np.ndarray,
-               pattern: np.ndarray) -> tuple[float, np.ndarray, str, float]:
-        n = self.steps
-        lower = np.r_[np.full(n + 1, -np.inf), np.full(n + 1, -MAX_SPEED), np.full(n, -MAX_TORQUE)]
-        upper = -lower
-        lower[0] = upper[0] = theta0
-        lower[n + 1] = upper[n + 1] = theta_dot0
-        solution = self._solver(x0=np.r_[states[:, 0], states[:, 1], controls_guess], p=pattern, lbx=lower,
-                                ubx=upper, lbg=0.0, ubg=np.r_[np.zeros(2 * n), np.full(n, np.inf)])
-        x = np.asarray(solution["x"]).ravel()
-        controls = np.clip(x[2 * (n + 1):], -MAX_TORQUE, MAX_TORQUE)
-        g = np.asarray(solution["g"]).ravel()
-        defect = float(max(np.abs(g[:2 * n]).max(), -min(g[2 * n:].min(), 0.0)))
-        return -float(solution["f"]), controls, str(self._solver.stats()["return_status"]), defect
 
 
 # ---------------------------------------------------------------------- the MPC on Pendulum-v1
@@ -217,15 +97,11 @@ class BenchmarkConfig:
     rti_cold_solver: str = "rti"
     rti_dynamics: str | None = None  # None: the pendulum scene's (its RTI settings)
     reference_grids: tuple[tuple[int, int], ...] = REFERENCE_GRIDS
-    #: Experimental (off by default; on a seed subset it is far worse, docs/pendulum-v1.md): the terminal
-    #: cost is the learned model's value function for Pendulum-v1's cost
-    #: (:mod:`fvin_mpc.studies.pendulum_v1_value`) instead of the terminal orientation, speed and
-    #: energy terms; ``value_grid`` its DP grid ``(n_theta, n_rate)``.
-    terminal_value: bool = False
+    #: The DP grid ``(n_theta, n_rate)`` of the learned model's value (``rank_cold_starts`` and the DP swing-up).
     value_grid: tuple[int, int] = (256, 129)
     #: The multi-start cold call keeps the plan with the lowest estimate of the whole episode's
     #: Pendulum-v1 cost (its stage costs, then the learned model's value on ``value_grid``:
-    #: :func:`fvin_mpc.studies.pendulum_v1_value.plan_score`) instead of the lowest NLP cost, whose
+    #: :func:`benchmarks.pendulum_v1_value.plan_score`) instead of the lowest NLP cost, whose
     #: terminal energy term is no estimate of what follows the horizon. Warm calls are unchanged.
     rank_cold_starts: bool = False
 
@@ -248,7 +124,6 @@ def rti_dynamics(config: BenchmarkConfig) -> str:
 def build_mpc(config: BenchmarkConfig) -> Any:
     """The MPC on the learned model (or the closed-form pendulum) with :func:`benchmark_settings`, on
     the ``pendulum`` scene's task (Pendulum-v1's physics; its goal, rest and torque bounds)."""
-    from fvin_mpc.control.scene import scene_env, scene_model, scene_mpc
 
     env = scene_env("pendulum", config.checkpoint, config.true_model)
     model = scene_model(env, config.checkpoint, config.true_model, config.newton_iters)
@@ -257,27 +132,18 @@ def build_mpc(config: BenchmarkConfig) -> Any:
     settings = benchmark_settings(config.horizon, config.terminal_energy_weight, config.multistart)
     settings = replace(settings, solver=config.solver, rti_cold_solver=config.rti_cold_solver,
                        rti_dynamics=rti_dynamics(config))
-    if not (config.terminal_value or config.rank_cold_starts):
+    if not config.rank_cold_starts:
         return scene_mpc(env, model, settings)
-    from fvin_mpc.control.mpc import MPC
-    from fvin_mpc.studies.pendulum_v1_value import model_value_table, plan_score, terminal_cost_function
-
     if config.solver != "ipopt":
-        raise ValueError("terminal_value and rank_cold_starts need solver='ipopt'")
+        raise ValueError("rank_cold_starts needs solver='ipopt'")
     table = model_value_table(model, config.value_grid, steps=EPISODE_STEPS - config.horizon, stage_cost="v1")
     base = env.unwrapped
-    terminal = None
-    if config.terminal_value:
-        settings = replace(settings, terminal_orientation_weight=0.0, terminal_omega_weight=0.0,
-                           terminal_energy_weight=0.0)
-        terminal = terminal_cost_function(table)
-    return MPC(model, settings, base.goal, base.torque_low, base.torque_high, rest=base.rest, terminal_cost=terminal,
-               cold_start_score=plan_score(table) if config.rank_cold_starts else None)
+    return MPC(model, settings, base.goal, base.torque_low, base.torque_high, rest=base.rest,
+               cold_start_score=plan_score(table))
 
 
 def run_v1_episode(env: Any, controller: Any, seed: int) -> dict[str, Any]:
     """One 200-step episode of ``controller`` on ``env`` (Pendulum-v1) reset with ``seed``."""
-    from fvin_mpc.envs.pendulum_v1 import state_from_v1_observation
 
     observation, _ = env.reset(seed=seed)
     controller.reset()
@@ -295,9 +161,18 @@ def run_v1_episode(env: Any, controller: Any, seed: int) -> dict[str, Any]:
         if terminated or truncated:
             break
     final = angle_normalize(float(env.unwrapped.state[0]))
-    return {"seed": seed, "theta0": theta0, "theta_dot0": theta_dot0, "return": total, "controls": controls, "states": states,
-            "final_angle": float(final), "upright_at_end": bool(abs(final) < 0.1),
-            "failures": int(failures), "controller_time_s": wall}
+    return {
+        "seed": seed,
+        "theta0": theta0,
+        "theta_dot0": theta_dot0,
+        "return": total,
+        "controls": controls,
+        "states": states,
+        "final_angle": float(final),
+        "upright_at_end": bool(abs(final) < 0.1),
+        "failures": int(failures),
+        "controller_time_s": wall,
+    }
 
 
 _WORKER: dict[str, Any] = {}
@@ -315,14 +190,12 @@ def run_seed(seed: int) -> dict[str, Any]:
 
 
 def _init_polisher() -> None:
-    from fvin_mpc.studies.pendulum_v1_reference import polishers
-
     _WORKER.update(polishers=polishers())
 
 
 def reference_task(theta0: float, theta_dot0: float, guesses: dict[str, np.ndarray]) -> dict[str, Any]:
-    """The global reference of one seed from its first guesses (:func:`~fvin_mpc.studies.pendulum_v1_reference.reference_for_seed`)."""
-    from fvin_mpc.studies.pendulum_v1_reference import reference_for_seed
+    """The global reference of one seed from its first guesses
+    (:func:`~benchmarks.pendulum_v1_reference.reference_for_seed`)."""
 
     return reference_for_seed(theta0, theta_dot0, guesses, _WORKER["polishers"])
 
@@ -332,8 +205,6 @@ def add_references(records: list[dict[str, Any]], grids: tuple[tuple[int, int], 
     """Each record's global reference (DP on every grid, rolled out and polished; the MPC's episode one
     more first guess): ``reference_return``, ``reference_source``, the convergence study per grid
     (``reference_grids``: DP estimate, rollout return, polished return) and ``reference_converged``."""
-    from fvin_mpc.studies.pendulum_v1_reference import best_of, converged, rollout_guesses
-    from fvin_mpc.studies.pool import run_tasks
 
     initial = np.array([[r["theta0"], r["theta_dot0"]] for r in records])
     rollouts, noisy = rollout_guesses(initial, grids, progress=progress)
@@ -365,8 +236,7 @@ def add_references(records: list[dict[str, Any]], grids: tuple[tuple[int, int], 
 
 
 def polish_task(theta0: float, theta_dot0: float, guesses: dict[str, Any]) -> dict[str, dict[str, float]]:
-    """:func:`~fvin_mpc.studies.pendulum_v1_reference.polish` with the worker's polishers."""
-    from fvin_mpc.studies.pendulum_v1_reference import polish
+    """:func:`~benchmarks.pendulum_v1_reference.polish` with the worker's polishers."""
 
     return polish(theta0, theta_dot0, guesses, _WORKER["polishers"])
 
@@ -384,8 +254,6 @@ def reuse_references(records: list[dict[str, Any]], previous: dict[str, Any], gr
     Raises:
         ValueError: other DP grids, or a seed (or its initial state) missing from ``previous``.
     """
-    from fvin_mpc.studies.pendulum_v1_reference import best_of, converged
-    from fvin_mpc.studies.pool import run_tasks
 
     stored_grids = tuple(tuple(g) for g in previous["config"].get("reference_grids", ()))
     if stored_grids != tuple(tuple(g) for g in grids):
@@ -419,7 +287,6 @@ def run_benchmark(config: BenchmarkConfig, workers: int = 1, progress: bool = Tr
     or with ``reference_from`` (an earlier run's JSON) reused with this run's MPC episodes polished
     (:func:`reuse_references`); ``workers > 1`` uses a process pool, ``backend="ray"`` Ray actors
     (``address``: the cluster; :func:`fvin_mpc.studies.pool.run_tasks`)."""
-    from fvin_mpc.studies.pool import run_tasks
 
     if workers > 1 or backend != "process":
         build_mpc(config)  # compiles the MPC's library into the disk cache once, before the workers load it
@@ -437,11 +304,15 @@ def summarize(records: list[dict[str, Any]]) -> dict[str, Any]:
     returns = np.array([r["return"] for r in records])
     calls_ms = 1e3 * np.concatenate([r["controller_time_s"] for r in records])
     summary = {
-        "episodes": len(records), "return_mean": float(returns.mean()), "return_std": float(returns.std()),
-        "return_median": float(np.median(returns)), "return_min": float(returns.min()),
+        "episodes": len(records),
+        "return_mean": float(returns.mean()),
+        "return_std": float(returns.std()),
+        "return_median": float(np.median(returns)),
+        "return_min": float(returns.min()),
         "upright_at_end": int(sum(r["upright_at_end"] for r in records)),
         "failed_solves": int(sum(r["failures"] for r in records)),
-        "controller_time_median_ms": float(np.median(calls_ms)), "controller_time_p95_ms": float(np.percentile(calls_ms, 95)),
+        "controller_time_median_ms": float(np.median(calls_ms)),
+        "controller_time_p95_ms": float(np.percentile(calls_ms, 95)),
     }
     if all("reference_return" in r for r in records):
         reference = np.array([r["reference_return"] for r in records])
@@ -504,22 +375,33 @@ def plot_returns(records: list[dict[str, Any]], path: Path, label: str) -> None:
     plt.close(figure)
 
 
-def write_markdown(summary: dict[str, Any], records: list[dict[str, Any]], config: BenchmarkConfig, command: str,
-                   path: Path, previous: dict[str, Any] | None = None, reference_reused_from: str | None = None) -> None:
+def write_markdown(
+    summary: dict[str, Any],
+    records: list[dict[str, Any]],
+    config: BenchmarkConfig,
+    command: str,
+    path: Path,
+    previous: dict[str, Any] | None = None,
+    reference_reused_from: str | None = None,
+) -> None:
     """``path`` (``.md``) and its ``.json`` twin through the one report writer; ``previous`` (an earlier
     run's JSON) adds its MPC returns and references per seed to the table."""
-    from fvin_mpc.studies.report import write_report
-
     previous_by_seed = {e["seed"]: e for e in previous["episodes"]} if previous else {}
 
     model = "closed-form pendulum (true model)" if config.true_model else f"learned `{config.checkpoint}`"
+    dynamics = ", " + rti_dynamics(config) + " dynamics" if config.solver == "rti" else ""
+    options = ((", multi-start" if config.multistart else "")
+               + (" ranked by the value" if config.rank_cold_starts else ""))
     lines = [
-             "| controller | episodes | mean return ± std | median | worst | upright at end | failed solves "
-             "| controller ms median / p95 |", "|---|---|---|---|---|---|---|---|",
-             f"| MPC ({config.solver}{', ' + rti_dynamics(config) + ' dynamics' if config.solver == 'rti' else ''}) on {model}, N = {config.horizon}{', multi-start' if config.multistart else ''}{' ranked by the value' if config.rank_cold_starts else ''}{', terminal value' if config.terminal_value else ''} | {summary['episodes']} | {summary['return_mean']:.1f} ± "
-             f"{summary['return_std']:.1f} | {summary['return_median']:.1f} | {summary['return_min']:.1f} "
-             f"| {summary['upright_at_end']}/{summary['episodes']} | {summary['failed_solves']} "
-             f"| {summary['controller_time_median_ms']:.1f} / {summary['controller_time_p95_ms']:.1f} |"]
+        "| controller | episodes | mean return ± std | median | worst | upright at end | failed solves "
+        "| controller ms median / p95 |",
+        "|---|---|---|---|---|---|---|---|",
+        f"| MPC ({config.solver}{dynamics}) on {model}, N = {config.horizon}{options} | {summary['episodes']} | "
+        f"{summary['return_mean']:.1f} ± "
+        f"{summary['return_std']:.1f} | {summary['return_median']:.1f} | {summary['return_min']:.1f} "
+        f"| {summary['upright_at_end']}/{summary['episodes']} | {summary['failed_solves']} "
+        f"| {summary['controller_time_median_ms']:.1f} / {summary['controller_time_p95_ms']:.1f} |",
+    ]
     if "reference_mean" in summary:
         lines.append(f"| optimized episode on the exact dynamics (reference) | {summary['episodes']} | "
                      f"{summary['reference_mean']:.1f} ± {summary['reference_std']:.1f} | | | | | |")
@@ -552,45 +434,71 @@ def write_markdown(summary: dict[str, Any], records: list[dict[str, Any]], confi
                   f"{summary['reference_converged']} of {summary['episodes']} seeds"
                   + (f"; not on seeds {', '.join(map(str, summary['reference_unconverged_seeds']))}."
                      if summary["reference_unconverged_seeds"] else ".")]
-    lines += ["", f"![returns per seed]({path.with_suffix('.png').name})", "", "## How this was measured", "",
-              "* Plant: the unmodified `gymnasium.make(\"Pendulum-v1\")` (g = 10), episodes of 200 steps, "
-              f"`env.reset(seed=i)` for i = {config.seed} … {config.seed + config.episodes - 1}; the return is the sum "
-              "of the env's rewards.",
-              "* Model: " + ("the closed-form rod (the continuous-time physics, no learning)." if config.true_model else
-                             f"`{config.checkpoint}`, trained on the MuJoCo `pendulum` scene, whose physics are "
-                             "Pendulum-v1's (θ̈ = 15 sin θ + 3u with θ = 0 upright, |u| ≤ 2) integrated accurately "
-                             "(RK4 at 5 ms). It never saw Pendulum-v1."),
-              "* Model mismatch: Pendulum-v1 is a *discrete* system — semi-implicit Euler at dt = 0.05 and θ̇ "
-              "clipped to ±8 rad/s after every step — while the model predicts the continuous motion. The MPC "
-              "bounds its predicted |ω| by 8 rad/s.",
-              "* MPC cost = the benchmark's reward: 4 sin²(angle/2) (≈ angle²) + 0.1 ω² + 0.001 u² per stage "
-              + ("(`benchmark_settings`), terminal cost the learned model's value function for Pendulum-v1's cost "
-                 f"(DP on a {config.value_grid[0]} × {config.value_grid[1]} grid, `pendulum_v1_value`), "
-                 if config.terminal_value else
-                 "(`benchmark_settings`), terminal weights 40 and 1, terminal energy-deficit weight "
-                 f"{benchmark_settings(config.horizon, config.terminal_energy_weight).terminal_energy_weight:g}, ")
-              + 
-              f"horizon {config.horizon} "
-              f"({config.horizon * DT:.2f} s)" + (", cold solves from several first guesses "
-                                                    "(`MPCSettings.cold_starts`)" if config.multistart else "")
-              + ("; the cold call keeps the plan with the lowest estimate of the episode's Pendulum-v1 cost "
-                 "(its stage costs plus the learned model's value after the horizon, DP on a "
-                 f"{config.value_grid[0]} × {config.value_grid[1]} grid: `pendulum_v1_value.plan_score`)."
-                 if config.rank_cold_starts else "."),
-              ("* Reference: not computed in this run (`--no-reference`); the global reference over seeds 0 … 99 "
-               "(`fvin_mpc/studies/pendulum_v1_reference.py`) and the gap per seed are in `docs/pendulum-v1.md`."
-               if not config.reference else
-               "* Reference (`fvin_mpc/studies/pendulum_v1_reference.py`): value iteration of the exact map (clip "
-              "included) over the 200 steps on each DP grid above, the minimum over the continuous torque; its "
-              "policy rolled out on the exact map from each seed (an exact, feasible return); " + "on the finest grid also 2 × 32 rollouts with torque noise (σ = 0.1, 0.3), the best 4 per σ kept in two independent halves; each rollout, the MPC's episode and two energy-pumping heuristics polished by the episode NLP (direct multiple shooting, IPOPT from its default start and from a local start; the clip pattern of the guess fixed); the best of all exact returns and converged solutions (every step of those satisfies the exact update to 1e-6; an open-loop replay of 10 s near the unstable upright equilibrium is no check, it amplifies rounding by ~e^39). The grid and family tables above are the check of globality: evidence, not a proof (no rigorous bound on the interpolation error)."
-               + (f" This run reused the search (DP, rollouts, heuristics, their polish; deterministic) of `{reference_reused_from}` "
-                  "and polished only its own MPC episodes: reference = max(that search's best, this MPC's polished episode)."
-                  if reference_reused_from else "")),
-              "* rl-baselines3-zoo: its benchmark table (`benchmark.md`) over 750 evaluation episodes with its "
-              "own seeds; not the same episodes as here.", "", "## Per seed", "",
-              "| seed | θ₀ | θ̇₀ | MPC return | reference | gap |"
-              + (" previous MPC | previous reference | previous reference − reference |" if previous else ""),
-              "|---|---|---|---|---|---|" + ("---|---|---|" if previous else "")]
+    lines += [
+        "",
+        f"![returns per seed]({path.with_suffix('.png').name})",
+        "",
+        "## How this was measured",
+        "",
+        '* Plant: the unmodified `gymnasium.make("Pendulum-v1")` (g = 10), episodes of 200 steps, '
+        f"`env.reset(seed=i)` for i = {config.seed} … {config.seed + config.episodes - 1}; the return is the sum "
+        "of the env's rewards.",
+        "* Model: "
+        + (
+            "the closed-form rod (the continuous-time physics, no learning)."
+            if config.true_model
+            else f"`{config.checkpoint}`, trained on the MuJoCo `pendulum` scene, whose physics are "
+            "Pendulum-v1's (θ̈ = 15 sin θ + 3u with θ = 0 upright, |u| ≤ 2) integrated accurately "
+            "(RK4 at 5 ms). It never saw Pendulum-v1."
+        ),
+        "* Model mismatch: Pendulum-v1 is a *discrete* system — semi-implicit Euler at dt = 0.05 and θ̇ "
+        "clipped to ±8 rad/s after every step — while the model predicts the continuous motion. The MPC "
+        "bounds its predicted |ω| by 8 rad/s.",
+        "* MPC cost = the benchmark's reward: 4 sin²(angle/2) (≈ angle²) + 0.1 ω² + 0.001 u² per stage "
+        + "(`benchmark_settings`), terminal weights 40 and 1, terminal energy-deficit weight "
+        f"{benchmark_settings(config.horizon, config.terminal_energy_weight).terminal_energy_weight:g}, "
+        f"horizon {config.horizon} "
+        f"({config.horizon * DT:.2f} s)"
+        + (", cold solves from several first guesses (`MPCSettings.cold_starts`)" if config.multistart else "")
+        + (
+            "; the cold call keeps the plan with the lowest estimate of the episode's Pendulum-v1 cost "
+            "(its stage costs plus the learned model's value after the horizon, DP on a "
+            f"{config.value_grid[0]} × {config.value_grid[1]} grid: `pendulum_v1_value.plan_score`)."
+            if config.rank_cold_starts
+            else "."
+        ),
+        (
+            "* Reference: not computed in this run (`--no-reference`); the global reference over seeds 0 … 99 "
+            "(`benchmarks/pendulum_v1_reference.py`) and the gap per seed are in `docs/pendulum-v1.md`."
+            if not config.reference
+            else "* Reference (`benchmarks/pendulum_v1_reference.py`): value iteration of the exact map (clip "
+            "included) over the 200 steps on each DP grid above, the minimum over the continuous torque; its "
+            "policy rolled out on the exact map from each seed (an exact, feasible return); "
+            + "on the finest grid also 2 × 32 rollouts with torque noise (σ = 0.1, 0.3), the best 4 per σ kept in two "
+              "independent halves; each rollout, the MPC's episode and two energy-pumping heuristics polished by the "
+              "episode NLP (direct multiple shooting, IPOPT from its default start and from a local start; the clip "
+              "pattern of the guess fixed); the best of all exact returns and converged solutions (every step of those "
+              "satisfies the exact update to 1e-6; an open-loop replay of 10 s near the unstable upright equilibrium "
+              "is no check, it amplifies rounding by ~e^39). The grid and family tables above are the check of "
+              "globality: evidence, not a proof (no rigorous bound on the interpolation error)."
+            + (
+                " This run reused the search (DP, rollouts, heuristics, their polish; deterministic) of "
+                f"`{reference_reused_from}` "
+                "and polished only its own MPC episodes: reference = max(that search's best, this MPC's polished "
+                "episode)."
+                if reference_reused_from
+                else ""
+            )
+        ),
+        "* rl-baselines3-zoo: its benchmark table (`benchmark.md`) over 750 evaluation episodes with its "
+        "own seeds; not the same episodes as here.",
+        "",
+        "## Per seed",
+        "",
+        "| seed | θ₀ | θ̇₀ | MPC return | reference | gap |"
+        + (" previous MPC | previous reference | previous reference − reference |" if previous else ""),
+        "|---|---|---|---|---|---|" + ("---|---|---|" if previous else ""),
+    ]
     for r in records:
         ref = r.get("reference_return")
         line = (f"| {r['seed']} | {r['theta0']:+.2f} | {r['theta_dot0']:+.2f} | {r['return']:.1f} | "

@@ -1,8 +1,9 @@
-"""The 3-D rigid body on a ball joint (scene ``spherical_pendulum``): ``python -m fvin_mpc.spherical_report``.
+"""The 3-D rigid body on a ball joint (scene ``spherical_pendulum``): ``python -m benchmarks.spherical_report``.
 
 Sub-commands:
 
-* ``collect`` — trajectories as :func:`fvin_mpc.learning.collection.collect` draws them with ``max_speed`` (orientation uniform on
+* ``collect`` — trajectories as :func:`fvin_mpc.learning.collection.collect` draws them with ``max_speed``
+  (orientation uniform on
   S³, ω uniform in a ball, constant or piecewise-constant torques uniform in the actuators' box),
   but a trajectory whose angular velocity leaves ``|ω_i| ≤ --max-speed`` at any step is redrawn.
   Why: the z axis has a tiny inertia (0.017 kg·m² against ≈ 0.5 about x, y), so 1.5 N·m spins it up
@@ -13,7 +14,7 @@ Sub-commands:
   learned model and true model side by side: success, time to upright, hold error, MPC solve times,
   the step residual along the plan; writes JSON + a Markdown table.
 
-The model-quality part (held-out rollouts, recovered inertia) is :mod:`fvin_mpc.inertia`.
+The model-quality part (held-out rollouts, recovered inertia) is ``python -m fvin_mpc.quality`` on its checkpoints.
 """
 
 from __future__ import annotations
@@ -24,7 +25,8 @@ from typing import Any
 
 import numpy as np
 
-
+from fvin_mpc.control.closed_loop import episode_metrics, run_episode
+from fvin_mpc.control.scene import scene_env, scene_model, scene_mpc, scene_mpc_settings
 from fvin_mpc.studies.starts import episode_starts
 
 SCENE = "spherical_pendulum"
@@ -41,9 +43,6 @@ def closed_loop_study(checkpoint: str | None, episodes: int = 21, duration_s: fl
     processes, merged again by :func:`merge_results`); ``partial_path`` gets the results so far
     after every episode."""
     from tqdm.auto import tqdm
-
-    from fvin_mpc.control.closed_loop import episode_metrics, run_episode
-    from fvin_mpc.control.scene import scene_env, scene_model, scene_mpc, scene_mpc_settings
 
     env = scene_env(SCENE, true_model=True)
     settings = scene_mpc_settings(env, horizon=horizon)
@@ -124,8 +123,11 @@ def markdown_tables(results: dict[str, Any]) -> str:
                      f"| {s['success']}/{s['episodes']} | {t} | {s['solve_time_median_ms']:.0f} "
                      f"| {s['solve_time_p95_ms']:.0f} | {s['solve_time_max_ms']:.0f} | {s['controller_failures']} "
                      f"| {s['max_step_residual']:.1e} | {s['max_abs_omega']:.1f} |")
-    lines += ["", "| # | seed | start | \\|ω₀\\| (rad/s) | " + " | ".join(f"{n}: t↑ (s) / hold err (rad)" for n in models) + " |",
-              "|" + "---|" * (4 + len(models))]
+    lines += [
+        "",
+        "| # | seed | start | \\|ω₀\\| (rad/s) | " + " | ".join(f"{n}: t↑ (s) / hold err (rad)" for n in models) + " |",
+        "|" + "---|" * (4 + len(models)),
+    ]
     first = results["models"][models[0]]["episodes"]
     for i, row in enumerate(first):
         start = "rest" if row["index"] == 0 else f"random (≤ {row['max_omega0']:g})"

@@ -1,6 +1,6 @@
-"""``python -m fvin_mpc.bench <study>`` — accuracy-vs-time studies (see :mod:`fvin_mpc.bench`).
+"""``python -m benchmarks <study>`` — accuracy-vs-time studies (see :mod:`benchmarks`).
 
-Every study writes ``<out-dir>/<study>.{json,md,png}``; ``python -m fvin_mpc.bench <study> --help``
+Every study writes ``<out-dir>/<study>.{json,md,png}``; ``python -m benchmarks <study> --help``
 lists its own options.
 """
 
@@ -11,28 +11,30 @@ import importlib
 import sys
 from pathlib import Path
 
+from benchmarks.study import StudySkipped, write_study
 from fvin_mpc._cli import add_backend_arguments, backend_options, exit_status, run_command
 from fvin_mpc.core.errors import UsageError
+from fvin_mpc.studies.pool import TasksFailed
 
 #: study name → module (each has ``run(quick, seed, repeats, **options) -> StudyResult`` and
 #: optionally ``add_arguments(parser)`` for its own options).
 STUDIES = {
-    "train-speed": "fvin_mpc.studies.bench.train_speed",
-    "newton": "fvin_mpc.studies.bench.newton",
-    "horizon": "fvin_mpc.studies.bench.horizon",
-    "width": "fvin_mpc.studies.bench.width",
-    "solver": "fvin_mpc.studies.bench.solver",
-    "rti": "fvin_mpc.studies.bench.rti",
-    "ops": "fvin_mpc.studies.bench.ops",
-    "sim": "fvin_mpc.studies.bench.sim",
-    "paper": "fvin_mpc.studies.bench.paper",
-    "data-efficiency": "fvin_mpc.studies.data_efficiency",
-    "data-efficiency-terms": "fvin_mpc.studies.data_efficiency_terms",
+    "train-speed": "benchmarks.train_speed",
+    "newton": "benchmarks.newton",
+    "horizon": "benchmarks.horizon",
+    "width": "benchmarks.width",
+    "solver": "benchmarks.solver",
+    "rti": "benchmarks.rti_knobs",
+    "ops": "benchmarks.ops",
+    "sim": "benchmarks.sim",
+    "paper": "benchmarks.paper",
+    "data-efficiency": "benchmarks.data_efficiency",
+    "data-efficiency-terms": "benchmarks.data_efficiency_terms",
 }
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="python -m fvin_mpc.bench", description=__doc__,
+    parser = argparse.ArgumentParser(prog="python -m benchmarks", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     subparsers = parser.add_subparsers(dest="study", required=True, metavar="study",
                                        help=f"one of: {', '.join(STUDIES)}")
@@ -42,9 +44,15 @@ def build_parser() -> argparse.ArgumentParser:
         sub = subparsers.add_parser(name, help=summary, description=module.__doc__,
                                     formatter_class=argparse.RawDescriptionHelpFormatter)
         sub.add_argument("--quick", action="store_true", help="tiny workload (used by the test suite)")
-        sub.add_argument("--out-dir", type=Path, default=Path("docs/bench"), help="where to write (default: %(default)s)")
-        sub.add_argument("--repeats", type=int, default=5, help="timing repeats per configuration (default: %(default)s)")
-        sub.add_argument("--seed", type=int, default=0, help="seeds data, initial states and training (default: %(default)s)")
+        sub.add_argument(
+            "--out-dir", type=Path, default=Path("docs/bench"), help="where to write (default: %(default)s)"
+        )
+        sub.add_argument(
+            "--repeats", type=int, default=5, help="timing repeats per configuration (default: %(default)s)"
+        )
+        sub.add_argument(
+            "--seed", type=int, default=0, help="seeds data, initial states and training (default: %(default)s)"
+        )
         if hasattr(module, "add_arguments"):
             module.add_arguments(sub)
         if getattr(module, "PARALLEL_ROWS", False):
@@ -58,8 +66,6 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     if args.repeats < 1:
         raise UsageError(f"--repeats must be >= 1, got {args.repeats}")
-    from fvin_mpc.studies.pool import TasksFailed
-    from fvin_mpc.studies.report import StudySkipped, write_study
 
     module = importlib.import_module(STUDIES[args.study])
     options = {k: v for k, v in vars(args).items() if k not in ("study", "quick", "out_dir", "repeats", "seed")}

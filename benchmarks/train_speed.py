@@ -31,7 +31,11 @@ import time
 from pathlib import Path
 from typing import Any
 
-from fvin_mpc.studies.report import StudyResult, median_time
+from benchmarks.common import checkpoint_or_none
+from benchmarks.study import StudyResult, median_time
+from fvin_mpc.core.data import load_data
+from fvin_mpc.learning.timing import torch_threads
+from fvin_mpc.learning.training import reference_iteration, split_losses
 
 REFERENCE_SECONDS_PER_ITERATION = 1.5
 DAMPED_DATA = Path("data/pendulum_damped_10k.npz")
@@ -47,9 +51,6 @@ MODES: dict[str, list[str]] = {
 def _shipped_validation_loss(name: str, data: Path) -> float | None:
     """The shipped checkpoint ``name``'s validation loss on ``data``'s validation split (as
     ``fvin_mpc.train`` splits it with default settings); ``None`` without the checkpoint."""
-    from fvin_mpc.core.data import load_data
-    from fvin_mpc.learning.training import split_losses
-    from fvin_mpc.studies.bench.common import checkpoint_or_none
 
     checkpoint = checkpoint_or_none(name)
     if checkpoint is None:
@@ -93,7 +94,6 @@ def _fresh_process(data: Path, mode: str, target: float, threads: int, seed: int
 
 def run(quick: bool = False, seed: int = 0, repeats: int = 5, threads: int = 1, modes: str = "eager,compiled",
         optimizers: str = ",".join(MODES), to_target: bool = True, time_limit: float = 600.0, **_: Any) -> StudyResult:
-    from fvin_mpc.learning.timing import torch_threads
 
     with torch_threads(threads):
         result = _per_iteration(quick, seed, repeats, ["eager"] if quick else modes.split(","))
@@ -101,15 +101,25 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 5, threads: int = 1, 
         pendulum, damped = Path("data/pendulum.npz"), _damped_data(seed)
         targets = [(pendulum, _shipped_validation_loss("pendulum_sign-invariant", pendulum)),
                    (damped, _shipped_validation_loss("pendulum_damped_sign-invariant", damped))]
-        jobs = [(data, target, mode) for data, target in targets if target is not None for mode in optimizers.split(",")]
+        jobs = [
+            (data, target, mode) for data, target in targets if target is not None for mode in optimizers.split(",")
+        ]
         from tqdm.auto import tqdm
 
         with tempfile.TemporaryDirectory() as scratch:
             for data, target, mode in tqdm(jobs, desc="train-speed: fresh processes"):
                 result.rows.append(_fresh_process(data, mode, target, threads, seed, time_limit, Path(scratch)))
-        result.columns = list(result.columns) + ["data", "target_validation_loss", "final_validation_loss",
-                                                 "iterations_to_target", "s_to_target", "launch_to_exit_s", "cpu_s_to_target",
-                                                 "cpu_s_to_train_end", "load_1min"]
+        result.columns = list(result.columns) + [
+            "data",
+            "target_validation_loss",
+            "final_validation_loss",
+            "iterations_to_target",
+            "s_to_target",
+            "launch_to_exit_s",
+            "cpu_s_to_target",
+            "cpu_s_to_train_end",
+            "load_1min",
+        ]
         result.notes.append(
             "**To target**: each row is one `python -m fvin_mpc.train --data <data> --optimizer <mode> --threads "
             f"{threads} --time-limit {time_limit:g}` in a fresh interpreter (defaults otherwise, early stopping on). "
@@ -128,8 +138,6 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 5, threads: int = 1, 
 
 
 def _per_iteration(quick: bool, seed: int, repeats: int, modes: list[str]) -> StudyResult:
-    from fvin_mpc.learning.training import reference_iteration
-
     windows, steps = (352, 9) if quick else (3520, 9)
     repeats = 2 if quick else repeats
     rows = []
@@ -146,8 +154,11 @@ def _per_iteration(quick: bool, seed: int, repeats: int, modes: list[str]) -> St
         per_iteration = [r for r in rows if r.get("part") == "per iteration"]
         to_target = [r for r in rows if r.get("part") == "to target"]
         left = figure.add_subplot(1, 2 if to_target else 1, 1)
-        left.bar([f"{r['mode']}\n{r['variant']}" for r in per_iteration], [r["s_per_iter_median"] for r in per_iteration],
-                 color="tab:blue")
+        left.bar(
+            [f"{r['mode']}\n{r['variant']}" for r in per_iteration],
+            [r["s_per_iter_median"] for r in per_iteration],
+            color="tab:blue",
+        )
         left.axhline(REFERENCE_SECONDS_PER_ITERATION, color="tab:red", ls="--", label="reference (DESIGN.md)")
         left.set_yscale("log")
         left.set_ylabel("s / iteration (median)")
@@ -165,11 +176,27 @@ def _per_iteration(quick: bool, seed: int, repeats: int, modes: list[str]) -> St
         figure.set_size_inches(13, 5)
         figure.tight_layout()
 
-    notes = [f"**Per iteration**: {windows} windows × {steps} steps, hidden width 10, float64, K = 2, full batch, one Adam "
-             f"iteration; reference ≈ {REFERENCE_SECONDS_PER_ITERATION} s/iteration (DESIGN.md, measured on this machine "
-             "kind). `compile_s` is the one-off cost of `torch.compile` on the first iteration."]
-    return StudyResult("train-speed", rows, ["part", "mode", "variant", "windows", "s_per_iter_median", "s_per_iter_p95",
-                                             "compile_s", "speedup_vs_reference"], plot, notes)
+    notes = [
+        f"**Per iteration**: {windows} windows × {steps} steps, hidden width 10, float64, K = 2, full batch, one Adam "
+        f"iteration; reference ≈ {REFERENCE_SECONDS_PER_ITERATION} s/iteration (DESIGN.md, measured on this machine "
+        "kind). `compile_s` is the one-off cost of `torch.compile` on the first iteration."
+    ]
+    return StudyResult(
+        "train-speed",
+        rows,
+        [
+            "part",
+            "mode",
+            "variant",
+            "windows",
+            "s_per_iter_median",
+            "s_per_iter_p95",
+            "compile_s",
+            "speedup_vs_reference",
+        ],
+        plot,
+        notes,
+    )
 
 
 def add_arguments(parser: Any) -> None:

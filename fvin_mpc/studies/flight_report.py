@@ -2,7 +2,7 @@
 
 Scene ``quadrotor`` (a 0.5 kg craft, four rotors, thrust 0–2.5 N each, controlled at 20 ms; MuJoCo is
 the plant). The controller is the real-time iteration MPC (:class:`fvin_mpc.control.rti.RealTimeMPC`
-on ``(x, q, v, ω)`` states, :mod:`fvin_mpc.control.quadrotor`'s settings: 0.6 s horizon, one
+on ``(x, q, v, ω)`` states, :mod:`fvin_mpc.control.flight`'s settings: 0.6 s horizon, one
 Gauss–Newton SQP iteration per period, a compiled Riccati interior-point QP, offset-free thrust
 estimate), planning with the learned R³ × S³ model (``--model learned``, the scene's checkpoint) or
 the closed-form craft read off the MJCF (``--model closed-form``).
@@ -33,6 +33,19 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from fvin_mpc.control.closed_loop import NOT_MEASURED, run_episode
+from fvin_mpc.control.flight import (
+    FigureEight,
+    flight_metrics,
+    hover_reference,
+    quadrotor_model,
+    quadrotor_mpc,
+    quadrotor_mpc_settings,
+    recovery_starts,
+)
+from fvin_mpc.envs.quadrotor_env import QuadrotorEnv
+from fvin_mpc.studies.report import markdown_table, write_report
+
 #: The scene.
 SCENE = "quadrotor"
 #: Seconds per recovery episode.
@@ -44,15 +57,12 @@ MODELS = ("learned", "closed-form")
 
 
 def make_env(render: bool = False) -> Any:
-    from fvin_mpc.envs.quadrotor_env import QuadrotorEnv
-
     return QuadrotorEnv(SCENE, render_mode="rgb_array" if render else None)
 
 
 def make_controller(env: Any, model_kind: str, checkpoint: Any = None, **overrides: Any) -> Any:
     """The MPC planning with ``model_kind`` (``"learned"`` or ``"closed-form"``) on ``env`` (the RTI unless
     ``overrides`` name another ``solver``)."""
-    from fvin_mpc.control.quadrotor import quadrotor_model, quadrotor_mpc, quadrotor_mpc_settings
 
     if model_kind not in MODELS:
         raise ValueError(f"model must be one of {MODELS}, got {model_kind!r}")
@@ -62,19 +72,23 @@ def make_controller(env: Any, model_kind: str, checkpoint: Any = None, **overrid
 
 def figure_eight(env: Any) -> Any:
     """The task's figure-eight around the env's hover point."""
-    from fvin_mpc.control.quadrotor import FigureEight
 
     return FigureEight(center=tuple(env.unwrapped.hover_point), amplitude=0.5, period=3.0, ramp_s=1.0)
 
 
-def run_recovery(env: Any, controller: Any, episodes: int, seed: int, latency: Any, duration_s: float = RECOVERY_DURATION_S,
-                 progress: bool = True, render_first: bool = False) -> tuple[list[dict[str, Any]], list[Any], list[np.ndarray]]:
-    """Recovery episodes from :func:`~fvin_mpc.control.quadrotor.recovery_starts`; per-episode metrics,
+def run_recovery(
+    env: Any,
+    controller: Any,
+    episodes: int,
+    seed: int,
+    latency: Any,
+    duration_s: float = RECOVERY_DURATION_S,
+    progress: bool = True,
+    render_first: bool = False,
+) -> tuple[list[dict[str, Any]], list[Any], list[np.ndarray]]:
+    """Recovery episodes from :func:`~fvin_mpc.control.flight.recovery_starts`; per-episode metrics,
     the episodes, and the first episode's frames when ``render_first``."""
     from tqdm.auto import tqdm
-
-    from fvin_mpc.control.closed_loop import run_episode
-    from fvin_mpc.control.quadrotor import flight_metrics, hover_reference, recovery_starts
 
     controller.set_reference(hover_reference(env))
     rows, kept, frames = [], [], []
@@ -96,8 +110,6 @@ def run_recovery(env: Any, controller: Any, episodes: int, seed: int, latency: A
 def run_figure_eight(env: Any, controller: Any, latency: Any, progress: bool = True,
                      render: bool = False) -> tuple[dict[str, Any], Any, list[np.ndarray]]:
     """One figure-eight flight from hover at the centre: metrics, the episode and its frames."""
-    from fvin_mpc.control.closed_loop import run_episode
-    from fvin_mpc.control.quadrotor import flight_metrics
 
     reference = figure_eight(env)
     controller.set_reference(reference)
@@ -106,13 +118,16 @@ def run_figure_eight(env: Any, controller: Any, latency: Any, progress: bool = T
                                   description=f"figure-eight {controller.model.name}", latency=latency)
     settle = reference.ramp_s + FIGURE_EIGHT_SETTLE_LOOPS * reference.period
     metrics = flight_metrics(episode, reference, settle_s=settle)
-    return {**metrics, "settle_s": settle, "amplitude_m": reference.amplitude, "period_s": reference.period}, episode, frames
+    return (
+        {**metrics, "settle_s": settle, "amplitude_m": reference.amplitude, "period_s": reference.period},
+        episode,
+        frames,
+    )
 
 
 def summarize(model_kind: str, recovery: list[dict[str, Any]] | None, tracking: dict[str, Any] | None,
               episodes: list[Any]) -> dict[str, Any]:
     """One table row: recoveries, time to recover, figure-eight RMS, controller time over every period."""
-    from fvin_mpc.control.closed_loop import NOT_MEASURED
 
     times = np.concatenate([e.controller_time_s for e in episodes]) * 1e3
     times = times[np.isfinite(times)]
@@ -143,7 +158,6 @@ def side_by_side(out_dir: Path, argv: Sequence[str], episodes: int = 20, seed: i
                  checkpoint: Any = None, models: Sequence[str] = MODELS, progress: bool = True) -> dict[str, Any]:
     """Both tasks with each model under the same controller; writes ``out_dir/quadrotor.{json,md}``
     and ``recovery.png``, ``figure_eight.png``; returns the data."""
-    from fvin_mpc.studies.report import markdown_table, write_report
 
     env = make_env()
     results: dict[str, Any] = {"episodes": episodes, "seed": seed, "latency": latency, "models": {}}
@@ -184,8 +198,13 @@ def side_by_side(out_dir: Path, argv: Sequence[str], episodes: int = 20, seed: i
                        ["index", *[f"{kind} {key}" for kind in models for key in ("recovered", "time_to_recover_s")],
                         "initial_omega", "initial_angle"]),
     ])
-    write_report(out_dir / "quadrotor", "Quadrotor: recovery and figure-eight with the real-time MPC, learned vs closed form",
-                 results, body, command)
+    write_report(
+        out_dir / "quadrotor",
+        "Quadrotor: recovery and figure-eight with the real-time MPC, learned vs closed form",
+        results,
+        body,
+        command,
+    )
     env.close()
     return results
 
@@ -251,7 +270,6 @@ def write_still(frames: list[np.ndarray], path: Path, count: int = 5) -> None:
     imageio.imwrite(str(path), np.concatenate([frames[i] for i in picks if i < len(frames)], axis=1))
 
 
-def print_rows(rows: list[dict[str, Any]], file: Any = sys.stdout) -> None:
-    from fvin_mpc.studies.report import markdown_table
-
-    print(markdown_table(rows, [c for c in COLUMNS if any(c in row for row in rows)]), file=file)
+def print_rows(rows: list[dict[str, Any]], file: Any = None) -> None:
+    # sys.stdout read at the call, not at import: a caller (or a test) may have replaced it since.
+    print(markdown_table(rows, [c for c in COLUMNS if any(c in row for row in rows)]), file=file or sys.stdout)

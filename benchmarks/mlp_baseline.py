@@ -17,13 +17,14 @@ signs), which would charge the baseline for a symmetry the S3FVIN gets for free.
 
 Training goes through the package's one loop (:func:`fvin_mpc.learning.training.train` with
 ``model_factory=IncrementMLP``): same windows, same multi-step rollout loss, same optimizer (LM),
-same early stopping. :func:`fvin_mpc.studies.data_efficiency.export_mlp` builds the same step in CasADi as an
+same early stopping. :func:`benchmarks.data_efficiency.export_mlp` builds the same step in CasADi as an
 :class:`~fvin_mpc.control.export.ExportedModel` with the S3FVIN's call signature
 ``F(x[7], u[m]) -> (x_next, residual)`` (``residual`` is 0: no implicit solve), so the *same*
 MPC runs on it.
 
 Energy: the MPC's terminal energy-deficit cost needs the model's energy, which this model does not
-have. :func:`fvin_mpc.studies.data_efficiency.export_mlp` takes the energy from a closed-form body (the scene's, read off the MJCF)
+have. :func:`benchmarks.data_efficiency.export_mlp` takes the energy from a closed-form body (the scene's,
+read off the MJCF)
 and says so in the model's name: privileged information that favours the baseline.
 
 Float64 throughout (the torch parameters are ``torch.float64``).
@@ -40,6 +41,7 @@ from typing import Any
 import numpy as np
 
 from fvin_mpc.core.networks import DictConfig, add_mlp_shapes, check_weight_shapes
+from fvin_mpc.learning.training import train
 
 #: ``ModelConfig``-like name of the baseline (progress bars, reports).
 MLP_VARIANT = "mlp"
@@ -171,7 +173,6 @@ def IncrementMLP(config: MLPConfig, weights: Mapping[str, np.ndarray] | None = N
 
 def train_mlp(data: Any, config: MLPConfig, settings: Any, progress: bool = True) -> tuple[Any, dict[str, Any]]:
     """Train the baseline through the package's loop; returns ``(model, report)`` as ``train``."""
-    from fvin_mpc.learning.training import train
 
     return train(data, config, settings, progress=progress, model_factory=IncrementMLP)
 
@@ -202,7 +203,9 @@ def mlp_step_function(weights: Mapping[str, np.ndarray], config: MLPConfig, name
     arithmetic as :class:`IncrementMLP`'s step."""
     import casadi as ca
 
-    layers = [(ca.DM(np.asarray(w, dtype=float)), ca.DM(np.asarray(b, dtype=float))) for w, b in _layers(weights, config)]
+    layers = [
+        (ca.DM(np.asarray(w, dtype=float)), ca.DM(np.asarray(b, dtype=float))) for w, b in _layers(weights, config)
+    ]
 
     def network(q: Any, omega: Any, u: Any) -> Any:
         hidden = ca.vertcat(q, omega / config.omega_scale, u / config.control_scale)

@@ -14,9 +14,11 @@ from __future__ import annotations
 from dataclasses import replace
 from typing import Any
 
-
-from fvin_mpc.studies.report import StudyResult
-from fvin_mpc.studies.bench.common import NOISE_NOTE, checkpoint_or_none, make_env, plot_pareto, solve_stats
+from benchmarks.common import NOISE_NOTE, checkpoint_or_none, make_env, plot_pareto, solve_stats
+from benchmarks.study import StudyResult
+from fvin_mpc.control.export import from_checkpoint, from_rigid_body
+from fvin_mpc.control.mpc import MPCSettings
+from fvin_mpc.core.rigid_body import from_mujoco
 
 CHECKPOINTS = {0.05: "pendulum_sign-invariant", 0.02: "pendulum-h0.02_sign-invariant"}
 HORIZONS_S = (0.5, 1.0, 1.5, 2.0, 3.0)
@@ -32,9 +34,6 @@ H002_COMMANDS = (
 
 def run(quick: bool = False, seed: int = 0, repeats: int = 5, model: str = "learned", duration: float = 8.0,
         steps: str = "0.05,0.02", horizons: str = ",".join(f"{t:g}" for t in HORIZONS_S), **_: Any) -> StudyResult:
-    from fvin_mpc.control.export import from_checkpoint, from_rigid_body
-    from fvin_mpc.control.mpc import MPCSettings
-    from fvin_mpc.core.rigid_body import from_mujoco
 
     step_sizes = [0.05] if quick else [float(v) for v in steps.split(",")]
     horizon_s = [0.5, 1.0] if quick else [float(v) for v in horizons.split(",")]
@@ -96,10 +95,13 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 5, model: str = "lear
     good = [r for r in rows if r["swung_up"]]
     if good:
         best = min(good, key=lambda r: r["mpc_ms_median"])
-        notes.insert(1, f"Cheapest successful configuration: **{best['label']}** ({best['horizon_s']:g} s horizon, "
-                        f"{best['mpc_ms_median']:.1f} ms median solve, upright after {best['time_to_upright_s']:.2f} s). "
-                        "`success` = upright (within 0.1 rad) from some time to the end of the episode; `swung_up` = "
-                        "also held within 0.05 rad over the last 3 s.")
+        notes.insert(
+            1,
+            f"Cheapest successful configuration: **{best['label']}** ({best['horizon_s']:g} s horizon, "
+            f"{best['mpc_ms_median']:.1f} ms median solve, upright after {best['time_to_upright_s']:.2f} s). "
+            "`success` = upright (within 0.1 rad) from some time to the end of the episode; `swung_up` = "
+            "also held within 0.05 rad over the last 3 s.",
+        )
 
     def plot(figure: Any, rows_: list[dict[str, Any]]) -> None:
         left, right = figure.subplots(1, 2)
@@ -118,7 +120,8 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 5, model: str = "lear
 
     return StudyResult("horizon", rows,
                        ["model", "h", "N", "horizon_s", "mpc_ms_median", "mpc_ms_p95", "period_ms", "iterations_mean",
-                        "success", "swung_up", "time_to_upright_s", "hold_error_rad", "cost_integral", "solver_failures", "build_s"],
+                        "success", "swung_up", "time_to_upright_s", "hold_error_rad", "cost_integral",
+                        "solver_failures", "build_s"],
                        plot, notes)
 
 

@@ -18,8 +18,11 @@ from typing import Any
 
 import numpy as np
 
-from fvin_mpc.studies.bench.common import NOISE_NOTE, plot_pareto
-from fvin_mpc.studies.report import StudyResult
+from benchmarks.common import NOISE_NOTE, plot_pareto
+from benchmarks.study import StudyResult
+from fvin_mpc.control.closed_loop import episode_metrics, run_episode
+from fvin_mpc.control.scene import scene_env, scene_model, scene_mpc, scene_mpc_settings
+from fvin_mpc.studies.starts import episode_starts
 
 #: (label, overrides of the scene's RTI settings); the first is the scene's own.
 CONFIGS: tuple[tuple[str, dict[str, Any]], ...] = (
@@ -42,8 +45,6 @@ COLUMNS = ["config", "model", "call_ms_median", "call_ms_p99", "feedback_ms_medi
 def measure(scene: str, overrides: dict[str, Any], true_model: bool, starts: list[Any], duration: float,
             compile_: str = "cached") -> dict[str, Any]:
     """One configuration on one model over ``starts``: times per period and closed-loop outcome."""
-    from fvin_mpc.control.closed_loop import episode_metrics, run_episode
-    from fvin_mpc.control.scene import scene_env, scene_model, scene_mpc, scene_mpc_settings
 
     env = scene_env(scene, true_model=true_model)
     controller = scene_mpc(env, scene_model(env, true_model=true_model),
@@ -68,8 +69,6 @@ def measure(scene: str, overrides: dict[str, Any], true_model: bool, starts: lis
 
 def run(quick: bool = False, seed: int = 0, starts: int = 20, duration: float = 10.0, scene: str = "pendulum",
         **_: Any) -> StudyResult:
-    from fvin_mpc.studies.starts import episode_starts
-
     from tqdm.auto import tqdm
 
     if quick:
@@ -77,7 +76,6 @@ def run(quick: bool = False, seed: int = 0, starts: int = 20, duration: float = 
     episodes = episode_starts(starts, seed, (2.0,))
     configs = [c for c in CONFIGS if not quick or c[0] in QUICK]
     load = os.getloadavg()
-    from fvin_mpc.control.scene import scene_env, scene_mpc_settings
 
     probe = scene_env(scene, true_model=True)
     default = scene_mpc_settings(probe, solver="rti")

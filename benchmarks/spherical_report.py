@@ -1,22 +1,24 @@
-"""The 3-D rigid body on a ball joint (scene ``spherical_pendulum``): ``python -m fvin_mpc.spherical_report``.
+"""The 3-D rigid body on a ball joint (scene ``spherical_pendulum``): ``python -m benchmarks.spherical_report``.
 
-The command line of :mod:`fvin_mpc.studies.spherical`, whose docstring (the method) is this command's ``--help``.
+The command line of :mod:`benchmarks.spherical`, whose docstring (the method) is this command's ``--help``.
 """
 
 from __future__ import annotations
+
 import argparse
 import json
 import time
 from pathlib import Path
-import fvin_mpc.studies.spherical as spherical_module
+
+import benchmarks.spherical as spherical_module
+from benchmarks.spherical import SCENE, closed_loop_study, markdown_tables, merge_results
 from fvin_mpc._cli import checked_scene_and_checkpoint, positive_float, run_command
 from fvin_mpc.core.data import save_data
 from fvin_mpc.learning.collection import collect
-from fvin_mpc.studies.spherical import SCENE, closed_loop_study, markdown_tables, merge_results
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="python -m fvin_mpc.spherical_report", description=spherical_module.__doc__,
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.spherical_report", description=spherical_module.__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)
     c = sub.add_parser("collect", help="speed-bounded trajectory data of the spherical pendulum")
@@ -24,11 +26,18 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--steps", type=int, default=20, help="control periods per trajectory")
     c.add_argument("--max-omega", type=float, default=6.0, help="largest initial |ω| (rad/s)")
     c.add_argument("--hold-steps", type=int, default=2, help="periods per level of piecewise-constant controls")
-    c.add_argument("--max-speed", type=float, default=15.0, help="redraw a trajectory once some |ω_i| exceeds this (rad/s)")
+    c.add_argument(
+        "--max-speed", type=float, default=15.0, help="redraw a trajectory once some |ω_i| exceeds this (rad/s)"
+    )
     c.add_argument("--near-goal-trajectories", type=int, default=600,
                    help="more trajectories started within --near-goal-angle of upright (default: %(default)s)")
     c.add_argument("--near-goal-angle", type=float, default=1.0, help="rad (default: %(default)s)")
-    c.add_argument("--near-goal-omega", type=float, default=2.0, help="largest initial |ω_i| of those (rad/s; default: %(default)s)")
+    c.add_argument(
+        "--near-goal-omega",
+        type=float,
+        default=2.0,
+        help="largest initial |ω_i| of those (rad/s; default: %(default)s)",
+    )
     c.add_argument("--seed", type=int, default=0)
     c.add_argument("--out", type=Path, default=Path("data") / f"{SCENE}.npz")
     c.add_argument("--quiet", action="store_true")
@@ -42,7 +51,9 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--seed", type=int, default=0)
     e.add_argument("--json", type=Path, default=Path("docs/spherical/closed_loop.json"))
     e.add_argument("--markdown", type=Path, default=Path("docs/spherical/closed_loop.md"))
-    e.add_argument("--indices", default=None, help="run only starts FIRST-LAST (inclusive), e.g. 0-9, to split the work")
+    e.add_argument(
+        "--indices", default=None, help="run only starts FIRST-LAST (inclusive), e.g. 0-9, to split the work"
+    )
     e.add_argument("--quiet", action="store_true")
     mg = sub.add_parser("merge", help="merge closed-loop JSON files (disjoint starts or models) into one table")
     mg.add_argument("parts", type=Path, nargs="+")
@@ -92,8 +103,15 @@ def main(argv: list[str] | None = None) -> int:
                        near_goal_trajectories=args.near_goal_trajectories, near_goal_angle=args.near_goal_angle,
                        near_goal_omega=args.near_goal_omega)
         save_data(args.out, data)
-        print(json.dumps({"out": str(args.out), "wall_clock_s": round(time.perf_counter() - start, 1),
-                          **{k: data.metadata[k] for k in ("trajectories", "transitions", "attempts", "acceptance_rate")}}))
+        print(
+            json.dumps(
+                {
+                    "out": str(args.out),
+                    "wall_clock_s": round(time.perf_counter() - start, 1),
+                    **{k: data.metadata[k] for k in ("trajectories", "transitions", "attempts", "acceptance_rate")},
+                }
+            )
+        )
     return 0
 
 

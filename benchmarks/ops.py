@@ -22,8 +22,15 @@ from typing import Any
 
 import numpy as np
 
+from benchmarks.study import StudyResult
+from fvin_mpc.control import export, implicit_dynamics
+from fvin_mpc.control.rti import retract, unrolled_stage_function
+from fvin_mpc.control.scene import scene_env, scene_model
+from fvin_mpc.core import s3
 from fvin_mpc.core.backend import get_ops
-from fvin_mpc.studies.report import StudyResult
+from fvin_mpc.core.checkpoint import load_checkpoint
+from fvin_mpc.core.networks import mlp, scalar_mlp_value_and_gradient
+from fvin_mpc.core.space import PIVOTED
 
 #: Shipped planar checkpoints counted, beside the closed form.
 CHECKPOINTS = ("pendulum_sign-invariant", "pendulum_fixed-inertia", "pendulum_plain")
@@ -58,13 +65,10 @@ class EvenFeatureTerms:
 
     def _network(self, name: str, q: Any) -> tuple[Any, ...]:
         """The package's own MLP (:func:`fvin_mpc.core.networks.mlp`) on the even features."""
-        from fvin_mpc.core.networks import mlp
 
         return CA.unstack(mlp(self._weights, name, HIDDEN_LAYERS, _features(q), CA))
 
     def inertia(self, q: Any) -> Any:
-        from fvin_mpc.core import s3
-
         zero = 0.0 * q[0]
         if self.constant_inertia:
             return s3.symmetric_from_cholesky(tuple(zero + v for v in (1.0, 0.0, 1.0, 0.0, 0.0, 1.0)), 1e-3)
@@ -72,7 +76,6 @@ class EvenFeatureTerms:
 
     def potential_gradient(self, q: Any) -> Any:
         """``∂U/∂q`` by the package's hand-written backpropagation to the features, then ``∂(q_i q_j)/∂q``."""
-        from fvin_mpc.core.networks import scalar_mlp_value_and_gradient
 
         _, feature_gradient = scalar_mlp_value_and_gradient(self._weights, "potential", HIDDEN_LAYERS, _features(q), CA)
         gradient = [0.0 * q[0]] * 4
@@ -100,9 +103,6 @@ def count(step: Any) -> tuple[int, int]:
 
 def rti_stage_counts(step: Any, terms: Any, step_size: float) -> tuple[int, int]:
     """Instructions per stage of the RTI's unrolled dynamics and of its implicit ones (node + stage)."""
-    from fvin_mpc.control import implicit_dynamics
-    from fvin_mpc.control.rti import retract, unrolled_stage_function
-    from fvin_mpc.core.space import PIVOTED
 
     unrolled = unrolled_stage_function(step, PIVOTED, terms.control_dim)
     node, layout = implicit_dynamics.node_terms_function(terms, retract)
@@ -111,10 +111,6 @@ def rti_stage_counts(step: Any, terms: Any, step_size: float) -> tuple[int, int]
 
 
 def run(quick: bool = False, seed: int = 0, **_: Any) -> StudyResult:
-    from fvin_mpc.control import export
-    from fvin_mpc.core.checkpoint import load_checkpoint
-    from fvin_mpc.control.scene import scene_env, scene_model
-
     structures = {
         "sign-invariant": "`J(q)`, `U(q)`, `g(q)`, each averaged over `±q`; `J` also at `q_{k+1}`",
         "fixed-inertia": "constant `J`; `U(q)`, `g(q)`",

@@ -12,7 +12,7 @@ Models are trained on growing numbers of transitions (``--sizes``), several draw
   starts for every model (:func:`fvin_mpc.studies.starts.episode_starts`: hanging at rest, then
   seeded random states, ``|ω₀| ≤ 2``), 10 s each; success and accumulated cost as
   :func:`fvin_mpc.control.closed_loop.episode_metrics` defines them;
-- **Pendulum-v1** — the benchmark's MPC (:func:`fvin_mpc.studies.pendulum_v1.benchmark_settings`)
+- **Pendulum-v1** — the benchmark's MPC (:func:`benchmarks.pendulum_v1_mpc.benchmark_settings`)
   on ``gymnasium.make("Pendulum-v1")``, mean return over seeds ``0 … v1_episodes − 1``.
 
 The closed-form model (the rod read off the MJCF, same step, same MPC) runs on the same starts:
@@ -20,13 +20,14 @@ costs are reported relative to it. Closed loops run in the *waiting* latency mod
 (``latency="none"``): these are model-quality figures, not real-time ones.
 
 Models: the S3FVIN variants (``sign-invariant``, ``fixed-inertia``, ``plain``) and ``mlp``, the
-unstructured baseline of :mod:`fvin_mpc.learning.mlp_baseline` (increment of ``(q, ω)``,
+unstructured baseline of :mod:`benchmarks.mlp_baseline` (increment of ``(q, ω)``,
 sign-equivariant, hidden width 16: 535 parameters against the S3FVIN's 590), trained by the same
 loop on the same windows with the same settings. The MLP has no energy: its MPC's terminal
 energy-deficit term uses the closed-form energy (privileged information that favours it).
 
 Data: one pool of ``--pool`` transitions (default 20,000) in trajectories of 10 periods (seed
-``--seed``; the package's collector and its defaults otherwise), collected once; the training set of ``n`` transitions for draw ``r`` is the
+``--seed``; the package's collector and its defaults otherwise), collected once; the training set of
+``n`` transitions for draw ``r`` is the
 first ``n / steps`` *whole* trajectories of a permutation seeded by ``(seed, r)`` — whole
 trajectories keep every window valid, and the sets of one draw are nested. Draw ``r`` also seeds
 the training. Everything is cached per cell (model × size × draw) under ``--cache-dir``: a run
@@ -48,7 +49,20 @@ from typing import Any
 
 import numpy as np
 
-from fvin_mpc.studies.report import StudyResult
+from benchmarks.mlp_baseline import MLPConfig, check_mlp_weights, load_mlp, mlp_step_function, save_mlp, train_mlp
+from benchmarks.pendulum_v1_mpc import ZOO_BEST, benchmark_settings, run_v1_episode
+from benchmarks.study import StudyResult
+from fvin_mpc.control.closed_loop import episode_metrics, run_episode
+from fvin_mpc.control.export import CA, NP, ExportedModel, energy_function, from_checkpoint
+from fvin_mpc.control.scene import scene_env, scene_model, scene_mpc, scene_mpc_settings
+from fvin_mpc.core.checkpoint import save_checkpoint
+from fvin_mpc.core.data import load_data, save_data
+from fvin_mpc.core.networks import ModelConfig
+from fvin_mpc.core.rigid_body import from_mujoco
+from fvin_mpc.learning.collection import collect
+from fvin_mpc.learning.training import TrainSettings, train
+from fvin_mpc.studies.evaluation import DEFAULT_MAX_OMEGA
+from fvin_mpc.studies.starts import episode_starts
 
 S3FVIN_VARIANTS: tuple[str, ...] = ("sign-invariant", "fixed-inertia", "plain")
 MLP = "mlp"
@@ -115,7 +129,9 @@ class StudyConfig:
                 raise ValueError(f"size {size} is not a positive multiple of the trajectory length "
                                  f"{self.trajectory_steps} (training sets are whole trajectories)")
         if self.pool_size < max(self.sizes) or self.pool_size % self.trajectory_steps:
-            raise ValueError(f"the pool ({self.pool_size} transitions) must hold the largest size and be whole trajectories")
+            raise ValueError(
+                f"the pool ({self.pool_size} transitions) must hold the largest size and be whole trajectories"
+            )
         if self.trajectory_steps < 8:
             raise ValueError("trajectories need at least 8 periods (the training windows' length)")
         if self.episodes < 1 or self.v1_episodes < 0 or self.duration_s <= 0:
@@ -157,8 +173,6 @@ def test_path(config: StudyConfig) -> Path:
 def _collected(path: Path, trajectories: int, steps: int, seed: int, progress: bool) -> Any:
     """The data at ``path``, collected on the ``pendulum`` scene (the package's collector and its
     defaults: uniform states, ``|ω₀| ≤ 6``, constant or piecewise-constant torques) if absent."""
-    from fvin_mpc.core.data import load_data, save_data
-    from fvin_mpc.learning.collection import collect
 
     if not path.exists():
         save_data(path, collect("pendulum", trajectories=trajectories, steps=steps, seed=seed, progress=progress))
@@ -187,8 +201,6 @@ def training_subset(pool: Any, transitions: int, draw: int, seed: int) -> Any:
 
 # ---------------------------------------------------------------------------- models
 def train_settings(config: StudyConfig, draw: int) -> Any:
-    from fvin_mpc.learning.training import TrainSettings
-
     return TrainSettings(seed=draw, threads=1, patience=PATIENCE, iterations=config.iterations,
                          jacobian_windows=config.jacobian_windows)
 
@@ -197,15 +209,14 @@ def train_cell_model(model: str, data: Any, config: StudyConfig, draw: int, stem
                      progress: bool = False) -> dict[str, Any]:
     """Train ``model`` on ``data``, save it at ``stem`` (checkpoint, or the MLP's files); the training report."""
     if model == MLP:
-        from fvin_mpc.learning.mlp_baseline import MLPConfig, save_mlp, train_mlp
-
-        trained, report = train_mlp(data, MLPConfig(hidden_width=16, step_size=data.control_period), train_settings(config, draw),
-                                    progress=progress)
+        trained, report = train_mlp(
+            data,
+            MLPConfig(hidden_width=16, step_size=data.control_period),
+            train_settings(config, draw),
+            progress=progress,
+        )
         save_mlp(stem, trained.config, trained.numpy_weights(), transitions=data.num_transitions)
     else:
-        from fvin_mpc.core.checkpoint import save_checkpoint
-        from fvin_mpc.core.networks import ModelConfig
-        from fvin_mpc.learning.training import train
 
         trained, report = train(data, ModelConfig(variant=model, step_size=data.control_period),
                                 train_settings(config, draw), progress=progress)
@@ -217,18 +228,14 @@ def train_cell_model(model: str, data: Any, config: StudyConfig, draw: int, stem
 
 def export_cell_model(model: str, stem: Path | None, env: Any) -> Any:
     """The :class:`~fvin_mpc.control.export.ExportedModel` of a cell (``closed-form``: the MJCF's rod)."""
-    from fvin_mpc.control.scene import scene_model
 
     if model == CLOSED_FORM:
         return scene_model(env, true_model=True)
     if model == MLP:
-        from fvin_mpc.core.rigid_body import from_mujoco
-        from fvin_mpc.learning.mlp_baseline import load_mlp
 
         mlp_config, weights = load_mlp(stem)
         base = env.unwrapped
         return export_mlp(weights, mlp_config, from_mujoco(base.model, base.body_name), name=stem.name)
-    from fvin_mpc.control.export import from_checkpoint
 
     return from_checkpoint(stem)
 
@@ -250,7 +257,9 @@ def rollout_errors(model: Any, test: Any) -> dict[str, float]:
             window = model.rollout(x_true[start], controls[start:start + 8])
             truth = x_true[start:start + 9]
             cos = np.sum(window[1:, :4] * truth[1:, :4], axis=-1)
-            window_losses.append(float(np.mean(4.0 * (1.0 - cos**2) + 0.1 * np.sum((window[1:, 4:] - truth[1:, 4:]) ** 2, -1))))
+            window_losses.append(
+                float(np.mean(4.0 * (1.0 - cos**2) + 0.1 * np.sum((window[1:, 4:] - truth[1:, 4:]) ** 2, -1)))
+            )
     finals_array = np.array(finals)
     finite = np.isfinite(finals_array)
     return {"angle_error_1s_mean_rad": float(finals_array[finite].mean()) if finite.any() else math.nan,
@@ -285,7 +294,6 @@ class BudgetedController:
 def scene_settings(env: Any, config: StudyConfig, overrides: dict[str, Any] | None = None) -> Any:
     """The MPCSettings of the study's closed loops on ``env``: the scene's, with the study's
     compile mode, horizon and ``mpc_overrides``, then ``overrides`` (a model's own)."""
-    from fvin_mpc.control.scene import scene_mpc_settings
 
     return scene_mpc_settings(env, **{"compile": config.compile, "horizon": config.horizon,
                                       **dict(config.mpc_overrides), **(overrides or {})})
@@ -293,8 +301,6 @@ def scene_settings(env: Any, config: StudyConfig, overrides: dict[str, Any] | No
 
 def study_starts(config: StudyConfig, count: int | None = None) -> list[Any]:
     """The study's first ``count`` (default ``config.episodes``) closed-loop starts."""
-    from fvin_mpc.studies.evaluation import DEFAULT_MAX_OMEGA
-    from fvin_mpc.studies.starts import episode_starts
 
     return episode_starts(config.episodes if count is None else count, config.seed, (DEFAULT_MAX_OMEGA,))
 
@@ -303,8 +309,6 @@ def closed_loop(model: Any, env: Any, config: StudyConfig, progress: bool = Fals
                 overrides: dict[str, Any] | None = None) -> dict[str, Any]:
     """The scene's MPC on ``model`` over the study's starts (waiting latency mode); ``overrides``:
     MPCSettings fields of this model's MPC."""
-    from fvin_mpc.control.closed_loop import episode_metrics, run_episode
-    from fvin_mpc.control.scene import scene_mpc
 
     start = time.perf_counter()
     controller = BudgetedController(scene_mpc(env, model, scene_settings(env, config, overrides)), model.control_dim,
@@ -325,15 +329,14 @@ def closed_loop(model: Any, env: Any, config: StudyConfig, progress: bool = Fals
             "budget_exhausted": int(sum(e["budget_exhausted"] for e in episodes)), "per_episode": episodes}
 
 
-def pendulum_v1_returns(model: Any, env: Any, config: StudyConfig, overrides: dict[str, Any] | None = None) -> dict[str, Any]:
+def pendulum_v1_returns(
+    model: Any, env: Any, config: StudyConfig, overrides: dict[str, Any] | None = None
+) -> dict[str, Any]:
     """The Pendulum-v1 benchmark's MPC on ``model`` on ``gymnasium.make("Pendulum-v1")``, seeds
     ``0 … v1_episodes − 1``."""
     if config.v1_episodes == 0:
         return {"episodes": 0, "return_mean": None, "returns": []}
     import gymnasium
-
-    from fvin_mpc.control.scene import scene_mpc
-    from fvin_mpc.studies.pendulum_v1 import benchmark_settings, run_v1_episode
 
     settings = benchmark_settings() if config.horizon is None else benchmark_settings(config.horizon)
     controller = BudgetedController(scene_mpc(env, model, replace(settings, compile=config.compile,
@@ -459,8 +462,6 @@ def run_cells(config: StudyConfig, progress: bool = True,
     cells' records and (``cached_only``) the names of the cells left out because not cached."""
     from tqdm.auto import tqdm
 
-    from fvin_mpc.control.scene import scene_env
-
     pool, test = training_pool(config, progress), test_set(config, progress)
     env = scene_env("pendulum", true_model=True)
     try:
@@ -519,17 +520,28 @@ def summarize(reference: dict[str, Any], records: list[dict[str, Any]]) -> list[
                               "iterations": r["training"]["iterations"]} for r in mine],
             })
     loop = reference["closed_loop"]
-    rows.append({"model": CLOSED_FORM, "transitions": None, "seeds": None,
-                 "angle_error_1s_rad": reference["rollout"]["angle_error_1s_mean_rad"],
-                 "test_loss": reference["rollout"]["test_window_loss"],
-                 "success": f"{loop['successes']}/{loop['episodes']}", "success_rate": loop["successes"] / loop["episodes"],
-                 "all_succeed": loop["successes"] == loop["episodes"], "cost_mean": loop["cost_mean"],
-                 "cost_excess_pct_median": 0.0, "cost_excess_pct_max": 0.0, "cost_within_2pct_all_seeds": True,
-                 "v1_return_mean": reference["pendulum_v1"]["return_mean"],
-                 "v1_return_worst_seed": (float(np.min(reference["pendulum_v1"]["returns"]))
-                                          if reference["pendulum_v1"]["returns"] else None),
-                 "failed_solves": loop["failures"],
-                 "budget_exhausted": loop.get("budget_exhausted", 0) + reference["pendulum_v1"].get("budget_exhausted", 0)})
+    rows.append(
+        {
+            "model": CLOSED_FORM,
+            "transitions": None,
+            "seeds": None,
+            "angle_error_1s_rad": reference["rollout"]["angle_error_1s_mean_rad"],
+            "test_loss": reference["rollout"]["test_window_loss"],
+            "success": f"{loop['successes']}/{loop['episodes']}",
+            "success_rate": loop["successes"] / loop["episodes"],
+            "all_succeed": loop["successes"] == loop["episodes"],
+            "cost_mean": loop["cost_mean"],
+            "cost_excess_pct_median": 0.0,
+            "cost_excess_pct_max": 0.0,
+            "cost_within_2pct_all_seeds": True,
+            "v1_return_mean": reference["pendulum_v1"]["return_mean"],
+            "v1_return_worst_seed": (
+                float(np.min(reference["pendulum_v1"]["returns"])) if reference["pendulum_v1"]["returns"] else None
+            ),
+            "failed_solves": loop["failures"],
+            "budget_exhausted": loop.get("budget_exhausted", 0) + reference["pendulum_v1"].get("budget_exhausted", 0),
+        }
+    )
     return rows
 
 
@@ -587,7 +599,6 @@ def headline(rows: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
 
 def plot(figure: Any, rows: list[dict[str, Any]]) -> None:
     """Four panels against the number of transitions: rollout error, success, cost excess, Pendulum-v1."""
-    from fvin_mpc.studies.pendulum_v1 import ZOO_BEST
 
     figure.set_size_inches(11, 7.5)
     axes = figure.subplots(2, 2)
@@ -646,7 +657,9 @@ def study_config(quick: bool, seed: int, sizes: str, seeds: str, models: str, ep
                  cache_dir: Path, compile: str, duration: float, pool: int | None = None,
                  episode_budget: float = EPISODE_BUDGET_S, torque_reserve: float = 0.0) -> StudyConfig:
     model_names = tuple(m.strip() for m in models.split(",") if m.strip())
-    if quick:  # the test suite's path: tiny sets, a short horizon, uncompiled functions, capped IPOPT, one Pendulum-v1 episode
+    if (
+        quick
+    ):  # the test suite's path: tiny sets, a short horizon, uncompiled functions, capped IPOPT, one Pendulum-v1 episode
         quick_sizes = _parse_ints(sizes, "sizes") if sizes != DEFAULT_SIZES else (40, 80)
         return StudyConfig(sizes=quick_sizes, draws=(0,), models=model_names, seed=seed, episodes=1, duration_s=1.0,
                            v1_episodes=min(v1_episodes, 1), trajectory_steps=10, test_trajectories=4,
@@ -699,7 +712,9 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 1, sizes: str = DEFAU
                 f"{d['cost_within_2pct_from']} (first {d['cost_within_2pct_first']})"
                 for model, v in best.items() for draw, d in v.get("per_draw", {}).items()]
     if per_draw:
-        notes.insert(2, "Per draw (each over the sizes that draw was run at; same definitions): " + "; ".join(per_draw) + ".")
+        notes.insert(
+            2, "Per draw (each over the sizes that draw was run at; same definitions): " + "; ".join(per_draw) + "."
+        )
     if missing:
         notes.append(f"Not run (`--cached-only`; not in the cache): {', '.join(missing)}. The `seeds` column "
                      "says how many draws each row has.")
@@ -718,16 +733,26 @@ def add_arguments(parser: Any) -> None:
                         help="closed-loop starts per model, the same for all (default: %(default)s)")
     parser.add_argument("--v1-episodes", type=int, default=10,
                         help="Pendulum-v1 seeds 0..N-1 per model; 0 skips it (default: %(default)s)")
-    parser.add_argument("--duration", type=float, default=10.0, help="seconds per closed-loop episode (default: %(default)s)")
-    parser.add_argument("--compile", choices=("cached", "none"), default="cached",
-                        help="the MPC's functions compiled to C (cached on disk) or run in CasADi's VM (default: %(default)s)")
+    parser.add_argument(
+        "--duration", type=float, default=10.0, help="seconds per closed-loop episode (default: %(default)s)"
+    )
+    parser.add_argument(
+        "--compile",
+        choices=("cached", "none"),
+        default="cached",
+        help="the MPC's functions compiled to C (cached on disk) or run in CasADi's VM (default: %(default)s)",
+    )
     parser.add_argument("--cached-only", action="store_true",
                         help="report only the cells already in the cache (a partial grid), list the others as not run")
     parser.add_argument("--pool", type=int, default=20000,
                         help="transitions collected once; every training set is drawn from them, so runs with "
                              "other --sizes share data and cells (default: %(default)s)")
-    parser.add_argument("--cache-dir", type=Path, default=Path("data/data-efficiency"),
-                        help="data, trained models and per-cell results; a rerun resumes from it (default: %(default)s)")
+    parser.add_argument(
+        "--cache-dir",
+        type=Path,
+        default=Path("data/data-efficiency"),
+        help="data, trained models and per-cell results; a rerun resumes from it (default: %(default)s)",
+    )
     parser.add_argument("--episode-budget", type=float, default=EPISODE_BUDGET_S,
                         help="controller compute (wall-clock s) per episode before it is declared failed (zero torque "
                              "for the rest); another value evaluates beside the default's cells (default: %(default)s)")
@@ -742,7 +767,8 @@ def add_arguments(parser: Any) -> None:
 
 
 def export_mlp(weights: Any, config: Any, energy_body: Any, name: str = "mlp") -> Any:
-    """The MLP baseline (:mod:`fvin_mpc.learning.mlp_baseline`) as an :class:`~fvin_mpc.control.export.ExportedModel` (``newton_iters = 0``).
+    """The MLP baseline (:mod:`benchmarks.mlp_baseline`) as an
+    :class:`~fvin_mpc.control.export.ExportedModel` (``newton_iters = 0``).
 
     Args:
         energy_body: a closed-form :class:`~fvin_mpc.core.rigid_body.PivotedRigidBody` (e.g.
@@ -750,8 +776,6 @@ def export_mlp(weights: Any, config: Any, energy_body: Any, name: str = "mlp") -
             terminal energy-deficit cost (the MLP has none; module docstring). The name gets a
             ``+true-energy`` suffix so that no report can miss it.
     """
-    from fvin_mpc.control.export import CA, NP, ExportedModel, energy_function
-    from fvin_mpc.learning.mlp_baseline import check_mlp_weights, mlp_step_function
 
     check_mlp_weights(weights, config)
     return ExportedModel(step=mlp_step_function(weights, config), step_size=config.step_size, newton_iters=0,

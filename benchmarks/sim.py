@@ -18,8 +18,9 @@ from typing import Any
 
 import numpy as np
 
-from fvin_mpc.studies.report import StudyResult
-from fvin_mpc.studies.bench.common import NOISE_NOTE
+from benchmarks.common import NOISE_NOTE, plot_pareto
+from benchmarks.study import StudyResult, median_time
+from fvin_mpc.envs.scenes import SCENES, build_model, load_model
 
 THETA0, TORQUE = 2.5, 0.5
 SAMPLE_PERIOD = 0.01
@@ -58,8 +59,6 @@ def _all_effects_model(xml_path: Any) -> Any:
     """The scene with everything MuJoCo can compute: no disable flag, every enable flag, collidable geoms."""
     import mujoco
 
-    from fvin_mpc.envs.scenes import load_model
-
     model = load_model(xml_path)
     model.opt.disableflags = 0
     enable = 0
@@ -76,12 +75,12 @@ def _all_effects_model(xml_path: Any) -> Any:
 def run(quick: bool = False, seed: int = 0, repeats: int = 5, duration: float = 5.0, **_: Any) -> StudyResult:
     import mujoco
 
-    from fvin_mpc.envs.scenes import SCENES, build_model
-
     spec = SCENES["pendulum"]
     duration = 1.0 if quick else duration
     repeats = 2 if quick else repeats
-    integrators = ["EULER", "RK4", "IMPLICIT", "IMPLICITFAST"] + (["DISCRETE"] if hasattr(mujoco.mjtIntegrator, "mjINT_DISCRETE") else [])
+    integrators = ["EULER", "RK4", "IMPLICIT", "IMPLICITFAST"] + (
+        ["DISCRETE"] if hasattr(mujoco.mjtIntegrator, "mjINT_DISCRETE") else []
+    )
     timesteps_ms = [1.0, 5.0] if quick else [0.5, 1.0, 2.0, 5.0, 10.0]
     grid = np.arange(1, int(round(duration / SAMPLE_PERIOD)) + 1) * SAMPLE_PERIOD
     reference = _reference(grid)
@@ -141,7 +140,8 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 5, duration: float = 
         "the shipped scene's setting (RK4, 5 ms).",
         "Scene physics: the same pendulum simulated for "
         f"{steps * 0.005:g} s with only the declared physics vs everything switched on (all disable flags cleared, "
-        "all enable flags but `override` and `ipc` set — energy, forward/inverse comparison, … — and the rod and backdrop made "
+        "all enable flags but `override` and `ipc` set — energy, forward/inverse comparison, … — and the rod and "
+        "backdrop made "
         f"collidable so that collision detection runs every step): everything-on takes **{ratio:.2f}×** the time of "
         f"the declared physics — {verdict} for a one-joint scene, where the dynamics itself is tiny and the "
         f"extras (collision broad phase, inverse-dynamics check) are cheap; the trajectories differ by at most "
@@ -150,22 +150,30 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 5, duration: float = 
         NOISE_NOTE,
     ]
     if fastest_accurate is not None:
-        notes.insert(1, f"Fastest setting with error below 1e-3 rad: **{fastest_accurate['label']}** "
-                        f"({fastest_accurate['max_theta_error_rad']:.1e} rad, {fastest_accurate['wall_ms_median']:.2f} ms "
-                        f"per {duration:g} s simulated).")
+        notes.insert(
+            1,
+            f"Fastest setting with error below 1e-3 rad: **{fastest_accurate['label']}** "
+            f"({fastest_accurate['max_theta_error_rad']:.1e} rad, {fastest_accurate['wall_ms_median']:.2f} ms "
+            f"per {duration:g} s simulated).",
+        )
 
     def plot(figure: Any, rows_: list[dict[str, Any]]) -> None:
         axis = figure.add_subplot()
-        from fvin_mpc.studies.bench.common import plot_pareto
 
         integ = [r for r in rows_ if r["part"] == "integrator"]
         for name in sorted({r["integrator"] for r in integ}):
             group = [r for r in integ if r["integrator"] == name]
             axis.plot([r["wall_ms_median"] for r in group], [max(r["max_theta_error_rad"], 1e-16) for r in group],
                       "o-", label=name, ms=4)
-        plot_pareto(axis, [dict(r, max_theta_error_rad=max(r["max_theta_error_rad"], 1e-16)) for r in integ],
-                    "wall_ms_median", "max_theta_error_rad", "timestep_ms", f"wall time per {duration:g} s simulated (ms)",
-                    "max |θ − θ_ref| (rad)")
+        plot_pareto(
+            axis,
+            [dict(r, max_theta_error_rad=max(r["max_theta_error_rad"], 1e-16)) for r in integ],
+            "wall_ms_median",
+            "max_theta_error_rad",
+            "timestep_ms",
+            f"wall time per {duration:g} s simulated (ms)",
+            "max |θ − θ_ref| (rad)",
+        )
         axis.set_title(f"MuJoCo integrators (labels: step in ms); everything-on / declared = {ratio:.2f}×", fontsize=9)
         axis.legend(fontsize=7)
 
@@ -176,8 +184,6 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 5, duration: float = 
 
 
 def _median(function: Any, repeats: int) -> tuple[float, float]:
-    from fvin_mpc.studies.report import median_time
-
     return median_time(function, repeats)
 
 

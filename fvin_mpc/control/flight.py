@@ -28,6 +28,8 @@ from typing import Any
 
 import numpy as np
 
+from fvin_mpc.control import export
+from fvin_mpc.control.closed_loop import episode_metrics
 from fvin_mpc.control.export import ExportedModel
 from fvin_mpc.control.mpc import MPC, MPCSettings
 from fvin_mpc.control.problem import ConstantReference
@@ -65,7 +67,9 @@ def quadrotor_mpc_settings(**overrides: Any) -> MPCSettings:
     return replace(base, **{k: v for k, v in overrides.items() if v is not None})
 
 
-def quadrotor_model(env: Any, checkpoint: Any = None, true_model: bool = False, newton_iters: int | None = None) -> ExportedModel:
+def quadrotor_model(
+    env: Any, checkpoint: Any = None, true_model: bool = False, newton_iters: int | None = None
+) -> ExportedModel:
     """The planning model on the quadrotor ``env``: a learned R³ × S³ ``checkpoint`` (object, shipped
     name or path; default the scene's), or with ``true_model`` the closed form read off the MJCF
     (:func:`fvin_mpc.core.quadrotor.from_mujoco`) at the env's control period.
@@ -73,12 +77,13 @@ def quadrotor_model(env: Any, checkpoint: Any = None, true_model: bool = False, 
     Raises:
         ValueError: the model's step differs from the env's control period, or it is not a free body.
     """
-    from fvin_mpc.control import export
 
     base = env.unwrapped
     if true_model:
         craft = base.space.closed_form(base.model, base.body_name)
-        model = export.from_closed_form(base.space, craft, base.dt, newton_iters or 2, name=f"true_{base.scene_spec.name}")
+        model = export.from_closed_form(
+            base.space, craft, base.dt, newton_iters or 2, name=f"true_{base.scene_spec.name}"
+        )
     else:
         model = export.from_checkpoint(checkpoint or base.scene_spec.default_checkpoint, newton_iters)
     model.require(base.space, by=f"scene {base.scene_spec.name!r}")
@@ -165,7 +170,8 @@ class FigureEight:
         return q / np.linalg.norm(q, axis=1, keepdims=True), norm / self.gravity
 
     def __call__(self, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Reference states ``(T, 13)`` and control scales ``(T,)`` (the :class:`~fvin_mpc.control.rti.Reference` protocol)."""
+        """Reference states ``(T, 13)`` and control scales ``(T,)`` (the
+        :class:`~fvin_mpc.control.rti.Reference` protocol)."""
         times = np.asarray(times, dtype=float)
         position, velocity, _ = self.trajectory(times)
         q, scale = self.attitude(times)
@@ -190,7 +196,10 @@ def recovery_starts(hover_point: Any, count: int = 20, seed: int = 0,
     axis = rng.normal(size=3)
     starts: list[tuple[dict[str, Any], int]] = [
         ({"qpos": upside_down, "qvel": np.zeros(6)}, seed),
-        ({"qpos": upside_down, "qvel": np.concatenate([np.zeros(3), max_omega * axis / np.linalg.norm(axis)])}, seed + 1),
+        (
+            {"qpos": upside_down, "qvel": np.concatenate([np.zeros(3), max_omega * axis / np.linalg.norm(axis)])},
+            seed + 1,
+        ),
     ]
     starts += [({"max_omega": max_omega}, seed + i) for i in range(2, count)]
     return starts[:count]
@@ -207,7 +216,6 @@ def flight_metrics(episode: Any, reference: Any, settle_s: float = 0.0,
     figures of :func:`fvin_mpc.control.closed_loop.episode_metrics` (time per call, CPU time, deadline
     misses, failures). Angles are sign-invariant (``2 acos |⟨q, q_ref⟩|``).
     """
-    from fvin_mpc.control.closed_loop import episode_metrics
 
     states = episode.states
     layout = R3S3.layout

@@ -2,11 +2,11 @@
 
 The problem per seed: from Gymnasium's initial state ``(θ₀, θ̇₀)``, choose ``u_0 … u_199`` in
 ``[−2, 2]`` to minimize ``Σ angle_normalize(θ_k)² + 0.1 θ̇_k² + 0.001 u_k²`` under Pendulum-v1's
-exact discrete map (:func:`fvin_mpc.studies.pendulum_v1.v1_step`): semi-implicit Euler,
+exact discrete map (:func:`benchmarks.pendulum_v1_mpc.v1_step`): semi-implicit Euler,
 
     θ̇' = clip(θ̇ + a sin θ + b u, −8, 8),   θ' = θ + dt θ̇',   a = 3g/(2l)·dt = 0.75,  b = 3/(ml²)·dt = 0.15.
 
-A local optimizer (the direct multiple shooting of :class:`~fvin_mpc.studies.pendulum_v1.EpisodeOptimizer`)
+A local optimizer (the direct multiple shooting of :class:`~benchmarks.pendulum_v1_mpc.EpisodeOptimizer`)
 finds the optimum nearest its first guess; a swing-up has many (left or right first, how many pump
 swings, catch or fall through), and the old reference — three first guesses — missed the best one on
 many seeds. This module searches globally first:
@@ -30,7 +30,7 @@ many seeds. This module searches globally first:
    (just enough energy to arrive upright): it prefers robust strategies and can miss the best one by
    a whole extra swing (seed 28: −237.5 greedy at 1024 × 513, −214.9 from a noisy rollout).
 4. **Polish**: every rollout, the MPC's own episode and the two energy-pumping heuristics are first
-   guesses of the episode NLP (:class:`~fvin_mpc.studies.pendulum_v1.EpisodeOptimizer`, from IPOPT's
+   guesses of the episode NLP (:class:`~benchmarks.pendulum_v1_mpc.EpisodeOptimizer`, from IPOPT's
    default start and from a local start, :data:`LOCAL_POLISH_OPTIONS`); the reference is the best of
    the exact returns of the guesses and of the converged NLP solutions.
 
@@ -49,21 +49,23 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from fvin_mpc.studies.pendulum_v1 import (
+from benchmarks.pendulum_v1_exact import (
     DT,
     EPISODE_STEPS,
     MAX_SPEED,
     MAX_TORQUE,
     RATE_GAIN_SIN,
     RATE_GAIN_TORQUE,
-    REFERENCE_GRIDS,
     EpisodeOptimizer,
     heuristic_controls,
+    replay,
     v1_cost,
     v1_map,
 )
 
-#: Grids of the convergence study, ``(n_theta, n_rate)``: each halves both spacings of the previous.
+#: The reference's DP grids ``(n_theta, n_rate)``, coarse to fine: each halves both spacings of the previous.
+REFERENCE_GRIDS: tuple[tuple[int, int], ...] = ((256, 129), (512, 257), (1024, 513))
+#: Grids of the convergence study.
 DEFAULT_RESOLUTIONS = REFERENCE_GRIDS
 #: Two polished returns closer than this are the same local optimum (the NLP's tolerance is 1e-8).
 AGREEMENT_TOLERANCE = 1e-3
@@ -209,8 +211,6 @@ def polish(theta0: float, rate0: float, guesses: dict[str, Any],
     (the MPC's): its states start the NLP and its return is the episode's (an open-loop replay of its
     controls diverges near upright).
     """
-    from fvin_mpc.studies.pendulum_v1 import replay
-
     out: dict[str, dict[str, float]] = {}
     for name, guess in guesses.items():
         if isinstance(guess, tuple):

@@ -5,7 +5,7 @@ or ``kinsol``): the Newton residual and the one-step and 40-step (2 s at h = 0.0
 errors against held-out MuJoCo trajectories (``data/<scene>_heldout.npz``, collected with
 ``python -m fvin_mpc.collect --seed 1 --trajectories 64 --steps 40`` if missing; for
 ``spherical_pendulum`` the speed-bounded set of ``docs/spherical.md``, see
-:func:`~fvin_mpc.studies.bench.common.heldout_data`), the
+:func:`~benchmarks.common.heldout_data`), the
 difference from the converged step, the time of one step (torch batched, CasADi single
 call, CasADi ``map`` over the batch), and MPC solve time and closed-loop swing-up from rest
 on MuJoCo (:func:`fvin_mpc.control.closed_loop.run_episode`) with the scene's MPC settings
@@ -22,8 +22,16 @@ from typing import Any
 
 import numpy as np
 
-from fvin_mpc.studies.report import StudyResult, StudySkipped, median_time
-from fvin_mpc.studies.bench.common import NOISE_NOTE, checkpoint_or_none, heldout_data, make_env, plot_pareto, solve_stats
+from benchmarks.common import NOISE_NOTE, checkpoint_or_none, heldout_data, make_env, plot_pareto, solve_stats
+from benchmarks.study import StudyResult, StudySkipped, median_time
+from fvin_mpc.control.export import from_checkpoint, from_rigid_body
+from fvin_mpc.control.scene import scene_mpc_settings
+from fvin_mpc.core import fvin, s3
+from fvin_mpc.core.backend import get_ops
+from fvin_mpc.core.networks import LearnedTerms
+from fvin_mpc.core.rigid_body import from_mujoco
+from fvin_mpc.learning.collection import collect
+from fvin_mpc.learning.timing import batched_step_call, tensor_weights, torch_threads
 
 BATCH = 1024
 
@@ -33,12 +41,10 @@ def rootfinder_step(terms_ca: Any, step_size: float, plugin: str = "newton") -> 
     """``F(x[7], u[m]) -> (x_next[7], residual)`` with the implicit equation solved by CasADi's ``rootfinder``.
 
     Steps 1–2 and 4–5 are :func:`fvin_mpc.core.fvin.fvin_step`'s own (:func:`~fvin_mpc.core.fvin.implicit_problem`,
-    :func:`~fvin_mpc.core.fvin.finish_step`); step 3, ``Φ(ξ) = C``, is solved to convergence (abstol 1e-14) from the first Newton iterate.
+    :func:`~fvin_mpc.core.fvin.finish_step`); step 3, ``Φ(ξ) = C``, is solved to convergence (abstol 1e-14)
+    from the first Newton iterate.
     """
     import casadi as ca
-
-    from fvin_mpc.core import fvin, s3
-    from fvin_mpc.core.backend import get_ops
 
     ops = get_ops("casadi")
     m, h = terms_ca.control_dim, step_size
@@ -65,7 +71,9 @@ def rootfinder_step(terms_ca: Any, step_size: float, plugin: str = "newton") -> 
 
 
 # ----------------------------------------------------------------------------- evaluation
-def _casadi_rollout(step: Any, q0: np.ndarray, omega0: np.ndarray, controls: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _casadi_rollout(
+    step: Any, q0: np.ndarray, omega0: np.ndarray, controls: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Batched rollout with ``step.map(B)``: states ``(B, T+1, 7)``, residuals ``(B, T)``."""
     batch, steps = controls.shape[:2]
     mapped = step.map(batch)
@@ -89,10 +97,8 @@ def _errors(states: np.ndarray, q_true: np.ndarray, omega_true: np.ndarray) -> t
 
 def _torch_step_time(source: Any, newton_iters: int, q: np.ndarray, omega: np.ndarray, u: np.ndarray,
                      repeats: int) -> float:
-    from fvin_mpc.learning.timing import batched_step_call, tensor_weights, torch_threads
 
     if source["kind"] == "learned":
-        from fvin_mpc.core.networks import LearnedTerms
 
         checkpoint = source["checkpoint"]
 
@@ -121,9 +127,6 @@ def _casadi_map_time(step: Any, x: np.ndarray, u: np.ndarray, repeats: int) -> f
 
 # ----------------------------------------------------------------------------- study
 def _source(scene: str, model: str, checkpoint: str | None, control_period: float | None) -> dict[str, Any]:
-    from fvin_mpc.control.export import from_checkpoint, from_rigid_body  # noqa: F401  (used by callers)
-    from fvin_mpc.core.rigid_body import from_mujoco
-
     env = make_env(scene, control_period)
     base = env.unwrapped
     if model == "true":
@@ -136,22 +139,19 @@ def _source(scene: str, model: str, checkpoint: str | None, control_period: floa
                            f"`python -m fvin_mpc.train --data data/{scene}.npz --out checkpoints/{name}`, "
                            "or run the study with --model true")
     if abs(ckpt.config.step_size - base.dt) > 1e-9:
-        raise ValueError(f"checkpoint step {ckpt.config.step_size} s differs from the scene's control period {base.dt} s")
+        raise ValueError(
+            f"checkpoint step {ckpt.config.step_size} s differs from the scene's control period {base.dt} s"
+        )
     return {"kind": "learned", "checkpoint": ckpt, "step_size": ckpt.config.step_size, "env": env, "label": name}
 
 
 def _exported(source: dict[str, Any], newton_iters: int) -> Any:
-    from fvin_mpc.control.export import from_checkpoint, from_rigid_body
-
     if source["kind"] == "learned":
         return from_checkpoint(source["checkpoint"], newton_iters)
     return from_rigid_body(source["body"], source["step_size"], newton_iters, name=f"true_{newton_iters}")
 
 
 def _casadi_terms(source: dict[str, Any]) -> Any:
-    from fvin_mpc.core.backend import get_ops
-    from fvin_mpc.core.networks import LearnedTerms
-
     ops = get_ops("casadi")
     if source["kind"] == "learned":
         return LearnedTerms(source["checkpoint"].weights, source["checkpoint"].config, ops)
@@ -163,14 +163,11 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 5, scene: str = "pend
         iters: str = "1,2,3,4,5,6", **_: Any) -> StudyResult:
     from tqdm.auto import tqdm
 
-    from fvin_mpc.control.scene import scene_mpc_settings
-
     source = _source(scene, "true" if quick else model, checkpoint, None)
     h = source["step_size"]
     ks = [1, 2] if quick else [int(k) for k in iters.split(",")]
     repeats = 2 if quick else repeats
     if quick:
-        from fvin_mpc.learning.collection import collect
 
         data = collect(scene, 8, 10, 1, progress=False)
         horizon, duration = 10, 1.0
@@ -189,7 +186,9 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 5, scene: str = "pend
     reference = rootfinder_step(_casadi_terms(source), h, rootfinder)
     ref_one, ref_residual = _casadi_rollout(reference, q_in, w_in, u_in)
     converged = ref_residual[:, 0] < 1e-8
-    configs: list[tuple[str, Any, int | None]] = [(f"K={k}", None, k) for k in ks] + [(f"rootfinder ({rootfinder})", reference, None)]
+    configs: list[tuple[str, Any, int | None]] = [(f"K={k}", None, k) for k in ks] + [
+        (f"rootfinder ({rootfinder})", reference, None)
+    ]
     rows: list[dict[str, Any]] = []
     env = source["env"]
     # Each K costs a closed-loop swing-up (minutes on the 3-D scene): show where the study is.
@@ -201,16 +200,21 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 5, scene: str = "pend
         angle1, omega1 = _errors(one[:, 1], q_next, w_next)
         angle_t, omega_t = _errors(roll, data.q, data.omega)
         row = {
-            "config": label, "K": k if k is not None else "converged",
+            "config": label,
+            "K": k if k is not None else "converged",
             "residual_max": float(max(one_residual.max(), roll_residual.max())),
             "residual_median": float(np.median(one_residual)),
             "vs_converged_omega_max": float(np.abs(one[converged, 1, 4:] - ref_one[converged, 1, 4:]).max()),
             "reference_unconverged": int((~converged).sum()),
-            "one_step_angle_mean": float(angle1.mean()), "one_step_omega_mean": float(omega1.mean()),
+            "one_step_angle_mean": float(angle1.mean()),
+            "one_step_omega_mean": float(omega1.mean()),
             "rollout_angle_final_mean": float(angle_t[:, -1].mean()),
-            "rollout_angle_mean": float(angle_t.mean()), "rollout_omega_final_mean": float(omega_t[:, -1].mean()),
+            "rollout_angle_mean": float(angle_t.mean()),
+            "rollout_omega_final_mean": float(omega_t[:, -1].mean()),
             "rollout_s": data.u.shape[1] * h,
-            "torch_batch_ms": 1e3 * _torch_step_time(source, k, xb[:, :4], xb[:, 4:], ub, repeats) if k is not None else None,
+            "torch_batch_ms": 1e3 * _torch_step_time(source, k, xb[:, :4], xb[:, 4:], ub, repeats)
+            if k is not None
+            else None,
             "casadi_single_us": 1e6 * _casadi_single_time(step, xb, ub, repeats),
             "casadi_map_ms": 1e3 * _casadi_map_time(step, xb, ub, repeats),
         }
@@ -232,7 +236,8 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 5, scene: str = "pend
         "`vs_converged_omega_max` the largest |Δω| of one step against the root finder's, over the "
         "states where the root finder converged (`reference_unconverged` counts the others: no solution "
         "there, e.g. past the solvability limit).",
-        f"Step time: torch (`fvin_step`, no grad, one thread) on a batch of {BATCH}; CasADi `Function` called once per state "
+        f"Step time: torch (`fvin_step`, no grad, one thread) on a batch of {BATCH}; CasADi `Function` called once per "
+        f"state "
         f"(µs per call, Python overhead included) and `map`ped over the {BATCH} states (ms per batch). "
         f"MPC: the scene's settings (`fvin_mpc.control.scene.scene_mpc_settings`), IPOPT, Gauss–Newton Hessian, "
         f"{'interpreted' if quick else 'compiled (cached)'}, primal–dual warm start, N = {mpc_settings.horizon}, "
@@ -244,9 +249,12 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 5, scene: str = "pend
     ]
     if k2 is not None:
         ref_row = rows[-1]
-        notes.insert(1, f"At K = 2 the {data.u.shape[1] * h:g} s rollout error is {k2['rollout_angle_final_mean']:.3g} rad vs "
-                        f"{ref_row['rollout_angle_final_mean']:.3g} rad converged: from K = 2 on, the model's own "
-                        "error (learned terms, discretization) dominates the Newton error.")
+        notes.insert(
+            1,
+            f"At K = 2 the {data.u.shape[1] * h:g} s rollout error is {k2['rollout_angle_final_mean']:.3g} rad vs "
+            f"{ref_row['rollout_angle_final_mean']:.3g} rad converged: from K = 2 on, the model's own "
+            "error (learned terms, discretization) dominates the Newton error.",
+        )
 
     def plot(figure: Any, rows_: list[dict[str, Any]]) -> None:
         left, right = figure.subplots(1, 2)
@@ -260,10 +268,11 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 5, scene: str = "pend
         figure.suptitle(f"Newton iterations — {source['label']}", fontsize=10)
 
     return StudyResult("newton" if scene == "pendulum" else f"newton-{scene}", rows,
-                       ["config", "residual_max", "vs_converged_omega_max", "reference_unconverged", "one_step_angle_mean", "one_step_omega_mean",
-                        "rollout_angle_final_mean", "rollout_omega_final_mean", "torch_batch_ms", "casadi_single_us",
-                        "casadi_map_ms", "mpc_ms_median", "mpc_ms_p95", "iterations_mean", "success",
-                        "time_to_upright_s", "mpc_build_s"], plot, notes)
+                       ["config", "residual_max", "vs_converged_omega_max", "reference_unconverged",
+                        "one_step_angle_mean", "one_step_omega_mean", "rollout_angle_final_mean",
+                        "rollout_omega_final_mean", "torch_batch_ms", "casadi_single_us", "casadi_map_ms",
+                        "mpc_ms_median", "mpc_ms_p95", "iterations_mean", "success", "time_to_upright_s",
+                        "mpc_build_s"], plot, notes)
 
 
 def add_arguments(parser: Any) -> None:
@@ -273,6 +282,8 @@ def add_arguments(parser: Any) -> None:
     parser.add_argument("--checkpoint", default=None, help="checkpoint name or path (default: <scene>_sign-invariant)")
     parser.add_argument("--rootfinder", choices=["newton", "kinsol"], default="newton",
                         help="CasADi rootfinder plugin of the converged reference (default: %(default)s)")
-    parser.add_argument("--horizon", type=int, default=None, help="MPC horizon N (default: the scene's, scene_mpc_settings)")
+    parser.add_argument(
+        "--horizon", type=int, default=None, help="MPC horizon N (default: the scene's, scene_mpc_settings)"
+    )
     parser.add_argument("--duration", type=float, default=8.0, help="closed-loop seconds (default: %(default)s)")
     parser.add_argument("--iters", default="1,2,3,4,5,6", help="comma-separated K values (default: %(default)s)")

@@ -10,6 +10,13 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from fvin_mpc.control.closed_loop import episode_metrics, run_episode
+from fvin_mpc.control.scene import scene_mpc
+from fvin_mpc.core.checkpoint import checkpoint_exists, load_checkpoint
+from fvin_mpc.core.data import load_data, save_data
+from fvin_mpc.envs import RigidBodyEnv
+from fvin_mpc.learning.collection import SPEED_BOUNDED, collect
+
 #: The note every timing study carries.
 NOISE_NOTE = ("Timings were taken on a 2-core machine shared with other jobs (training, tests): absolute "
               "times are noisy; compare configurations by the ratios within this one run.")
@@ -29,7 +36,7 @@ def heldout_data(scene: str = "pendulum", control_period: float | None = None, s
 
     The default is the data of ``python -m fvin_mpc.collect --seed 1 --trajectories 64 --steps 40
     --out data/<scene>_heldout.npz``, for the scenes in :data:`BOUNDED_HELDOUT` that of
-    ``python -m fvin_mpc.spherical_report collect --trajectories 100 --steps 40 --seed 1 --out
+    ``python -m benchmarks.spherical_report collect --trajectories 100 --steps 40 --seed 1 --out
     data/<scene>_heldout.npz``. ``control_period`` other than the scene's adds ``-h<period>``
     to the file name.
 
@@ -37,8 +44,6 @@ def heldout_data(scene: str = "pendulum", control_period: float | None = None, s
         ValueError: the file exists but holds other data (different size, seed, period or
             collector): it is never overwritten; delete it or pass another ``path``.
     """
-    from fvin_mpc.learning.collection import SPEED_BOUNDED, collect
-    from fvin_mpc.core.data import load_data, save_data
 
     stem = Path(scene).stem + (f"-h{control_period:g}" if control_period is not None else "")
     bounded = BOUNDED_HELDOUT.get(Path(scene).stem)
@@ -78,14 +83,11 @@ def checkpoint_or_none(name: str) -> Any:
     A checkpoint that is there but corrupted or inconsistent raises its
     :class:`~fvin_mpc.core.checkpoint.CheckpointError`: it is not "missing".
     """
-    from fvin_mpc.core.checkpoint import checkpoint_exists, load_checkpoint
 
     return load_checkpoint(name) if checkpoint_exists(name) else None
 
 
 def make_env(scene: str, control_period: float | None = None) -> Any:
-    from fvin_mpc.envs import RigidBodyEnv
-
     return RigidBodyEnv(scene=scene, control_period=control_period)
 
 
@@ -93,8 +95,6 @@ def solve_stats(env: Any, model: Any, settings: Any, duration_s: float, reset_op
             seed: int = 0) -> dict[str, Any]:
     """Build the scene's MPC on ``model`` with ``settings``, run one episode; metrics, build info and
     the solver's iterations and solve times of every call."""
-    from fvin_mpc.control.closed_loop import episode_metrics, run_episode
-    from fvin_mpc.control.scene import scene_mpc
 
     controller = scene_mpc(env, model, settings)
     episode, _ = run_episode(env, controller, duration_s, reset_options, seed=seed)
@@ -167,5 +167,15 @@ def timed(function: Any) -> tuple[Any, float]:
     return value, time.perf_counter() - start
 
 
-__all__ = ["NOISE_NOTE", "BOUNDED_HELDOUT", "heldout_data", "checkpoint_or_none", "make_env", "solve_stats", "pareto_mask",
-           "plot_pareto", "timed", "replace"]
+__all__ = [
+    "NOISE_NOTE",
+    "BOUNDED_HELDOUT",
+    "heldout_data",
+    "checkpoint_or_none",
+    "make_env",
+    "solve_stats",
+    "pareto_mask",
+    "plot_pareto",
+    "timed",
+    "replace",
+]

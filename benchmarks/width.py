@@ -22,22 +22,29 @@ from typing import Any
 
 import numpy as np
 
-from fvin_mpc.studies.report import StudyResult
+from benchmarks.common import NOISE_NOTE, heldout_data, make_env, plot_pareto, solve_stats
+from benchmarks.study import StudyResult
+from fvin_mpc.control.export import cache_dir, from_checkpoint
+from fvin_mpc.control.mpc import MPCSettings
+from fvin_mpc.core.backend import get_ops
+from fvin_mpc.core.checkpoint import load_checkpoint, save_checkpoint
+from fvin_mpc.core.data import load_data, save_data
+from fvin_mpc.core.networks import LearnedTerms, ModelConfig
+from fvin_mpc.learning.collection import collect
 from fvin_mpc.learning.timing import torch_threads
-from fvin_mpc.studies.bench.common import NOISE_NOTE, heldout_data, make_env, plot_pareto, solve_stats
+from fvin_mpc.learning.training import TrainSettings, train
+from fvin_mpc.studies.model_quality import rollout
+from fvin_mpc.studies.pool import run_tasks
 
 WIDTHS = (8, 16, 32, 64)
 #: ``run`` takes ``workers``, ``backend`` and ``ray_address``: its rows go through
-#: :func:`fvin_mpc.studies.pool.run_tasks` (``python -m fvin_mpc.bench`` adds the options).
+#: :func:`fvin_mpc.studies.pool.run_tasks` (``python -m benchmarks`` adds the options).
 PARALLEL_ROWS = True
 VARIANTS = ("sign-invariant", "fixed-inertia")
 
 
 def _training_data(seed: int) -> Any:
     from pathlib import Path
-
-    from fvin_mpc.learning.collection import collect
-    from fvin_mpc.core.data import load_data, save_data
 
     path = Path("data/pendulum.npz")
     if path.is_file():
@@ -50,16 +57,15 @@ def _training_data(seed: int) -> Any:
 
 def _trained(data: Any, variant: str, width: int, iterations: int, seed: int, progress: bool) -> tuple[Any, bool]:
     """A checkpoint trained with these settings: from the cache, or trained now and cached."""
-    from fvin_mpc.core.checkpoint import load_checkpoint, save_checkpoint
-    from fvin_mpc.control.export import cache_dir
-    from fvin_mpc.core.networks import ModelConfig
-    from fvin_mpc.learning.training import TrainSettings, train
 
     config = ModelConfig(variant=variant, control_dim=data.u.shape[2], hidden_width=width,
                          step_size=data.control_period)
     settings = TrainSettings(iterations=iterations, seed=seed, eval_every=max(1, iterations // 4), compile=False)
-    digest = hashlib.sha256(json.dumps([config.to_dict(), settings.__dict__]).encode()
-                            + np.ascontiguousarray(data.q).tobytes() + np.ascontiguousarray(data.u).tobytes()).hexdigest()[:16]
+    digest = hashlib.sha256(
+        json.dumps([config.to_dict(), settings.__dict__]).encode()
+        + np.ascontiguousarray(data.q).tobytes()
+        + np.ascontiguousarray(data.u).tobytes()
+    ).hexdigest()[:16]
     stem = cache_dir() / "bench-width" / f"pendulum_w{width}_{variant}_{digest}"
     if stem.with_suffix(".json").is_file() and stem.with_suffix(".safetensors").is_file():
         return load_checkpoint(stem), False
@@ -72,7 +78,9 @@ def _trained(data: Any, variant: str, width: int, iterations: int, seed: int, pr
 _WORKER: dict[str, Any] = {}
 
 
-def _init_worker(data: Any, heldout: Any, iterations: int, seed: int, horizon: int, duration: float, quick: bool) -> None:
+def _init_worker(
+    data: Any, heldout: Any, iterations: int, seed: int, horizon: int, duration: float, quick: bool
+) -> None:
     _WORKER.clear()
     _WORKER.update(data=data, heldout=heldout, iterations=iterations, seed=seed, horizon=horizon, duration=duration,
                    quick=quick, env=make_env("pendulum"))
@@ -81,11 +89,6 @@ def _init_worker(data: Any, heldout: Any, iterations: int, seed: int, horizon: i
 def width_row(variant: str, width: int) -> dict[str, Any]:
     """One row (in the current worker): the model trained (or from the cache), its held-out rollout
     error and its MPC's swing-up; ``compile_failure`` says if the MPC fell back to interpreted."""
-    from fvin_mpc.control.export import from_checkpoint
-    from fvin_mpc.control.mpc import MPCSettings
-    from fvin_mpc.core.backend import get_ops
-    from fvin_mpc.core.networks import LearnedTerms
-    from fvin_mpc.studies.quality import rollout
 
     w = _WORKER
     heldout, quick, seed = w["heldout"], w["quick"], w["seed"]
@@ -122,21 +125,18 @@ def width_row(variant: str, width: int) -> dict[str, Any]:
 def run(quick: bool = False, seed: int = 0, repeats: int = 5, iterations: int = 200, train_trajectories: int = 32,
         horizon: int = 30, duration: float = 4.0, widths: str = ",".join(map(str, WIDTHS)), workers: int = 1,
         backend: str = "process", ray_address: str | None = None, **_: Any) -> StudyResult:
-    from fvin_mpc.studies.pool import run_tasks
 
     width_list = [4] if quick else [int(w) for w in widths.split(",")]
     variants = ("fixed-inertia",) if quick else VARIANTS
     if quick:
         iterations, train_trajectories, horizon, duration = 3, 8, 10, 1.0
     if quick:
-        from fvin_mpc.learning.collection import collect
 
         full = collect("pendulum", train_trajectories, 20, seed, progress=False)
     else:
         full = _training_data(seed)
     data = full.subset(np.sort(np.random.default_rng(seed).permutation(full.num_trajectories)[:train_trajectories]))
     if quick:
-        from fvin_mpc.learning.collection import collect
 
         heldout = collect("pendulum", 8, 10, 1, progress=False)
     else:
@@ -151,7 +151,8 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 5, iterations: int = 
     if "env" in _WORKER:  # ran in this process
         _WORKER.pop("env").close()
     notes = [
-        f"Training: {iterations} full-batch Adam iterations (eager torch, one thread, no `torch.compile`: its ≈ 75 s of "
+        f"Training: {iterations} full-batch Adam iterations (eager torch, one thread, no `torch.compile`: its ≈ 75 s "
+        f"of "
         f"compilation per model would exceed the training itself), window 8, on {train_trajectories} trajectories of "
         f"`data/pendulum.npz` (seed {seed}); short on purpose, so the errors are those of briefly trained models. "
         "`train_s` is the wall clock of the real training run (from the cached checkpoint's `training.wall_clock_s`; "
@@ -163,9 +164,12 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 5, iterations: int = 
         NOISE_NOTE,
     ]
     if workers > 1:
-        notes.insert(2, f"Rows ran concurrently on {workers} workers ({backend} backend): each row's timings (training, "
-                        "MPC solves) include the contention of the others; compare them with a `--workers 1` run "
-                        "only as ratios.")
+        notes.insert(
+            2,
+            f"Rows ran concurrently on {workers} workers ({backend} backend): each row's timings (training, "
+            "MPC solves) include the contention of the others; compare them with a `--workers 1` run "
+            "only as ratios.",
+        )
     if compile_failures:
         notes.insert(2, "**Compiling the MPC's functions failed** for " + "; ".join(compile_failures)
                      + " — that row's MPC ran interpreted (`mpc_compile` = none), so its solve time is not comparable "
@@ -181,12 +185,14 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 5, iterations: int = 
 
     return StudyResult("width", rows,
                        ["variant", "width", "parameters", "rollout_angle_final_mean", "validation_loss", "train_s",
-                        "train_s_per_iter", "trained_now", "mpc_compile", "mpc_ms_median", "mpc_ms_p95", "iterations_mean", "success",
-                        "time_to_upright_s", "mpc_build_s"], plot, notes)
+                        "train_s_per_iter", "trained_now", "mpc_compile", "mpc_ms_median", "mpc_ms_p95",
+                        "iterations_mean", "success", "time_to_upright_s", "mpc_build_s"], plot, notes)
 
 
 def add_arguments(parser: Any) -> None:
-    parser.add_argument("--iterations", type=int, default=200, help="training iterations per model (default: %(default)s)")
+    parser.add_argument(
+        "--iterations", type=int, default=200, help="training iterations per model (default: %(default)s)"
+    )
     parser.add_argument("--train-trajectories", type=int, default=32,
                         help="trajectories of data/pendulum.npz used for training (default: %(default)s)")
     parser.add_argument("--horizon", type=int, default=30, help="MPC horizon N (default: %(default)s)")
