@@ -53,7 +53,7 @@ from benchmarks.mlp_baseline import MLPConfig, check_mlp_weights, load_mlp, mlp_
 from benchmarks.pendulum_v1_mpc import ZOO_BEST, benchmark_settings, run_v1_episode
 from benchmarks.study import StudyResult
 from fvin_mpc.control.closed_loop import episode_metrics, run_episode
-from fvin_mpc.control.export import CA, NP, ExportedModel, energy_function, from_checkpoint
+from fvin_mpc.control.model_export import CA, NP, ExportedModel, energy_function, from_checkpoint
 from fvin_mpc.control.scene import scene_env, scene_model, scene_mpc, scene_mpc_settings
 from fvin_mpc.core.checkpoint import save_checkpoint
 from fvin_mpc.core.data import load_data, save_data
@@ -227,7 +227,7 @@ def train_cell_model(model: str, data: Any, config: StudyConfig, draw: int, stem
 
 
 def export_cell_model(model: str, stem: Path | None, env: Any) -> Any:
-    """The :class:`~fvin_mpc.control.export.ExportedModel` of a cell (``closed-form``: the MJCF's rod)."""
+    """The :class:`~fvin_mpc.control.model_export.ExportedModel` of a cell (``closed-form``: the MJCF's rod)."""
 
     if model == CLOSED_FORM:
         return scene_model(env, true_model=True)
@@ -768,7 +768,7 @@ def add_arguments(parser: Any) -> None:
 
 def export_mlp(weights: Any, config: Any, energy_body: Any, name: str = "mlp") -> Any:
     """The MLP baseline (:mod:`benchmarks.mlp_baseline`) as an
-    :class:`~fvin_mpc.control.export.ExportedModel` (``newton_iters = 0``).
+    :class:`~fvin_mpc.control.model_export.ExportedModel` (``newton_iters = 0``).
 
     Args:
         energy_body: a closed-form :class:`~fvin_mpc.core.rigid_body.PivotedRigidBody` (e.g.

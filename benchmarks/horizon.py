@@ -16,7 +16,7 @@ from typing import Any
 
 from benchmarks.common import NOISE_NOTE, checkpoint_or_none, make_env, plot_pareto, solve_stats
 from benchmarks.study import StudyResult
-from fvin_mpc.control.export import from_checkpoint, from_rigid_body
+from fvin_mpc.control.model_export import from_checkpoint, from_rigid_body
 from fvin_mpc.control.mpc import MPCSettings
 from fvin_mpc.core.rigid_body import from_mujoco
 

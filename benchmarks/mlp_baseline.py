@@ -18,7 +18,7 @@ signs), which would charge the baseline for a symmetry the S3FVIN gets for free.
 Training goes through the package's one loop (:func:`fvin_mpc.learning.training.train` with
 ``model_factory=IncrementMLP``): same windows, same multi-step rollout loss, same optimizer (LM),
 same early stopping. :func:`benchmarks.data_efficiency.export_mlp` builds the same step in CasADi as an
-:class:`~fvin_mpc.control.export.ExportedModel` with the S3FVIN's call signature
+:class:`~fvin_mpc.control.model_export.ExportedModel` with the S3FVIN's call signature
 ``F(x[7], u[m]) -> (x_next, residual)`` (``residual`` is 0: no implicit solve), so the *same*
 MPC runs on it.
 

@@ -24,7 +24,7 @@ import numpy as np
 
 from benchmarks.common import NOISE_NOTE, checkpoint_or_none, heldout_data, make_env, plot_pareto, solve_stats
 from benchmarks.study import StudyResult, StudySkipped, median_time
-from fvin_mpc.control.export import from_checkpoint, from_rigid_body
+from fvin_mpc.control.model_export import from_checkpoint, from_rigid_body
 from fvin_mpc.control.scene import scene_mpc_settings
 from fvin_mpc.core import fvin, s3
 from fvin_mpc.core.backend import get_ops

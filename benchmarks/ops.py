@@ -23,7 +23,8 @@ from typing import Any
 import numpy as np
 
 from benchmarks.study import StudyResult
-from fvin_mpc.control import export, implicit_dynamics
+from fvin_mpc.control import implicit_dynamics
+from fvin_mpc.control import model_export as export
 from fvin_mpc.control.rti import retract, unrolled_stage_function
 from fvin_mpc.control.scene import scene_env, scene_model
 from fvin_mpc.core import s3

@@ -34,7 +34,7 @@ from typing import Any, Callable
 import numpy as np
 
 from benchmarks.pendulum_v1_exact import EPISODE_STEPS, MAX_SPEED, MAX_TORQUE, v1_cost
-from fvin_mpc.control.export import cache_dir
+from fvin_mpc.control.model_export import cache_dir
 from fvin_mpc.envs.pendulum_v1 import state_from_v1_observation, v1_observation_from_state
 
 #: Grid of the learned model's value function: ``(n_theta, n_rate)`` and torques per state.

@@ -29,7 +29,7 @@ from typing import Any
 from benchmarks.common import NOISE_NOTE, checkpoint_or_none, make_env, plot_pareto, solve_stats
 from benchmarks.study import StudyResult, StudySkipped
 from fvin_mpc.control.closed_loop import episode_metrics, run_episode
-from fvin_mpc.control.export import cache_dir, from_checkpoint, from_rigid_body
+from fvin_mpc.control.model_export import cache_dir, from_checkpoint, from_rigid_body
 from fvin_mpc.control.mpc import MPC, MPCSettings
 from fvin_mpc.control.scene import scene_env, scene_model, scene_mpc, scene_mpc_settings
 from fvin_mpc.core.checkpoint import load_checkpoint

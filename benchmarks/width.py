@@ -24,7 +24,7 @@ import numpy as np
 
 from benchmarks.common import NOISE_NOTE, heldout_data, make_env, plot_pareto, solve_stats
 from benchmarks.study import StudyResult
-from fvin_mpc.control.export import cache_dir, from_checkpoint
+from fvin_mpc.control.model_export import cache_dir, from_checkpoint
 from fvin_mpc.control.mpc import MPCSettings
 from fvin_mpc.core.backend import get_ops
 from fvin_mpc.core.checkpoint import load_checkpoint, save_checkpoint

@@ -43,8 +43,11 @@ installed under this name):
 
 :mod:`fvin_mpc.control` — the control runtime, no torch:
 
-* ``export`` — a model's step as a CasADi function; the compile cache.
-* ``mpc`` — the IPOPT MPC with multi-start cold solves.
+* ``model_export`` — a model's step as a CasADi function; the compile cache.
+* ``problem`` — the one control problem both solvers solve: its residuals, bounds, references and
+  disturbance estimate.
+* ``mpc`` — the problem solved to convergence (IPOPT), with multi-start cold solves.
+* ``presets`` — the built-in scenes' controller presets, each with its reason.
 * ``rti`` — the real-time iteration MPC (any state layout ``R^a × S³ × R^b``).
 * ``implicit_dynamics`` — the step's own equations as the real-time iteration's dynamics constraint.
 * ``buffered`` — CasADi calls through preallocated buffers, without per-call conversions.

@@ -1,6 +1,6 @@
 """Write a checkpoint's step ``F(x, u)`` as a CasADi file: ``python -m fvin_mpc.export``.
 
-The export itself (and the compile cache) is :mod:`fvin_mpc.control.export`.
+The export itself (and the compile cache) is :mod:`fvin_mpc.control.model_export`.
 """
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Sequence
 
 from fvin_mpc._cli import run_command
-from fvin_mpc.control.export import from_checkpoint, save_function
+from fvin_mpc.control.model_export import from_checkpoint, save_function
 from fvin_mpc.envs.scenes import resolve_scene
 
 

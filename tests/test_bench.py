@@ -76,7 +76,7 @@ def test_sim_quick_via_cli(tmp_path, capsys):
 
 def test_rootfinder_step_matches_converged_newton():
     from benchmarks.newton import rootfinder_step
-    from fvin_mpc.control.export import from_rigid_body
+    from fvin_mpc.control.model_export import from_rigid_body
     from fvin_mpc.core.backend import get_ops
     from fvin_mpc.core.rigid_body import PENDULUM
 
@@ -188,7 +188,7 @@ def test_realtime_rows_put_every_learned_checkpoint_beside_the_closed_form():
 @pytest.mark.parametrize("overrides", [{"solver": "sqpmethod"}, {"solver": "sqpmethod", "hessian": "exact"},
                                        {"solver": "fatrop", "hessian": "exact", "compile": "none"}])
 def test_other_nlp_solvers_find_ipopts_plan(overrides):
-    from fvin_mpc.control.export import from_rigid_body
+    from fvin_mpc.control.model_export import from_rigid_body
     from fvin_mpc.control.mpc import MPC, MPCSettings
     from fvin_mpc.core.rigid_body import PENDULUM
 
@@ -240,7 +240,7 @@ def test_train_speed_quick(tmp_path):
 
 def test_compiled_mpc_accepts_a_model_name_with_dots():
     # Regression: checkpoint stems like "pendulum-h0.02_sign-invariant" once made an invalid C file prefix.
-    from fvin_mpc.control.export import from_rigid_body
+    from fvin_mpc.control.model_export import from_rigid_body
     from fvin_mpc.control.mpc import MPC, MPCSettings
     from fvin_mpc.core.rigid_body import PENDULUM
 

@@ -136,7 +136,7 @@ def test_controller_applies_the_lqr_gain_near_upright_and_its_closed_loop_cost_a
 
 # ---------------------------------------------------------------------- constructors and scenes
 def test_constructors_agree_with_the_direct_one():
-    from fvin_mpc.control import export
+    from fvin_mpc.control import model_export as export
 
     direct = EnergyShapingController(PENDULUM.terms(NP), 0.05, 2, GOAL, np.array([-2.0]), np.array([2.0]), REST)
     via_model = EnergyShapingController.from_model(export.from_rigid_body(PENDULUM, 0.05, 2), GOAL, [-2.0], [2.0], REST)

@@ -101,7 +101,7 @@ def test_cli_help(capsys):
 def test_multistart_catches_a_nearly_upright_pendulum_that_the_single_guess_lets_fall():
     """Near upright every constant-torque first guess falls; IPOPT then returns a full-turn plan.
     The "goal" guess lies in the basin of catching it; the multi-start keeps the cheaper plan."""
-    from fvin_mpc.control import export
+    from fvin_mpc.control import model_export as export
     from fvin_mpc.control.mpc import COLD_STARTS, MPC, MPCSettings
     from fvin_mpc.core.rigid_body import PENDULUM
 

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from helpers import random_states
 
-from fvin_mpc.control import export
+from fvin_mpc.control import model_export as export
 from fvin_mpc.core.checkpoint import save_checkpoint
 from fvin_mpc.core.networks import ModelConfig, init_weights
 from fvin_mpc.core.rigid_body import PENDULUM

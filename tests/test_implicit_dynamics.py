@@ -9,7 +9,8 @@ import casadi as ca
 import numpy as np
 import pytest
 
-from fvin_mpc.control import export, implicit_dynamics
+from fvin_mpc.control import implicit_dynamics
+from fvin_mpc.control import model_export as export
 from fvin_mpc.control.closed_loop import episode_metrics, run_episode
 from fvin_mpc.control.rti import local_state, retract, retract_state
 from fvin_mpc.control.scene import scene_env, scene_model, scene_mpc, scene_mpc_settings
@@ -129,7 +130,7 @@ def test_implicit_gap_agrees_with_the_exact_gap_to_second_order_off_the_nodes():
 def test_plan_nodes_are_kept_on_one_sheet_for_the_implicit_dynamics(pendulum):
     """A measured state with the other quaternion sign than the plan: the nodes after it are flipped
     with it (the same rotations), so a stage never reads its two ends' terms on different sheets."""
-    from fvin_mpc.control.mpc import _Plan
+    from fvin_mpc.control.mpc import Plan
 
     env, model = pendulum
     controller = scene_mpc(env, model, scene_mpc_settings(env, solver="rti", rti_dynamics="implicit"))
@@ -138,7 +139,7 @@ def test_plan_nodes_are_kept_on_one_sheet_for_the_implicit_dynamics(pendulum):
     plan = controller._plan
     states = plan.states.copy()
     states[0, :4] *= -1.0  # the measurement arrives on the other sheet
-    flipped = _Plan(states.copy(), plan.controls.copy(), None, None)
+    flipped = Plan(states.copy(), plan.controls.copy(), None, None)
     controller._linearize_at(flipped)
     np.testing.assert_array_equal(flipped.states[0], states[0])
     np.testing.assert_array_equal(flipped.states[1:, :4], -plan.states[1:, :4])

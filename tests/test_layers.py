@@ -210,10 +210,8 @@ def imports_of(path: Path) -> list[tuple[str, list[str]]]:
     return found
 
 
-#: Private names imported across modules on purpose, each with why. ``control/rti.py`` builds on
-#: ``control/mpc.py``'s plan record; both files were being refactored on main when this check came
-#: (not to be edited here): the lead makes the name public at merge, then this entry goes.
-PRIVATE_IMPORTS_ALLOWED = {("fvin_mpc.control.rti", "fvin_mpc.control.mpc", "_Plan")}
+#: Private names imported across modules on purpose, each with why (none today).
+PRIVATE_IMPORTS_ALLOWED: set[tuple[str, str, str]] = set()
 
 
 def private_imports(path: Path) -> list[tuple[str, str, str]]:
@@ -247,11 +245,8 @@ def test_the_private_name_check_sees_one(tmp_path, monkeypatch):
                                       ("fvin_mpc.studies.probe", "fvin_mpc.core", "_secret")]
 
 
-#: File names two modules share on purpose, each with why. ``export``: the command
-#: ``python -m fvin_mpc.export`` and the library ``control/export.py``, which ``control/mpc.py``,
-#: ``rti.py`` and ``scene.py`` import — those were being refactored on main when this check came (not
-#: to be edited here); the library module is renamed at merge, then this entry goes.
-SHARED_FILE_NAMES_ALLOWED = {"export.py"}
+#: File names two modules share on purpose, each with why (none today).
+SHARED_FILE_NAMES_ALLOWED: set[str] = set()
 
 
 def test_no_two_modules_share_a_file_name():
@@ -268,9 +263,8 @@ def test_no_two_modules_share_a_file_name():
 
 #: What an in-function import may defer: packages that are optional or slow to import.
 HEAVY_PACKAGES = {"torch", "casadi", "matplotlib", "ray"}
-#: Files whose in-function imports of the package stay, each with why: ``control/scene.py`` was
-#: being refactored on main when this check came (not edited here); the lead hoists them at merge.
-IN_FUNCTION_IMPORTS_ALLOWED = {"fvin_mpc/control/scene.py"}
+#: Files whose in-function imports of the package stay, each with why (none today).
+IN_FUNCTION_IMPORTS_ALLOWED: set[str] = set()
 
 
 def in_function_imports(path: Path) -> list[tuple[str, int]]:

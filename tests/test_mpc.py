@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from helpers import hinge
 
-from fvin_mpc.control import export
+from fvin_mpc.control import model_export as export
 from fvin_mpc.control.mpc import MPC, MPCSettings
 from fvin_mpc.control.rti import RealTimeMPC
 from fvin_mpc.core.rigid_body import PENDULUM

@@ -8,7 +8,7 @@ from benchmarks import pendulum_v1_mpc as v1
 from benchmarks import pendulum_v1_plan as plan
 from benchmarks import pendulum_v1_value as pv
 from benchmarks.pendulum_v1_report import build_parser, main
-from fvin_mpc.control import export
+from fvin_mpc.control import model_export as export
 from fvin_mpc.core.rigid_body import PENDULUM
 from fvin_mpc.envs.pendulum_v1 import state_from_v1_observation
 

@@ -11,7 +11,7 @@ from helpers import hinge
 from benchmarks import pendulum_v1_exact as exact
 from benchmarks import pendulum_v1_mpc as v1
 from benchmarks import pendulum_v1_value as pv
-from fvin_mpc.control import export
+from fvin_mpc.control import model_export as export
 from fvin_mpc.control.mpc import MPC, MPCSettings
 from fvin_mpc.core.rigid_body import PENDULUM
 from fvin_mpc.envs.pendulum_v1 import state_from_v1_observation

@@ -8,9 +8,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fvin_mpc.control.export import from_closed_form
 from fvin_mpc.control.flight import quadrotor_mpc_settings
-from fvin_mpc.control.mpc import MPC, MPCSettings, _Plan
+from fvin_mpc.control.model_export import from_closed_form
+from fvin_mpc.control.mpc import MPC, MPCSettings, Plan
 from fvin_mpc.control.problem import ConstantReference, control_bounds
 from fvin_mpc.control.rti import RealTimeMPC
 from fvin_mpc.control.scene import scene_env, scene_model, scene_mpc, scene_mpc_settings
@@ -40,7 +40,7 @@ def test_ipopt_and_the_rti_reach_the_same_plan_for_a_free_body(craft):
     assert info["success"] and info["status"] == "Solve_Succeeded"
     controller = RealTimeMPC(craft, settings, HOVER, low, high)
     guess = controller._first_guess(x0, "goal")
-    plan = _Plan(guess.states, guess.controls, None, None)
+    plan = Plan(guess.states, guess.controls, None, None)
     for _ in range(30):
         plan, status = controller._iterate(plan, controller._linearize_at(plan), x0)
         assert plan is not None, status

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from fvin_mpc.control.export import from_checkpoint, from_quadrotor
+from fvin_mpc.control.model_export import from_checkpoint, from_quadrotor
 from fvin_mpc.core import fvin_r3s3
 from fvin_mpc.core.backend import get_ops
 from fvin_mpc.core.checkpoint import load_checkpoint, save_checkpoint

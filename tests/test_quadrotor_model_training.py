@@ -9,7 +9,7 @@ import json
 import numpy as np
 import pytest
 
-from fvin_mpc.control.export import from_checkpoint
+from fvin_mpc.control.model_export import from_checkpoint
 from fvin_mpc.core.checkpoint import load_checkpoint
 from fvin_mpc.core.data import load_data, save_data
 from fvin_mpc.core.networks_r3s3 import R3S3Config

@@ -11,7 +11,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from fvin_mpc.control import export, flight
+from fvin_mpc.control import flight
+from fvin_mpc.control import model_export as export
 from fvin_mpc.control.closed_loop import run_episode
 from fvin_mpc.core.quadrotor import from_mujoco
 from fvin_mpc.core.space import FREE_BODY, PIVOTED, R3S3, S3

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from fvin_mpc.control.closed_loop import episode_metrics, run_episode
-from fvin_mpc.control.mpc import MPC, _Plan
+from fvin_mpc.control.mpc import MPC, Plan
 from fvin_mpc.control.rti import RealTimeMPC
 from fvin_mpc.control.scene import scene_env, scene_model, scene_mpc, scene_mpc_settings
 from fvin_mpc.envs.disturbance import ConstantTorqueDisturbance
@@ -57,7 +57,7 @@ def test_iterations_reach_the_ipopt_optimum_on_a_fixed_problem(scene, dynamics, 
     assert info["success"]
     controller = scene_mpc(env, model, settings)
     guess = controller._first_guess(x0, "goal")
-    plan = _Plan(guess.states, guess.controls, None, None)
+    plan = Plan(guess.states, guess.controls, None, None)
     for _ in range(20):
         plan, status = controller._iterate(plan, controller._linearize_at(plan), x0)
         assert plan is not None, status

@@ -31,7 +31,8 @@ import torch
 from scipy.integrate import solve_ivp
 from toy_space import TOY, Rail, RailBody, ToyConfig
 
-from fvin_mpc.control import export, rti
+from fvin_mpc.control import model_export as export
+from fvin_mpc.control import rti
 from fvin_mpc.control.mpc import MPC, MPCSettings
 from fvin_mpc.core import fvin_so3
 from fvin_mpc.core.backend import get_ops

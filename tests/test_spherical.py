@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fvin_mpc.control.export import from_rigid_body
+from fvin_mpc.control.model_export import from_rigid_body
 from fvin_mpc.core import fvin
 from fvin_mpc.core.backend import get_ops
 from fvin_mpc.core.rigid_body import from_mujoco
@@ -200,7 +200,7 @@ def test_actuator_referenced_inertia_is_blind_to_a_per_axis_scale(env, body):
 
 
 def test_shipped_checkpoint_loads_and_exports():
-    from fvin_mpc.control.export import from_checkpoint
+    from fvin_mpc.control.model_export import from_checkpoint
     from fvin_mpc.core.checkpoint import load_checkpoint
 
     checkpoint = load_checkpoint("spherical_pendulum_sign-invariant")

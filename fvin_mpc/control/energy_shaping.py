@@ -16,7 +16,7 @@ nor learned, so a full 6-state LQR would not be stabilizable).
 
 Constructors: :meth:`EnergyShapingController.from_checkpoint` (the learned ``J``, ``U``,
 ``g`` of a trained model), :meth:`EnergyShapingController.from_model` (any
-:class:`~fvin_mpc.control.export.ExportedModel`), :meth:`EnergyShapingController.from_rigid_body`
+:class:`~fvin_mpc.control.model_export.ExportedModel`), :meth:`EnergyShapingController.from_rigid_body`
 (the closed-form "true model") and :func:`scene_controller` (goal and torque bounds of a
 scene's env). The LQR design is kept in :attr:`EnergyShapingController.lqr`
 (:class:`LQRDesign`: ``A``, ``B``, the weights, the Riccati solution ``P`` and gain ``K``).
@@ -117,7 +117,7 @@ class EnergyShapingController:
     @classmethod
     def from_model(cls, model: Any, goal: Any, torque_low: Any, torque_high: Any, rest: Any,
                    settings: EnergyShapingSettings = EnergyShapingSettings()) -> "EnergyShapingController":
-        """From an :class:`~fvin_mpc.control.export.ExportedModel` — learned or closed form — using
+        """From an :class:`~fvin_mpc.control.model_export.ExportedModel` — learned or closed form — using
         its NumPy ``J``, ``U``, ``g``, its ``h`` and ``K``; no torch. The law is written on S³ terms."""
         model.require(S3, by="energy shaping")
         return cls(model.numpy_terms, model.step_size, model.newton_iters, goal, torque_low, torque_high, rest,

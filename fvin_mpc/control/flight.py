@@ -28,9 +28,9 @@ from typing import Any
 
 import numpy as np
 
-from fvin_mpc.control import export
+from fvin_mpc.control import model_export as export
 from fvin_mpc.control.closed_loop import episode_metrics
-from fvin_mpc.control.export import ExportedModel
+from fvin_mpc.control.model_export import ExportedModel
 from fvin_mpc.control.mpc import MPC, MPCSettings
 from fvin_mpc.control.problem import ConstantReference
 from fvin_mpc.control.rti import RealTimeMPC

@@ -30,7 +30,7 @@ solves by real-time iterations (multiple shooting, ``N = settings.horizon`` step
 Speed comes from three choices, measured in ``docs/bench/solver.md``: the Gauss–Newton
 Lagrangian Hessian (``2JᵀJ`` of the residuals; no second derivatives of the networks),
 the NLP's functions compiled to C once and cached on disk
-(:func:`fvin_mpc.control.export.compile_functions`), and a primal–dual warm start from the
+(:func:`fvin_mpc.control.model_export.compile_functions`), and a primal–dual warm start from the
 previous plan shifted by one step.
 
 The NLP solver is IPOPT by default; ``solver="sqpmethod"`` (CasADi's SQP with the qrqp
@@ -55,7 +55,7 @@ from typing import Any, Literal
 import casadi as ca
 import numpy as np
 
-from fvin_mpc.control.export import CompileReport, ExportedModel, compile_functions
+from fvin_mpc.control.model_export import CompileReport, ExportedModel, compile_functions
 from fvin_mpc.control.problem import (
     ConstantReference,
     DisturbanceEstimate,
@@ -265,7 +265,7 @@ class MPCSettings:
 
 
 @dataclass(frozen=True)
-class _Plan:
+class Plan:
     """A solution in array form: states ``(N+1, 7)``, controls ``(N, m)`` and the multipliers."""
 
     states: np.ndarray
@@ -275,7 +275,7 @@ class _Plan:
 
 
 class MPC:
-    """Receding-horizon controller over an :class:`~fvin_mpc.control.export.ExportedModel`.
+    """Receding-horizon controller over an :class:`~fvin_mpc.control.model_export.ExportedModel`.
 
     Args:
         model: the discrete-time model (``from_checkpoint`` or ``from_rigid_body``).
@@ -371,7 +371,7 @@ class MPC:
     def reset(self) -> None:
         """Forget the plan and the disturbance estimate (the next call is a cold start); the clock
         restarts at 0."""
-        self._previous: _Plan | None = None
+        self._previous: Plan | None = None
         self.estimate.reset()
         self._time = 0.0
         self._forget_preparation()
@@ -589,7 +589,7 @@ class MPC:
         return {"ipopt": ipopt, "print_time": False, "error_on_fail": False, "calc_lam_p": False}
 
     # ------------------------------------------------------------------ guesses
-    def _first_guess(self, x0: np.ndarray, start: str) -> _Plan:
+    def _first_guess(self, x0: np.ndarray, start: str) -> Plan:
         """The plan a cold solve starts from (see :data:`COLD_STARTS`). A free body's ``"goal"``: the
         reference, the orientation turned from the measured one to the reference's along the geodesic
         over the first third of the horizon, the reference's target controls."""
@@ -606,7 +606,7 @@ class MPC:
             states[:, layout.quaternion] = np.array(s3.multiply(tuple(q0), s3.exp(tuple(weights * turn), NP))).T
             states[:, layout.omega] = 0.0
             states[0] = x0
-            return _Plan(states, targets.copy(), None, None)
+            return Plan(states, targets.copy(), None, None)
         if start == "goal":
             n = self.horizon
             q0 = x0[:4]
@@ -620,19 +620,19 @@ class MPC:
                                + np.sin(weights * angle)[:, None] * goal) / np.sin(angle)
             states = np.concatenate([quaternions, np.zeros((n + 1, 3))], axis=1)
             states[0] = x0
-            return _Plan(states, np.zeros((n, self.model.control_dim)), None, None)
+            return Plan(states, np.zeros((n, self.model.control_dim)), None, None)
         sign = 1.0 if start == "rollout+" else -1.0
         return self._rollout_guess(x0, sign * self.settings.initial_torque_fraction * self.torque_high)
 
-    def _rollout_guess(self, x0: np.ndarray, torque: np.ndarray) -> _Plan:
+    def _rollout_guess(self, x0: np.ndarray, torque: np.ndarray) -> Plan:
         """The model rolled out under the constant ``torque`` (clipped to the bounds), ω clipped to its bound."""
         controls = np.clip(np.tile(torque, (self.horizon, 1)), self.torque_low, self.torque_high)
         states = self.model.rollout(x0, controls)
         omega = self.layout.omega
         states[1:, omega] = np.clip(states[1:, omega], -self.omega_bound, self.omega_bound)
-        return _Plan(states, controls, None, None)
+        return Plan(states, controls, None, None)
 
-    def _shifted(self, plan: _Plan, x0: np.ndarray) -> _Plan:
+    def _shifted(self, plan: Plan, x0: np.ndarray) -> Plan:
         """``plan`` advanced one step: drop the first stage, repeat the last."""
         states = np.vstack([plan.states[1:], plan.states[-1:]])
         states[0] = x0
@@ -645,7 +645,7 @@ class MPC:
             state_mult, control_mult = self._unpack(plan.lam_x)
             lam_x = self._pack(np.vstack([state_mult[1:], state_mult[-1:]]),
                                np.vstack([control_mult[1:], control_mult[-1:]]).reshape(-1, m))
-        return _Plan(states, controls, lam_g, lam_x)
+        return Plan(states, controls, lam_g, lam_x)
 
     # ------------------------------------------------------------------ control
     def __call__(self, x: Any) -> tuple[np.ndarray, dict[str, Any]]:
@@ -672,7 +672,7 @@ class MPC:
         """A warm solve from the shifted previous plan, or the multi-start cold solves."""
         if self._previous is not None and self.settings.warm_start != "none":
             return self._solve(x0, self._shifted(self._previous, x0), warm=True)
-        best: tuple[np.ndarray, dict[str, Any], _Plan | None] | None = None
+        best: tuple[np.ndarray, dict[str, Any], Plan | None] | None = None
         costs: dict[str, float] = {}
         total_time = 0.0
         earlier_plan = self._previous  # what a failed solve falls back to (kept with warm_start="none")
@@ -692,7 +692,7 @@ class MPC:
         u, info, self._previous = best
         return u, {**info, "solve_time_s": total_time, "cold_costs": costs}
 
-    def _solve(self, x0: np.ndarray, guess: _Plan, warm: bool) -> tuple[np.ndarray, dict[str, Any]]:
+    def _solve(self, x0: np.ndarray, guess: Plan, warm: bool) -> tuple[np.ndarray, dict[str, Any]]:
         """One NLP solve from ``guess``; keeps the plan (or falls back) and returns the control."""
         lower, upper = self._lower.copy(), self._upper.copy()
         lower[:x0.size] = upper[:x0.size] = x0
@@ -728,7 +728,7 @@ class MPC:
         fallback = None
         if success:
             states, controls = self._unpack(w)
-            self._previous = _Plan(states, controls, np.asarray(solution["lam_g"], float).ravel(),
+            self._previous = Plan(states, controls, np.asarray(solution["lam_g"], float).ravel(),
                                    np.asarray(solution["lam_x"], float).ravel())
             u = controls[0].copy()
         elif self._previous is not None and np.all(np.isfinite(self._previous.controls)):

@@ -27,7 +27,7 @@ an unbiased model). Solved differently (Diehl's real-time iteration, as in acado
   (``rti_qp_solver="riccati"``) it is solved by a fixed number of primal–dual interior-point
   iterations on the input boxes, each a Riccati recursion (``O(N)``), generated together with the
   trust region and the update on S³ as one CasADi function (:func:`riccati_feedback_function`) and
-  compiled with the linearization (:func:`fvin_mpc.control.export.compile_functions`): one C call
+  compiled with the linearization (:func:`fvin_mpc.control.model_export.compile_functions`): one C call
   per iteration, no Python between stages. The compiled functions are called through preallocated
   NumPy buffers (:class:`fvin_mpc.control.buffered.BufferedFunction`): CasADi's own call converts
   every argument and result, which cost more than the arithmetic here (docs/realtime.md).
@@ -71,8 +71,8 @@ import numpy as np
 
 from fvin_mpc.control import implicit_dynamics
 from fvin_mpc.control.buffered import BufferedFunction
-from fvin_mpc.control.export import ExportedModel, compile_functions
-from fvin_mpc.control.mpc import MPC, MPCSettings, _Plan
+from fvin_mpc.control.model_export import ExportedModel, compile_functions
+from fvin_mpc.control.mpc import MPC, MPCSettings, Plan
 from fvin_mpc.control.problem import control_bounds, predict_function, residual_functions
 from fvin_mpc.core.backend import get_ops
 from fvin_mpc.core.space import StateLayout, chart_local, chart_retract
@@ -398,7 +398,7 @@ class RealTimeMPC(MPC):
                        "error_on_fail": False}
         return ca.conic("rti_qp", s.rti_qp_solver, {"h": h, "a": a}, options)
 
-    def _linearize_at(self, plan: _Plan) -> tuple[Any, ...]:
+    def _linearize_at(self, plan: Plan) -> tuple[Any, ...]:
         if self._implicit:
             # Both ends of a stage on one sheet of S³, as the exported step continues q_k: a model
             # whose terms are not sign-invariant reads them at each node's own sign (the measured
@@ -416,7 +416,7 @@ class RealTimeMPC(MPC):
         return self._linearize(plan.states.T, plan.controls.T, references, self.disturbance, cached[1])
 
     # ------------------------------------------------------------------ one SQP iteration
-    def _iterate(self, plan: _Plan, linearization: tuple[Any, ...], x0: np.ndarray) -> tuple[_Plan | None, str]:
+    def _iterate(self, plan: Plan, linearization: tuple[Any, ...], x0: np.ndarray) -> tuple[Plan | None, str]:
         """Solve the QP at ``plan`` with ``δ_0`` fixed by the measured ``x0``; the updated plan (or
         ``None`` and the QP solver's status)."""
         if self._feedback is not None:
@@ -457,10 +457,10 @@ class RealTimeMPC(MPC):
         #: size of the last step: largest |Δu| over the torque range, or |δ| over the trust region
         self.last_step = max(float(np.max(np.abs(stages[:, :m]) / (self.torque_high - self.torque_low))),
                              float(np.max(np.abs(clipped) / self._step_limits)))
-        return _Plan(states, controls, None, None), "rti"
+        return Plan(states, controls, None, None), "rti"
 
-    def _iterate_riccati(self, plan: _Plan, linearization: tuple[Any, ...],
-                         x0: np.ndarray) -> tuple[_Plan | None, str]:
+    def _iterate_riccati(self, plan: Plan, linearization: tuple[Any, ...],
+                         x0: np.ndarray) -> tuple[Plan | None, str]:
         """:meth:`_iterate` in one compiled call (:func:`riccati_feedback_function`)."""
         h, h_n, g, g_n, ab, gaps, _ = linearization
         states, controls, step, mu = self._feedback(plan.states.T, plan.controls.T, x0, h, h_n, g, g_n, ab, gaps)
@@ -469,10 +469,10 @@ class RealTimeMPC(MPC):
         self.last_step, self.qp_mu = float(step), float(mu)
         if not (np.all(np.isfinite(states)) and np.all(np.isfinite(controls))):
             return None, "qp-not-finite"
-        return _Plan(states, controls, None, None), "rti"
+        return Plan(states, controls, None, None), "rti"
 
-    def _improve(self, plan: _Plan, x0: np.ndarray, iterations: int, deadline: float,
-                 linearization: tuple[Any, ...] | None = None) -> tuple[_Plan | None, int, str, float]:
+    def _improve(self, plan: Plan, x0: np.ndarray, iterations: int, deadline: float,
+                 linearization: tuple[Any, ...] | None = None) -> tuple[Plan | None, int, str, float]:
         """Up to ``iterations`` SQP iterations from ``plan``: the first always, each further one only
         while the last step was not negligible (``rti_tol``) and the last iteration's duration still
         fits before ``deadline`` (perf_counter). Returns the plan (``None`` if the first QP failed), the
@@ -509,14 +509,14 @@ class RealTimeMPC(MPC):
         omega = self.layout.omega
         states[-1, omega] = np.clip(states[-1, omega], -self.omega_bound, self.omega_bound)
         controls = np.vstack([plan.controls[1:], plan.controls[-1:]])
-        self._plan = _Plan(states, controls, None, None)
+        self._plan = Plan(states, controls, None, None)
         self._linearization = self._linearize_at(self._plan)
 
     def reset(self) -> None:
         """Forget the plan and the disturbance estimate (the next call is a cold start); the clock
         restarts at 0."""
         super().reset()
-        self._plan: _Plan | None = None
+        self._plan: Plan | None = None
 
     def _forget_preparation(self) -> None:
         self._linearization: tuple[Any, ...] | None = None
@@ -531,7 +531,7 @@ class RealTimeMPC(MPC):
         if self._plan is None and self._cold_mpc is not None:  # cold: IPOPT to convergence, once
             self._cold_mpc.reset()
             _, cold_info = self._cold_mpc(x0)
-            self._plan = _Plan(np.asarray(cold_info["states"], dtype=float).copy(),
+            self._plan = Plan(np.asarray(cold_info["states"], dtype=float).copy(),
                                np.asarray(cold_info["controls"], dtype=float).copy(), None, None)
             self._plan.states[0] = x0
             extra = {"cold_start": cold_info.get("cold_start"), "cold_solver": "ipopt",
@@ -542,7 +542,7 @@ class RealTimeMPC(MPC):
                 plan, fallback = self._plan, "previous-plan"
         elif self._plan is None:  # cold: each first guess, a few iterations, within the cold budget
             deadline = start + s.rti_cold_budget_s
-            best: tuple[float, _Plan, str] | None = None
+            best: tuple[float, Plan, str] | None = None
             costs: dict[str, float] = {}
             iterations, status = 0, "cold"
             for number, guess_name in enumerate(sorted(s.cold_starts, key=RTI_COLD_ORDER.index)):
@@ -550,7 +550,7 @@ class RealTimeMPC(MPC):
                     status = "budget"
                     break
                 guess = self._first_guess(x0, guess_name)
-                guess = _Plan(guess.states, guess.controls, None, None)
+                guess = Plan(guess.states, guess.controls, None, None)
                 plan, done, step_status, _ = self._improve(guess, x0, s.rti_cold_iter, deadline)
                 iterations += done
                 status = "budget" if step_status == "budget" else status
@@ -580,16 +580,16 @@ class RealTimeMPC(MPC):
                 "qp_iterations": getattr(self, "qp_iterations", -1), **extra}
         return u, info
 
-    def _score(self, plan: _Plan) -> float:
+    def _score(self, plan: Plan) -> float:
         """A cold guess's merit: model cost plus a heavy penalty on its dynamics gaps."""
         gaps, cost = self._gaps_and_cost(plan)
         return float(cost) + 1e3 * float(np.sum(np.square(np.asarray(gaps, dtype=float))))
 
-    def _gaps_and_cost(self, plan: _Plan) -> tuple[Any, Any]:
+    def _gaps_and_cost(self, plan: Plan) -> tuple[Any, Any]:
         linearization = self._linearize_at(plan)
         return linearization[5:7] if self._feedback is not None else linearization[3:5]
 
-    def plan_cost(self, plan: _Plan | None = None) -> tuple[float, float]:
+    def plan_cost(self, plan: Plan | None = None) -> tuple[float, float]:
         """``(cost, largest gap)`` of ``plan`` (default: the current one) under the model — for tests
         and studies; the cost is the MPC's objective when the gaps are zero."""
         plan = self._plan if plan is None else plan

@@ -33,10 +33,15 @@ from typing import Any
 import numpy as np
 
 from fvin_mpc.control.energy_shaping import EnergyShapingController, EnergyShapingNotApplicable, EnergyShapingSettings
-from fvin_mpc.control.export import ExportedModel, from_checkpoint, from_closed_form
+from fvin_mpc.control.model_export import ExportedModel, from_checkpoint, from_closed_form
 from fvin_mpc.control.mpc import COLD_STARTS, MPC, MPCSettings
 from fvin_mpc.control.presets import preset_for
+from fvin_mpc.control.rti import RealTimeMPC
+from fvin_mpc.core.backend import get_ops
 from fvin_mpc.core.checkpoint import Checkpoint, CheckpointError, load_checkpoint
+from fvin_mpc.core.rigid_body import from_mujoco
+from fvin_mpc.envs import RigidBodyEnv
+from fvin_mpc.envs.scenes import resolve_scene
 
 
 @dataclass(frozen=True)
@@ -73,9 +78,6 @@ def scene_scales(env: Any) -> SceneScales:
         ValueError: the actuator bounds are not finite, goal and rest have the same potential, or
             the body is one ``from_mujoco`` cannot read (pass the settings explicitly then).
     """
-    from fvin_mpc.core.backend import get_ops
-    from fvin_mpc.core.rigid_body import from_mujoco
-
     base = env.unwrapped
     bounds = np.abs(np.concatenate([base.torque_low, base.torque_high]))
     if not np.all(np.isfinite(bounds)):
@@ -138,8 +140,6 @@ def scene_env(scene: Any = "pendulum", checkpoint: Any = None, true_model: bool 
     """The scene's env, stepping at ``control_period``, else at the step of the checkpoint that will
     plan on it (unless ``true_model``), else at the scene's period. ``env_options`` go to
     :class:`~fvin_mpc.envs.RigidBodyEnv` (``body``, ``goal``, ``render_mode``, …)."""
-    from fvin_mpc.envs import RigidBodyEnv
-    from fvin_mpc.envs.scenes import resolve_scene
 
     spec = resolve_scene(scene)
     if control_period is None and not true_model:
@@ -183,7 +183,6 @@ def scene_mpc(env: Any, model: ExportedModel, settings: MPCSettings | None = Non
     base = env.unwrapped
     settings = scene_mpc_settings(env) if settings is None else settings
     if settings.solver == "rti":
-        from fvin_mpc.control.rti import RealTimeMPC
 
         return RealTimeMPC(model, settings, base.goal, base.torque_low, base.torque_high, rest=base.rest)
     return MPC(model, settings, base.goal, base.torque_low, base.torque_high, rest=base.rest)

@@ -14,7 +14,7 @@ import strategies as S
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
-from fvin_mpc.control import export
+from fvin_mpc.control import model_export as export
 from fvin_mpc.control.mpc import MPC, SUCCESS_STATUSES, MPCSettings
 from fvin_mpc.core.rigid_body import PENDULUM
 from fvin_mpc.core.state import UNIT_NORM_TOLERANCE

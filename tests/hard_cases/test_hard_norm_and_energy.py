@@ -13,7 +13,7 @@ import strategies as S
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
-from fvin_mpc.control import export
+from fvin_mpc.control import model_export as export
 from fvin_mpc.core import fvin
 from fvin_mpc.core.backend import get_ops
 from fvin_mpc.core.rigid_body import PENDULUM

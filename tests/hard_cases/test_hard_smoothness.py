@@ -15,7 +15,7 @@ import torch  # noqa: E402  (a dependency: a missing torch is a failure, not a s
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from fvin_mpc.control import export
+from fvin_mpc.control import model_export as export
 from fvin_mpc.core import fvin, s3
 from fvin_mpc.core.backend import get_ops
 from fvin_mpc.core.networks import LearnedTerms, ModelConfig, init_weights

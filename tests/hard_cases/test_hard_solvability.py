@@ -18,7 +18,7 @@ from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 from scipy.optimize import root
 
-from fvin_mpc.control import export
+from fvin_mpc.control import model_export as export
 from fvin_mpc.core import fvin, s3
 from fvin_mpc.core.backend import get_ops
 from fvin_mpc.core.networks import LearnedTerms, ModelConfig, init_weights
