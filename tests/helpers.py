@@ -69,3 +69,17 @@ def synthetic_hinge_data(body, trajectories=48, steps=10, seed=0):
     return Trajectories.from_parts(
         np.stack(qs, 1), np.stack(omegas, 1), u, {"control_period": 0.05, "scene": "synthetic"}
     )
+
+
+def iterated_rti_plan(controller, x0: np.ndarray, iterations: int):
+    """``controller``'s (a RealTimeMPC) plan after ``iterations`` SQP iterations from its ``"goal"``
+    first guess with the measured state ``x0`` fixed: the real-time iteration run to convergence, to
+    compare with IPOPT's solution of the same problem. Returns ``(plan, cost, largest gap)``."""
+    from fvin_mpc.control.mpc import Plan
+
+    guess = controller._first_guess(x0, "goal")
+    plan = Plan(guess.states, guess.controls, None, None)
+    for _ in range(iterations):
+        plan, status = controller._iterate(plan, controller._linearize_at(plan), x0)
+        assert plan is not None, status
+    return (plan, *controller.plan_cost(plan))

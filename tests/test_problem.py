@@ -7,10 +7,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from helpers import iterated_rti_plan
 
 from fvin_mpc.control.flight import quadrotor_mpc_settings
 from fvin_mpc.control.model_export import from_closed_form
-from fvin_mpc.control.mpc import MPC, MPCSettings, Plan
+from fvin_mpc.control.mpc import MPC, MPCSettings
 from fvin_mpc.control.problem import ConstantReference, control_bounds
 from fvin_mpc.control.rti import RealTimeMPC
 from fvin_mpc.control.scene import scene_env, scene_model, scene_mpc, scene_mpc_settings
@@ -39,12 +40,7 @@ def test_ipopt_and_the_rti_reach_the_same_plan_for_a_free_body(craft):
     u_ipopt, info = ipopt(x0)
     assert info["success"] and info["status"] == "Solve_Succeeded"
     controller = RealTimeMPC(craft, settings, HOVER, low, high)
-    guess = controller._first_guess(x0, "goal")
-    plan = Plan(guess.states, guess.controls, None, None)
-    for _ in range(30):
-        plan, status = controller._iterate(plan, controller._linearize_at(plan), x0)
-        assert plan is not None, status
-    cost, gap = controller.plan_cost(plan)
+    plan, cost, gap = iterated_rti_plan(controller, x0, 30)
     assert gap < 1e-8
     # IPOPT's objective is the same sum of squares; the RTI's QP keeps a barrier floor on the boxes
     assert cost == pytest.approx(info["cost"], rel=1e-4)

@@ -8,9 +8,10 @@ from __future__ import annotations
 import casadi as ca
 import numpy as np
 import pytest
+from helpers import iterated_rti_plan
 
 from fvin_mpc.control.closed_loop import episode_metrics, run_episode
-from fvin_mpc.control.mpc import MPC, Plan
+from fvin_mpc.control.mpc import MPC
 from fvin_mpc.control.rti import RealTimeMPC
 from fvin_mpc.control.scene import scene_env, scene_model, scene_mpc, scene_mpc_settings
 from fvin_mpc.envs.disturbance import ConstantTorqueDisturbance
@@ -56,12 +57,7 @@ def test_iterations_reach_the_ipopt_optimum_on_a_fixed_problem(scene, dynamics, 
     _, info = reference(x0)
     assert info["success"]
     controller = scene_mpc(env, model, settings)
-    guess = controller._first_guess(x0, "goal")
-    plan = Plan(guess.states, guess.controls, None, None)
-    for _ in range(20):
-        plan, status = controller._iterate(plan, controller._linearize_at(plan), x0)
-        assert plan is not None, status
-    cost, gap = controller.plan_cost(plan)
+    plan, cost, gap = iterated_rti_plan(controller, x0, 20)
     assert gap < 1e-6
     assert abs(cost - info["cost"]) <= 1e-3 * info["cost"]
     # the problem is mirror-symmetric about the hanging state: the same optimum may swing either way

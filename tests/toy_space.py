@@ -29,18 +29,16 @@ TOY_VARIANTS = ("sign-invariant", "plain")
 
 
 @dataclass(frozen=True)
-class ToyConfig(networks.DictConfig):
+class ToyConfig(networks.ModelFields):
     """The toy space's learned-model config: the rotation is an S3FVIN (its variant and widths), the
     rail three learned constants (``m``, ``k`` through softplus, ``g``). ``control_dim`` counts the
     rail force too."""
 
     CONFIG_NAME = "R1xS3 toy model"
 
-    variant: str = "sign-invariant"
     control_dim: int = 2
     hidden_width: int = 5
     hidden_layers: int = 1
-    step_size: float = 0.05
     newton_iters: int = 3
 
     def __post_init__(self) -> None:

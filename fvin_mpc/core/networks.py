@@ -68,7 +68,20 @@ def check_weight_shapes(weights: Mapping[str, Any], expected: Mapping[str, tuple
 
 
 @dataclass(frozen=True)
-class ModelConfig(DictConfig):
+class ModelFields(DictConfig):
+    """The fields every configuration space's model config starts with, in this order (a checkpoint's
+    sidecar lists them so); a space's config redeclares the defaults it changes and adds its own."""
+
+    variant: str = "sign-invariant"
+    control_dim: int = 1
+    hidden_width: int = 10
+    hidden_layers: int = 2
+    step_size: float = 0.05
+    newton_iters: int = 2
+
+
+@dataclass(frozen=True)
+class ModelConfig(ModelFields):
     """Architecture and integration settings of an S3FVIN model.
 
     Attributes:
@@ -87,11 +100,6 @@ class ModelConfig(DictConfig):
     """
 
     variant: Variant = "sign-invariant"
-    control_dim: int = 1
-    hidden_width: int = 10
-    hidden_layers: int = 2
-    step_size: float = 0.05
-    newton_iters: int = 2
     dissipation: bool = False
     inertia_epsilon: float = 1e-3
 

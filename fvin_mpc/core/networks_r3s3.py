@@ -42,7 +42,7 @@ from fvin_mpc.core.networks import VARIANTS, Variant, mlp, scalar_mlp_value_and_
 
 
 @dataclass(frozen=True)
-class R3S3Config(networks.DictConfig):
+class R3S3Config(networks.ModelFields):
     """Architecture and integration settings of a learned R³ × S³ model.
 
     Attributes:
@@ -62,9 +62,7 @@ class R3S3Config(networks.DictConfig):
     variant: Variant = "fixed-inertia"
     control_dim: int = 4
     hidden_width: int = 16
-    hidden_layers: int = 2
     step_size: float = 0.02
-    newton_iters: int = 2
     force_rule: str = "trapezoid"
     position_in_forces: bool = False
     force_frame: str = "body"

@@ -33,7 +33,7 @@ _NETS = ("potential", "inertia", "gain")
 
 
 @dataclass(frozen=True)
-class SO3ModelConfig(networks.DictConfig):
+class SO3ModelConfig(networks.ModelFields):
     """Architecture and integration settings of an SO3FVIN model.
 
     Attributes:
@@ -49,11 +49,6 @@ class SO3ModelConfig(networks.DictConfig):
     """
 
     variant: SO3Variant = "so3-matrix"
-    control_dim: int = 1
-    hidden_width: int = 10
-    hidden_layers: int = 2
-    step_size: float = 0.05
-    newton_iters: int = 2
     inertia_epsilon: float = 1e-3
 
     def __post_init__(self) -> None:
