@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 import venv
@@ -40,10 +41,25 @@ def _clean_env() -> dict[str, str]:
     return env
 
 
+def _source_tree(destination: Path) -> Path:
+    """The checkout's files (tracked, and untracked ones git does not ignore) copied to ``destination``:
+    a wheel built in the checkout itself would also pack what an earlier build left in its ignored
+    ``build/`` folder (modules since moved or deleted)."""
+    listed = subprocess.run(["git", "ls-files", "-co", "--exclude-standard", "-z"], cwd=REPOSITORY,
+                            capture_output=True, check=True).stdout.decode().split("\0")
+    for name in filter(None, listed):
+        source = REPOSITORY / name
+        if source.is_file():
+            (destination / name).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(source, destination / name)
+    return destination
+
+
 @pytest.fixture(scope="module")
 def wheel(tmp_path_factory) -> Path:
     wheel_dir = tmp_path_factory.mktemp("wheel")
-    _run([sys.executable, "-m", "pip", "wheel", str(REPOSITORY), "--no-deps", "-q", "-w", str(wheel_dir)],
+    source = _source_tree(tmp_path_factory.mktemp("source"))
+    _run([sys.executable, "-m", "pip", "wheel", str(source), "--no-deps", "-q", "-w", str(wheel_dir)],
          cwd=wheel_dir, env=_clean_env(), timeout_s=300)
     (built,) = wheel_dir.glob("fvin_mpc-*.whl")
     return built
