@@ -266,7 +266,7 @@ class MPCSettings:
 
 @dataclass(frozen=True)
 class Plan:
-    """A solution in array form: states ``(N+1, 7)``, controls ``(N, m)`` and the multipliers."""
+    """A solution in array form: states ``(N+1, n)``, controls ``(N, m)`` and the multipliers."""
 
     states: np.ndarray
     controls: np.ndarray
@@ -649,14 +649,14 @@ class MPC:
 
     # ------------------------------------------------------------------ control
     def __call__(self, x: Any) -> tuple[np.ndarray, dict[str, Any]]:
-        """Plan from the measured state ``x = (q, ω)`` ``(7,)``; returns ``(u (m,), info)``.
+        """Plan from the measured state ``x (n,)`` (``(q, ω)`` on a pivot); returns ``(u (m,), info)``.
 
         ``info``: ``status`` (the solver's), ``success``, ``iterations``, ``solve_time_s`` (summed
         over the cold starts of a multi-start call), ``fallback`` (``None``, ``"previous-plan"`` or
         ``"zero"``), ``cost``, ``step_residual`` (the model's Newton residual for the applied first
-        step, rad/s), ``states`` ``(N+1, 7)`` and ``controls`` ``(N, m)`` of the plan; on cold calls
-        also ``cold_start`` (the first guess that won) and ``cold_costs`` (guess → cost, ``nan`` if
-        that solve failed).
+        step, rad/s), ``disturbance`` (``d̂``), ``states`` ``(N+1, n)`` and ``controls`` ``(N, m)`` of the
+        plan; on cold calls also ``cold_start`` (the first guess that won) and ``cold_costs`` (guess →
+        cost, ``nan`` if that solve failed).
 
         Raises:
             ValueError: non-finite or wrongly shaped state, or ``q`` not of unit norm.

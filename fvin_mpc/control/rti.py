@@ -522,7 +522,7 @@ class RealTimeMPC(MPC):
         self._linearization: tuple[Any, ...] | None = None
 
     def __call__(self, x: Any) -> tuple[np.ndarray, dict[str, Any]]:
-        """The torque for the measured state ``x = (q, ω)`` ``(7,)``; see the class docstring for ``info``."""
+        """The torque for the measured state ``x (n,)``; see the class docstring for ``info``."""
         start = time.perf_counter()
         x0 = self.layout.check(x)
         s = self.settings
