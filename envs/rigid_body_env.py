@@ -339,7 +339,9 @@ class RigidBodyEnv(MujocoBodyEnv):
     def state(self) -> np.ndarray:
         """The noise-free state ``x = (q, ω)`` ``(7,)``: body orientation (w, x, y, z), body-frame ω."""
         velocity = np.zeros(6)
-        mujoco.mj_objectVelocity(self._model, self._data, mujoco.mjtObj.mjOBJ_BODY, self._body_id, velocity, 1)
+        # mjOBJ_XBODY: the body's own frame (xquat's); mjOBJ_BODY would give ω in its inertial frame (ximat),
+        # which differs whenever the principal axes are not the body's axes (a composite, an off-axis rod).
+        mujoco.mj_objectVelocity(self._model, self._data, mujoco.mjtObj.mjOBJ_XBODY, self._body_id, velocity, 1)
         return np.concatenate([self._data.xquat[self._body_id], velocity[:3]])
 
     def set_state(self, qpos: Any, qvel: Any) -> None:

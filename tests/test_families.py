@@ -131,6 +131,21 @@ def test_closed_form_matches_mujoco_on_generated_composites(kind, seed, tmp_path
     np.testing.assert_allclose(np.diff(potentials), np.diff(heights), rtol=1e-9, atol=1e-12)
 
 
+@pytest.mark.parametrize("kind, seed", [("hinge", 1000), ("hinge", 1003), ("ball", 1001), ("ball", 1005)])
+def test_observed_angular_velocity_is_in_the_body_frame_of_the_observed_quaternion(kind, seed, tmp_path):
+    """Ṙ = R[ω]× with R = R(xquat): regression for ω read in the inertial frame (ximat), which differs
+    from the body's frame on composites and off-axis rods (their principal axes are not the body's)."""
+    env = _env(kind, seed, tmp_path)
+    rng = np.random.default_rng(seed)
+    env.reset(seed=seed, options={"random": True, "max_omega": 3.0})
+    for _ in range(5):
+        env.step(rng.uniform(env.torque_low, env.torque_high))
+    x = env.state()
+    if kind == "hinge":
+        np.testing.assert_allclose(x[4:], (x[4:] @ env.joint_axis) * env.joint_axis, atol=1e-12)
+    np.testing.assert_allclose(x[4:], env.data.qvel if kind == "ball" else env.data.qvel[0] * env.joint_axis, atol=1e-12)
+
+
 def body_mass_gravity(model):
     return float(model.body_subtreemass[1] * -model.opt.gravity[2])
 
