@@ -42,3 +42,20 @@ def test_a_scene_the_package_refuses_is_infeasible_with_the_reason(tmp_path):
                     '</actuator></mujoco>'.replace('joint="0"', 'joint="j"').replace('type="hinge"', 'name="j" type="hinge"'))
     ok, facts = feasible(path)
     assert not ok and "potential" in facts["error"]  # a vertical hinge: gravity does nothing about it
+
+
+def test_the_filter_duration_is_the_swingup_commands_rule_with_the_gear_counted(tmp_path):
+    from dataclasses import replace
+
+    from fvin_mpc.control.families import motor_scales, swingup_duration
+    from fvin_mpc.control.scene import scene_scales
+    from fvin_mpc.swingup import MIN_DEFAULT_DURATION_S, default_duration
+
+    weak = RigidBodyEnv("tests/data/weak_pendulum.xml")  # gear 1: the command's own number
+    assert swingup_duration(weak) == pytest.approx(default_duration(scene_scales(weak)), rel=1e-12)
+    (path,) = write_family("hinge", [1002], tmp_path)
+    env = RigidBodyEnv(str(path))
+    gear = abs(env.model.actuator_gear[0, 0])
+    assert motor_scales(env).torque == pytest.approx(scene_scales(env).torque * gear, rel=1e-12)
+    assert swingup_duration(env) == pytest.approx(default_duration(replace(scene_scales(env), torque=scene_scales(env).torque * gear)))
+    assert MIN_DEFAULT_DURATION_S == 10.0

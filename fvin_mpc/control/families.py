@@ -5,7 +5,7 @@ must swing them up.
 ``python -m fvin_mpc.swingup --scene PATH --true-model`` runs: :func:`~fvin_mpc.control.scene.scene_env`,
 ``scene_model(true_model=True)``, :func:`~fvin_mpc.control.scene.scene_mpc` with the scene's default
 settings) from hanging at rest, for the duration the swing-up command derives from the scene's
-scales (:func:`fvin_mpc.swingup.default_duration`), and judges it by the evaluation's criterion:
+scales (:func:`swingup_duration`), and judges it by the evaluation's criterion:
 within 0.1 rad of upright from some time on, and within 0.05 rad over the last 3 s. It never looks
 at a learned model. It runs in **waiting mode** (``latency="none"``) by default: it asks whether
 the physics can be swung up by this controller, not whether the controller keeps real time.
@@ -139,12 +139,19 @@ def motor_scales(env: Any) -> Any:
     return replace(scales, torque=float(np.max(bounds * np.linalg.norm(axes, axis=0))))
 
 
-def swingup_duration(env: Any) -> float:
-    """The swing-up command's default duration (:func:`fvin_mpc.swingup.default_duration`) on the
-    scene's scales, with the actuators' torque counted through their gear (:func:`motor_scales`)."""
-    from fvin_mpc.swingup import default_duration
+#: The swing-up command's shortest default episode (``fvin_mpc.swingup.MIN_DEFAULT_DURATION_S``).
+MIN_DURATION_S = 10.0
 
-    return default_duration(motor_scales(env))
+
+def swingup_duration(env: Any) -> float:
+    """The swing-up command's default duration on the scene's scales, with the actuators' torque counted
+    through their gear (:func:`motor_scales`): ``(1 + peak gravity torque / motor torque)`` natural periods
+    plus the hold window, at least 10 s — ``fvin_mpc.swingup.default_duration``'s rule, restated here
+    because a library module does not import a command (tests check the two agree)."""
+    scales = motor_scales(env)
+    natural_period = 4.0 * math.pi / scales.speed
+    swing_up_s = (1.0 + scales.energy_span / 2.0 / scales.torque) * natural_period
+    return max(MIN_DURATION_S, swing_up_s + HOLD_WINDOW_S)
 
 
 def feasible(scene_path: str | Path, duration_s: float | None = None, latency: Any = "none",
