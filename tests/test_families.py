@@ -204,3 +204,21 @@ def test_out_of_family_mjcfs_get_one_line_naming_what_is_unsupported(xml, named)
                                   SCENE_DIR / "spherical_pendulum.xml"])
 def test_built_in_pivoted_scenes_are_in_family(path):
     assert unsupported_features(mujoco.MjModel.from_xml_path(str(path))) == []
+
+
+@pytest.mark.parametrize("seed", [1000, 1003, 1007])
+def test_the_so3_closed_form_of_a_tilted_hinge_is_the_s3_one(seed, tmp_path):
+    """The SO(3) baseline's closed-form terms measure heights along the same tilted "up" (vertical)."""
+    from fvin_mpc.core.fvin_so3 import PivotedRigidBodySO3Terms
+    from fvin_mpc.core.s3 import rotation_matrix
+
+    env = _env("hinge", seed, tmp_path)
+    body = from_mujoco(env.model, env.body_name)
+    so3, s3_terms = PivotedRigidBodySO3Terms(body, NP), body.terms(NP)
+    for angle in (0.3, 1.2, -2.0):
+        env.set_state(np.array([angle]), np.zeros(1))
+        q = env.data.xquat[1].copy()
+        r = rotation_matrix(tuple(q))
+        assert so3.potential(r) == pytest.approx(s3_terms.potential(tuple(q)), rel=1e-12, abs=1e-12)
+        np.testing.assert_allclose(np.array(so3.potential_torque(r), dtype=float), _gravity_torque_body(body, q),
+                                   rtol=1e-10, atol=1e-12)
