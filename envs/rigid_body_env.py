@@ -357,7 +357,9 @@ class RigidBodyEnv(MujocoBodyEnv):
     def state(self) -> np.ndarray:
         """The noise-free state ``x = (q, ω)`` ``(7,)``: body orientation (w, x, y, z), body-frame ω."""
         velocity = np.zeros(6)
-        mujoco.mj_objectVelocity(self._model, self._data, mujoco.mjtObj.mjOBJ_BODY, self._body_id, velocity, 1)
+        # mjOBJ_XBODY: the body's own frame (xquat's); mjOBJ_BODY would give ω in its inertial frame (ximat),
+        # which differs whenever the principal axes are not the body's axes (a composite, an off-axis rod).
+        mujoco.mj_objectVelocity(self._model, self._data, mujoco.mjtObj.mjOBJ_XBODY, self._body_id, velocity, 1)
         return np.concatenate([self._data.xquat[self._body_id], velocity[:3]])
 
     def set_state(self, qpos: Any, qvel: Any) -> None:
@@ -390,13 +392,16 @@ class RigidBodyEnv(MujocoBodyEnv):
         """
         model, data = self._model, self._data
         gravity = np.asarray(model.opt.gravity, dtype=float)
+        # A body with child bodies (rigidly attached: the joint is the model's only dof) hangs by
+        # its subtree's centre of mass; a single body's is its own (read as before, to the bit).
+        composite = bool(np.any(model.body_parentid[self._body_id + 1:] == self._body_id))
+        mass = float(model.body_subtreemass[self._body_id] if composite else model.body_mass[self._body_id])
+        com = (lambda: data.subtree_com[self._body_id]) if composite else (lambda: data.xipos[self._body_id])
         if self._joint_type == "hinge":
             samples = []
             for angle in (0.0, 0.5 * math.pi, math.pi, 1.5 * math.pi):
                 self._set_joint_state(np.array([angle]), np.zeros(1))
-                samples.append(
-                    -float(self._model.body_mass[self._body_id]) * float(gravity @ data.xipos[self._body_id])
-                )
+                samples.append(-mass * float(gravity @ com()))
             a, b = 0.5 * (samples[0] - samples[2]), 0.5 * (samples[1] - samples[3])
             if math.hypot(a, b) < 1e-12:
                 self._no_task()
@@ -405,7 +410,7 @@ class RigidBodyEnv(MujocoBodyEnv):
             goal = data.xquat[self._body_id].copy()
             return goal, np.array([math.remainder(top + math.pi, 2 * math.pi)])
         self._set_joint_state(np.asarray(model.qpos0, dtype=float), np.zeros(3))
-        reach = data.xipos[self._body_id] - data.xanchor[self._joint_id]
+        reach = com() - data.xanchor[self._joint_id]
         if np.linalg.norm(gravity) == 0.0 or np.linalg.norm(reach) < 1e-12:
             self._no_task()
         down = gravity / np.linalg.norm(gravity)

@@ -236,7 +236,7 @@ def _disabled(model: mujoco.MjModel, bit: int) -> bool:
     return bool(model.opt.disableflags & int(bit))
 
 
-def _can_collide(model: mujoco.MjModel) -> bool:
+def can_collide(model: mujoco.MjModel) -> bool:
     """Whether any geom pair could ever produce a contact (explicit ``<pair>`` or contype/conaffinity).
 
     Follows MuJoCo's filters: geoms of one weld group never collide, nor do geoms of a
@@ -269,7 +269,7 @@ def present_effects(model: mujoco.MjModel) -> dict[str, bool]:
         "joint_damping": bool(np.any(model.dof_damping > 0.0)),
         "dry_friction": bool(np.any(model.dof_frictionloss > 0.0)),
         "actuator_limits": bool(np.any(model.actuator_ctrllimited)),
-        "contact": _can_collide(model),
+        "contact": can_collide(model),
     }
 
 

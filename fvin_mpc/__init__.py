@@ -31,6 +31,7 @@ installed under this name):
 * ``quadrotor_env`` — a free body with rotors (the ``quadrotor`` scene).
 * ``pendulum_v1`` — conversions between Gymnasium's ``Pendulum-v1`` and the ``pendulum`` scene.
 * ``disturbance`` — a known constant torque disturbance (the offset-free tests' oracle).
+* ``families`` — seeded random scene families (hinge, ball) and what an MJCF has that the package cannot take.
 
 :mod:`fvin_mpc.learning` — the only torch importers:
 
@@ -48,6 +49,8 @@ installed under this name):
   disturbance estimate.
 * ``mpc`` — the problem solved to convergence (IPOPT), with multi-start cold solves.
 * ``presets`` — the built-in scenes' controller presets, each with its reason.
+* ``family_filter`` — whether the closed-form controller swings a generated scene up (the family filter).
+* ``family_filter`` — whether the closed-form controller swings a generated scene up (the family filter).
 * ``rti`` — the real-time iteration MPC (any state layout ``R^a × S³ × R^b``).
 * ``implicit_dynamics`` — the step's own equations as the real-time iteration's dynamics constraint.
 * ``buffered`` — CasADi calls through preallocated buffers, without per-call conversions.

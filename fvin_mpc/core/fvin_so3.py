@@ -191,12 +191,20 @@ class PivotedRigidBodySO3Terms:
     def potential(self, r: so3.Mat3) -> Any:
         """``U = m g (z_com(R) − z_com(I))`` with ``z_com = (R c)_z``; zero when hanging at rest."""
         c = self.body.center_of_mass
+        v = getattr(self.body, "vertical", (0.0, 0.0, 1.0))
+        if tuple(v) != (0.0, 0.0, 1.0):  # heights along a tilted hinge's "up" (rigid_body.from_mujoco)
+            height = sum(v[i] * s3.dot(r[i], c) for i in range(3) if v[i] != 0.0)
+            return self.body.mass_gravity * (height - s3.dot(v, c))
         return self.body.mass_gravity * (s3.dot(r[2], c) - c[2])
 
     def potential_torque(self, r: so3.Mat3) -> so3.Vec3:
         # ∂U/∂R has one nonzero row, the third: m g cᵀ.
         zero = 0.0 * r[0][0]
         weighted = s3.scale(self.body.mass_gravity, self.body.center_of_mass)
+        v = getattr(self.body, "vertical", (0.0, 0.0, 1.0))
+        if tuple(v) != (0.0, 0.0, 1.0):  # ∂U/∂R = m g v cᵀ
+            gradient = tuple(tuple(v[i] * w + zero for w in weighted) for i in range(3))
+            return torque_from_euclidean_gradient(r, gradient)  # type: ignore[arg-type]
         gradient = ((zero, zero, zero), (zero, zero, zero), tuple(w + zero for w in weighted))
         return torque_from_euclidean_gradient(r, gradient)  # type: ignore[arg-type]
 
