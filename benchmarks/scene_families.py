@@ -39,6 +39,10 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from fvin_mpc import collect, train
+from fvin_mpc.control.family_filter import feasible, run_judged, swingup_duration
+from fvin_mpc.envs.families import write_family
+
 DEFAULT_SEED_OFFSET = 5000
 DEVELOPMENT_SEEDS = "0–11 and 1000–1011"
 MAX_DURATION_S = 20.0
@@ -93,7 +97,6 @@ def build_parser() -> argparse.ArgumentParser:
 
 # ----------------------------------------------------------------------------- one scene
 def _episodes(env: Any, controller: Any, starts: list[dict | None], duration: float, latency: Any) -> list[dict]:
-    from fvin_mpc.control.family_filter import run_judged
 
     results = []
     for index, options in enumerate(starts):
@@ -136,8 +139,6 @@ def run_scene(
 
     import torch
 
-    from fvin_mpc import collect, train
-    from fvin_mpc.control.family_filter import swingup_duration
     from fvin_mpc.control.scene import scene_env, scene_model, scene_mpc, scene_mpc_settings
 
     torch.set_num_threads(1)
@@ -193,8 +194,6 @@ def run_scene(
 
 # ----------------------------------------------------------------------------- the family run
 def run(args: argparse.Namespace) -> list[dict[str, Any]]:
-    from fvin_mpc.control.family_filter import feasible
-    from fvin_mpc.envs.families import write_family
 
     cache = args.cache_dir / args.family / ("quick" if args.quick else "full")
     scenes_dir, work = cache / "scenes", cache / "work"

@@ -22,6 +22,7 @@ map (``fvin_mpc/__init__.py``) names exactly the modules there are.
 from __future__ import annotations
 
 import ast
+import functools
 import re
 from pathlib import Path
 
@@ -289,15 +290,21 @@ def in_function_imports(path: Path) -> list[tuple[str, int]]:
     return found
 
 
-def brings_a_heavy_package(module: str, seen: frozenset = frozenset()) -> bool:
-    """Whether importing ``module`` imports torch, CasADi, matplotlib or Ray (at module level, transitively)."""
-    if module.split(".")[0] in HEAVY_PACKAGES:
-        return True
-    if module not in MODULES or module in seen:
-        return False
-    names = [f"{imported}.{name}" if f"{imported}.{name}" in MODULES else imported
-             for imported, names in imports(MODULES[module], module_level_only=True) for name in (names or [""])]
-    return any(brings_a_heavy_package(name, seen | {module}) for name in names if name)
+@functools.lru_cache(maxsize=None)
+def brings_a_heavy_package(module: str) -> bool:
+    """Whether importing ``module`` imports torch, CasADi, matplotlib or Ray (at module level,
+    transitively): one search over the import graph, each module visited once."""
+    stack, seen = [module], set()
+    while stack:
+        current = stack.pop()
+        if current.split(".")[0] in HEAVY_PACKAGES:
+            return True
+        if current not in MODULES or current in seen:
+            continue
+        seen.add(current)
+        stack += [f"{imported}.{name}" if f"{imported}.{name}" in MODULES else imported
+                  for imported, names in imports(MODULES[current], module_level_only=True) for name in (names or [""])]
+    return False
 
 
 @pytest.mark.parametrize("path", SOURCES, ids=lambda p: str(p.relative_to(ROOT)))

@@ -32,6 +32,9 @@ from fvin_mpc.control.closed_loop import (
     episode_metrics,
     run_episode,
 )
+from fvin_mpc.core.rigid_body import from_mujoco
+from fvin_mpc.core.s3 import rotation_matrix
+from fvin_mpc.envs.families import write_family
 
 
 def judged_on(env: Any) -> str:
@@ -46,8 +49,6 @@ def judged_on(env: Any) -> str:
 
 def tilt_angles(env: Any, quaternions: np.ndarray) -> np.ndarray:
     """Angle (rad) between the centre of mass's direction at each orientation and at the goal."""
-    from fvin_mpc.core.rigid_body import from_mujoco
-    from fvin_mpc.core.s3 import rotation_matrix
 
     base = env.unwrapped
     c = np.asarray(from_mujoco(base.model, base.body_name).center_of_mass, dtype=float)
@@ -148,7 +149,6 @@ def motor_scales(env: Any) -> Any:
     from dataclasses import replace
 
     from fvin_mpc.control.scene import scene_scales
-    from fvin_mpc.core.rigid_body import from_mujoco
 
     base = env.unwrapped
     scales = scene_scales(env)
@@ -235,7 +235,6 @@ def feasible(
 def filter_family(kind: str, seeds: Iterable[int], directory: str | Path, **options: Any) -> dict[str, Any]:
     """Write each seed's scene into ``directory`` and run :func:`feasible` on it: ``{"members": [seeds
     that entered], "rejected": [...], "rejection_rate": …, "facts": {seed: facts}}``."""
-    from fvin_mpc.envs.families import write_family
 
     members, rejected, per_seed = [], [], {}
     for seed in seeds:
