@@ -260,18 +260,8 @@ def hinge_scene(seed: int) -> tuple[str, dict[str, Any]]:
         shift: np.ndarray, joint_extra: str = "", actuator: str = '    <motor name="motor" joint="hinge"/>'
     ) -> str:
         joint = f'<joint name="hinge" type="hinge" pos="0 0 0" axis="{_fmt(axis)}"{joint_extra}/>'
-        return _mjcf(
-            name,
-            joint,
-            draw["body_quat"],
-            geoms,
-            children,
-            shift,
-            actuator,
-            draw["timestep_s"],
-            draw["gravity"],
-            draw["integrator"],
-        )
+        return _mjcf(name, joint, draw["body_quat"], geoms, children, shift, actuator, draw["timestep_s"],
+                     draw["gravity"], draw["integrator"])
 
     shift = _placed(geoms, children, com, build)
     inertia_axis = float(_joint_space_inertia(mujoco.MjModel.from_xml_string(build(shift)))[0, 0])
@@ -340,18 +330,8 @@ def ball_scene(seed: int, actuators: int | None = None) -> tuple[str, dict[str, 
     ) -> str:
         joint = f'<joint name="ball" type="ball" pos="0 0 0"{joint_extra}/>'
         parts = geoms + ([disk["geom"]] if disk["geom"] is not None else [])
-        return _mjcf(
-            name,
-            joint,
-            draw["body_quat"],
-            parts,
-            children,
-            shift,
-            actuator,
-            draw["timestep_s"],
-            draw["gravity"],
-            draw["integrator"],
-        )
+        return _mjcf(name, joint, draw["body_quat"], parts, children, shift, actuator, draw["timestep_s"],
+                     draw["gravity"], draw["integrator"])
 
     shift = _placed(geoms, children, com, build)
     # The flywheel disk at the centre of mass, its axis along u: its radius sets I_long / I_transverse.
