@@ -245,6 +245,14 @@ def _common(rng: np.random.Generator, ranges: dict[str, Any]) -> dict[str, Any]:
     }
 
 
+def _actuation_and_simulation_facts(draw: dict[str, Any], gravity_torque: float, bound: float,
+                                    children: list[Any]) -> dict[str, Any]:
+    """The facts every family's draw reports about its motor bound and its simulation, in report order."""
+    return {"torque_bound_ratio": draw["torque_bound_ratio"], "gravity_torque_max": gravity_torque,
+            "ctrl_bound": bound, "timestep_s": draw["timestep_s"], "gravity": draw["gravity"],
+            "integrator": draw["integrator"], "child_bodies": len(children)}
+
+
 def hinge_scene(seed: int) -> tuple[str, dict[str, Any]]:
     """One draw of the hinge family: ``(mjcf_text, facts)`` (module docstring)."""
     rng = np.random.default_rng(seed)
@@ -295,13 +303,7 @@ def hinge_scene(seed: int) -> tuple[str, dict[str, Any]]:
         "armature": armature,
         "inertia_axis": inertia_axis,
         "gear": draw["gear"],
-        "torque_bound_ratio": draw["torque_bound_ratio"],
-        "gravity_torque_max": gravity_torque,
-        "ctrl_bound": bound,
-        "timestep_s": draw["timestep_s"],
-        "gravity": draw["gravity"],
-        "integrator": draw["integrator"],
-        "child_bodies": len(children),
+        **_actuation_and_simulation_facts(draw, gravity_torque, bound, children),
     }
     return text, facts
 
@@ -383,13 +385,7 @@ def ball_scene(seed: int, actuators: int | None = None) -> tuple[str, dict[str, 
         "damping": damping,
         "armature": armature,
         "gear": gear,
-        "torque_bound_ratio": draw["torque_bound_ratio"],
-        "gravity_torque_max": gravity_torque,
-        "ctrl_bound": bound,
-        "timestep_s": draw["timestep_s"],
-        "gravity": draw["gravity"],
-        "integrator": draw["integrator"],
-        "child_bodies": len(children),
+        **_actuation_and_simulation_facts(draw, gravity_torque, bound, children),
         "judged_on": "tilt" if n_act == 2 else "orientation",
     }
     return text, facts
