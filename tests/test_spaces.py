@@ -477,6 +477,22 @@ def test_local_inverts_retract_and_ignores_the_sign(case):
                                    space.local(x_bar[i], y[i]), atol=1e-12)
 
 
+def test_distance_to_a_goal_is_sign_invariant_and_sin_squared_of_half_the_angle(case):
+    """``distance`` is ``1 − ⟨q, q_goal⟩² = sin²(angle/2)``: zero on the goal's rotation for either
+    sign of either quaternion, the same whether the goal is a state or its quaternion."""
+    x = case.states(8, seed=9)
+    qs = case.space.layout.quaternion
+    goal = x[0].copy()
+    angle = 2.0 * np.arccos(np.clip(np.abs(x[:, qs] @ goal[qs]), 0.0, 1.0))
+    np.testing.assert_allclose(case.space.distance(x, goal), np.sin(angle / 2) ** 2, atol=1e-12)
+    np.testing.assert_allclose(case.space.distance(x, -goal[qs]), case.space.distance(x, goal), atol=1e-15)
+    flipped = x.copy()
+    flipped[:, qs] *= -1
+    np.testing.assert_allclose(case.space.distance(flipped, goal), case.space.distance(x, goal), atol=1e-15)
+    assert case.space.distance(x[0], goal) == pytest.approx(0.0, abs=1e-15)
+    assert np.all(case.space.distance(x[1:], goal) > 0)
+
+
 def test_check_normalizes_within_tolerance_and_rejects_the_rest(case):
     layout = case.space.layout
     x = case.states(1, seed=11)[0]

@@ -407,12 +407,11 @@ class RealTimeMPC(MPC):
             turns = np.einsum("ij,ij->i", quaternions[:-1], quaternions[1:])
             if turns.min() < 0.0:  # rare (the measured state's sign): flip every node after a sign change
                 quaternions *= np.cumprod(np.concatenate([[1.0], np.where(turns < 0.0, -1.0, 1.0)]))[:, None]
-        time_, _, scales, references = self._sample_reference()
+        time_, _, _, references = self._sample_reference()
         key = (time_, self.disturbance.tobytes())
         cached = getattr(self, "_targets_cache", None)
         if cached is None or cached[0] != key:  # u_s changes only with the time and d̂: compute once
-            targets = np.clip(scales[:, None] * self._u_goal - self.disturbance, self.torque_low, self.torque_high)
-            cached = self._targets_cache = (key, targets.T)
+            cached = self._targets_cache = (key, self.reference_window()[1].T)
         return self._linearize(plan.states.T, plan.controls.T, references, self.disturbance, cached[1])
 
     # ------------------------------------------------------------------ one SQP iteration
