@@ -73,7 +73,8 @@ def test_leaves_exact_rest(controller):
 def test_failed_solve_returns_previous_plan_then_zero(true_model):
     """IPOPT stopped after one iteration: the torque is finite, bounded and the status reported."""
     good = MPC(true_model, MPCSettings(), UPRIGHT, [-2.0], [2.0])
-    failing = MPC(true_model, MPCSettings(max_iter=1, cold_max_iter=1), UPRIGHT, [-2.0], [2.0])
+    failing = MPC(true_model, MPCSettings(max_iter=1, cold_max_iter=1, last_iterate_max_defect=None), UPRIGHT,
+                  [-2.0], [2.0])
     q, omega = hinge(0.3, 0.0)
     u, info = failing(np.r_[q, omega])
     assert not info["success"] and info["status"] == "Maximum_Iterations_Exceeded"
@@ -85,6 +86,28 @@ def test_failed_solve_returns_previous_plan_then_zero(true_model):
     assert info["fallback"] == "previous-plan" and not info["success"]
     assert u_fallback[0] == pytest.approx(good_info["controls"][1, 0])
     assert np.all(np.abs(u_fallback) <= 2.0)
+
+
+def test_unconverged_solve_flies_its_last_iterate_only_when_it_is_a_model_trajectory(true_model):
+    """Stopped at its iteration limit (25 of the 70 this solve needs) with every dynamics defect within
+    the tolerance: with no earlier plan it beats the zero torque, so it is flown and said so. With the
+    tolerance at zero nothing unconverged is flown."""
+    q, omega = hinge(2.5, 1.0)
+    x0 = np.r_[q, omega]
+    limited = MPC(true_model, MPCSettings(max_iter=25, cold_max_iter=25), UPRIGHT, [-2.0], [2.0])
+    u, info = limited(x0)
+    assert not info["success"] and info["status"] == "Maximum_Iterations_Exceeded"
+    assert info["fallback"] == "last-iterate" and np.isfinite(info["cost"])
+    assert u[0] == pytest.approx(np.clip(info["controls"][0, 0], -2.0, 2.0))
+    states, controls = info["states"], info["controls"]
+    stepped = np.array([true_model.rollout(states[k], controls[k:k + 1])[1] for k in range(len(controls))])
+    assert np.max(np.abs(stepped - states[1:])) <= 1e-4 + 1e-9
+    strict = MPC(true_model, MPCSettings(max_iter=25, cold_max_iter=25, last_iterate_max_defect=0.0), UPRIGHT,
+                 [-2.0], [2.0])
+    u, info = strict(x0)
+    assert info["fallback"] == "zero" and np.array_equal(u, [0.0])
+    with pytest.raises(ValueError, match="last_iterate_max_defect"):
+        MPCSettings(last_iterate_max_defect=-1.0)
 
 
 def test_infeasible_problem_falls_back_within_bounds(true_model):

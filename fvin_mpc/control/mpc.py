@@ -175,6 +175,11 @@ class MPCSettings:
             far from it the projector's Gauss–Newton model has a false minimum at the upside-down
             orientation (its residual's Jacobian is orthogonal to the residual there: the model sees
             every turn as uphill), the rotation vector's does not — the quadrotor's recovery needs it.
+        last_iterate_max_defect: when a solve stops unconverged (its iteration limit), its last iterate is
+            used (``info["fallback"] = "last-iterate"``) if its largest dynamics defect is at most this
+            (state units; IPOPT's own ``constr_viol_tol`` by default) and its cost is below that of the
+            previous plan shifted — the plan the controller would otherwise fly (acados returns the iterate
+            at its limit with a status; the RTI always keeps its best plan). ``None``: never.
     """
 
     horizon: int = 30
@@ -216,6 +221,7 @@ class MPCSettings:
     terminal_position_weight: float = 0.0
     terminal_velocity_weight: float = 0.0
     orientation_residual: Literal["projector", "rotation-vector"] = "projector"
+    last_iterate_max_defect: float | None = 1e-4
 
     def __post_init__(self) -> None:
         if self.horizon < 1:
@@ -262,6 +268,8 @@ class MPCSettings:
             raise ValueError(f"cold_starts must be a non-empty tuple from {COLD_STARTS}, got {self.cold_starts!r}")
         if self.initial_torque_fraction == 0.0:
             raise ValueError("initial_torque_fraction must be non-zero: rest is a stationary point")
+        if self.last_iterate_max_defect is not None and not self.last_iterate_max_defect >= 0.0:
+            raise ValueError(f"last_iterate_max_defect must be >= 0 or None, got {self.last_iterate_max_defect}")
 
 
 @dataclass(frozen=True)
@@ -347,6 +355,10 @@ class MPC:
                                  f"the model gives {span:.3g} between {self.goal} and {self.rest}")
         start = time.perf_counter()
         self._build()
+        # The objective and the dynamics defects in the solver's own variable order: what a last iterate
+        # is judged by against the shifted previous plan.
+        self._cost_and_defects = ca.Function("mpc_cost_defects", [self._nlp["x"], self._nlp["p"]],
+                                             [self._nlp["f"], self._nlp["g"]])
         self.build_s = time.perf_counter() - start
         self._u_goal = self._goal_control()
         self.reset()
@@ -652,7 +664,8 @@ class MPC:
         """Plan from the measured state ``x (n,)`` (``(q, ω)`` on a pivot); returns ``(u (m,), info)``.
 
         ``info``: ``status`` (the solver's), ``success``, ``iterations``, ``solve_time_s`` (summed
-        over the cold starts of a multi-start call), ``fallback`` (``None``, ``"previous-plan"`` or
+        over the cold starts of a multi-start call), ``fallback`` (``None``, ``"last-iterate"``
+        (unconverged, its last iterate flown: ``last_iterate_max_defect``), ``"previous-plan"`` or
         ``"zero"``), ``cost``, ``step_residual`` (the model's Newton residual for the applied first
         step, rad/s), ``disturbance`` (``d̂``), ``states`` ``(N+1, n)`` and ``controls`` ``(N, m)`` of the
         plan; on cold calls also ``cold_start`` (the first guess that won) and ``cold_costs`` (guess →
@@ -677,14 +690,16 @@ class MPC:
         total_time = 0.0
         earlier_plan = self._previous  # what a failed solve falls back to (kept with warm_start="none")
         score = self.cold_start_score
-        best_rank = np.inf
+        best_rank: tuple[bool, float] = (True, np.inf)
         for start in self.settings.cold_starts:
             self._previous = earlier_plan
             u, info = self._solve(x0, self._first_guess(x0, start), warm=False)
             total_time += info["solve_time_s"]
-            costs[start] = info["cost"] if info["success"] else float("nan")
-            if info["success"]:
-                rank = info["cost"] if score is None else float(score(info["states"], info["controls"]))
+            usable = info["success"] or info["fallback"] == "last-iterate"
+            costs[start] = info["cost"] if usable else float("nan")
+            if usable:  # a converged plan beats any last iterate
+                rank = (not info["success"],
+                        info["cost"] if score is None else float(score(info["states"], info["controls"])))
                 if best is None or rank < best_rank:
                     best, best_rank = (u, {**info, "cold_start": start}, self._previous), rank
         if best is None:  # every cold start failed: the last one's fallback stands
@@ -712,6 +727,7 @@ class MPC:
         start = time.perf_counter()
         solution = solver(**arguments)
         solve_time = time.perf_counter() - start
+        solver_x = np.asarray(solution["x"], dtype=float).ravel()  # in the solver's order, for _last_iterate_wins
         if self._order is not None:
             solution = dict(solution)
             for key in ("x", "lam_x"):
@@ -726,11 +742,13 @@ class MPC:
         converged = status in SUCCESS_STATUSES if self.settings.solver == "ipopt" else bool(stats.get("success", False))
         success = converged and finite
         fallback = None
-        if success:
+        last_iterate = not success and finite and self._last_iterate_wins(solver_x, arguments["p"], x0)
+        if success or last_iterate:
             states, controls = self._unpack(w)
             self._previous = Plan(states, controls, np.asarray(solution["lam_g"], float).ravel(),
                                    np.asarray(solution["lam_x"], float).ravel())
             u = controls[0].copy()
+            fallback = "last-iterate" if last_iterate else None
         elif self._previous is not None and np.all(np.isfinite(self._previous.controls)):
             # The plan made one period ago, advanced by one step: its second control is for now.
             self._previous = self._shifted(self._previous, x0)
@@ -744,7 +762,27 @@ class MPC:
         info = {
             "status": status, "success": success, "iterations": int(stats.get("iter_count", -1)),
             "solve_time_s": solve_time, "fallback": fallback,
-            "cost": float(solution["f"]) if success else float("nan"),
+            "cost": float(solution["f"]) if success or last_iterate else float("nan"),
             "states": states, "controls": controls,
         }
         return u, info
+
+    def _last_iterate_wins(self, iterate: np.ndarray, parameters: np.ndarray, x0: np.ndarray) -> bool:
+        """Whether an unconverged solve's last ``iterate`` (solver order) is flown: its dynamics defects
+        within ``last_iterate_max_defect`` and its cost below the shifted previous plan's (any cost when
+        there is none: the alternative is the zero torque)."""
+        tolerance = self.settings.last_iterate_max_defect
+        if tolerance is None:
+            return False
+        cost, defects = (np.asarray(value, dtype=float).ravel()
+                         for value in self._cost_and_defects(iterate, parameters))
+        if not (np.all(np.isfinite(defects)) and np.max(np.abs(defects), initial=0.0) <= tolerance):
+            return False
+        if self._previous is None or not np.all(np.isfinite(self._previous.controls)):
+            return True
+        shifted = self._shifted(self._previous, x0)
+        packed = self._pack(shifted.states, shifted.controls)
+        if self._order is not None:
+            packed = packed[self._order]
+        shifted_cost = float(np.asarray(self._cost_and_defects(packed, parameters)[0]).ravel()[0])
+        return bool(cost[0] <= shifted_cost)

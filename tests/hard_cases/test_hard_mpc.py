@@ -23,7 +23,8 @@ UPRIGHT = np.array([0.0, 0.0, 1.0, 0.0])
 LOW, HIGH = np.array([-2.0]), np.array([2.0])
 
 # IPOPT limited to one iteration on warm and cold solves.
-ONE_ITERATION = MPCSettings(max_iter=1, cold_max_iter=1)
+# the fallback path: an unconverged last iterate is never flown here (tests/test_mpc.py covers that rule)
+ONE_ITERATION = MPCSettings(max_iter=1, cold_max_iter=1, last_iterate_max_defect=None)
 angles = S.floats(-np.pi, np.pi)
 rates = S.floats(-8.0, 8.0)
 
