@@ -43,7 +43,7 @@ import json
 import math
 import re
 import time
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
@@ -73,7 +73,7 @@ MLP_EXACT = "mlp-exact-hessian"
 CLOSED_FORM = "closed-form"
 MODELS: tuple[str, ...] = (*S3FVIN_VARIANTS, MLP, MLP_EXACT)
 #: MPCSettings a model's MPCs get beyond the study's (both the scene's and the Pendulum-v1 one).
-MODEL_MPC_OVERRIDES: dict[str, dict[str, Any]] = {MLP_EXACT: {"hessian": "exact"}}
+MODEL_MPC_OVERRIDES: dict[str, dict[str, Any]] = {MLP_EXACT: {"ipopt": {"hessian": "exact"}}}
 DEFAULT_SIZES = "250,500,1000,2000,5000,10000,20000"
 DEFAULT_MODELS = "sign-invariant,mlp"
 #: Periods of the held-out rollouts (1 s at h = 0.05).
@@ -296,7 +296,7 @@ def scene_settings(env: Any, config: StudyConfig, overrides: dict[str, Any] | No
     compile mode, horizon and ``mpc_overrides``, then ``overrides`` (a model's own)."""
 
     return scene_mpc_settings(env, **{"compile": config.compile, "horizon": config.horizon,
-                                      **dict(config.mpc_overrides), **(overrides or {})})
+                                      **dict(config.mpc_overrides)}).updated(**(overrides or {}))
 
 
 def study_starts(config: StudyConfig, count: int | None = None) -> list[Any]:
@@ -339,8 +339,8 @@ def pendulum_v1_returns(
     import gymnasium
 
     settings = benchmark_settings() if config.horizon is None else benchmark_settings(config.horizon)
-    controller = BudgetedController(scene_mpc(env, model, replace(settings, compile=config.compile,
-                                                                  **dict(config.mpc_overrides), **(overrides or {}))),
+    controller = BudgetedController(scene_mpc(env, model, settings.updated(
+        compile=config.compile, **dict(config.mpc_overrides)).updated(**(overrides or {}))),
                                     model.control_dim, config.episode_budget_s)
     v1 = gymnasium.make("Pendulum-v1")
     returns, exhausted = [], 0
@@ -666,7 +666,8 @@ def study_config(quick: bool, seed: int, sizes: str, seeds: str, models: str, ep
                            # a fixed pool (not max(sizes)): runs with other sizes share its cells
                            pool_transitions=max(100, *quick_sizes), compile="none", horizon=10, iterations=2,
                            jacobian_windows=8, cache_dir=cache_dir / "quick",
-                           mpc_overrides=(("max_iter", 10), ("cold_max_iter", 20), ("cold_starts", ("rollout+",)))
+                           mpc_overrides=(("ipopt", (("max_iter", 10), ("cold_max_iter", 20))),
+                                          ("cold_starts", ("rollout+",)))
                            + ((("torque_reserve", torque_reserve),) if torque_reserve else ()))
     return StudyConfig(sizes=_parse_ints(sizes, "sizes"), draws=_parse_ints(seeds, "seeds"), models=model_names,
                        seed=seed, episodes=episodes, duration_s=duration, v1_episodes=v1_episodes, compile=compile,

@@ -241,7 +241,8 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 5, scene: str = "pend
         f"(µs per call, Python overhead included) and `map`ped over the {BATCH} states (ms per batch). "
         f"MPC: the scene's settings (`fvin_mpc.control.scene.scene_mpc_settings`), IPOPT, Gauss–Newton Hessian, "
         f"{'interpreted' if quick else 'compiled (cached)'}, primal–dual warm start, N = {mpc_settings.horizon}, "
-        f"max_iter {mpc_settings.max_iter}, terminal energy weight {mpc_settings.terminal_energy_weight:g}, swing-up "
+        f"max_iter {mpc_settings.ipopt.max_iter}, terminal energy weight {mpc_settings.terminal_energy_weight:g}, "
+        "swing-up "
         f"from rest for {duration:g} s on MuJoCo; solve-time columns are IPOPT's own time per control step. "
         "The root finder is not used inside the MPC (it cannot be expanded into the SX step the MPC compiles); "
         "the last K row with residual ≈ 0 stands for it.",

@@ -10,7 +10,7 @@ and with a constant inertia. The prototypes' weights are random: an operation co
 structure (widths, which terms depend on ``q``), not on the weights' values.
 
 Two further columns count what the real-time iteration evaluates per stage with each of its dynamics
-constraints (``MPCSettings.rti_dynamics``): ``unrolled`` — the gap of ``F`` and its Jacobian in the
+constraints (``RTIOptions.dynamics``): ``unrolled`` — the gap of ``F`` and its Jacobian in the
 7 chart directions ``(δ_k, Δu_k)`` (:func:`fvin_mpc.control.rti.unrolled_stage_function`);
 ``implicit`` — the terms and their 3 chart derivatives once per node plus the stage's
 implicit-function solve (:mod:`fvin_mpc.control.implicit_dynamics`).

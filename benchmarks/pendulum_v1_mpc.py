@@ -49,7 +49,7 @@ from benchmarks.pendulum_v1_reference import (
     rollout_guesses,
 )
 from benchmarks.pendulum_v1_value import model_value_table, plan_score
-from fvin_mpc.control.mpc import COLD_STARTS, MPC, MPCSettings
+from fvin_mpc.control.mpc import COLD_STARTS, MPC, MPCSettings, RTIOptions
 from fvin_mpc.control.presets import PRESETS
 from fvin_mpc.control.scene import DEFAULT_TERMINAL_ENERGY_WEIGHT, scene_env, scene_model, scene_mpc
 from fvin_mpc.envs.pendulum_v1 import state_from_v1_observation
@@ -118,7 +118,8 @@ def rti_dynamics(config: BenchmarkConfig) -> str:
     """The RTI's dynamics constraint: the config's, else the ``pendulum`` scene's RTI setting."""
     if config.rti_dynamics is not None:
         return config.rti_dynamics
-    return PRESETS["pendulum"].fields_for("rti").get("rti_dynamics", MPCSettings.rti_dynamics)
+    preset = PRESETS["pendulum"].fields_for("rti").get("rti", RTIOptions())
+    return preset.dynamics
 
 
 def build_mpc(config: BenchmarkConfig) -> Any:
@@ -130,8 +131,8 @@ def build_mpc(config: BenchmarkConfig) -> Any:
     if abs(model.step_size - DT) > 1e-12:
         raise ValueError(f"{config.checkpoint}: needs h = {DT} s, got h = {model.step_size}")
     settings = benchmark_settings(config.horizon, config.terminal_energy_weight, config.multistart)
-    settings = replace(settings, solver=config.solver, rti_cold_solver=config.rti_cold_solver,
-                       rti_dynamics=rti_dynamics(config))
+    settings = settings.updated(solver=config.solver,
+                                rti={"cold_solver": config.rti_cold_solver, "dynamics": rti_dynamics(config)})
     if not config.rank_cold_starts:
         return scene_mpc(env, model, settings)
     if config.solver != "ipopt":

@@ -1,8 +1,8 @@
 """``rti``: what the real-time iteration's knobs cost in time and buy in control, learned beside closed form.
 
 On the planar pendulum, from the scene's RTI settings, one knob changed at a time: the QP's
-interior-point iterations (``rti_qp_iterations``), the horizon ``N``, and further Gauss–Newton
-iterations within a per-call budget (``rti_max_iter``, ``rti_budget_s``). Every configuration runs
+interior-point iterations (``rti.qp_iterations``), the horizon ``N``, and further Gauss–Newton
+iterations within a per-call budget (``rti.max_iter``, ``rti.budget_s``). Every configuration runs
 the same seeded starts (episode 0 hanging at rest, then the evaluation's random starts) in the
 waiting mode (the simulator waits for the controller: the quality columns isolate the controller,
 and the wall times are still measured per call) with the learned model and with the closed-form
@@ -27,15 +27,15 @@ from fvin_mpc.studies.starts import episode_starts
 #: (label, overrides of the scene's RTI settings); the first is the scene's own.
 CONFIGS: tuple[tuple[str, dict[str, Any]], ...] = (
     ("scene default", {}),
-    ("unrolled step", {"rti_dynamics": "unrolled"}),
-    ("implicit", {"rti_dynamics": "implicit"}),
-    ("3 QP it.", {"rti_qp_iterations": 3}),
-    ("5 QP it.", {"rti_qp_iterations": 5}),
-    ("20 QP it.", {"rti_qp_iterations": 20}),
+    ("unrolled step", {"rti": {"dynamics": "unrolled"}}),
+    ("implicit", {"rti": {"dynamics": "implicit"}}),
+    ("3 QP it.", {"rti": {"qp_iterations": 3}}),
+    ("5 QP it.", {"rti": {"qp_iterations": 5}}),
+    ("20 QP it.", {"rti": {"qp_iterations": 20}}),
     ("N=15", {"horizon": 15}),
     ("N=30", {"horizon": 30}),
     ("N=40", {"horizon": 40}),
-    ("≤3 GN it. in 5 ms", {"rti_max_iter": 3, "rti_budget_s": 0.005}),
+    ("≤3 GN it. in 5 ms", {"rti": {"max_iter": 3, "budget_s": 0.005}}),
 )
 QUICK = ("scene default", "5 QP it.")
 COLUMNS = ["config", "model", "call_ms_median", "call_ms_p99", "feedback_ms_median", "feedback_ms_p99",
@@ -94,15 +94,15 @@ def run(quick: bool = False, seed: int = 0, starts: int = 20, duration: float = 
     notes = [
         f"`{scene}` scene, {starts} starts of {duration:g} s (episode 0 hanging at rest, then seeded random starts "
         f"with |ω₀| ≤ 2 rad/s, seed {seed}), the scene's RTI settings (N = {default.horizon}, "
-        f"{default.rti_qp_iterations} QP iterations, {default.rti_max_iter} Gauss–Newton iteration per period, "
-        f"{default.rti_dynamics} dynamics) with "
+        f"{default.rti.qp_iterations} QP iterations, {default.rti.max_iter} Gauss–Newton iteration per period, "
+        f"{default.rti.dynamics} dynamics) with "
         "one knob changed per row, in the "
         "waiting mode (the simulator waits for the controller; quality, not real-time closed-loop behaviour — "
         "the per-call wall times are measured all the same). `call_ms`: the whole controller time per period "
         "(the call and the preparation after the torque is sent); `feedback_ms`: the call alone, observation "
         "to torque; `learned_vs_true`: median whole time, learned over closed form, same configuration; "
         "`cost_mean`: the env's accumulated cost (angle² + 0.1 ω² + 0.001 u² per period).",
-        "The cold start's budget is wall clock (`rti_cold_budget_s`), so the first plans, and with them the "
+        "The cold start's budget is wall clock (`rti.cold_budget_s`), so the first plans, and with them the "
         "costs, differ from run to run (by ~10 % in the mean over 20 starts); compare rows within one run.",
         f"Load average (1, 5, 15 min) when the study started: {load[0]:.2f}, {load[1]:.2f}, {load[2]:.2f}.",
         NOISE_NOTE,

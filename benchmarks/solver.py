@@ -39,16 +39,16 @@ from fvin_mpc.studies.report import markdown_table
 #: (label, settings overrides) — IPOPT (the default solver) first.
 CONFIGS: tuple[tuple[str, dict[str, Any]], ...] = (
     ("ipopt GN cached pd (default)", {}),
-    ("ipopt GN cached primal", {"warm_start": "primal"}),
-    ("ipopt GN cached none", {"warm_start": "none"}),
+    ("ipopt GN cached primal", {"ipopt": {"warm_start": "primal"}}),
+    ("ipopt GN cached none", {"ipopt": {"warm_start": "none"}}),
     ("ipopt GN interpreted pd", {"compile": "none"}),
-    ("ipopt exact cached pd", {"hessian": "exact"}),
-    ("ipopt exact interpreted pd", {"hessian": "exact", "compile": "none"}),
-    ("ipopt L-BFGS cached pd", {"hessian": "limited-memory"}),
-    ("ipopt L-BFGS interpreted pd", {"hessian": "limited-memory", "compile": "none"}),
+    ("ipopt exact cached pd", {"ipopt": {"hessian": "exact"}}),
+    ("ipopt exact interpreted pd", {"ipopt": {"hessian": "exact"}, "compile": "none"}),
+    ("ipopt L-BFGS cached pd", {"ipopt": {"hessian": "limited-memory"}}),
+    ("ipopt L-BFGS interpreted pd", {"ipopt": {"hessian": "limited-memory"}, "compile": "none"}),
     ("sqpmethod GN cached pd", {"solver": "sqpmethod"}),
-    ("sqpmethod exact cached pd", {"solver": "sqpmethod", "hessian": "exact"}),
-    ("fatrop exact interpreted", {"solver": "fatrop", "hessian": "exact", "compile": "none"}),
+    ("sqpmethod exact cached pd", {"solver": "sqpmethod", "ipopt": {"hessian": "exact"}}),
+    ("fatrop exact interpreted", {"solver": "fatrop", "ipopt": {"hessian": "exact"}, "compile": "none"}),
 )
 QUICK = ("ipopt GN cached pd (default)", "sqpmethod GN cached pd", "fatrop exact interpreted")
 
@@ -97,9 +97,9 @@ REALTIME_CONFIGS: tuple[tuple[str, dict[str, Any], Any], ...] = (
     ("ipopt (waiting)", {}, "none"),
     ("ipopt", {}, "measured"),
     ("rti", {"solver": "rti"}, "measured"),
-    ("rti, unrolled step", {"solver": "rti", "rti_dynamics": "unrolled"}, "measured"),
-    ("rti, implicit", {"solver": "rti", "rti_dynamics": "implicit"}, "measured"),
-    ("rti ≤4 it. in 10 ms", {"solver": "rti", "rti_max_iter": 4, "rti_budget_s": 0.01}, "measured"),
+    ("rti, unrolled step", {"solver": "rti", "rti": {"dynamics": "unrolled"}}, "measured"),
+    ("rti, implicit", {"solver": "rti", "rti": {"dynamics": "implicit"}}, "measured"),
+    ("rti ≤4 it. in 10 ms", {"solver": "rti", "rti": {"max_iter": 4, "budget_s": 0.01}}, "measured"),
 )
 REALTIME_SCENES = ("pendulum", "spherical_pendulum")
 #: Further learned checkpoints per scene, beside the scene's own: what the model's structure costs in
@@ -200,7 +200,7 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 5, model: str = "lear
     configs = [c for c in CONFIGS if not quick or c[0] in QUICK]
     rows: list[dict[str, Any]] = []
     for name, overrides in configs:
-        settings = replace(MPCSettings(), horizon=horizon, **overrides)
+        settings = MPCSettings().updated(horizon=horizon, **overrides)
         if quick and settings.compile == "cached":
             settings = replace(settings, compile="none")
         cold_s = _cold_build_s(exported, settings) if cold and settings.compile == "cached" else None
@@ -208,8 +208,8 @@ def run(quick: bool = False, seed: int = 0, repeats: int = 5, model: str = "lear
         if quick:
             name = name.replace("cached", "interpreted")
         rows.append({
-            "config": name, "solver": settings.solver, "hessian": settings.hessian, "compile": settings.compile,
-            "warm_start": settings.warm_start if settings.solver != "fatrop" else "primal",
+            "config": name, "solver": settings.solver, "hessian": settings.ipopt.hessian, "compile": settings.compile,
+            "warm_start": settings.ipopt.warm_start if settings.solver != "fatrop" else "primal",
             "mpc_ms_median": metrics["solver_ms_median"], "mpc_ms_p95": metrics["solver_ms_p95"],
             "iterations_mean": metrics["iterations_mean"], "success": metrics["success"],
             "time_to_upright_s": metrics["time_to_upright_s"], "solver_failures": metrics["solver_failures"],

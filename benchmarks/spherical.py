@@ -19,6 +19,7 @@ The model-quality part (held-out rollouts, recovered inertia) is ``python -m fvi
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 from typing import Any
@@ -50,7 +51,7 @@ def closed_loop_study(checkpoint: str | None, episodes: int = 21, duration_s: fl
     if indices is not None:
         starts = [start for start in starts if indices[0] <= start.index <= indices[1]]
     checkpoint = checkpoint or env.scene_spec.default_checkpoint
-    results: dict[str, Any] = {"settings": {k: v for k, v in settings.__dict__.items() if k != "ipopt_options"},
+    results: dict[str, Any] = {"settings": dataclasses.asdict(settings),
                                "checkpoint": checkpoint, "duration_s": duration_s, "models": {}}
     for name in models:
         model = scene_model(env, checkpoint if name == "learned" else None, true_model=name == "true")

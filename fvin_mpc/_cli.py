@@ -11,8 +11,9 @@ from fvin_mpc.core.errors import SceneError, UsageError, run_command  # noqa: F4
 from fvin_mpc.envs.scenes import FREE_BODY_SCENES, SCENES, existing_scene, resolve_scene
 from fvin_mpc.studies.pool import TasksFailed
 
-#: ``--option`` → :class:`~fvin_mpc.control.mpc.MPCSettings` field, for the settings a user may need
-#: to change on a new scene (every one defaults to the scene's value).
+#: ``--option`` → :class:`~fvin_mpc.control.mpc.MPCSettings` field (``ipopt.…`` / ``rti.…``: a field of that
+#: solver's options), for the settings a user may need to change on a new scene (every one defaults to the
+#: scene's value).
 MPC_OPTIONS: dict[str, tuple[str, type, str]] = {
     "--horizon": ("horizon", int, "MPC steps"),
     "--energy-weight": ("terminal_energy_weight", float, "terminal energy-deficit weight W_E"),
@@ -21,11 +22,11 @@ MPC_OPTIONS: dict[str, tuple[str, type, str]] = {
     "--control-weight": ("control_weight", float, "stage weight on |u|²"),
     "--terminal-orientation-weight": ("terminal_orientation_weight", float, "terminal weight on sin²(angle/2)"),
     "--terminal-omega-weight": ("terminal_omega_weight", float, "terminal weight on |ω|²"),
-    "--max-iter": ("max_iter", int, "solver iterations per warm-started solve"),
-    "--cold-max-iter": ("cold_max_iter", int, "solver iterations per cold solve"),
+    "--max-iter": ("ipopt.max_iter", int, "solver iterations per warm-started solve (ipopt, sqpmethod, fatrop)"),
+    "--cold-max-iter": ("ipopt.cold_max_iter", int, "solver iterations per cold solve (ipopt, sqpmethod, fatrop)"),
     "--torque-reserve": ("torque_reserve", float,
                          "fraction of the torque range the plan keeps in reserve after its first control "
-                         "(ipopt, sqpmethod, fatrop)"),
+                         "(every solver)"),
 }
 
 
@@ -98,12 +99,19 @@ def add_closed_loop_arguments(parser: argparse.ArgumentParser) -> None:
 
 def mpc_overrides(args: argparse.Namespace) -> dict[str, Any]:
     """The :func:`~fvin_mpc.control.scene.scene_mpc_settings` overrides the options ask for."""
-    overrides = {field: getattr(args, option[2:].replace("-", "_")) for option, (field, _, _) in MPC_OPTIONS.items()}
-    overrides["hessian"] = args.hessian
-    overrides["solver"] = args.solver
-    overrides["rti_dynamics"] = args.rti_dynamics
+    given = {field: getattr(args, option[2:].replace("-", "_")) for option, (field, _, _) in MPC_OPTIONS.items()}
+    given.update({"ipopt.hessian": args.hessian, "solver": args.solver, "rti.dynamics": args.rti_dynamics})
     if args.single_start:
-        overrides["cold_starts"] = ("rollout+",)
+        given["cold_starts"] = ("rollout+",)
+    overrides: dict[str, Any] = {}
+    for path, value in given.items():
+        if value is None:  # the scene's value stands
+            continue
+        solver, _, name = path.rpartition(".")
+        if solver:
+            overrides.setdefault(solver, {})[name] = value
+        else:
+            overrides[name] = value
     return overrides
 
 

@@ -124,7 +124,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "newton_iters": model.newton_iters,
         "horizon": settings.horizon,
         "horizon_s": settings.horizon * model.step_size,
-        "hessian": settings.hessian,
+        "hessian": settings.ipopt.hessian,
         "terminal_energy_weight": settings.terminal_energy_weight,
         "cold_starts": list(settings.cold_starts),
         "max_abs_torque": metrics["max_abs_torque"],

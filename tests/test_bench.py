@@ -185,15 +185,15 @@ def test_realtime_rows_put_every_learned_checkpoint_beside_the_closed_form():
         assert 0 < row["feedback_ms_median"] <= row["call_ms_median"] + 1e-9, row
 
 
-@pytest.mark.parametrize("overrides", [{"solver": "sqpmethod"}, {"solver": "sqpmethod", "hessian": "exact"},
-                                       {"solver": "fatrop", "hessian": "exact", "compile": "none"}])
+@pytest.mark.parametrize("overrides", [{"solver": "sqpmethod"}, {"solver": "sqpmethod", "ipopt": {"hessian": "exact"}},
+                                       {"solver": "fatrop", "ipopt": {"hessian": "exact"}, "compile": "none"}])
 def test_other_nlp_solvers_find_ipopts_plan(overrides):
     from fvin_mpc.control.model_export import from_rigid_body
     from fvin_mpc.control.mpc import MPC, MPCSettings
     from fvin_mpc.core.rigid_body import PENDULUM
 
     model = from_rigid_body(PENDULUM, 0.05, 2, name="bench_test")
-    base = replace(MPCSettings(), horizon=12, compile="none", tol=1e-9)
+    base = MPCSettings().updated(horizon=12, compile="none", ipopt={"tol": 1e-9})
     q, omega = np.array([np.cos(0.4), 0.0, np.sin(0.4), 0.0]), np.array([0.0, 1.0, 0.0])
     ipopt = MPC(model, base, (0, 0, 1, 0), [-2.0], [2.0])
     other = MPC(model, replace(base, compile="none", **{k: v for k, v in overrides.items() if k != "compile"}),

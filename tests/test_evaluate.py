@@ -102,11 +102,11 @@ def test_multistart_catches_a_nearly_upright_pendulum_that_the_single_guess_lets
     """Near upright every constant-torque first guess falls; IPOPT then returns a full-turn plan.
     The "goal" guess lies in the basin of catching it; the multi-start keeps the cheaper plan."""
     from fvin_mpc.control import model_export as export
-    from fvin_mpc.control.mpc import COLD_STARTS, MPC, MPCSettings
+    from fvin_mpc.control.mpc import COLD_STARTS, MPC, IpoptOptions, MPCSettings
     from fvin_mpc.core.rigid_body import PENDULUM
 
     model = export.from_rigid_body(PENDULUM, 0.05, 2, name="test_multistart")
-    settings = MPCSettings(compile="none", max_iter=300)
+    settings = MPCSettings(compile="none", ipopt=IpoptOptions(max_iter=300))
     goal = (0.0, 0.0, 1.0, 0.0)
     q, omega = hinge(np.pi + 0.07, 0.9)
     _, single = MPC(model, settings, goal, [-2.0], [2.0])(np.r_[q, omega])

@@ -87,7 +87,7 @@ def pendulum():
 
 def test_implicit_rti_swings_up_from_exact_rest_and_holds(pendulum):
     env, model = pendulum
-    settings = scene_mpc_settings(env, solver="rti", rti_dynamics="implicit", rti_cold_budget_s=60.0)
+    settings = scene_mpc_settings(env, solver="rti", rti={"dynamics": "implicit", "cold_budget_s": 60.0})
     controller = scene_mpc(env, model, settings)
     trajectory, _ = run_episode(env, controller, 8.0, latency=0.01)  # hanging exactly at rest
     metrics = episode_metrics(trajectory)
@@ -100,8 +100,8 @@ def test_implicit_rti_refuses_a_model_without_rigid_body_terms(pendulum):
     bare = export.ExportedModel(step=model.step, step_size=model.step_size, newton_iters=model.newton_iters,
                                 control_dim=model.control_dim, numpy_terms=model.numpy_terms, name="bare",
                                 energy_function=model.energy_function)
-    with pytest.raises(ValueError, match="rti_dynamics='implicit'"):
-        scene_mpc(env, bare, scene_mpc_settings(env, solver="rti", rti_dynamics="implicit"))
+    with pytest.raises(ValueError, match="rti.dynamics='implicit'"):
+        scene_mpc(env, bare, scene_mpc_settings(env, solver="rti", rti={"dynamics": "implicit"}))
 
 
 def test_implicit_gap_agrees_with_the_exact_gap_to_second_order_off_the_nodes():
@@ -133,7 +133,7 @@ def test_plan_nodes_are_kept_on_one_sheet_for_the_implicit_dynamics(pendulum):
     from fvin_mpc.control.mpc import Plan
 
     env, model = pendulum
-    controller = scene_mpc(env, model, scene_mpc_settings(env, solver="rti", rti_dynamics="implicit"))
+    controller = scene_mpc(env, model, scene_mpc_settings(env, solver="rti", rti={"dynamics": "implicit"}))
     x0, _ = env.reset(options={"qpos": np.array([2.0]), "qvel": np.array([1.0])})
     controller(x0)
     plan = controller._plan

@@ -100,8 +100,6 @@ def test_save_load_round_trip_and_shape_check(tmp_path):
 
 
 def test_the_package_mpc_runs_on_the_exported_mlp_with_the_closed_form_energy():
-    from dataclasses import replace
-
     from fvin_mpc.control.scene import scene_env, scene_model, scene_mpc, scene_mpc_settings
     from fvin_mpc.core.rigid_body import from_mujoco
 
@@ -114,8 +112,8 @@ def test_the_package_mpc_runs_on_the_exported_mlp_with_the_closed_form_energy():
     truth = scene_model(env, true_model=True)
     x = np.array([0.0, 0.0, 1.0, 0.0, 0.0, 1.0, 0.0])
     assert model.energy(x) == pytest.approx(truth.energy(x), abs=1e-12)
-    settings = replace(scene_mpc_settings(env), compile="none", horizon=5, cold_max_iter=20, max_iter=10,
-                       cold_starts=("rollout+",))
+    settings = scene_mpc_settings(env).updated(compile="none", horizon=5, cold_starts=("rollout+",),
+                                               ipopt={"cold_max_iter": 20, "max_iter": 10})
     controller = scene_mpc(env, model, settings)
     u, _ = controller(np.concatenate([base.rest, [0.0, 0.0, 0.0]]))
     assert np.all(np.isfinite(u)) and np.all(np.abs(u) <= base.torque_high + 1e-12)

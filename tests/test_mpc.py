@@ -7,7 +7,7 @@ import pytest
 from helpers import hinge
 
 from fvin_mpc.control import model_export as export
-from fvin_mpc.control.mpc import MPC, MPCSettings
+from fvin_mpc.control.mpc import MPC, IpoptOptions, MPCSettings, RTIOptions
 from fvin_mpc.control.rti import RealTimeMPC
 from fvin_mpc.core.rigid_body import PENDULUM
 
@@ -73,8 +73,8 @@ def test_leaves_exact_rest(controller):
 def test_failed_solve_returns_previous_plan_then_zero(true_model):
     """IPOPT stopped after one iteration: the torque is finite, bounded and the status reported."""
     good = MPC(true_model, MPCSettings(), UPRIGHT, [-2.0], [2.0])
-    failing = MPC(true_model, MPCSettings(max_iter=1, cold_max_iter=1, last_iterate_max_defect=None), UPRIGHT,
-                  [-2.0], [2.0])
+    one_iteration = IpoptOptions(max_iter=1, cold_max_iter=1, last_iterate_max_defect=None)
+    failing = MPC(true_model, MPCSettings(ipopt=one_iteration), UPRIGHT, [-2.0], [2.0])
     q, omega = hinge(0.3, 0.0)
     u, info = failing(np.r_[q, omega])
     assert not info["success"] and info["status"] == "Maximum_Iterations_Exceeded"
@@ -94,7 +94,7 @@ def test_unconverged_solve_flies_its_last_iterate_only_when_it_is_a_model_trajec
     tolerance at zero nothing unconverged is flown."""
     q, omega = hinge(2.5, 1.0)
     x0 = np.r_[q, omega]
-    limited = MPC(true_model, MPCSettings(max_iter=25, cold_max_iter=25), UPRIGHT, [-2.0], [2.0])
+    limited = MPC(true_model, MPCSettings(ipopt=IpoptOptions(max_iter=25, cold_max_iter=25)), UPRIGHT, [-2.0], [2.0])
     u, info = limited(x0)
     assert not info["success"] and info["status"] == "Maximum_Iterations_Exceeded"
     assert info["fallback"] == "last-iterate" and np.isfinite(info["cost"])
@@ -102,12 +102,12 @@ def test_unconverged_solve_flies_its_last_iterate_only_when_it_is_a_model_trajec
     states, controls = info["states"], info["controls"]
     stepped = np.array([true_model.rollout(states[k], controls[k:k + 1])[1] for k in range(len(controls))])
     assert np.max(np.abs(stepped - states[1:])) <= 1e-4 + 1e-9
-    strict = MPC(true_model, MPCSettings(max_iter=25, cold_max_iter=25, last_iterate_max_defect=0.0), UPRIGHT,
-                 [-2.0], [2.0])
+    strict_options = IpoptOptions(max_iter=25, cold_max_iter=25, last_iterate_max_defect=0.0)
+    strict = MPC(true_model, MPCSettings(ipopt=strict_options), UPRIGHT, [-2.0], [2.0])
     u, info = strict(x0)
     assert info["fallback"] == "zero" and np.array_equal(u, [0.0])
     with pytest.raises(ValueError, match="last_iterate_max_defect"):
-        MPCSettings(last_iterate_max_defect=-1.0)
+        IpoptOptions(last_iterate_max_defect=-1.0)
 
 
 def test_infeasible_problem_falls_back_within_bounds(true_model):
@@ -143,8 +143,8 @@ def test_nearly_unit_quaternion_is_normalized(controller):
 @pytest.mark.parametrize("hessian", ["exact", "limited-memory"])
 def test_hessian_options_reach_the_same_plan(true_model, controller, hessian):
     """Near upright the NLP is well posed: every Hessian option converges to the same optimum."""
-    other = MPC(true_model, replace(MPCSettings(), hessian=hessian, tol=1e-9), UPRIGHT, [-2.0], [2.0])
-    reference = MPC(true_model, replace(MPCSettings(), tol=1e-9), UPRIGHT, [-2.0], [2.0])
+    other = MPC(true_model, MPCSettings(ipopt=IpoptOptions(hessian=hessian, tol=1e-9)), UPRIGHT, [-2.0], [2.0])
+    reference = MPC(true_model, MPCSettings(ipopt=IpoptOptions(tol=1e-9)), UPRIGHT, [-2.0], [2.0])
     q, omega = hinge(np.pi - 0.3, 0.5)
     u_ref, info_ref = reference(np.r_[q, omega])
     u_other, info_other = other(np.r_[q, omega])
@@ -154,8 +154,8 @@ def test_hessian_options_reach_the_same_plan(true_model, controller, hessian):
 
 
 def test_uncompiled_solver_matches_compiled(true_model):
-    compiled = MPC(true_model, replace(MPCSettings(), tol=1e-9), UPRIGHT, [-2.0], [2.0])
-    interpreted = MPC(true_model, replace(MPCSettings(), compile="none", tol=1e-9), UPRIGHT, [-2.0], [2.0])
+    compiled = MPC(true_model, MPCSettings(ipopt=IpoptOptions(tol=1e-9)), UPRIGHT, [-2.0], [2.0])
+    interpreted = MPC(true_model, MPCSettings(compile="none", ipopt=IpoptOptions(tol=1e-9)), UPRIGHT, [-2.0], [2.0])
     assert interpreted.compile_report is None and compiled.compile_report is not None
     q, omega = hinge(1.0, -2.0)
     u_c, info_c = compiled(np.r_[q, omega])
@@ -193,8 +193,8 @@ def test_torque_reserve_bounds_the_plan_after_its_first_control(true_model, solv
     asymmetric bounds, with either solver (the reserve is the problem's). From hanging with a little
     speed the swing-up saturates, so the bounds bind."""
     reserve, low, high = 0.2, -1.0, 3.0
-    settings = MPCSettings(torque_reserve=reserve, compile="none", solver=solver, rti_cold_iter=30,
-                           rti_cold_budget_s=30.0)
+    settings = MPCSettings(torque_reserve=reserve, compile="none", solver=solver,
+                           rti=RTIOptions(cold_iter=30, cold_budget_s=30.0))
     mpc = (RealTimeMPC if solver == "rti" else MPC)(true_model, settings, UPRIGHT, [low], [high])
     q, omega = hinge(0.3, 1.0)
     u, info = mpc(np.r_[q, omega])
@@ -244,7 +244,8 @@ def test_energy_cost_gauss_newton_and_exact_hessian_reach_the_same_plan(true_mod
     """The Gauss–Newton Hessian adds 2·W_E∇e∇eᵀ; a wrong one would stall IPOPT or change the optimum."""
     plans = {}
     for hessian in ("gauss-newton", "exact"):
-        settings = replace(MPCSettings(), terminal_energy_weight=100.0, hessian=hessian, tol=1e-10, compile="none")
+        settings = MPCSettings(terminal_energy_weight=100.0, compile="none",
+                               ipopt=IpoptOptions(hessian=hessian, tol=1e-10))
         _, plans[hessian] = MPC(true_model, settings, UPRIGHT, [-2.0], [2.0], rest=HANGING)(
             np.r_[hinge(np.pi - 0.6, 1.0)]
         )
@@ -301,3 +302,31 @@ def test_swingup_cli_runs_with_the_scene_settings_and_overrides(tmp_path, capsys
                          "--energy-weight", "0", "--horizon", "20"]) == 0
     summary = json.loads(out.read_text())
     assert (summary["terminal_energy_weight"], summary["horizon"]) == (0.0, 20)
+
+
+def test_settings_split_into_the_problem_and_each_solvers_options(true_model):
+    """``updated`` changes problem fields by name and a solver's options by a mapping of its fields (the
+    rest of those options kept); each options object checks its own fields; a solver refuses what it
+    cannot honour instead of ignoring it."""
+    base = MPCSettings(ipopt=IpoptOptions(max_iter=7))
+    changed = base.updated(horizon=12, ipopt={"tol": 1e-8}, rti={"dynamics": "implicit"})
+    assert (changed.horizon, changed.ipopt.max_iter, changed.ipopt.tol) == (12, 7, 1e-8)
+    assert changed.rti.dynamics == "implicit"
+    assert changed.updated(rti=RTIOptions()).rti == RTIOptions()
+    with pytest.raises(ValueError, match="qp_iterations"):
+        RTIOptions(qp_iterations=0)
+    with pytest.raises(ValueError, match="warm_start"):
+        IpoptOptions(warm_start="sometimes")
+    with pytest.raises(ValueError, match="IpoptOptions"):
+        MPCSettings(ipopt={"max_iter": 3})
+    with pytest.raises(ValueError, match="RealTimeMPC"):
+        MPC(true_model, MPCSettings(solver="rti"), UPRIGHT, [-2.0], [2.0])
+    import casadi as ca
+
+    x = ca.MX.sym("x", 7)
+    with pytest.raises(ValueError, match="terminal_cost"):
+        RealTimeMPC(true_model, MPCSettings(solver="rti"), UPRIGHT, [-2.0], [2.0],
+                    terminal_cost=ca.Function("speed", [x], [ca.sumsqr(x[4:])]))
+    with pytest.raises(ValueError, match="cold_start_score"):
+        RealTimeMPC(true_model, MPCSettings(solver="rti"), UPRIGHT, [-2.0], [2.0],
+                    cold_start_score=lambda states, controls: 0.0)

@@ -103,13 +103,13 @@ def test_mpc_never_beats_the_search():
 
 def test_rti_benchmark_takes_the_pendulum_scenes_dynamics_unless_told():
     """The benchmark is the ``pendulum`` scene's task: its RTI uses the scene's dynamics constraint
-    (``rti_dynamics``) by default, and an explicit choice wins; either way the label says which."""
+    (``rti.dynamics``) by default, and an explicit choice wins; either way the label says which."""
     from fvin_mpc.control.presets import PRESETS
 
-    scene_choice = PRESETS["pendulum"].fields_for("rti")["rti_dynamics"]
+    scene_choice = PRESETS["pendulum"].fields_for("rti")["rti"].dynamics
     default = v1.BenchmarkConfig(episodes=1, reference=False, solver="rti")
     assert v1.rti_dynamics(default) == scene_choice
-    assert v1.build_mpc(default).settings.rti_dynamics == scene_choice
+    assert v1.build_mpc(default).settings.rti.dynamics == scene_choice
     other = "unrolled" if scene_choice == "implicit" else "implicit"
     assert v1.build_mpc(v1.BenchmarkConfig(episodes=1, reference=False, solver="rti",
-                                           rti_dynamics=other)).settings.rti_dynamics == other
+                                           rti_dynamics=other)).settings.rti.dynamics == other

@@ -12,7 +12,7 @@ from benchmarks import pendulum_v1_exact as exact
 from benchmarks import pendulum_v1_mpc as v1
 from benchmarks import pendulum_v1_value as pv
 from fvin_mpc.control import model_export as export
-from fvin_mpc.control.mpc import MPC, MPCSettings
+from fvin_mpc.control.mpc import MPC, IpoptOptions, MPCSettings
 from fvin_mpc.core.rigid_body import PENDULUM
 from fvin_mpc.envs.pendulum_v1 import state_from_v1_observation
 
@@ -91,7 +91,7 @@ def test_learned_transitions_are_the_models_steps(true_model):
 def test_terminal_cost_hook_reproduces_the_terminal_speed_weight(true_model):
     """A terminal cost W|ω_N|² through the hook gives the same plan as terminal_omega_weight = W; the
     default (no hook) is the problem as before; a wrong shape or solver is refused."""
-    settings = replace(MPCSettings(horizon=15, tol=1e-9), compile="none")
+    settings = MPCSettings(horizon=15, compile="none", ipopt=IpoptOptions(tol=1e-9))
     x = ca.MX.sym("x", 7)
     speed = ca.Function("speed", [x], [3.0 * ca.sumsqr(x[4:])])
     with_weight = MPC(true_model, replace(settings, terminal_omega_weight=3.0), UPRIGHT, [-2.0], [2.0])
@@ -114,7 +114,8 @@ def test_terminal_cost_hook_reproduces_the_terminal_speed_weight(true_model):
         MPC(true_model, settings, UPRIGHT, [-2.0], [2.0], terminal_cost=ca.Function("bad", [x], [x]))
     with pytest.raises(ValueError):
         MPC(
-            true_model, replace(settings, solver="fatrop", hessian="exact"), UPRIGHT, [-2.0], [2.0], terminal_cost=speed
+            true_model, settings.updated(solver="fatrop", ipopt={"hessian": "exact"}), UPRIGHT, [-2.0], [2.0],
+            terminal_cost=speed
         )
 
 

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from fvin_mpc.control.mpc import MPCSettings
+from fvin_mpc.control.mpc import IpoptOptions, MPCSettings, RTIOptions
 from fvin_mpc.control.presets import PRESETS, preset_for
 from fvin_mpc.control.scene import default_mpc_settings, scene_mpc_settings, scene_scales
 from fvin_mpc.envs import RigidBodyEnv
@@ -26,6 +26,10 @@ def test_every_preset_names_real_settings_and_says_why_with_a_docs_page(name):
     changed = set(preset.settings) | {key for fields_ in preset.per_solver.values() for key in fields_}
     assert changed and changed <= SETTING_NAMES
     assert set(preset.per_solver) <= {"ipopt", "sqpmethod", "fatrop", "rti"}
+    # solver options live in the options objects, problem fields in settings / per_solver
+    assert not {"ipopt", "rti"} & changed
+    assert preset.ipopt is None or isinstance(preset.ipopt, IpoptOptions)
+    assert preset.rti is None or isinstance(preset.rti, RTIOptions)
     assert preset.reasons
     for reason in preset.reasons:
         pages = re.findall(r"docs/[\w/.-]+\.md", reason)
@@ -47,7 +51,7 @@ def test_the_built_in_scene_gets_its_preset_and_a_user_file_of_the_same_name_doe
         derived = default_mpc_settings(scene_scales(user))
         assert scene_mpc_settings(user, solver="rti") == MPCSettings(**{**derived.__dict__, "solver": "rti"})
         rti = scene_mpc_settings(built_in, solver="rti")
-        assert (rti.horizon, rti.rti_max_iter, rti.omega_weight) == (50, 3, 0.06)
+        assert (rti.horizon, rti.rti.max_iter, rti.omega_weight) == (50, 3, 0.06)
         ipopt = scene_mpc_settings(built_in)
         scaled = default_mpc_settings(scene_scales(built_in)).omega_weight  # the RTI-only 0.06 stays out
         assert (ipopt.horizon, ipopt.terminal_energy_weight, ipopt.omega_weight) == (50, 0.0, scaled)

@@ -29,7 +29,7 @@ def craft():
 def test_ipopt_and_the_rti_reach_the_same_plan_for_a_free_body(craft):
     """From a tilted, displaced, turning start: IPOPT to convergence and RTI iterations with the
     measured state fixed reach the same plan (same cost, same first thrusts)."""
-    settings = quadrotor_mpc_settings(horizon=15, compile="none", disturbance_gain=0.0, tol=1e-10)
+    settings = quadrotor_mpc_settings(horizon=15, compile="none", disturbance_gain=0.0, ipopt={"tol": 1e-10})
     low, high = np.zeros(4), np.full(4, 2.5)
     tilt = 0.4
     x0 = HOVER.copy()

@@ -20,7 +20,7 @@ from fvin_mpc.envs.quadrotor_env import QuadrotorEnv
 
 #: The task's settings (its compiled library is shared with the commands through the on-disk cache).
 #: Cold budgets this generous let the iteration caps, not the wall clock, decide: deterministic runs.
-DETERMINISTIC = {"rti_cold_budget_s": 60.0}
+DETERMINISTIC = {"rti": {"cold_budget_s": 60.0}}
 
 
 @pytest.fixture(scope="module")

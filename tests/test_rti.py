@@ -17,7 +17,7 @@ from fvin_mpc.control.scene import scene_env, scene_model, scene_mpc, scene_mpc_
 from fvin_mpc.envs.disturbance import ConstantTorqueDisturbance
 
 #: Cold budgets this generous let the iteration caps, not the wall clock, decide: deterministic runs.
-DETERMINISTIC = {"rti_cold_budget_s": 60.0}
+DETERMINISTIC = {"rti": {"cold_budget_s": 60.0}}
 
 
 @pytest.fixture(scope="module")
@@ -33,7 +33,8 @@ def spherical():
 
 
 def rti(env, model, **overrides):
-    return scene_mpc(env, model, scene_mpc_settings(env, solver="rti", **{**DETERMINISTIC, **overrides}))
+    options = {**DETERMINISTIC["rti"], **overrides.pop("rti", {})}
+    return scene_mpc(env, model, scene_mpc_settings(env, solver="rti", rti=options, **overrides))
 
 
 def test_scene_mpc_dispatches_on_the_solver_setting(pendulum):
@@ -49,7 +50,7 @@ def test_iterations_reach_the_ipopt_optimum_on_a_fixed_problem(scene, dynamics, 
     dynamics too, whose converged step differs from IPOPT's K = 2 one by the Newton error only."""
     env, model = request.getfixturevalue(scene)
     settings = scene_mpc_settings(env, cold_starts=("goal",), solver="rti", terminal_energy_weight=0.0,
-                                  rti_dynamics=dynamics, **DETERMINISTIC)
+                                  rti={**DETERMINISTIC["rti"], "dynamics": dynamics})
     # the same problem: the scene's RTI settings may change its horizon and weights (the ω weight)
     reference = scene_mpc(env, model, scene_mpc_settings(env, cold_starts=("goal",), terminal_energy_weight=0.0,
                                                          omega_weight=settings.omega_weight, horizon=settings.horizon))
@@ -77,7 +78,7 @@ def test_first_torque_from_exact_rest_is_nonzero(scene, request):
 @pytest.mark.parametrize("qp_solver", ["riccati", "hpipm"])
 def test_failed_qp_delivers_the_shifted_previous_plan_clipped(pendulum, qp_solver):
     env, model = pendulum
-    controller = rti(env, model, rti_qp_solver=qp_solver)
+    controller = rti(env, model, rti={"qp_solver": qp_solver})
     x0, _ = env.reset(options={"qpos": np.array([2.0]), "qvel": np.array([1.0])})
     controller(x0)
     previous = controller._plan.controls.copy()
@@ -140,7 +141,7 @@ def test_many_qp_iterations_stay_finite_and_hold_the_goal(pendulum, qp_iteration
     where λ/s swamps the Riccati recursion: μ turned NaN on the cold call and near-upright starts were
     lost. With the floor, more iterations only re-solve the same barrier problem."""
     env, model = pendulum
-    controller = rti(env, model, rti_qp_iterations=qp_iterations)
+    controller = rti(env, model, rti={"qp_iterations": qp_iterations})
     start = {"qpos": np.array([np.pi - 0.5]), "qvel": np.array([0.0])}  # 0.5 rad from upright
     episode, _ = run_episode(env, controller, 3.0, start, latency="none")
     assert np.isfinite(controller.qp_mu) and controller.qp_mu >= 1e-10

@@ -33,7 +33,7 @@ from toy_space import TOY, Rail, RailBody, ToyConfig
 
 from fvin_mpc.control import model_export as export
 from fvin_mpc.control import rti
-from fvin_mpc.control.mpc import MPC, MPCSettings
+from fvin_mpc.control.mpc import MPC, MPCSettings, RTIOptions
 from fvin_mpc.core import fvin_so3
 from fvin_mpc.core.backend import get_ops
 from fvin_mpc.core.checkpoint import load_checkpoint, save_checkpoint
@@ -616,7 +616,7 @@ def test_toy_real_time_mpc_returns_bounded_controls_and_lifts_the_bead(toy):
     model = export.from_terms(toy, TOY_BODY.terms(CA), TOY_BODY.terms(NP), 0.05, 3, "toy")
     settings = MPCSettings(solver="rti", horizon=10, compile="none", cold_starts=("goal",), position_weight=2.0,
                            velocity_weight=0.2, terminal_position_weight=20.0, terminal_velocity_weight=2.0,
-                           orientation_residual="rotation-vector", rti_cold_budget_s=60.0, rti_cold_iter=3)
+                           orientation_residual="rotation-vector", rti=RTIOptions(cold_budget_s=60.0, cold_iter=3))
     low, high = np.array([0.0, -2.0, -2.0]), np.array([20.0, 2.0, 2.0])
     goal = np.array([0.5, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
     controller = rti.RealTimeMPC(model, settings, goal, low, high)
@@ -637,4 +637,4 @@ def test_toy_real_time_mpc_returns_bounded_controls_and_lifts_the_bead(toy):
     u, info = ipopt(start)
     assert info["success"] and np.all(u >= low) and np.all(u <= high) and u[0] > ipopt.target_control[0] + 1.0
     with pytest.raises(ValueError, match="step's own equations"):  # the toy has no step_residual
-        rti.RealTimeMPC(model, dataclasses.replace(settings, rti_dynamics="implicit"), goal, low, high)
+        rti.RealTimeMPC(model, settings.updated(rti={"dynamics": "implicit"}), goal, low, high)

@@ -51,7 +51,7 @@ def main() -> int:
         for learned in (True, False):
             env = scene_env(scene, true_model=not learned)
             model = scene_model(env, true_model=not learned)
-            settings = scene_mpc_settings(env, solver="rti", rti_cold_budget_s=60.0)
+            settings = scene_mpc_settings(env, solver="rti", rti={"cold_budget_s": 60.0})
             base = env.unwrapped
             controllers = {
                 name: module.RealTimeMPC(model, settings, base.goal, base.torque_low, base.torque_high, rest=base.rest)

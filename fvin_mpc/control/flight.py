@@ -23,7 +23,7 @@ force bias is outside its span and would leave a position offset.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -31,7 +31,7 @@ import numpy as np
 from fvin_mpc.control import model_export as export
 from fvin_mpc.control.closed_loop import episode_metrics
 from fvin_mpc.control.model_export import ExportedModel
-from fvin_mpc.control.mpc import MPC, MPCSettings
+from fvin_mpc.control.mpc import MPC, MPCSettings, RTIOptions
 from fvin_mpc.control.problem import ConstantReference
 from fvin_mpc.control.rti import RealTimeMPC
 from fvin_mpc.core.space import R3S3
@@ -50,21 +50,24 @@ def quadrotor_mpc_settings(**overrides: Any) -> MPCSettings:
         position_weight=2.0, velocity_weight=0.2, orientation_weight=1.0, omega_weight=0.01, control_weight=0.5,
         terminal_position_weight=20.0, terminal_velocity_weight=2.0, terminal_orientation_weight=10.0,
         terminal_omega_weight=0.1, terminal_energy_weight=0.0,
-        orientation_residual="rotation-vector", cold_starts=("goal",), rti_cold_iter=10,
-        # the cold first call's budget: one learned iteration (linearization + QP) is ≈ 5 ms of CPU and the
-        # preparation after it ≈ 3 ms, so 8 ms keeps the first period's busy time well inside 20 ms; the
-        # learned recoveries were the same 20/20 (2.80 s median) with 8 ms as with 15 ms
-        rti_cold_budget_s=0.008,
+        orientation_residual="rotation-vector", cold_starts=("goal",),
         omega_bound_fraction=0.6, disturbance_gain=0.5,
         # The estimate is updated within 1 rad of the reference attitude and below 3 rad/s (the
         # pendulums': 0.5 rad, 1 rad/s): the figure-eight flies at up to 0.4 rad and ~2 rad/s, and
         # its RMS error with a learned model fell from 13.4 to 4.8 mm with the wider region.
         disturbance_region_rad=1.0, disturbance_region_speed=3.0,
-        # 6 interior-point iterations instead of the pendulums' 10: the same 20/20 recoveries and
-        # figure-eight error on the closed-form model, 2.4 instead of 3.1 ms CPU per call (docs/quadrotor-mpc.md)
-        rti_qp_iterations=6,
+        rti=RTIOptions(
+            cold_iter=10,
+            # the cold first call's budget: one learned iteration (linearization + QP) is ≈ 5 ms of CPU and the
+            # preparation after it ≈ 3 ms, so 8 ms keeps the first period's busy time well inside 20 ms; the
+            # learned recoveries were the same 20/20 (2.80 s median) with 8 ms as with 15 ms
+            cold_budget_s=0.008,
+            # 6 interior-point iterations instead of the pendulums' 10: the same 20/20 recoveries and
+            # figure-eight error on the closed-form model, 2.4 instead of 3.1 ms CPU per call (docs/quadrotor-mpc.md)
+            qp_iterations=6,
+        ),
     )
-    return replace(base, **{k: v for k, v in overrides.items() if v is not None})
+    return base.updated(**{k: v for k, v in overrides.items() if v is not None})
 
 
 def quadrotor_model(

@@ -1,13 +1,13 @@
 """The step's own equations as the real-time iteration's dynamics constraint, with shared node terms.
 
-The default real-time iteration (:mod:`fvin_mpc.control.rti`, ``rti_dynamics="unrolled"``)
+The default real-time iteration (:mod:`fvin_mpc.control.rti`, ``rti.dynamics="unrolled"``)
 linearizes the exported step ``x_{k+1} = F(x_k, u_k)`` — K Newton iterations unrolled — at every
 stage. Its Jacobian differentiates the learned terms ``J``, ``∇U``, ``g`` twice per stage (at
 ``q_k`` and at the step's end ``q_{k+1} = F(x_k)``) in all 7 directions of ``(δ_k, Δu_k)``, and
 a sign-invariant model evaluates each network twice more (``±q``): that is most of a learned
 model's period (``python -m benchmarks ops``).
 
-``rti_dynamics="implicit"`` imposes instead the step's equations between consecutive plan nodes,
+``rti.dynamics="implicit"`` imposes instead the step's equations between consecutive plan nodes,
 :func:`fvin_mpc.core.fvin.step_residual` ``G(x_k, u_k, x_{k+1}) = 0`` (the discrete
 Euler–Lagrange equations as constraints, as in discrete mechanics and optimal control; Ober-Blöbaum,
 Junge & Marsden 2011). Both ends of a stage are plan nodes, so the terms are needed at the nodes

@@ -49,7 +49,7 @@ from __future__ import annotations
 
 import re
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Literal
 
 import casadi as ca
@@ -81,8 +81,115 @@ COLD_STARTS: tuple[str, ...] = ("rollout+", "rollout-", "goal")
 
 
 @dataclass(frozen=True)
+class IpoptOptions:
+    """How the solvers to convergence (``solver`` ``"ipopt"``, ``"sqpmethod"``, ``"fatrop"``; :class:`MPC`)
+    solve the problem — not what the problem is (:class:`MPCSettings`).
+
+    Attributes:
+        hessian: ``"gauss-newton"`` (constant cost Hessian, default), ``"exact"`` (with the
+            dynamics' second derivatives) or ``"limited-memory"`` (IPOPT's L-BFGS).
+        warm_start: ``"primal-dual"`` (shifted plan and multipliers), ``"primal"`` (shifted
+            plan only) or ``"none"`` (every solve from the rolled-out first guess).
+        max_iter: iteration limit per warm-started solve (primal–dual warm start).
+        cold_max_iter: limit for solves without multipliers — the first call, the call after
+            a failure, and every call with ``warm_start`` ``"primal"``/``"none"``. A cold swing-up
+            from rest may need over 100 iterations; with too tight a limit it fails, the zero
+            fallback keeps the body at rest, and the next cold solve fails the same way.
+        tol: convergence tolerance.
+        warm_mu_init: IPOPT's initial barrier parameter on warm-started solves.
+        extra: further IPOPT options as ``(name, value)`` pairs.
+        last_iterate_max_defect: when a solve stops unconverged (its iteration limit), its last iterate is
+            used (``info["fallback"] = "last-iterate"``) if its largest dynamics defect is at most this
+            (state units; IPOPT's own ``constr_viol_tol`` by default) and its cost is below that of the
+            previous plan shifted — the plan the controller would otherwise fly (acados returns the iterate
+            at its limit with a status; the RTI always keeps its best plan). ``None``: never.
+    """
+
+    hessian: Literal["gauss-newton", "exact", "limited-memory"] = "gauss-newton"
+    warm_start: Literal["primal-dual", "primal", "none"] = "primal-dual"
+    max_iter: int = 100
+    cold_max_iter: int = 500
+    tol: float = 1e-6
+    warm_mu_init: float = 1e-4
+    extra: tuple[tuple[str, Any], ...] = field(default_factory=tuple)
+    last_iterate_max_defect: float | None = 1e-4
+
+    def __post_init__(self) -> None:
+        if self.hessian not in ("gauss-newton", "exact", "limited-memory"):
+            raise ValueError(f"unknown hessian {self.hessian!r}")
+        if self.warm_start not in ("primal-dual", "primal", "none"):
+            raise ValueError(f"unknown warm_start {self.warm_start!r}")
+        if self.max_iter < 1 or self.cold_max_iter < 1:
+            raise ValueError(f"max_iter and cold_max_iter must be >= 1, got {self.max_iter}, {self.cold_max_iter}")
+        if self.last_iterate_max_defect is not None and not self.last_iterate_max_defect >= 0.0:
+            raise ValueError(f"last_iterate_max_defect must be >= 0 or None, got {self.last_iterate_max_defect}")
+
+
+@dataclass(frozen=True)
+class RTIOptions:
+    """How the real-time iteration (``solver="rti"``, :class:`fvin_mpc.control.rti.RealTimeMPC`) solves the
+    problem.
+
+    Attributes:
+        max_iter: Gauss–Newton SQP iterations per warm call at most; the first always runs, each further
+            one only while the call's time so far plus the last iteration's fits in ``budget_s``.
+        budget_s: wall-clock budget of one warm call (s) for iterations after the first.
+        tol: no further iteration once the last step is this small (largest ``|Δu|`` over the
+            torque range, or state step over the trust region).
+        cold_iter: iterations per cold-start guess on a cold call (after ``reset()``) …
+        cold_budget_s: … within this wall-clock budget (s) over all guesses; when it runs out the
+            best plan so far is used (``info["status"] = "budget"``).
+        cold_solver: how a cold call gets its first plan: ``"rti"`` (budgeted Gauss–Newton iterations from
+            the first guesses: the call stays within ``cold_budget_s``) or ``"ipopt"`` (the IPOPT MPC, with
+            the settings' :class:`IpoptOptions`, solved to convergence once, multi-start as ``cold_starts``:
+            a better first plan, but the first call takes as long as IPOPT needs — deadline misses at the
+            start in latency-aware runs).
+        regularization: Levenberg–Marquardt term added to the Gauss–Newton Hessian of the QP.
+        omega_penalty: weight on the squared excess of each ``|ω_i|`` over its bound (the real-time
+            iteration's soft form of the ``ω`` bound).
+        qp_solver: ``"riccati"`` (a fixed number of interior-point iterations, each a Riccati recursion,
+            generated and compiled with the linearization and the update on S³: one C call per iteration),
+            ``"hpipm"`` (HPIPM through ``casadi.conic`` on the stage-wise sparse QP), ``"qrqp"`` or
+            ``"osqp"`` (CasADi's, same QP).
+        qp_iterations: interior-point iterations of ``qp_solver="riccati"``.
+        dynamics: the dynamics constraint: ``"unrolled"`` (the exported step ``x_{k+1} = F(x_k, u_k)``, K
+            Newton iterations, linearized per stage) or ``"implicit"`` (the step's own equations between
+            consecutive plan nodes, the learned terms evaluated once per node; pivoted bodies only;
+            :mod:`fvin_mpc.control.implicit_dynamics`).
+    """
+
+    max_iter: int = 1
+    budget_s: float = 0.0
+    tol: float = 1e-3
+    cold_iter: int = 10
+    cold_budget_s: float = 0.02
+    cold_solver: Literal["rti", "ipopt"] = "rti"
+    regularization: float = 1e-6
+    omega_penalty: float = 100.0
+    qp_solver: Literal["riccati", "hpipm", "qrqp", "osqp"] = "riccati"
+    qp_iterations: int = 10
+    dynamics: Literal["unrolled", "implicit"] = "unrolled"
+
+    def __post_init__(self) -> None:
+        if self.max_iter < 1 or self.cold_iter < 1:
+            raise ValueError(f"max_iter and cold_iter must be >= 1, got {self.max_iter}, {self.cold_iter}")
+        if not (self.budget_s >= 0.0 and self.cold_budget_s >= 0.0 and self.regularization >= 0.0
+                and self.omega_penalty >= 0.0):
+            raise ValueError("budget_s, cold_budget_s, regularization and omega_penalty must be >= 0")
+        if self.cold_solver not in ("rti", "ipopt"):
+            raise ValueError(f"unknown cold_solver {self.cold_solver!r}")
+        if self.qp_iterations < 1:
+            raise ValueError(f"qp_iterations must be >= 1, got {self.qp_iterations}")
+        if self.qp_solver not in ("riccati", "hpipm", "qrqp", "osqp"):
+            raise ValueError(f"unknown qp_solver {self.qp_solver!r}")
+        if self.dynamics not in ("unrolled", "implicit"):
+            raise ValueError(f"unknown dynamics {self.dynamics!r}")
+
+
+@dataclass(frozen=True)
 class MPCSettings:
-    """Settings of :class:`MPC`.
+    """The control problem (:mod:`fvin_mpc.control.problem`) and which solver solves it, with each solver's
+    own options nested (:class:`IpoptOptions`, :class:`RTIOptions`).
 
     Attributes:
         horizon: ``N`` model steps (horizon ``N·h`` seconds).
@@ -103,58 +210,19 @@ class MPCSettings:
             With a reserve the re-planned first control has torque left to correct it
             (constraint tightening, as in tube MPC; docs/data-efficiency.md measures what it fixes
             and what it does not). ``0`` (default) plans on the whole range. Both solvers.
-        hessian: ``"gauss-newton"`` (constant cost Hessian, default), ``"exact"`` (with the
-            dynamics' second derivatives) or ``"limited-memory"`` (IPOPT's L-BFGS).
-        compile: ``"cached"`` compiles the NLP's functions to C once (cached on disk);
-            ``"none"`` evaluates them in CasADi's virtual machine.
-        warm_start: ``"primal-dual"`` (shifted plan and multipliers), ``"primal"`` (shifted
-            plan only) or ``"none"`` (every solve from the rolled-out first guess).
-        initial_torque_fraction: the first guess applies this fraction of the upper torque
+        initial_torque_fraction: the rollout first guesses apply this fraction of the upper torque
             bound; must be non-zero to leave the symmetric rest state.
-        max_iter: IPOPT iteration limit per warm-started solve (primal–dual warm start).
-        cold_max_iter: limit for solves without multipliers — the first call, the call after
-            a failure, and every call with ``warm_start`` ``"primal"``/``"none"``. A cold swing-up
-            from rest may need over 100 iterations; with too tight a limit it fails, the zero
-            fallback keeps the body at rest, and the next cold solve fails the same way.
-        tol: IPOPT convergence tolerance.
-        warm_mu_init: IPOPT's initial barrier parameter on warm-started solves.
-        ipopt_options: extra IPOPT options as ``(name, value)`` pairs.
         solver: ``"ipopt"`` (default), ``"sqpmethod"`` (CasADi's SQP with qrqp; all three
             Hessians; the warm start passes the plan and, with ``"primal-dual"``, the
-            multipliers) or ``"fatrop"`` (needs ``hessian="exact"`` and ``compile="none"``:
-            it forms its own exact Hessian from the expanded functions).
+            multipliers), ``"fatrop"`` (needs ``ipopt.hessian="exact"`` and ``compile="none"``:
+            it forms its own exact Hessian from the expanded functions) — all three :class:`MPC`, with
+            :attr:`ipopt` — or ``"rti"`` (:class:`fvin_mpc.control.rti.RealTimeMPC`, with :attr:`rti`).
         cold_starts: first guesses of a cold solve (the first call after ``reset()``, or after a
             zero fallback), from :data:`COLD_STARTS`; with several, each is solved and the
             successful plan of lowest cost is kept (multi-start: a swing-up NLP has local optima —
             swing left or right first, catch the body near upright or let it fall through a turn —
             and a local solver converges to the one nearest its guess). Warm calls are unchanged.
-            With ``solver="rti"`` each guess gets ``rti_cold_iter`` iterations and the best is kept.
-        rti_max_iter: ``solver="rti"`` (:class:`fvin_mpc.control.rti.RealTimeMPC`): Gauss–Newton SQP
-            iterations per warm call at most; the first always runs, each further one only while the
-            call's time so far plus the last iteration's fits in ``rti_budget_s``.
-        rti_budget_s: wall-clock budget of one warm call (s) for iterations after the first.
-        rti_tol: no further iteration once the last step is this small (largest ``|Δu|`` over the
-            torque range, or state step over the trust region).
-        rti_cold_iter: iterations per cold-start guess on a cold call (after ``reset()``) …
-        rti_cold_budget_s: … within this wall-clock budget (s) over all guesses; when it runs out the
-            best plan so far is used (``info["status"] = "budget"``).
-        rti_cold_solver: how a cold call (after ``reset()``) of ``solver="rti"`` gets its first plan:
-            ``"rti"`` (budgeted Gauss–Newton iterations from the first guesses: the call stays within
-            ``rti_cold_budget_s``) or ``"ipopt"`` (the IPOPT MPC solved to convergence once, multi-start as
-            ``cold_starts``: a better first plan, but the first call takes as long as IPOPT needs —
-            deadline misses at the start in latency-aware runs).
-        rti_regularization: Levenberg–Marquardt term added to the Gauss–Newton Hessian of the QP.
-        rti_omega_penalty: ``solver="rti"``: weight on the squared excess of each ``|ω_i|`` over its
-            bound (the real-time iteration's soft form of the ``ω`` bound).
-        rti_qp_solver: the QP solver of ``solver="rti"``: ``"riccati"`` (a fixed number of
-            interior-point iterations, each a Riccati recursion, generated and compiled with the
-            linearization and the update on S³: one C call per iteration), ``"hpipm"`` (HPIPM through
-            ``casadi.conic`` on the stage-wise sparse QP), ``"qrqp"`` or ``"osqp"`` (CasADi's, same QP).
-        rti_qp_iterations: interior-point iterations of ``rti_qp_solver="riccati"``.
-        rti_dynamics: the dynamics constraint of ``solver="rti"``: ``"unrolled"`` (the exported step
-            ``x_{k+1} = F(x_k, u_k)``, K Newton iterations, linearized per stage) or ``"implicit"`` (the
-            step's own equations between consecutive plan nodes, the learned terms evaluated once per
-            node; pivoted bodies only; :mod:`fvin_mpc.control.implicit_dynamics`).
+            With ``solver="rti"`` each guess gets ``rti.cold_iter`` iterations and the best is kept.
         disturbance_gain: gain ``α`` of the offset-free estimator of a constant input disturbance ``d``
             (``x⁺ = F(x, u + d)``; :class:`~fvin_mpc.control.problem.DisturbanceEstimate`), both solvers;
             ``0`` switches it off.
@@ -175,11 +243,10 @@ class MPCSettings:
             far from it the projector's Gauss–Newton model has a false minimum at the upside-down
             orientation (its residual's Jacobian is orthogonal to the residual there: the model sees
             every turn as uphill), the rotation vector's does not — the quadrotor's recovery needs it.
-        last_iterate_max_defect: when a solve stops unconverged (its iteration limit), its last iterate is
-            used (``info["fallback"] = "last-iterate"``) if its largest dynamics defect is at most this
-            (state units; IPOPT's own ``constr_viol_tol`` by default) and its cost is below that of the
-            previous plan shifted — the plan the controller would otherwise fly (acados returns the iterate
-            at its limit with a status; the RTI always keeps its best plan). ``None``: never.
+        compile: ``"cached"`` compiles the solver's functions to C once (cached on disk); ``"none"``
+            evaluates them in CasADi's virtual machine. Every solver.
+        ipopt: the solvers to convergence's options (also the RTI's cold solve with ``rti.cold_solver="ipopt"``).
+        rti: the real-time iteration's options.
     """
 
     horizon: int = 30
@@ -191,28 +258,9 @@ class MPCSettings:
     terminal_energy_weight: float = 0.0
     omega_bound_fraction: float = 0.6
     torque_reserve: float = 0.0
-    hessian: Literal["gauss-newton", "exact", "limited-memory"] = "gauss-newton"
-    compile: Literal["cached", "none"] = "cached"
-    warm_start: Literal["primal-dual", "primal", "none"] = "primal-dual"
     initial_torque_fraction: float = 0.5
-    max_iter: int = 100
-    cold_max_iter: int = 500
-    tol: float = 1e-6
-    warm_mu_init: float = 1e-4
-    ipopt_options: tuple[tuple[str, Any], ...] = field(default_factory=tuple)
     solver: Literal["ipopt", "sqpmethod", "fatrop", "rti"] = "ipopt"
     cold_starts: tuple[str, ...] = ("rollout+",)
-    rti_max_iter: int = 1
-    rti_budget_s: float = 0.0
-    rti_tol: float = 1e-3
-    rti_cold_iter: int = 10
-    rti_cold_budget_s: float = 0.02
-    rti_cold_solver: Literal["rti", "ipopt"] = "rti"
-    rti_regularization: float = 1e-6
-    rti_omega_penalty: float = 100.0
-    rti_qp_solver: Literal["riccati", "hpipm", "qrqp", "osqp"] = "riccati"
-    rti_qp_iterations: int = 10
-    rti_dynamics: Literal["unrolled", "implicit"] = "unrolled"
     disturbance_gain: float = 0.5
     disturbance_region_rad: float = 0.5
     disturbance_region_speed: float = 1.0
@@ -221,7 +269,9 @@ class MPCSettings:
     terminal_position_weight: float = 0.0
     terminal_velocity_weight: float = 0.0
     orientation_residual: Literal["projector", "rotation-vector"] = "projector"
-    last_iterate_max_defect: float | None = 1e-4
+    compile: Literal["cached", "none"] = "cached"
+    ipopt: IpoptOptions = field(default_factory=IpoptOptions)
+    rti: RTIOptions = field(default_factory=RTIOptions)
 
     def __post_init__(self) -> None:
         if self.horizon < 1:
@@ -235,41 +285,32 @@ class MPCSettings:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
         if not 0.0 <= self.torque_reserve < 1.0:
             raise ValueError(f"torque_reserve must be in [0, 1), got {self.torque_reserve}")
-        if self.hessian not in ("gauss-newton", "exact", "limited-memory"):
-            raise ValueError(f"unknown hessian {self.hessian!r}")
-        if self.compile not in ("cached", "none"):
-            raise ValueError(f"unknown compile mode {self.compile!r}")
-        if self.warm_start not in ("primal-dual", "primal", "none"):
-            raise ValueError(f"unknown warm_start {self.warm_start!r}")
         if self.solver not in ("ipopt", "sqpmethod", "fatrop", "rti"):
             raise ValueError(f"unknown solver {self.solver!r}")
-        if self.rti_max_iter < 1 or self.rti_cold_iter < 1:
-            raise ValueError("rti_max_iter and rti_cold_iter must be >= 1, "
-                             f"got {self.rti_max_iter}, {self.rti_cold_iter}")
-        if not (self.rti_budget_s >= 0.0 and self.rti_cold_budget_s >= 0.0 and self.rti_regularization >= 0.0
-                and self.rti_omega_penalty >= 0.0):
-            raise ValueError("rti_budget_s, rti_cold_budget_s, rti_regularization and rti_omega_penalty must be >= 0")
-        if self.rti_cold_solver not in ("rti", "ipopt"):
-            raise ValueError(f"unknown rti_cold_solver {self.rti_cold_solver!r}")
+        if not isinstance(self.ipopt, IpoptOptions) or not isinstance(self.rti, RTIOptions):
+            raise ValueError("ipopt must be an IpoptOptions and rti an RTIOptions, "
+                             f"got {type(self.ipopt).__name__} and {type(self.rti).__name__}")
         if self.orientation_residual not in ("projector", "rotation-vector"):
             raise ValueError(f"unknown orientation_residual {self.orientation_residual!r}")
-        if self.rti_qp_iterations < 1:
-            raise ValueError(f"rti_qp_iterations must be >= 1, got {self.rti_qp_iterations}")
-        if self.rti_qp_solver not in ("riccati", "hpipm", "qrqp", "osqp"):
-            raise ValueError(f"unknown rti_qp_solver {self.rti_qp_solver!r}")
-        if self.rti_dynamics not in ("unrolled", "implicit"):
-            raise ValueError(f"unknown rti_dynamics {self.rti_dynamics!r}")
+        if self.compile not in ("cached", "none"):
+            raise ValueError(f"unknown compile mode {self.compile!r}")
         if not 0.0 <= self.disturbance_gain <= 1.0:
             raise ValueError(f"disturbance_gain must be in [0, 1], got {self.disturbance_gain}")
-        if self.solver == "fatrop" and (self.hessian != "exact" or self.compile != "none"):
+        if self.solver == "fatrop" and (self.ipopt.hessian != "exact" or self.compile != "none"):
             raise ValueError("solver='fatrop' forms its own exact Hessian from expanded functions: "
-                             "use hessian='exact' and compile='none'")
+                             "use ipopt=IpoptOptions(hessian='exact') and compile='none'")
         if not self.cold_starts or any(start not in COLD_STARTS for start in self.cold_starts):
             raise ValueError(f"cold_starts must be a non-empty tuple from {COLD_STARTS}, got {self.cold_starts!r}")
         if self.initial_torque_fraction == 0.0:
             raise ValueError("initial_torque_fraction must be non-zero: rest is a stationary point")
-        if self.last_iterate_max_defect is not None and not self.last_iterate_max_defect >= 0.0:
-            raise ValueError(f"last_iterate_max_defect must be >= 0 or None, got {self.last_iterate_max_defect}")
+
+    def updated(self, **fields: Any) -> MPCSettings:
+        """These settings with ``fields`` changed: problem fields by name, and ``ipopt`` / ``rti`` either as
+        an options object (replacing) or as a mapping of its fields (changing those only)."""
+        for name, kind in (("ipopt", IpoptOptions), ("rti", RTIOptions)):
+            if name in fields and not isinstance(fields[name], kind):
+                fields[name] = replace(getattr(self, name), **dict(fields[name]))
+        return replace(self, **fields)
 
 
 @dataclass(frozen=True)
@@ -306,6 +347,9 @@ class MPC:
         build_s: seconds spent building (and compiling) the solver.
     """
 
+    #: whether this class solves ``solver="rti"`` (the real-time iteration subclass does)
+    _solves_rti = False
+
     def __init__(self, model: ExportedModel, settings: MPCSettings, goal: Any, torque_low: Any, torque_high: Any,
                  rest: Any = None, terminal_cost: ca.Function | None = None,
                  cold_start_score: Any = None) -> None:
@@ -318,6 +362,9 @@ class MPC:
                                  f"got {terminal_cost}")
             if settings.solver not in ("ipopt", "sqpmethod"):
                 raise ValueError(f"terminal_cost needs solver 'ipopt' or 'sqpmethod', got {settings.solver!r}")
+        if settings.solver == "rti" and not self._solves_rti:
+            raise ValueError("solver='rti' is solved by fvin_mpc.control.rti.RealTimeMPC, not MPC "
+                             "(fvin_mpc.control.scene.scene_mpc picks the class from the settings)")
         self.terminal_cost = terminal_cost
         self.cold_start_score = cold_start_score
         #: where the quaternion sits in the model's states (pivoted ``(q, ω)`` or free ``(x, q, v, ω)``)
@@ -355,10 +402,6 @@ class MPC:
                                  f"the model gives {span:.3g} between {self.goal} and {self.rest}")
         start = time.perf_counter()
         self._build()
-        # The objective and the dynamics defects in the solver's own variable order: what a last iterate
-        # is judged by against the shifted previous plan.
-        self._cost_and_defects = ca.Function("mpc_cost_defects", [self._nlp["x"], self._nlp["p"]],
-                                             [self._nlp["f"], self._nlp["g"]])
         self.build_s = time.perf_counter() - start
         self._u_goal = self._goal_control()
         self.reset()
@@ -510,7 +553,7 @@ class MPC:
             self._build_fatrop(states, controls, parameters, objective, defects)
             return
         options: dict[str, Any] = {}
-        if s.hessian == "gauss-newton":
+        if s.ipopt.hessian == "gauss-newton":
             lam_f, lam_g = ca.MX.sym("lam_f"), ca.MX.sym("lam_g", self._num_constraints)
             residual_jacobian = ca.jacobian(residuals, decision)
             cost_hessian = 2.0 * ca.mtimes(residual_jacobian.T, residual_jacobian)
@@ -528,10 +571,10 @@ class MPC:
             self._predict = predict
         else:
             names = ["nlp_f", "nlp_g", "nlp_grad_f", "nlp_jac_g"] if s.solver == "ipopt" else ["nlp_fg", "nlp_jac_fg"]
-            if s.hessian != "limited-memory":
+            if s.ipopt.hessian != "limited-memory":
                 names.append("nlp_hess_l")
             oracles = [symbolic.get_function(name) for name in names]
-            if s.hessian == "gauss-newton":
+            if s.ipopt.hessian == "gauss-newton":
                 oracles[-1] = options["hess_lag"]
             oracles.append(predict)
             # IPOPT's interface insists on being able to differentiate f and g (for lam_p, which
@@ -552,7 +595,8 @@ class MPC:
                 self._oracle_options["hess_lag"] = compiled["nlp_hess_l"]
         self._cold = ca.nlpsol("mpc_cold", s.solver, self._nlp,
                                {**self._oracle_options, **self._ipopt_options(warm=False)})
-        warm = s.warm_start == "primal-dual" and s.solver == "ipopt"
+        self._cost_and_defects = self._cost_and_defects_function()
+        warm = s.ipopt.warm_start == "primal-dual" and s.solver == "ipopt"
         self._warm = self._cold if not warm else ca.nlpsol(
             "mpc_warm", s.solver, self._nlp, {**self._oracle_options, **self._ipopt_options(warm=warm)})
 
@@ -575,28 +619,35 @@ class MPC:
         self._nlp = {"x": v, "p": p, "f": f, "g": g}
         self._oracle_options = {}
         options = {"structure_detection": "auto", "equality": [True] * self._num_constraints, "expand": True,
-                   "fatrop": {"print_level": 0, "max_iter": self.settings.max_iter, "tol": self.settings.tol},
+                   "fatrop": {"print_level": 0, "max_iter": self.settings.ipopt.max_iter,
+                              "tol": self.settings.ipopt.tol},
                    "print_time": False, "error_on_fail": False}
         self._cold = self._warm = ca.nlpsol("mpc_fatrop", "fatrop", self._nlp, options)
+        self._cost_and_defects = self._cost_and_defects_function()
+
+    def _cost_and_defects_function(self) -> ca.Function:
+        """The objective and the dynamics defects in the solver's own variable order: what an unconverged
+        last iterate is judged by against the shifted previous plan."""
+        return ca.Function("mpc_cost_defects", [self._nlp["x"], self._nlp["p"]], [self._nlp["f"], self._nlp["g"]])
 
     def _ipopt_options(self, warm: bool) -> dict[str, Any]:
-        s = self.settings
-        if s.solver == "sqpmethod":
+        o = self.settings.ipopt
+        if self.settings.solver == "sqpmethod":
             quiet = {"print_iter": False, "print_header": False, "error_on_fail": False}
             return {"qpsol": "qrqp", "qpsol_options": quiet,
-                    "hessian_approximation": "limited-memory" if s.hessian == "limited-memory" else "exact",
-                    "max_iter": s.max_iter, "tol_pr": s.tol, "tol_du": s.tol, "print_header": False,
+                    "hessian_approximation": "limited-memory" if o.hessian == "limited-memory" else "exact",
+                    "max_iter": o.max_iter, "tol_pr": o.tol, "tol_du": o.tol, "print_header": False,
                     "print_iteration": False, "print_status": False, "print_time": False, "error_on_fail": False,
                     "calc_lam_p": False}
-        ipopt: dict[str, Any] = {"print_level": 0, "sb": "yes", "max_iter": s.max_iter if warm else s.cold_max_iter,
-                                 "tol": s.tol, "linear_solver": "mumps"}
-        if s.hessian == "limited-memory":
+        ipopt: dict[str, Any] = {"print_level": 0, "sb": "yes", "max_iter": o.max_iter if warm else o.cold_max_iter,
+                                 "tol": o.tol, "linear_solver": "mumps"}
+        if o.hessian == "limited-memory":
             ipopt["hessian_approximation"] = "limited-memory"
         if warm:
-            ipopt.update({"warm_start_init_point": "yes", "mu_init": s.warm_mu_init,
+            ipopt.update({"warm_start_init_point": "yes", "mu_init": o.warm_mu_init,
                           "warm_start_bound_push": 1e-8, "warm_start_mult_bound_push": 1e-8,
                           "warm_start_slack_bound_push": 1e-8})
-        ipopt.update(dict(s.ipopt_options))
+        ipopt.update(dict(o.extra))
         # lam_p is never used; computing it would need derivatives of the compiled functions.
         return {"ipopt": ipopt, "print_time": False, "error_on_fail": False, "calc_lam_p": False}
 
@@ -683,7 +734,7 @@ class MPC:
 
     def _plan_and_control(self, x0: np.ndarray) -> tuple[np.ndarray, dict[str, Any]]:
         """A warm solve from the shifted previous plan, or the multi-start cold solves."""
-        if self._previous is not None and self.settings.warm_start != "none":
+        if self._previous is not None and self.settings.ipopt.warm_start != "none":
             return self._solve(x0, self._shifted(self._previous, x0), warm=True)
         best: tuple[np.ndarray, dict[str, Any], Plan | None] | None = None
         costs: dict[str, float] = {}
@@ -715,7 +766,7 @@ class MPC:
         parameters = np.concatenate([references.ravel(), targets.ravel(), self.disturbance])
         arguments: dict[str, Any] = {"x0": self._pack(guess.states, guess.controls), "p": parameters,
                                      "lbx": lower, "ubx": upper, "lbg": 0.0, "ubg": 0.0}
-        use_duals = warm and self.settings.warm_start == "primal-dual" and guess.lam_g is not None
+        use_duals = warm and self.settings.ipopt.warm_start == "primal-dual" and guess.lam_g is not None
         if use_duals:
             arguments.update(lam_g0=guess.lam_g, lam_x0=guess.lam_x)
         solver = self._warm if use_duals else self._cold
@@ -771,7 +822,7 @@ class MPC:
         """Whether an unconverged solve's last ``iterate`` (solver order) is flown: its dynamics defects
         within ``last_iterate_max_defect`` and its cost below the shifted previous plan's (any cost when
         there is none: the alternative is the zero torque)."""
-        tolerance = self.settings.last_iterate_max_defect
+        tolerance = self.settings.ipopt.last_iterate_max_defect
         if tolerance is None:
             return False
         cost, defects = (np.asarray(value, dtype=float).ravel()

@@ -11,6 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any, Mapping
 
+from fvin_mpc.control.mpc import IpoptOptions, RTIOptions
 from fvin_mpc.envs.scenes import SceneSpec, built_in_scene
 
 
@@ -19,24 +20,32 @@ class Preset:
     """What a built-in scene changes in its :class:`~fvin_mpc.control.mpc.MPCSettings`.
 
     Attributes:
-        settings: fields for every solver.
-        per_solver: further fields for one solver only (``{"ipopt": {...}, "rti": {...}}``), applied
-            after ``settings`` when the settings use that solver.
+        settings: problem fields for every solver.
+        per_solver: further problem fields when one solver solves (``{"ipopt": {...}, "rti": {...}}``),
+            applied after ``settings`` (a real-time iteration may want a shorter horizon than IPOPT).
+        ipopt: the solvers to convergence's options (:class:`~fvin_mpc.control.mpc.IpoptOptions`),
+            ``None`` for the defaults.
+        rti: the real-time iteration's options (:class:`~fvin_mpc.control.mpc.RTIOptions`), ``None`` for
+            the defaults.
         reasons: why, one sentence per change, each naming the ``docs/`` page with the numbers.
     """
 
     settings: Mapping[str, Any] = field(default_factory=dict)
     per_solver: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
+    ipopt: IpoptOptions | None = None
+    rti: RTIOptions | None = None
     reasons: tuple[str, ...] = ()
 
     def fields_for(self, solver: str) -> dict[str, Any]:
-        """The fields this preset sets when ``solver`` solves."""
-        return {**self.settings, **self.per_solver.get(solver, {})}
+        """What this preset sets when ``solver`` solves (for :meth:`MPCSettings.updated`)."""
+        options = {name: value for name, value in (("ipopt", self.ipopt), ("rti", self.rti)) if value is not None}
+        return {**self.settings, **self.per_solver.get(solver, {}), **options}
 
 
 PRESETS: dict[str, Preset] = {
     "pendulum": Preset(
-        per_solver={"rti": {"horizon": 20, "rti_dynamics": "implicit"}},
+        per_solver={"rti": {"horizon": 20}},
+        rti=RTIOptions(dynamics="implicit"),
         reasons=(
             "RTI horizon 20: one Gauss–Newton step per period follows a shorter plan more closely (mean cost "
             "148.6 at N = 20 against 176.1 at N = 30 over 50 starts; docs/bench/rti.md).",
@@ -53,9 +62,10 @@ PRESETS: dict[str, Preset] = {
             "measured so (docs/scenes.md).",
         )),
     "spherical_pendulum": Preset(
-        settings={"horizon": 50, "max_iter": 300},
-        per_solver={"ipopt": {"terminal_energy_weight": 0.0},
-                    "rti": {"rti_max_iter": 3, "rti_budget_s": 0.006, "omega_weight": 0.06}},
+        settings={"horizon": 50},
+        per_solver={"ipopt": {"terminal_energy_weight": 0.0}, "rti": {"omega_weight": 0.06}},
+        ipopt=IpoptOptions(max_iter=300),
+        rti=RTIOptions(max_iter=3, budget_s=0.006),
         reasons=(
             "Horizon 2.5 s and 300 IPOPT iterations: 1.5 N·m against 6 N·m of gravity torque needs several pumps, "
             "and cold solves from rest take about 130 iterations (docs/spherical.md).",

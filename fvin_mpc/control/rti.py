@@ -16,15 +16,15 @@ an unbiased model). Solved differently (Diehl's real-time iteration, as in acado
   exactly; no norm constraint, no 7th direction.
 * **QP per iteration** — the dynamics linearized per stage,
   ``δ_{k+1} = A_k δ_k + B_k Δu_k + c_k`` (``c_k`` the gap between ``F(x̄_k, ū_k + d)`` and
-  ``x̄_{k+1}``, measured in ``x̄_{k+1}``'s chart; with ``rti_dynamics="implicit"`` the step's own
+  ``x̄_{k+1}``, measured in ``x̄_{k+1}``'s chart; with ``rti.dynamics="implicit"`` the step's own
   equations between the nodes give ``A_k, B_k, c_k`` instead, the learned terms evaluated once per
   node: :mod:`fvin_mpc.control.implicit_dynamics`); the cost's Gauss–Newton model (every term of the
   MPC's cost is a sum of squares: ``c(q) = |q|² − ⟨q, g⟩² = |(I − ggᵀ)q|²``, the energy deficit,
   ``ω``, ``u − u_s``), so the Hessian needs first derivatives only; bounds on ``u`` as
-  boxes, the bound on ``ω`` as a stiff penalty on its excess (``rti_omega_penalty``: a hard bound
+  boxes, the bound on ``ω`` as a stiff penalty on its excess (``rti.omega_penalty``: a hard bound
   made the linearized QP infeasible from the spinning first guesses of the ball joint). ``δ_0`` is fixed
   to the measured state in ``x̄_0``'s chart. The QP is stage-wise sparse. By default
-  (``rti_qp_solver="riccati"``) it is solved by a fixed number of primal–dual interior-point
+  (``rti.qp_solver="riccati"``) it is solved by a fixed number of primal–dual interior-point
   iterations on the input boxes, each a Riccati recursion (``O(N)``), generated together with the
   trust region and the update on S³ as one CasADi function (:func:`riccati_feedback_function`) and
   compiled with the linearization (:func:`fvin_mpc.control.model_export.compile_functions`): one C call
@@ -36,14 +36,14 @@ an unbiased model). Solved differently (Diehl's real-time iteration, as in acado
   ``A_k, B_k, c_k``, Hessian blocks and gradients come from one compiled function.
 * **preparation / feedback** — after a torque is sent, :meth:`prepare` shifts the plan by one
   step (the last stage predicted by the model) and linearizes it; the next call only fixes
-  ``δ_0`` and solves the QP (feedback), then iterates again only while ``rti_budget_s`` allows.
+  ``δ_0`` and solves the QP (feedback), then iterates again only while ``rti.budget_s`` allows.
 * **trust region** — each stage's state step is clipped (:data:`STEP_LIMIT_ANGLE`,
   :data:`STEP_LIMIT_OMEGA`) and planned ``|ω|`` kept inside the step's solvability limit: a full
   Gauss–Newton step from a guess with large gaps otherwise leaps to where the model means nothing.
 * **cold start** — after :meth:`reset`, ``cold_starts``' first guesses in :data:`RTI_COLD_ORDER`
   (``"goal"`` first: an orientation path to the goal, or the model rolled out under ``±f·u_max``;
   neither is the symmetric rest, so the first torque is non-zero), each improved by up to
-  ``rti_cold_iter`` iterations while ``rti_cold_budget_s`` lasts; the best is kept. The budget is
+  ``rti.cold_iter`` iterations while ``rti.cold_budget_s`` lasts; the best is kept. The budget is
   what bounds the first call (it is below the 50 ms period by default); the plan keeps improving by
   one iteration per period afterwards.
 * **offset-free** (``disturbance_gain = α > 0``) — the model is ``x⁺ = F(x, u + d)`` with a
@@ -64,6 +64,7 @@ from __future__ import annotations
 
 import re
 import time
+from dataclasses import replace
 from typing import Any
 
 import casadi as ca
@@ -87,7 +88,7 @@ STEP_LIMIT_OMEGA = 0.5
 STEP_LIMIT_POSITION = 1.0
 #: … and ``|Δv_i|`` (m/s).
 STEP_LIMIT_VELOCITY = 2.0
-#: The order a cold call tries ``cold_starts`` in (within ``rti_cold_budget_s``): from the ``"goal"``
+#: The order a cold call tries ``cold_starts`` in (within ``rti.cold_budget_s``): from the ``"goal"``
 #: guess the iteration reached IPOPT's optimum on the ball joint in ~10 iterations, from the
 #: rollouts (ω clipped to the bound: large gaps) it diverged (docs/realtime.md).
 RTI_COLD_ORDER = ("goal", "rollout+", "rollout-")
@@ -267,14 +268,23 @@ class RealTimeMPC(MPC):
     of the plan, in the charts), and on cold calls ``cold_start`` and ``cold_costs``.
     """
 
+    _solves_rti = True
+
     def __init__(self, model: ExportedModel, settings: MPCSettings, goal: Any, torque_low: Any, torque_high: Any,
-                 rest: Any = None) -> None:
+                 rest: Any = None, terminal_cost: Any = None, cold_start_score: Any = None) -> None:
+        # Features of the problem the real-time iteration cannot honour are refused, never ignored.
+        if terminal_cost is not None:
+            raise ValueError("the real-time iteration takes no terminal_cost hook (its QP is the Gauss–Newton "
+                             "model of the problem's residuals); use solver='ipopt' or 'sqpmethod'")
+        if cold_start_score is not None:
+            raise ValueError("the real-time iteration ranks its cold guesses by model cost and dynamics gaps; "
+                             "cold_start_score needs solver='ipopt', 'sqpmethod' or 'fatrop'")
         if settings.solver != "rti":
-            settings = MPCSettings(**{**settings.__dict__, "solver": "rti"})
+            settings = replace(settings, solver="rti")
         super().__init__(model, settings, goal, torque_low, torque_high, rest)
         self._cold_mpc = None
-        if settings.rti_cold_solver == "ipopt":
-            self._cold_mpc = MPC(model, MPCSettings(**{**settings.__dict__, "solver": "ipopt"}), goal, torque_low,
+        if settings.rti.cold_solver == "ipopt":
+            self._cold_mpc = MPC(model, replace(settings, solver="ipopt"), goal, torque_low,
                                  torque_high, rest)
 
     # ------------------------------------------------------------------ problem
@@ -295,12 +305,12 @@ class RealTimeMPC(MPC):
             return ca.substitute(expressions, [delta, du], zero)
 
         # --- dynamics: e(δ, Δu) = F(x, u + d) in x̄_{k+1}'s chart
-        implicit = s.rti_dynamics == "implicit"
+        implicit = s.rti.dynamics == "implicit"
         if implicit:
             if self.model.space.step_residual is None or self.model.casadi_terms is None:
-                raise ValueError(f"rti_dynamics='implicit' needs the step's own equations, which the "
+                raise ValueError(f"rti.dynamics='implicit' needs the step's own equations, which the "
                                  f"{self.model.space.description} space does not provide, and rigid-body terms "
-                                 f"(model {self.model.name!r}); use rti_dynamics='unrolled'")
+                                 f"(model {self.model.name!r}); use rti.dynamics='unrolled'")
             node_terms, term_layout = implicit_dynamics.node_terms_function(self.model.casadi_terms, retract)
             implicit_stage = implicit_dynamics.implicit_stage_function(self.model.casadi_terms, term_layout,
                                                                        self.model.step_size, retract)
@@ -313,11 +323,11 @@ class RealTimeMPC(MPC):
         energy = None
         if s.terminal_energy_weight > 0:
             energy = (self.model.energy_function, self.model.energy(np.concatenate([self.rest, np.zeros(3)])))
-        stage_function, terminal_function = residual_functions(layout, s, m, self.omega_bound, s.rti_omega_penalty,
+        stage_function, terminal_function = residual_functions(layout, s, m, self.omega_bound, s.rti.omega_penalty,
                                                                energy)
         stage_residual = stage_function(x, u, reference, u_s)
         terminal_residual = terminal_function(x, reference)
-        regularization = s.rti_regularization
+        regularization = s.rti.regularization
 
         def gauss_newton(residual: Any, variables: Any, size: int) -> list[Any]:
             jacobian = ca.jacobian(residual, variables)
@@ -365,11 +375,11 @@ class RealTimeMPC(MPC):
         self._control_bounds = control_bounds(self.torque_low, self.torque_high, n, s.torque_reserve)
         self._omega_valid = OMEGA_VALID_FRACTION / self.model.step_size
         self._step_limits = step_limits(layout, STEP_LIMIT_OMEGA * self.omega_bound)
-        riccati = s.rti_qp_solver == "riccati"
+        riccati = s.rti.qp_solver == "riccati"
         if riccati:
             linearize = linearize_blocks
             functions = [linearize, predict, riccati_feedback_function(
-                layout, n, m, *self._control_bounds, self._step_limits, self._omega_valid, s.rti_qp_iterations)]
+                layout, n, m, *self._control_bounds, self._step_limits, self._omega_valid, s.rti.qp_iterations)]
         else:
             functions = [linearize, predict]
         self.compile_report = None
@@ -387,16 +397,16 @@ class RealTimeMPC(MPC):
 
     def _make_qp(self, h: ca.Sparsity, a: ca.Sparsity) -> ca.Function:
         s, n, m = self.settings, self.horizon, self.model.control_dim
-        if s.rti_qp_solver == "hpipm":
+        if s.rti.qp_solver == "hpipm":
             options = {"N": n, "nx": [0] + [self.layout.tangent_dim] * n, "nu": [m] * n + [0], "ng": [0] * (n + 1),
                        "hpipm": {"iter_max": 50, "warm_start": 0, "mode": "speed_abs"},
                        "error_on_fail": False}
-        elif s.rti_qp_solver == "qrqp":
+        elif s.rti.qp_solver == "qrqp":
             options = {"print_iter": False, "print_header": False, "error_on_fail": False}
         else:
             options = {"osqp": {"verbose": False, "eps_abs": 1e-8, "eps_rel": 1e-8, "max_iter": 4000},
                        "error_on_fail": False}
-        return ca.conic("rti_qp", s.rti_qp_solver, {"h": h, "a": a}, options)
+        return ca.conic("rti_qp", s.rti.qp_solver, {"h": h, "a": a}, options)
 
     def _linearize_at(self, plan: Plan) -> tuple[Any, ...]:
         if self._implicit:
@@ -464,7 +474,7 @@ class RealTimeMPC(MPC):
         h, h_n, g, g_n, ab, gaps, _ = linearization
         states, controls, step, mu = self._feedback(plan.states.T, plan.controls.T, x0, h, h_n, g, g_n, ab, gaps)
         states, controls = np.asarray(states, dtype=float).T, np.asarray(controls, dtype=float).T
-        self.qp_iterations = self.settings.rti_qp_iterations
+        self.qp_iterations = self.settings.rti.qp_iterations
         self.last_step, self.qp_mu = float(step), float(mu)
         if not (np.all(np.isfinite(states)) and np.all(np.isfinite(controls))):
             return None, "qp-not-finite"
@@ -473,7 +483,7 @@ class RealTimeMPC(MPC):
     def _improve(self, plan: Plan, x0: np.ndarray, iterations: int, deadline: float,
                  linearization: tuple[Any, ...] | None = None) -> tuple[Plan | None, int, str, float]:
         """Up to ``iterations`` SQP iterations from ``plan``: the first always, each further one only
-        while the last step was not negligible (``rti_tol``) and the last iteration's duration still
+        while the last step was not negligible (``rti.tol``) and the last iteration's duration still
         fits before ``deadline`` (perf_counter). Returns the plan (``None`` if the first QP failed), the
         iterations done, the status (``"budget"`` if time, not convergence, stopped it) and the time of
         the last iteration."""
@@ -481,7 +491,7 @@ class RealTimeMPC(MPC):
         current = plan
         while done < iterations:
             if done > 0:
-                if self.last_step < self.settings.rti_tol:
+                if self.last_step < self.settings.rti.tol:
                     break
                 if time.perf_counter() + last > deadline:
                     status = "budget"
@@ -540,7 +550,7 @@ class RealTimeMPC(MPC):
             if plan is None:
                 plan, fallback = self._plan, "previous-plan"
         elif self._plan is None:  # cold: each first guess, a few iterations, within the cold budget
-            deadline = start + s.rti_cold_budget_s
+            deadline = start + s.rti.cold_budget_s
             best: tuple[float, Plan, str] | None = None
             costs: dict[str, float] = {}
             iterations, status = 0, "cold"
@@ -550,7 +560,7 @@ class RealTimeMPC(MPC):
                     break
                 guess = self._first_guess(x0, guess_name)
                 guess = Plan(guess.states, guess.controls, None, None)
-                plan, done, step_status, _ = self._improve(guess, x0, s.rti_cold_iter, deadline)
+                plan, done, step_status, _ = self._improve(guess, x0, s.rti.cold_iter, deadline)
                 iterations += done
                 status = "budget" if step_status == "budget" else status
                 plan = guess if plan is None else plan
@@ -565,7 +575,7 @@ class RealTimeMPC(MPC):
             if self._linearization is None:
                 self.prepare()
             assert self._plan is not None
-            plan, iterations, status, _ = self._improve(self._plan, x0, s.rti_max_iter, start + s.rti_budget_s,
+            plan, iterations, status, _ = self._improve(self._plan, x0, s.rti.max_iter, start + s.rti.budget_s,
                                                         self._linearization)
             fallback, success = None, plan is not None
             if plan is None:  # the shifted previous plan, clipped

@@ -132,7 +132,7 @@ def scene_mpc_settings(env: Any, **overrides: Any) -> MPCSettings:
     preset = preset_for(env.unwrapped.scene_spec)
     given = {k: v for k, v in overrides.items() if v is not None}
     solver = given.get("solver", preset.settings.get("solver", settings.solver))
-    return replace(settings, **{**preset.fields_for(solver), **given})
+    return settings.updated(**preset.fields_for(solver)).updated(**given)
 
 
 def scene_env(scene: Any = "pendulum", checkpoint: Any = None, true_model: bool = False,

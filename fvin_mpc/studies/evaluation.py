@@ -431,8 +431,8 @@ def plot_phase_portraits(result: EvaluationResult, path: Path) -> None:
 def _settings_text(config: EvaluationConfig) -> str:
     settings = mpc_settings(config)
     return (
-        f"solver {settings.solver}, horizon {settings.horizon}, Hessian {settings.hessian}, max_iter "
-        f"{settings.max_iter}, "
+        f"solver {settings.solver}, horizon {settings.horizon}, Hessian {settings.ipopt.hessian}, max_iter "
+        f"{settings.ipopt.max_iter}, "
         f"terminal energy weight {settings.terminal_energy_weight:g}, cold starts {', '.join(settings.cold_starts)}"
     )
 

@@ -26,6 +26,7 @@ and PNGs (the study in ``docs/quadrotor/``).
 
 from __future__ import annotations
 
+import dataclasses
 import shlex
 import sys
 from pathlib import Path
@@ -172,8 +173,7 @@ def side_by_side(out_dir: Path, argv: Sequence[str], episodes: int = 20, seed: i
         rows.append(row)
         results["models"][kind] = {"model": controller.model.name, "summary": row, "recovery": recovery,
                                    "figure_eight": tracking,
-                                   "settings": {k: v for k, v in controller.settings.__dict__.items()
-                                                if k != "ipopt_options"}}
+                                   "settings": dataclasses.asdict(controller.settings)}
         flights[kind] = (recovery_episodes, tracking_episode)
     out_dir.mkdir(parents=True, exist_ok=True)
     plot_recovery(flights, out_dir / "recovery.png")

@@ -15,7 +15,7 @@ from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from fvin_mpc.control import model_export as export
-from fvin_mpc.control.mpc import MPC, SUCCESS_STATUSES, MPCSettings
+from fvin_mpc.control.mpc import MPC, SUCCESS_STATUSES, IpoptOptions, MPCSettings
 from fvin_mpc.core.rigid_body import PENDULUM
 from fvin_mpc.core.state import UNIT_NORM_TOLERANCE
 
@@ -24,7 +24,7 @@ LOW, HIGH = np.array([-2.0]), np.array([2.0])
 
 # IPOPT limited to one iteration on warm and cold solves.
 # the fallback path: an unconverged last iterate is never flown here (tests/test_mpc.py covers that rule)
-ONE_ITERATION = MPCSettings(max_iter=1, cold_max_iter=1, last_iterate_max_defect=None)
+ONE_ITERATION = MPCSettings(ipopt=IpoptOptions(max_iter=1, cold_max_iter=1, last_iterate_max_defect=None))
 angles = S.floats(-np.pi, np.pi)
 rates = S.floats(-8.0, 8.0)
 
