@@ -196,7 +196,7 @@ def test_other_nlp_solvers_find_ipopts_plan(overrides):
     base = MPCSettings().updated(horizon=12, compile="none", ipopt={"tol": 1e-9})
     q, omega = np.array([np.cos(0.4), 0.0, np.sin(0.4), 0.0]), np.array([0.0, 1.0, 0.0])
     ipopt = MPC(model, base, (0, 0, 1, 0), [-2.0], [2.0])
-    other = MPC(model, replace(base, compile="none", **{k: v for k, v in overrides.items() if k != "compile"}),
+    other = MPC(model, base.updated(**{k: v for k, v in overrides.items() if k != "compile"}),
                 (0, 0, 1, 0), [-2.0], [2.0])
     u_ref, info_ref = ipopt(np.r_[q, omega])
     u, info = other(np.r_[q, omega])
