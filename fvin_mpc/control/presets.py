@@ -24,9 +24,9 @@ class Preset:
         per_solver: further problem fields when one solver solves (``{"ipopt": {...}, "rti": {...}}``),
             applied after ``settings`` (a real-time iteration may want a shorter horizon than IPOPT).
         ipopt: the solvers to convergence's options (:class:`~fvin_mpc.control.mpc.IpoptOptions`),
-            ``None`` for the defaults.
+            ``None`` for the defaults; applied whatever the solver (the RTI's cold solve may be IPOPT's).
         rti: the real-time iteration's options (:class:`~fvin_mpc.control.mpc.RTIOptions`), ``None`` for
-            the defaults.
+            the defaults; applied when the RTI solves.
         reasons: why, one sentence per change, each naming the ``docs/`` page with the numbers.
     """
 
@@ -37,8 +37,10 @@ class Preset:
     reasons: tuple[str, ...] = ()
 
     def fields_for(self, solver: str) -> dict[str, Any]:
-        """What this preset sets when ``solver`` solves (for :meth:`MPCSettings.updated`)."""
-        options = {name: value for name, value in (("ipopt", self.ipopt), ("rti", self.rti)) if value is not None}
+        """What this preset sets when ``solver`` solves (for :meth:`MPCSettings.updated`): the IPOPT options
+        always (the RTI's cold solve may be IPOPT's), the RTI's only when it solves."""
+        rti = self.rti if solver == "rti" else None
+        options = {name: value for name, value in (("ipopt", self.ipopt), ("rti", rti)) if value is not None}
         return {**self.settings, **self.per_solver.get(solver, {}), **options}
 
 
