@@ -22,9 +22,13 @@ through ``ctypes`` and is a controller like :class:`~fvin_mpc.control.rti.RealTi
 ``u, info = controller(x)``, ``prepare()``, ``reset()``, ``set_time()``, ``set_reference()`` — so a
 study can run the Python loop and the C loop side by side.
 
-Refused, with the reason: a QP solver other than the generated Riccati one, an IPOPT cold start
-(``rti_cold_solver="ipopt"``: IPOPT is not generated code; the C cold start is the RTI's own), and
-the ``"goal"`` first guess of a free body (its geodesic guess is not ported yet).
+Refused, with the reason: a QP solver other than the generated Riccati one, and an IPOPT cold start
+(``rti_cold_solver="ipopt"``: IPOPT is not generated code; the C cold start is the RTI's own).
+
+The first guesses of the cold start: a pivoted body's ``"goal"`` slerp and the ``"rollout±"``
+rollouts are a few lines of the C driver; a free body's ``"goal"`` guess (the geodesic from the
+measured attitude to the reference's, :meth:`~fvin_mpc.control.mpc.MPC._first_guess`) is generated
+from the same S³ functions (:func:`goal_guess_function`).
 """
 
 from __future__ import annotations
@@ -45,7 +49,11 @@ import numpy as np
 from fvin_mpc.control.model_export import cache_dir
 from fvin_mpc.control.problem import ConstantReference, Reference
 from fvin_mpc.control.rti import RTI_COLD_ORDER, RealTimeMPC
+from fvin_mpc.core import s3
+from fvin_mpc.core.backend import get_ops
 from fvin_mpc.core.errors import FvinMpcError
+
+CA = get_ops("casadi")
 
 #: The hand-written files copied next to the generated ones.
 TEMPLATE_FILES = ("fvin_controller.c", "fvin_controller.h", "main.c", "Makefile")
@@ -72,13 +80,46 @@ def check_exportable(controller: RealTimeMPC) -> None:
     if s.rti_qp_solver != "riccati":
         raise ControllerNotExportable(f"rti_qp_solver={s.rti_qp_solver!r}: only the generated Riccati "
                                       "interior-point QP ('riccati') is generated as C")
-    if "goal" in s.cold_starts and not controller.model.space.pivoted:
-        raise ControllerNotExportable("the 'goal' first guess of a free body (a geodesic to the reference) is "
-                                      "not in the C loop yet; use cold_starts=('rollout+', 'rollout-')")
     names = tuple(function.name() for function in controller.loop_functions)
     if names != LOOP_FUNCTION_NAMES:
         raise ControllerNotExportable(f"the controller's loop functions are {names}, the C driver calls "
                                       f"{LOOP_FUNCTION_NAMES}")
+
+
+def goal_guess_function(controller: RealTimeMPC) -> ca.Function:
+    """``rti_goal_guess(x0, R (n_x, N+1), u_s (m, N)) → (X, U)``: a free body's ``"goal"`` first guess
+    (:meth:`~fvin_mpc.control.mpc.MPC._first_guess`) from :mod:`fvin_mpc.core.s3` on CasADi — the
+    reference states, the attitude turned from the measured one to the reference's along the geodesic
+    over the first third of the horizon, at rest in ``ω``; the controls the reference's targets."""
+    layout, n, m = controller.layout, controller.horizon, controller.model.control_dim
+    qs, omega = layout.quaternion, layout.omega
+    x0, references = ca.SX.sym("x0", layout.state_dim), ca.SX.sym("R", layout.state_dim, n + 1)
+    targets = ca.SX.sym("u_s", m, n)
+    q0 = tuple(x0[i] for i in range(qs.start, qs.stop))
+    columns = [x0]
+    for k in range(1, n + 1):
+        q_ref = tuple(references[i, k] for i in range(qs.start, qs.stop))
+        q_ref = s3.scale(ca.if_else(s3.dot(q_ref, q0) >= 0, 1.0, -1.0), q_ref)  # on q0's side of S³
+        turn = s3.log(s3.multiply(s3.conjugate(q0), q_ref), CA)
+        weight = min(max(k / max(1, n // 3), 0.0), 1.0)
+        turned = s3.multiply(q0, s3.exp(tuple(weight * t for t in turn), CA))
+        columns.append(ca.vertcat(references[:qs.start, k], *turned, references[qs.stop:omega.start, k],
+                                  ca.SX.zeros(3)))
+    return ca.Function("rti_goal_guess", [x0, references, targets], [ca.horzcat(*columns), targets],
+                       ["x0", "R", "u_s"], ["X", "U"])
+
+
+def generated_functions(controller: RealTimeMPC) -> list[ca.Function]:
+    """What ``fvc_model.c`` holds: the loop's functions (dense outputs) and, for a free body that starts
+    from ``"goal"``, :func:`goal_guess_function`."""
+    functions = [dense_outputs(function) for function in controller.loop_functions]
+    if free_goal_guess(controller):
+        functions.append(goal_guess_function(controller))
+    return functions
+
+
+def free_goal_guess(controller: RealTimeMPC) -> bool:
+    return "goal" in controller.settings.cold_starts and not controller.model.space.pivoted
 
 
 def dense_outputs(function: ca.Function) -> ca.Function:
@@ -104,6 +145,7 @@ def config_header(controller: RealTimeMPC, example_state: np.ndarray) -> str:
         f"#define FVC_N {controller.horizon}", f"#define FVC_NS {layout.state_dim}",
         f"#define FVC_ND {layout.tangent_dim}", f"#define FVC_M {m}", f"#define FVC_BEFORE {layout.before}",
         f"#define FVC_IMPLICIT {int(s.rti_dynamics == 'implicit')}",
+        f"#define FVC_FREE_GOAL_GUESS {int(free_goal_guess(controller))}",
         f"#define FVC_MAX_ITER {s.rti_max_iter}", f"#define FVC_COLD_ITER {s.rti_cold_iter}",
         f"#define FVC_N_COLD {len(order)}",
         f"#define FVC_TOL {s.rti_tol!r}", f"#define FVC_STEP_SIZE {controller.model.step_size!r}",
@@ -131,8 +173,8 @@ def write_controller(controller: RealTimeMPC, directory: str | Path, example_sta
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     generator = ca.CodeGenerator("fvc_model.c", {"with_header": True})
-    for function in controller.loop_functions:
-        generator.add(dense_outputs(function))
+    for function in generated_functions(controller):
+        generator.add(function)
     generator.generate(str(directory) + os.sep)
     if example_state is None:
         example_state = controller.goal_state.copy()

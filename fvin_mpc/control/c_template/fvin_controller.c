@@ -50,6 +50,13 @@ static double clip(double v, double lo, double hi) { return v < lo ? lo : (v > h
 
 static casadi_int out_size(const casadi_int *sp) { return sp[0] * sp[1]; } /* every output is dense */
 
+/* u_s,k = clip(s_k u_goal − d): the control that holds the reference in the corrected model (reference_window) */
+static void targets(fvc_controller *c) {
+    for (int k = 0; k < N; k++)
+        for (int j = 0; j < M; j++)
+            c->u_s[k * M + j] = clip(c->scales[k] * c->u_goal[j] - c->d[j], fvc_torque_low[j], fvc_torque_high[j]);
+}
+
 /* ------------------------------------------------------------------ generated calls */
 static void call_linearize(fvc_controller *c, double *X, double *U) {
     if (FVC_IMPLICIT) {
@@ -70,9 +77,7 @@ static void call_linearize(fvc_controller *c, double *X, double *U) {
             }
         }
     }
-    for (int k = 0; k < N; k++)
-        for (int j = 0; j < M; j++)
-            c->u_s[k * M + j] = clip(c->scales[k] * c->u_goal[j] - c->d[j], fvc_torque_low[j], fvc_torque_high[j]);
+    targets(c);
     c->arg[0] = X; c->arg[1] = U; c->arg[2] = c->ref; c->arg[3] = c->d; c->arg[4] = c->u_s;
     for (int i = 0; i < LIN_COUNT; i++) c->res[i] = c->lin[i];
     rti_linearize_blocks(c->arg, c->res, c->iw, c->w, 0);
@@ -127,6 +132,13 @@ static int improve(fvc_controller *c, double *X, double *U, const double *x0, in
 
 /* ------------------------------------------------------------------ cold start (MPC._first_guess) */
 static void goal_guess(fvc_controller *c, const double *x0, double *X, double *U) {
+#if FVC_FREE_GOAL_GUESS
+    targets(c);  /* a free body: the generated geodesic to the reference (rti_goal_guess) */
+    c->arg[0] = x0; c->arg[1] = c->ref; c->arg[2] = c->u_s;
+    c->res[0] = X; c->res[1] = U;
+    rti_goal_guess(c->arg, c->res, c->iw, c->w, 0);
+    return;
+#endif
     const double *q0 = x0 + QS;
     double goal[4], dot = 0.0;
     for (int i = 0; i < 4; i++) dot += q0[i] * fvc_goal_state[QS + i];
@@ -224,6 +236,10 @@ fvc_controller *fvc_create(void) {
     rti_predict_work(&a, &r, &i, &w);
     sz_arg = a > sz_arg ? a : sz_arg; sz_res = r > sz_res ? r : sz_res; sz_iw = i > sz_iw ? i : sz_iw; sz_w = w > sz_w ? w : sz_w;
     rti_feedback_work(&a, &r, &i, &w);
+    sz_arg = a > sz_arg ? a : sz_arg; sz_res = r > sz_res ? r : sz_res; sz_iw = i > sz_iw ? i : sz_iw; sz_w = w > sz_w ? w : sz_w;
+#if FVC_FREE_GOAL_GUESS
+    rti_goal_guess_work(&a, &r, &i, &w);
+#endif
     sz_arg = a > sz_arg ? a : sz_arg; sz_res = r > sz_res ? r : sz_res; sz_iw = i > sz_iw ? i : sz_iw; sz_w = w > sz_w ? w : sz_w;
     c->arg = calloc(sz_arg > 9 ? sz_arg : 9, sizeof *c->arg);
     c->res = calloc(sz_res > 7 ? sz_res : 7, sizeof *c->res);
