@@ -3,6 +3,7 @@
  * orchestration only — every piece of the math is in the generated functions; what is here mirrors
  * RealTimeMPC.__call__ / prepare / _improve / _first_guess and DisturbanceEstimate line by line, with
  * iteration counts for bounds (no wall clock). tests/test_c_controller.py checks both loops agree. */
+#include <float.h>
 #include <math.h>
 #include <stdlib.h>
 #include <string.h>
@@ -310,7 +311,10 @@ int fvc_feedback(fvc_controller *c, const double *x, double *u) {
         c->status.bad_states++;
         return FVC_BAD_STATE;
     }
-    for (int i = 0; i < 4; i++) x0[QS + i] /= norm;
+    /* A quaternion already unit to rounding is left as it is: dividing by a norm of 1 ± 1 ulp would
+     * only add rounding (and make the C loop differ from a caller that normalized it already). */
+    if (fabs(norm - 1.0) > 4.0 * DBL_EPSILON)
+        for (int i = 0; i < 4; i++) x0[QS + i] /= norm;
     c->status.calls++;
     c->status.cold_guess = -1;
     update_estimate(c, x0);

@@ -4,7 +4,7 @@
  * The first call after fvc_create/fvc_reset is a cold start (the RTI's own multi-start, bounded by
  * iteration counts). No Python, CasADi or torch at run time; no allocation after fvc_create.
  * Arrays are row-major: a state is FVC_NS doubles, the plan's states (FVC_N+1) x FVC_NS, its
- * controls FVC_N x FVC_M. See README.md next to this file. */
+ * controls FVC_N x FVC_M. fvin_mpc's docs/c-controller.md describes the library. */
 #ifndef FVIN_CONTROLLER_H
 #define FVIN_CONTROLLER_H
 
