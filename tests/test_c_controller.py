@@ -141,3 +141,18 @@ def test_export_command_writes_a_library_that_builds_and_runs(tmp_path):
     # nothing of Python, CasADi or torch at run time: the example links libc and libm only
     linked = subprocess.run(["ldd", str(directory / "example")], capture_output=True, text=True).stdout
     assert "casadi" not in linked and "python" not in linked and "torch" not in linked
+
+
+@pytest.mark.slow
+def test_quadrotor_figure_eight_reference_reaches_the_c_loop_each_period():
+    """A time-varying reference: sampled in Python, pushed to the library every period."""
+    from fvin_mpc.control.flight import FigureEight
+
+    env, python, c_loop = quadrotor_pair(true_model=True)
+    reference = FigureEight(center=tuple(env.unwrapped.hover_point), amplitude=0.5, period=3.0, ramp_s=1.0)
+    for controller in (python, c_loop):
+        controller.set_reference(reference)
+    _, c_episode = assert_same_closed_loops(env, python, c_loop, 3.0, "none", reset_options={"hover": True})
+    # the craft left its hover point: the comparison covers a moving reference, not a constant one
+    assert np.abs(c_episode.states[:, :3] - c_episode.states[0, :3]).max() > 0.2
+    assert_same_closed_loops(env, python, c_loop, 2.0, 0.004, reset_options={"hover": True})

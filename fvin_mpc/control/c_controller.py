@@ -240,7 +240,7 @@ def load_library(path: str | Path) -> ctypes.CDLL:
     lib = ctypes.CDLL(str(path))
     pointer, double_p = ctypes.c_void_p, ctypes.POINTER(ctypes.c_double)
     lib.fvc_create.restype = pointer
-    lib.fvc_free.argtypes = lib.fvc_reset.argtypes = lib.fvc_prepare.argtypes = [pointer]
+    lib.fvc_free.argtypes = lib.fvc_reset.argtypes = lib.fvc_prepare.argtypes = lib.fvc_complete.argtypes = [pointer]
     lib.fvc_feedback.argtypes = [pointer, double_p, double_p]
     lib.fvc_feedback.restype = ctypes.c_int
     lib.fvc_set_reference.argtypes = [pointer, double_p, double_p, ctypes.c_int]
@@ -345,6 +345,7 @@ class CRealTimeMPC:
             self._push_reference(new_reference=False)
         u = self.feedback(x0)
         solve_time = time.perf_counter() - start
+        self._lib.fvc_complete(self._handle)  # the step's residual for info (the C loop defers it)
         self._lib.fvc_get_status(self._handle, ctypes.byref(self._status))
         self._lib.fvc_get_plan(self._handle, _pointer(self._states), _pointer(self._controls))
         self._lib.fvc_get_disturbance(self._handle, _pointer(self._d))

@@ -30,7 +30,8 @@ struct fvc_controller {
     double ref[(N + 1) * NS], scales[N], u_s[N * M];
     double u_goal[M], d[M], limit[M];
     double pred_rates[NR], pred_inverse[M * NR]; /* the last one-step prediction (column-major inverse) */
-    int have_plan, prepared, have_prediction;
+    int have_plan, prepared, have_prediction, pending_prediction;
+    double sent_x[NS], sent_u[M];            /* the last call's state and control, for the prediction */
     double time;
     double *lin[LIN_COUNT];
     /* CasADi work memory, shared by the three functions */
@@ -216,15 +217,18 @@ static void update_estimate(fvc_controller *c, const double *x0) {
     }
 }
 
-/* Remember the model's prediction after u (with d) for the next estimate; advance the clock. */
-static double predicted(fvc_controller *c, const double *x0, const double *u) {
+/* The model's prediction after the control just sent (with d), for the next estimate (MPC._predicted).
+ * fvc_feedback only records its arguments: the step is computed after the control is out — in
+ * fvc_prepare, or at the next call — since nothing in this period's control depends on it. */
+static void complete_prediction(fvc_controller *c) {
+    if (!c->pending_prediction) return;
     double applied[M], next[NS], b[NR * M], residual;
-    for (int j = 0; j < M; j++) applied[j] = u[j] + c->d[j];
-    call_predict(c, x0, applied, next, b, &residual, c->pred_inverse);
+    for (int j = 0; j < M; j++) applied[j] = c->sent_u[j] + c->d[j];
+    call_predict(c, c->sent_x, applied, next, b, &residual, c->pred_inverse);
     memcpy(c->pred_rates, next + RS, sizeof c->pred_rates);
     c->have_prediction = 1;
-    c->time += FVC_STEP_SIZE;
-    return residual;
+    c->pending_prediction = 0;
+    c->status.step_residual = residual;
 }
 
 /* ------------------------------------------------------------------ API */
@@ -283,12 +287,15 @@ void fvc_free(fvc_controller *c) {
 }
 
 void fvc_reset(fvc_controller *c) {
-    c->have_plan = c->prepared = c->have_prediction = 0;
+    c->have_plan = c->prepared = c->have_prediction = c->pending_prediction = 0;
     memset(c->d, 0, sizeof c->d);
     c->time = 0.0;
 }
 
+void fvc_complete(fvc_controller *c) { complete_prediction(c); }
+
 void fvc_prepare(fvc_controller *c) {
+    complete_prediction(c);
     if (!c->have_plan || c->prepared) return;
     double applied[M], last[NS], b[NR * M], residual, inverse[M * NR];
     for (int j = 0; j < M; j++) applied[j] = c->U[(N - 1) * M + j] + c->d[j];
@@ -315,6 +322,7 @@ int fvc_feedback(fvc_controller *c, const double *x, double *u) {
      * only add rounding (and make the C loop differ from a caller that normalized it already). */
     if (fabs(norm - 1.0) > 4.0 * DBL_EPSILON)
         for (int i = 0; i < 4; i++) x0[QS + i] /= norm;
+    complete_prediction(c);
     c->status.calls++;
     c->status.cold_guess = -1;
     update_estimate(c, x0);
@@ -340,7 +348,10 @@ int fvc_feedback(fvc_controller *c, const double *x, double *u) {
     c->have_plan = 1;
     c->prepared = 0;
     for (int j = 0; j < M; j++) u[j] = clip(c->U[j], fvc_torque_low[j], fvc_torque_high[j]);
-    c->status.step_residual = predicted(c, x0, u);
+    memcpy(c->sent_x, x0, sizeof x0);
+    memcpy(c->sent_u, u, sizeof c->sent_u);
+    c->pending_prediction = 1;
+    c->time += FVC_STEP_SIZE;  /* the next measurement's time unless fvc_set_time says otherwise */
     c->status.status = status;
     return status;
 }
@@ -353,7 +364,7 @@ void fvc_set_reference(fvc_controller *c, const double *states, const double *sc
 
 void fvc_set_time(fvc_controller *c, double t, int time_varying_reference) {
     if (fabs(t - c->time) > 1e-9) {
-        c->have_prediction = 0;
+        c->have_prediction = c->pending_prediction = 0;
         if (time_varying_reference) c->prepared = 0;
     }
     c->time = t;

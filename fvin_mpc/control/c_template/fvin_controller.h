@@ -29,7 +29,7 @@ typedef struct {
     int cold_guess;        /* index of the winning guess in fvc_cold_guess_name, -1 on warm calls */
     double last_step;      /* largest step of the last iteration over its trust region / torque range */
     double qp_mu;          /* final barrier parameter of the last QP */
-    double step_residual;  /* the model's Newton residual for the applied step (rad/s) */
+    double step_residual;  /* the model's Newton residual for the applied step (rad/s; after fvc_complete/prepare) */
     long calls, cold_calls, fallbacks, prepares, bad_states;  /* counters since fvc_create */
 } fvc_status;
 
@@ -45,8 +45,13 @@ void fvc_reset(fvc_controller *c);
 
 /* The control u (FVC_M) for the measured state x (FVC_NS). */
 int fvc_feedback(fvc_controller *c, const double *x, double *u);
-/* Shift the plan one step and linearize it for the next call; call after the control is sent. */
+/* Shift the plan one step and linearize it for the next call; call after the control is sent. It
+ * also computes the model's one-step prediction after the control (for the disturbance estimate),
+ * which fvc_feedback leaves for after the control is out. */
 void fvc_prepare(fvc_controller *c);
+/* That prediction alone, now (fvc_prepare and the next fvc_feedback do it anyway): for
+ * fvc_status.step_residual right after a call. */
+void fvc_complete(fvc_controller *c);
 
 /* The reference over the horizon from now: states (FVC_N+1) x FVC_NS and control scales FVC_N (the
  * stage's target control is scale * u_goal - d). new_reference != 0 drops the preparation (another
