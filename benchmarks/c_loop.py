@@ -6,7 +6,9 @@ episodes in MuJoCo with **measured latency** (the controller's wall-clock feedba
 control; ``run_episode(latency="measured")``), first on the machine as it is, then under a bounded
 background busy loop (one spinning process per core; started and stopped by this command, no pinning or
 priority changes). Reported per loop: the feedback call (state in → control out) and the whole period
-(feedback + preparation), median and p99, deadline misses, and whether the episode reached its goal.
+(feedback + preparation), median and p99, and its CPU time (the thread's: on a shared machine, less
+moved by the other processes than the wall clock), deadline misses, and whether the episode reached its
+goal.
 The C loop is called as one ``ctypes`` call per phase (no ``info`` dict); the Python loop as the
 studies call it. The Python loop runs with the scene's own wall-clock budgets; the C loop is bounded
 by iteration counts, so a cold first call may take longer in C than Python's cold budget allows.
@@ -97,10 +99,12 @@ def controllers(scene: str, true_model: bool, seed: int) -> tuple[Any, Any, Any,
 
 def summary(episode: Any) -> dict[str, Any]:
     feedback, busy = 1e6 * episode.feedback_s, 1e6 * episode.busy_s
-    feedback, busy = feedback[np.isfinite(feedback)], busy[np.isfinite(busy)]
+    cpu = 1e6 * episode.cpu_s
+    feedback, busy, cpu = feedback[np.isfinite(feedback)], busy[np.isfinite(busy)], cpu[np.isfinite(cpu)]
     metrics = episode_metrics(episode)
     return {"feedback_us_median": float(np.median(feedback)), "feedback_us_p99": float(np.percentile(feedback, 99)),
             "period_us_median": float(np.median(busy)), "period_us_p99": float(np.percentile(busy, 99)),
+            "period_cpu_us_median": float(np.median(cpu)),
             "first_period_us": float(busy[0]), "deadline_misses": int(episode.deadline_misses),
             "skipped": int(episode.skipped), "success": bool(metrics["success"]), "periods": int(busy.size),
             "control_period_us": 1e6 * episode.control_period}
@@ -126,22 +130,26 @@ def run(scenes: Sequence[str], true_model: bool, load_workers: int, seed: int) -
             python_row, c_row = row[f"python {condition}"], row[f"c {condition}"]
             row[f"period speed-up {condition}"] = python_row["period_us_median"] / c_row["period_us_median"]
             row[f"feedback speed-up {condition}"] = python_row["feedback_us_median"] / c_row["feedback_us_median"]
+            row[f"period CPU speed-up {condition}"] = (python_row["period_cpu_us_median"]
+                                                       / c_row["period_cpu_us_median"])
         rows.append(row)
     return rows
 
 
 def markdown(rows: list[dict[str, Any]]) -> str:
     lines = ["| scene | model | N | loop | load | feedback µs median / p99 | period µs median / p99 | first period µs "
-             "| deadline misses | reached goal | period speed-up |",
-             "|---|---|---|---|---|---|---|---|---|---|---|"]
+             "| period CPU µs median | deadline misses | reached goal | period speed-up (wall / CPU) |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for row in rows:
         for condition in ("as is", "loaded"):
             for name in ("python", "c"):
                 r = row[f"{name} {condition}"]
-                speed = f"{row[f'period speed-up {condition}']:.2f}×" if name == "c" else ""
+                speed = (f"{row[f'period speed-up {condition}']:.2f}× / {row[f'period CPU speed-up {condition}']:.2f}×"
+                         if name == "c" else "")
                 lines.append(f"| {row['scene']} | {row['model']} | {row['horizon']} | {name} | {condition} "
                              f"| {r['feedback_us_median']:.0f} / {r['feedback_us_p99']:.0f} "
                              f"| {r['period_us_median']:.0f} / {r['period_us_p99']:.0f} | {r['first_period_us']:.0f} "
+                             f"| {r['period_cpu_us_median']:.0f} "
                              f"| {r['deadline_misses']} of {r['periods']} | {r['success']} | {speed} |")
     return "\n".join(lines)
 
