@@ -83,6 +83,14 @@ def test_closed_form_pendulum_c_loop_equals_python_loop(closed_form_pendulum):
     assert counters["cold_calls"] == 2 and counters["calls"] == counters["prepares"] > 100
 
 
+def test_skipped_observations_reach_the_c_loop_as_a_jump_of_its_clock(closed_form_pendulum):
+    """A latency over the period: the controller is busy at the next instant, that observation is lost,
+    and the clock jump drops the one-step prediction from the disturbance estimate in both loops."""
+    env, python, c_loop = closed_form_pendulum
+    python_episode, _ = assert_same_closed_loops(env, python, c_loop, 2.0, 0.06, seed=5)
+    assert python_episode.skipped > 0
+
+
 def test_the_c_loop_refuses_a_state_that_is_not_one(closed_form_pendulum):
     _, _, c_loop = closed_form_pendulum
     with pytest.raises(ValueError, match="bad-state"):
@@ -156,3 +164,11 @@ def test_quadrotor_figure_eight_reference_reaches_the_c_loop_each_period():
     # the craft left its hover point: the comparison covers a moving reference, not a constant one
     assert np.abs(c_episode.states[:, :3] - c_episode.states[0, :3]).max() > 0.2
     assert_same_closed_loops(env, python, c_loop, 2.0, 0.004, reset_options={"hover": True})
+
+
+def test_export_options_that_need_a_controller_are_refused_without_one(capsys):
+    from fvin_mpc.core.errors import run_command
+    from fvin_mpc.export import main
+
+    assert run_command(main, ["--build"]) == 2
+    assert "go with --controller DIR" in capsys.readouterr().err
