@@ -306,7 +306,7 @@ class CRealTimeMPC:
         self._push_reference(new_reference=True)
 
     def _push_reference(self, new_reference: bool) -> None:
-        t = self._lib.fvc_time(self._handle) if hasattr(self, "_handle") else 0.0
+        t = self._lib.fvc_time(self._handle)
         times = t + self.model.step_size * np.arange(self.horizon + 1)
         states, scales = self._reference(times)
         states = np.ascontiguousarray(np.asarray(states, dtype=float).reshape(self.horizon + 1, -1))
