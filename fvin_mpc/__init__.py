@@ -54,6 +54,8 @@ installed under this name):
 * ``rti`` — the real-time iteration MPC (any state layout ``R^a × S³ × R^b``).
 * ``implicit_dynamics`` — the step's own equations as the real-time iteration's dynamics constraint.
 * ``buffered`` — CasADi calls through preallocated buffers, without per-call conversions.
+* ``c_controller`` — the real-time loop as a self-contained C library (generated functions + C driver),
+  and Python driving that library.
 * ``energy_shaping`` — energy-shaping swing-up with an LQR catch from ``J``, ``U``, ``g``.
 * ``closed_loop`` — closed-loop episodes (waiting or latency-aware) and their metrics.
 * ``scene`` — a scene's env, model, MPC and settings (the one path every command takes).
@@ -75,7 +77,7 @@ The commands, thin over the library (``python -m fvin_mpc.<name>``):
 * ``fly`` — fly the quadrotor with the real-time MPC.
 * ``collect`` — collect trajectories from a scene.
 * ``train`` — train a model on trajectory data (needs the ``train`` extra: torch).
-* ``export`` — write a checkpoint's step as a CasADi file.
+* ``export`` — write a checkpoint's step as a CasADi file, or a scene's real-time controller as a C library.
 * ``evaluate`` — closed-loop evaluation of the controllers.
 * ``quality`` — model quality of checkpoints (hinge or ball joint).
 * ``sweep`` — a training sweep.

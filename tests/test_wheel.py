@@ -77,6 +77,9 @@ def test_wheel_ships_checkpoints_and_scenes_and_needs_no_torch(wheel):
     assert [name for name in shipped if f"fvin_mpc/checkpoints/{name}" not in names] == []
     scenes = sorted(path.name for path in (REPOSITORY / "envs" / "scenes").glob("*.xml"))
     assert [name for name in scenes if f"fvin_mpc/envs/scenes/{name}" not in names] == []
+    # the C controller's hand-written driver, which `python -m fvin_mpc.export --controller` copies
+    template = sorted(path.name for path in (REPOSITORY / "fvin_mpc" / "control" / "c_template").iterdir())
+    assert template and [name for name in template if f"fvin_mpc/control/c_template/{name}" not in names] == []
     torch_requirements = [line for line in requirements if line.split()[1].lower().startswith("torch")]
     assert torch_requirements and all("extra ==" in line for line in torch_requirements), torch_requirements
     # The research studies stay in the clone: neither benchmarks/ nor the studies moved there ship.

@@ -382,6 +382,9 @@ class RealTimeMPC(MPC):
                 layout, n, m, *self._control_bounds, self._step_limits, self._omega_valid, s.rti.qp_iterations)]
         else:
             functions = [linearize, predict]
+        #: the CasADi functions the loop calls (linearize, predict, feedback), before compilation: what
+        #: :mod:`fvin_mpc.control.c_controller` generates as C — one source for both loops
+        self.loop_functions = tuple(functions)
         self.compile_report = None
         if s.compile == "cached":
             compiled, self.compile_report = compile_functions(

@@ -1,0 +1,180 @@
+"""The real-time loop in C against the same loop in Python: ``python -m benchmarks.c_loop``.
+
+Per scene, the Python :class:`~fvin_mpc.control.rti.RealTimeMPC` and its generated C library
+(:class:`~fvin_mpc.control.c_controller.CRealTimeMPC`; same problem, horizon and model) run closed-loop
+episodes in MuJoCo with **measured latency** (the controller's wall-clock feedback time delays its
+control; ``run_episode(latency="measured")``), first on the machine as it is, then under a bounded
+background busy loop (one spinning process per core; started and stopped by this command, no pinning or
+priority changes). Reported per loop: the feedback call (state in → control out) and the whole period
+(feedback + preparation), median and p99, and its CPU time (the thread's: on a shared machine, less
+moved by the other processes than the wall clock), deadline misses, and whether the episode reached its
+goal.
+The C loop is called as one ``ctypes`` call per phase (no ``info`` dict); the Python loop as the
+studies call it. The Python loop runs with the scene's own wall-clock budgets; the C loop is bounded
+by iteration counts, so a cold first call may take longer in C than Python's cold budget allows.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import multiprocessing
+import os
+import time
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from fvin_mpc._cli import run_command
+from fvin_mpc.control.c_controller import CRealTimeMPC
+from fvin_mpc.control.closed_loop import episode_metrics, run_episode
+from fvin_mpc.control.flight import quadrotor_model, quadrotor_mpc, quadrotor_mpc_settings, recovery_starts
+from fvin_mpc.control.scene import scene_env, scene_model, scene_mpc, scene_mpc_settings
+from fvin_mpc.envs import QuadrotorEnv
+from fvin_mpc.envs.scenes import resolve_scene
+
+SCENES = ("pendulum", "spherical_pendulum", "quadrotor")
+#: Seconds per episode: a swing-up and its catch, a ball-joint swing-up, a quadrotor recovery.
+DURATION_S = {"pendulum": 8.0, "spherical_pendulum": 8.0, "quadrotor": 4.0}
+
+
+class LeanC:
+    """The C loop as the closed loop calls it: one ctypes call for the control, one for the preparation."""
+
+    def __init__(self, controller: CRealTimeMPC) -> None:
+        self.controller = controller
+
+    def __call__(self, x: np.ndarray) -> tuple[np.ndarray, dict[str, Any]]:
+        return self.controller.feedback(x), {}
+
+    def prepare(self) -> None:
+        self.controller.prepare()
+
+    def reset(self) -> None:
+        self.controller.reset()
+
+    def set_time(self, t: float) -> None:
+        self.controller.set_time(t)
+
+
+def spin(until: float) -> None:
+    """A bounded busy loop: burn one core until the wall clock passes ``until``."""
+    while time.time() < until:
+        pass
+
+
+class BackgroundLoad:
+    """``workers`` busy-loop processes for at most ``limit_s`` seconds; stopped on exit."""
+
+    def __init__(self, workers: int, limit_s: float) -> None:
+        self.workers, self.limit_s = workers, limit_s
+
+    def __enter__(self) -> "BackgroundLoad":
+        until = time.time() + self.limit_s
+        self.processes = [multiprocessing.Process(target=spin, args=(until,), daemon=True) for _ in range(self.workers)]
+        for process in self.processes:
+            process.start()
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        for process in self.processes:
+            process.terminate()
+            process.join()
+
+
+def controllers(scene: str, true_model: bool, seed: int) -> tuple[Any, Any, Any, dict[str, Any], int]:
+    """``(env, python loop, C loop, reset options, env seed)`` of ``scene``: a random start, or the
+    quadrotor's first random recovery start."""
+    if resolve_scene(scene).space.pivoted:
+        env = scene_env(scene, true_model=true_model)
+        python = scene_mpc(env, scene_model(env, true_model=true_model), scene_mpc_settings(env, solver="rti"))
+        options = {"random": True}
+    else:
+        env = QuadrotorEnv(resolve_scene(scene))
+        python = quadrotor_mpc(env, quadrotor_model(env, true_model=true_model), quadrotor_mpc_settings())
+        options, seed = recovery_starts(env.unwrapped.goal_state[:3], count=3, seed=seed)[2]
+    return env, python, LeanC(CRealTimeMPC(python)), options, seed
+
+
+def summary(episode: Any) -> dict[str, Any]:
+    feedback, busy = 1e6 * episode.feedback_s, 1e6 * episode.busy_s
+    cpu = 1e6 * episode.cpu_s
+    feedback, busy, cpu = feedback[np.isfinite(feedback)], busy[np.isfinite(busy)], cpu[np.isfinite(cpu)]
+    metrics = episode_metrics(episode)
+    return {"feedback_us_median": float(np.median(feedback)), "feedback_us_p99": float(np.percentile(feedback, 99)),
+            "period_us_median": float(np.median(busy)), "period_us_p99": float(np.percentile(busy, 99)),
+            "period_cpu_us_median": float(np.median(cpu)),
+            "first_period_us": float(busy[0]), "deadline_misses": int(episode.deadline_misses),
+            "skipped": int(episode.skipped), "success": bool(metrics["success"]), "periods": int(busy.size),
+            "control_period_us": 1e6 * episode.control_period}
+
+
+def run(scenes: Sequence[str], true_model: bool, load_workers: int, seed: int) -> list[dict[str, Any]]:
+    from tqdm.auto import tqdm
+
+    rows = []
+    for scene in tqdm(scenes, desc="scenes"):
+        env, python, c_loop, options, seed = controllers(scene, true_model, seed)
+        duration = DURATION_S.get(scene, 8.0)
+        row: dict[str, Any] = {"scene": scene, "model": python.model.name, "horizon": python.horizon}
+        for condition in ("as is", "loaded"):
+            for name, loop in (("python", python), ("c", c_loop)):
+                if condition == "loaded":
+                    with BackgroundLoad(load_workers, limit_s=120.0):
+                        episode, _ = run_episode(env, loop, duration, options, seed, latency="measured")
+                else:
+                    episode, _ = run_episode(env, loop, duration, options, seed, latency="measured")
+                row[f"{name} {condition}"] = summary(episode)
+        for condition in ("as is", "loaded"):
+            python_row, c_row = row[f"python {condition}"], row[f"c {condition}"]
+            row[f"period speed-up {condition}"] = python_row["period_us_median"] / c_row["period_us_median"]
+            row[f"feedback speed-up {condition}"] = python_row["feedback_us_median"] / c_row["feedback_us_median"]
+            row[f"period CPU speed-up {condition}"] = (python_row["period_cpu_us_median"]
+                                                       / c_row["period_cpu_us_median"])
+        rows.append(row)
+    return rows
+
+
+def markdown(rows: list[dict[str, Any]]) -> str:
+    lines = ["| scene | model | N | loop | load | feedback µs median / p99 | period µs median / p99 | first period µs "
+             "| period CPU µs median | deadline misses | reached goal | period speed-up (wall / CPU) |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for row in rows:
+        for condition in ("as is", "loaded"):
+            for name in ("python", "c"):
+                r = row[f"{name} {condition}"]
+                speed = (f"{row[f'period speed-up {condition}']:.2f}× / {row[f'period CPU speed-up {condition}']:.2f}×"
+                         if name == "c" else "")
+                lines.append(f"| {row['scene']} | {row['model']} | {row['horizon']} | {name} | {condition} "
+                             f"| {r['feedback_us_median']:.0f} / {r['feedback_us_p99']:.0f} "
+                             f"| {r['period_us_median']:.0f} / {r['period_us_p99']:.0f} | {r['first_period_us']:.0f} "
+                             f"| {r['period_cpu_us_median']:.0f} "
+                             f"| {r['deadline_misses']} of {r['periods']} | {r['success']} | {speed} |")
+    return "\n".join(lines)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.c_loop", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--scenes", nargs="+", choices=SCENES, default=list(SCENES), help="scenes to time")
+    parser.add_argument("--true-model", action="store_true", help="plan with the closed form instead of the checkpoint")
+    parser.add_argument("--load-workers", type=int, default=os.cpu_count() or 2,
+                        help="busy-loop processes of the loaded runs (default: one per core)")
+    parser.add_argument("--out", type=Path, default=Path("docs/bench/c_loop.json"), help="JSON results")
+    parser.add_argument("--seed", type=int, default=0, help="the episodes' random starts")
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    rows = run(args.scenes, args.true_model, args.load_workers, args.seed)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps({"command": "python -m benchmarks.c_loop", "cpus": os.cpu_count(),
+                                    "load_workers": args.load_workers, "rows": rows}, indent=1))
+    print(markdown(rows))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(run_command(main))

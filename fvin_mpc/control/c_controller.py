@@ -1,0 +1,386 @@
+"""The real-time controller as a self-contained C library, and Python driving that library.
+
+:func:`write_controller` writes a folder that builds with ``make`` (or ``cc -O2``): the CasADi
+functions a :class:`~fvin_mpc.control.rti.RealTimeMPC` calls every period —
+``rti_linearize_blocks``, ``rti_predict``, ``rti_feedback``, taken from its
+:attr:`~fvin_mpc.control.rti.RealTimeMPC.loop_functions`, so the math has one source — generated as C
+(``fvc_model.c``), the settings the Python loop reads as constants (``fvc_config.h``), and a
+hand-written driver (``fvin_controller.c``, package data under ``c_template/``) that is the Python
+loop's orchestration: the cold multi-start, feedback, preparation (shift + linearization), fallback to
+the shifted plan, the disturbance estimate, the reference as a run-time input. A header
+(``fvin_controller.h``), a ``Makefile`` and an example ``main.c`` come with it. Nothing of Python,
+NumPy, CasADi or torch at run time.
+
+Iteration counts bound the C loop, not the wall clock: a cold call runs ``rti_cold_iter`` iterations
+per guess (fewer once a step is below ``rti_tol``) and every guess of ``cold_starts``; a warm call up
+to ``rti_max_iter``. The Python loop stops earlier where its wall-clock budgets
+(``rti_cold_budget_s``, ``rti_budget_s``) bind; where they do not, both loops compute the same
+controls (tests/test_c_controller.py checks whole closed-loop episodes to 1e-9).
+
+:class:`CRealTimeMPC` builds (once, cached by the SHA-256 of the sources) and loads such a library
+through ``ctypes`` and is a controller like :class:`~fvin_mpc.control.rti.RealTimeMPC`:
+``u, info = controller(x)``, ``prepare()``, ``reset()``, ``set_time()``, ``set_reference()`` — so a
+study can run the Python loop and the C loop side by side.
+
+Refused, with the reason: a QP solver other than the generated Riccati one, and an IPOPT cold start
+(``rti_cold_solver="ipopt"``: IPOPT is not generated code; the C cold start is the RTI's own).
+
+The first guesses of the cold start: a pivoted body's ``"goal"`` slerp and the ``"rollout±"``
+rollouts are a few lines of the C driver; a free body's ``"goal"`` guess (the geodesic from the
+measured attitude to the reference's, :meth:`~fvin_mpc.control.mpc.MPC._first_guess`) is generated
+from the same S³ functions (:func:`goal_guess_function`).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import hashlib
+import os
+import shutil
+import subprocess
+import time
+from importlib import resources
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Any
+
+import casadi as ca
+import numpy as np
+
+from fvin_mpc.control.model_export import cache_dir
+from fvin_mpc.control.problem import ConstantReference, Reference
+from fvin_mpc.control.rti import RTI_COLD_ORDER, RealTimeMPC
+from fvin_mpc.core import s3
+from fvin_mpc.core.backend import get_ops
+from fvin_mpc.core.errors import FvinMpcError
+
+CA = get_ops("casadi")
+
+#: The hand-written files copied next to the generated ones.
+TEMPLATE_FILES = ("fvin_controller.c", "fvin_controller.h", "main.c", "Makefile")
+#: The generated functions, in the order RealTimeMPC.loop_functions holds them.
+LOOP_FUNCTION_NAMES = ("rti_linearize_blocks", "rti_predict", "rti_feedback")
+#: Flags of the shared library: those of the Python loop's compiled functions
+#: (:data:`fvin_mpc.control.model_export.COMPILER_FLAGS`), so both run the same machine code.
+LIBRARY_FLAGS = ("-O2", "-fPIC", "-shared")
+#: What ``fvc_feedback`` returns (fvin_controller.h).
+STATUS_NAMES = {0: "rti", 1: "cold", 2: "previous-plan", -1: "bad-state", -2: "no-memory"}
+
+
+class ControllerNotExportable(FvinMpcError, ValueError):
+    """The controller's settings ask for something the C loop does not have (the message says what)."""
+
+
+def solver_settings(controller: RealTimeMPC) -> dict[str, Any]:
+    """The real-time iteration's own settings the C loop reads, by their names here — the one place
+    that knows where :class:`~fvin_mpc.control.mpc.MPCSettings` keeps them."""
+    s = controller.settings
+    return {"cold_solver": s.rti_cold_solver, "qp_solver": s.rti_qp_solver, "dynamics": s.rti_dynamics,
+            "max_iter": s.rti_max_iter, "cold_iter": s.rti_cold_iter, "tol": s.rti_tol,
+            "qp_iterations": s.rti_qp_iterations}
+
+
+def check_exportable(controller: RealTimeMPC) -> None:
+    """``ControllerNotExportable`` unless the C loop can run ``controller``'s settings."""
+    s = SimpleNamespace(**solver_settings(controller))
+    if s.cold_solver != "rti":
+        raise ControllerNotExportable(
+            f"rti_cold_solver={s.cold_solver!r}: a cold start with IPOPT cannot be generated as C; "
+            "use rti_cold_solver='rti' (the real-time iteration's own multi-start cold start)")
+    if s.qp_solver != "riccati":
+        raise ControllerNotExportable(f"rti_qp_solver={s.qp_solver!r}: only the generated Riccati "
+                                      "interior-point QP ('riccati') is generated as C")
+    names = tuple(function.name() for function in controller.loop_functions)
+    if names != LOOP_FUNCTION_NAMES:
+        raise ControllerNotExportable(f"the controller's loop functions are {names}, the C driver calls "
+                                      f"{LOOP_FUNCTION_NAMES}")
+
+
+def goal_guess_function(controller: RealTimeMPC) -> ca.Function:
+    """``rti_goal_guess(x0, R (n_x, N+1), u_s (m, N)) → (X, U)``: a free body's ``"goal"`` first guess
+    (:meth:`~fvin_mpc.control.mpc.MPC._first_guess`) from :mod:`fvin_mpc.core.s3` on CasADi — the
+    reference states, the attitude turned from the measured one to the reference's along the geodesic
+    over the first third of the horizon, at rest in ``ω``; the controls the reference's targets."""
+    layout, n, m = controller.layout, controller.horizon, controller.model.control_dim
+    qs, omega = layout.quaternion, layout.omega
+    x0, references = ca.SX.sym("x0", layout.state_dim), ca.SX.sym("R", layout.state_dim, n + 1)
+    targets = ca.SX.sym("u_s", m, n)
+    q0 = tuple(x0[i] for i in range(qs.start, qs.stop))
+    columns = [x0]
+    for k in range(1, n + 1):
+        q_ref = tuple(references[i, k] for i in range(qs.start, qs.stop))
+        q_ref = s3.scale(ca.if_else(s3.dot(q_ref, q0) >= 0, 1.0, -1.0), q_ref)  # on q0's side of S³
+        turn = s3.log(s3.multiply(s3.conjugate(q0), q_ref), CA)
+        weight = min(max(k / max(1, n // 3), 0.0), 1.0)
+        turned = s3.multiply(q0, s3.exp(tuple(weight * t for t in turn), CA))
+        columns.append(ca.vertcat(references[:qs.start, k], *turned, references[qs.stop:omega.start, k],
+                                  ca.SX.zeros(3)))
+    return ca.Function("rti_goal_guess", [x0, references, targets], [ca.horzcat(*columns), targets],
+                       ["x0", "R", "u_s"], ["X", "U"])
+
+
+def generated_functions(controller: RealTimeMPC) -> list[ca.Function]:
+    """What ``fvc_model.c`` holds: the loop's functions (dense outputs) and, for a free body that starts
+    from ``"goal"``, :func:`goal_guess_function`."""
+    functions = [dense_outputs(function) for function in controller.loop_functions]
+    if free_goal_guess(controller):
+        functions.append(goal_guess_function(controller))
+    return functions
+
+
+def free_goal_guess(controller: RealTimeMPC) -> bool:
+    return "goal" in controller.settings.cold_starts and not controller.model.space.pivoted
+
+
+def dense_outputs(function: ca.Function) -> ca.Function:
+    """``function`` with every output dense (the driver passes plain arrays between the functions)."""
+    if all(function.sparsity_out(i).is_dense() for i in range(function.n_out())):
+        return function
+    inputs = function.mx_in()
+    return ca.Function(function.name(), inputs, [ca.densify(out) for out in function.call(inputs)],
+                       function.name_in(), function.name_out())
+
+
+def _literal(values: Any) -> str:
+    return ", ".join(repr(float(v)) for v in np.ravel(values))
+
+
+def config_header(controller: RealTimeMPC, example_state: np.ndarray) -> str:
+    """``fvc_config.h``: the dimensions and the settings the driver reads, as C constants."""
+    s, layout, m = controller.settings, controller.layout, controller.model.control_dim
+    rti = SimpleNamespace(**solver_settings(controller))
+    order = [RTI_COLD_ORDER.index(name) for name in sorted(s.cold_starts, key=RTI_COLD_ORDER.index)]
+    lines = [
+        "/* Generated by fvin_mpc.control.c_controller for model " + repr(controller.model.name) + ". */",
+        "#ifndef FVC_CONFIG_H", "#define FVC_CONFIG_H",
+        f"#define FVC_N {controller.horizon}", f"#define FVC_NS {layout.state_dim}",
+        f"#define FVC_ND {layout.tangent_dim}", f"#define FVC_M {m}", f"#define FVC_BEFORE {layout.before}",
+        f"#define FVC_IMPLICIT {int(rti.dynamics == 'implicit')}",
+        f"#define FVC_FREE_GOAL_GUESS {int(free_goal_guess(controller))}",
+        f"#define FVC_MAX_ITER {rti.max_iter}", f"#define FVC_COLD_ITER {rti.cold_iter}",
+        f"#define FVC_N_COLD {len(order)}",
+        f"#define FVC_TOL {rti.tol!r}", f"#define FVC_STEP_SIZE {controller.model.step_size!r}",
+        f"#define FVC_OMEGA_BOUND {controller.omega_bound!r}",
+        f"#define FVC_INITIAL_TORQUE_FRACTION {s.initial_torque_fraction!r}",
+        f"#define FVC_DISTURBANCE_GAIN {s.disturbance_gain!r}",
+        f"#define FVC_DISTURBANCE_REGION_RAD {s.disturbance_region_rad!r}",
+        f"#define FVC_DISTURBANCE_REGION_SPEED {s.disturbance_region_speed!r}",
+        f"static const int fvc_cold_order[{len(order)}] = {{{', '.join(map(str, order))}}};",
+        f"static const double fvc_torque_low[{m}] = {{{_literal(controller.torque_low)}}};",
+        f"static const double fvc_torque_high[{m}] = {{{_literal(controller.torque_high)}}};",
+        f"static const double fvc_goal_state[{layout.state_dim}] = {{{_literal(controller.goal_state)}}};",
+        f"static const double fvc_example_state[{layout.state_dim}] = {{{_literal(example_state)}}};",
+        "#endif", "",
+    ]
+    return "\n".join(lines)
+
+
+def write_controller(controller: RealTimeMPC, directory: str | Path, example_state: Any = None) -> Path:
+    """Write the C library of ``controller`` (module docstring) into ``directory``; returns it.
+
+    ``example_state``: where ``main.c`` starts (default: the rest orientation at rest, or the goal
+    state for a free body)."""
+    check_exportable(controller)
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    generator = ca.CodeGenerator("fvc_model.c", {"with_header": True})
+    for function in generated_functions(controller):
+        generator.add(function)
+    generator.generate(str(directory) + os.sep)
+    if example_state is None:
+        example_state = controller.goal_state.copy()
+        if controller.rest is not None and controller.model.space.pivoted:
+            example_state[controller.layout.quaternion] = controller.rest
+    (directory / "fvc_config.h").write_text(config_header(controller, np.asarray(example_state, dtype=float)))
+    template = resources.files("fvin_mpc.control") / "c_template"
+    for name in TEMPLATE_FILES:
+        (directory / name).write_bytes((template / name).read_bytes())
+    return directory
+
+
+def build_library(directory: str | Path, flags: tuple[str, ...] = LIBRARY_FLAGS) -> Path:
+    """Compile ``directory``'s controller into ``libfvin_controller.so`` with ``$CC`` (default ``cc``).
+
+    Raises:
+        RuntimeError: no C compiler, or compilation failed (with the compiler's message).
+    """
+    directory = Path(directory)
+    compiler = os.environ.get("CC", "cc")
+    if shutil.which(compiler) is None:
+        raise RuntimeError(f"no C compiler {compiler!r} on PATH; install one (cc, gcc, clang) or set CC")
+    library = directory / "libfvin_controller.so"
+    partial = directory / f"libfvin_controller.{os.getpid()}.tmp"
+    process = subprocess.run([compiler, *flags, "fvin_controller.c", "fvc_model.c", "-o", partial.name, "-lm"],
+                             cwd=directory, capture_output=True, text=True)
+    if process.returncode != 0:
+        partial.unlink(missing_ok=True)
+        raise RuntimeError(f"compiling the controller in {directory} failed: {process.stderr.strip()[-2000:]}")
+    os.replace(partial, library)
+    return library
+
+
+def cached_library(controller: RealTimeMPC) -> Path:
+    """The built library of ``controller``, under :func:`~fvin_mpc.control.model_export.cache_dir`
+    ``/c_controller``, named by the SHA-256 of its sources: written and compiled only once."""
+    staging = cache_dir() / "c_controller" / f"staging_{os.getpid()}"
+    shutil.rmtree(staging, ignore_errors=True)
+    write_controller(controller, staging)
+    digest = hashlib.sha256()
+    for path in sorted(staging.iterdir()):
+        digest.update(path.name.encode() + path.read_bytes())
+    digest.update(" ".join(LIBRARY_FLAGS).encode())
+    final = cache_dir() / "c_controller" / f"{controller.model.name.replace(':', '_')}_{digest.hexdigest()[:20]}"
+    if not (final / "libfvin_controller.so").is_file():
+        build_library(staging)
+        shutil.rmtree(final, ignore_errors=True)
+        os.replace(staging, final)
+    else:
+        shutil.rmtree(staging, ignore_errors=True)
+    return final / "libfvin_controller.so"
+
+
+class _Status(ctypes.Structure):
+    _fields_ = [("status", ctypes.c_int), ("iterations", ctypes.c_int), ("cold_guess", ctypes.c_int),
+                ("last_step", ctypes.c_double), ("qp_mu", ctypes.c_double), ("step_residual", ctypes.c_double),
+                ("calls", ctypes.c_long), ("cold_calls", ctypes.c_long), ("fallbacks", ctypes.c_long),
+                ("prepares", ctypes.c_long), ("bad_states", ctypes.c_long)]
+
+
+def load_library(path: str | Path) -> ctypes.CDLL:
+    """``path``'s controller library with its functions' argument types declared."""
+    lib = ctypes.CDLL(str(path))
+    pointer, double_p = ctypes.c_void_p, ctypes.POINTER(ctypes.c_double)
+    lib.fvc_create.restype = pointer
+    lib.fvc_free.argtypes = lib.fvc_reset.argtypes = lib.fvc_prepare.argtypes = lib.fvc_complete.argtypes = [pointer]
+    lib.fvc_feedback.argtypes = [pointer, double_p, double_p]
+    lib.fvc_feedback.restype = ctypes.c_int
+    lib.fvc_set_reference.argtypes = [pointer, double_p, double_p, ctypes.c_int]
+    lib.fvc_set_time.argtypes = [pointer, ctypes.c_double, ctypes.c_int]
+    lib.fvc_time.argtypes = [pointer]
+    lib.fvc_time.restype = ctypes.c_double
+    lib.fvc_get_status.argtypes = [pointer, ctypes.POINTER(_Status)]
+    lib.fvc_get_plan.argtypes = [pointer, double_p, double_p]
+    lib.fvc_get_disturbance.argtypes = lib.fvc_get_goal_control.argtypes = [pointer, double_p]
+    lib.fvc_dims.argtypes = [ctypes.POINTER(ctypes.c_int)] * 4
+    lib.fvc_cold_guess_name.restype = ctypes.c_char_p
+    lib.fvc_cold_guess_name.argtypes = [ctypes.c_int]
+    return lib
+
+
+def _pointer(array: np.ndarray) -> Any:
+    return array.ctypes.data_as(ctypes.POINTER(ctypes.c_double))
+
+
+class CRealTimeMPC:
+    """A :class:`~fvin_mpc.control.rti.RealTimeMPC`'s loop run by its generated C library.
+
+    ``controller`` is the Python controller whose functions and settings are generated (it is not
+    called: its reference is read only to sample time-varying references). ``library``: a built
+    library of it (default: :func:`cached_library`). Same contract as the Python controller:
+    ``u, info = c(x)`` then ``c.prepare()``; ``info`` has ``status``, ``success``, ``fallback``,
+    ``iterations``, ``solve_time_s``, ``step_residual``, ``disturbance``, ``states``, ``controls``,
+    ``qp_iterations`` and on cold calls ``cold_start``.
+    """
+
+    def __init__(self, controller: RealTimeMPC, library: str | Path | None = None) -> None:
+        check_exportable(controller)
+        self.python = controller
+        self.settings, self.model, self.layout = controller.settings, controller.model, controller.layout
+        self.horizon = controller.horizon
+        self._qp_iterations = solver_settings(controller)["qp_iterations"]
+        self.library = Path(library) if library is not None else cached_library(controller)
+        self._lib = load_library(self.library)
+        dims = [ctypes.c_int() for _ in range(4)]
+        self._lib.fvc_dims(*[ctypes.byref(d) for d in dims])
+        ns, _, m, n = (d.value for d in dims)
+        if (ns, m, n) != (self.layout.state_dim, self.model.control_dim, self.horizon):
+            raise ValueError(f"{self.library}: a controller of {ns} states, {m} controls, horizon {n}, not "
+                             f"{self.layout.state_dim}, {self.model.control_dim}, {self.horizon}")
+        self._handle = ctypes.c_void_p(self._lib.fvc_create())
+        if not self._handle.value:
+            raise MemoryError("fvc_create: out of memory")
+        self._x, self._u = np.zeros(ns), np.zeros(m)
+        self._states, self._controls = np.zeros((n + 1, ns)), np.zeros((n, m))
+        self._d = np.zeros(m)
+        self._status = _Status()
+        self.set_reference(ConstantReference(controller.goal_state))
+
+    def __del__(self) -> None:
+        handle = getattr(self, "_handle", None)
+        if handle is not None and handle.value:
+            self._lib.fvc_free(handle)
+            handle.value = None
+
+    # ------------------------------------------------------------------ reference and clock
+    def set_reference(self, reference: Reference) -> None:
+        """Track ``reference`` from now on (as :meth:`RealTimeMPC.set_reference`)."""
+        self._reference = reference
+        self._push_reference(new_reference=True)
+
+    def _push_reference(self, new_reference: bool) -> None:
+        t = self._lib.fvc_time(self._handle)
+        times = t + self.model.step_size * np.arange(self.horizon + 1)
+        states, scales = self._reference(times)
+        states = np.ascontiguousarray(np.asarray(states, dtype=float).reshape(self.horizon + 1, -1))
+        scales = np.ascontiguousarray(np.asarray(scales, dtype=float).reshape(self.horizon + 1)[:self.horizon])
+        self._lib.fvc_set_reference(self._handle, _pointer(states), _pointer(scales), int(new_reference))
+
+    def set_time(self, t: float) -> None:
+        """The time of the next measurement (as :meth:`RealTimeMPC.set_time`)."""
+        self._lib.fvc_set_time(self._handle, float(t), int(not self._reference.constant))
+
+    # ------------------------------------------------------------------ the loop
+    def reset(self) -> None:
+        """Forget the plan and the disturbance estimate; the clock restarts at 0."""
+        self._lib.fvc_reset(self._handle)
+        if not self._reference.constant:
+            self._push_reference(new_reference=False)
+
+    def prepare(self) -> None:
+        """Shift the plan and linearize it for the next call (the preparation phase)."""
+        if not self._reference.constant:
+            self._push_reference(new_reference=False)
+        self._lib.fvc_prepare(self._handle)
+
+    def feedback(self, x: Any) -> np.ndarray:
+        """The control for the measured state ``x`` alone: one C call, no ``info`` (for timing loops)."""
+        self._x[:] = x
+        status = self._lib.fvc_feedback(self._handle, _pointer(self._x), _pointer(self._u))
+        if status < 0:
+            raise ValueError(f"the C controller refused the state {self._x} ({STATUS_NAMES[status]})")
+        return self._u.copy()
+
+    def __call__(self, x: Any) -> tuple[np.ndarray, dict[str, Any]]:
+        start = time.perf_counter()
+        x0 = self.layout.check(x)
+        if not self._reference.constant:
+            self._push_reference(new_reference=False)
+        u = self.feedback(x0)
+        solve_time = time.perf_counter() - start
+        self._lib.fvc_complete(self._handle)  # the step's residual for info (the C loop defers it)
+        self._lib.fvc_get_status(self._handle, ctypes.byref(self._status))
+        self._lib.fvc_get_plan(self._handle, _pointer(self._states), _pointer(self._controls))
+        self._lib.fvc_get_disturbance(self._handle, _pointer(self._d))
+        status = STATUS_NAMES[self._status.status]
+        info = {"status": status if status != "previous-plan" else "qp-not-finite",
+                "success": status != "previous-plan",
+                "fallback": "previous-plan" if status == "previous-plan" else None,
+                "iterations": int(self._status.iterations), "solve_time_s": solve_time, "cost": float("nan"),
+                "step_residual": float(self._status.step_residual), "states": self._states.copy(),
+                "controls": self._controls.copy(), "disturbance": self._d.copy(),
+                "qp_iterations": self._qp_iterations, "loop": "c"}
+        if status == "cold":
+            info["cold_start"] = self._lib.fvc_cold_guess_name(self._status.cold_guess).decode()
+        return u, info
+
+    @property
+    def disturbance(self) -> np.ndarray:
+        """``d̂`` of the C loop's estimate."""
+        self._lib.fvc_get_disturbance(self._handle, _pointer(self._d))
+        return self._d.copy()
+
+    def counters(self) -> dict[str, int]:
+        """Calls, cold calls, fallbacks, preparations and refused states since creation."""
+        self._lib.fvc_get_status(self._handle, ctypes.byref(self._status))
+        return {name: int(getattr(self._status, name))
+                for name in ("calls", "cold_calls", "fallbacks", "prepares", "bad_states")}

@@ -1,0 +1,381 @@
+/* The real-time iteration of fvin_mpc.control.rti.RealTimeMPC, in C, around the same CasADi functions
+ * generated as C (fvc_model.c: rti_linearize_blocks, rti_predict, rti_feedback). This file is the
+ * orchestration only — every piece of the math is in the generated functions; what is here mirrors
+ * RealTimeMPC.__call__ / prepare / _improve / _first_guess and DisturbanceEstimate line by line, with
+ * iteration counts for bounds (no wall clock). tests/test_c_controller.py checks both loops agree. */
+#include <float.h>
+#include <math.h>
+#include <stdlib.h>
+#include <string.h>
+
+#include "fvin_controller.h"
+#include "fvc_config.h"
+#include "fvc_model.h"
+
+#define N FVC_N
+#define NS FVC_NS
+#define M FVC_M
+#define QS FVC_BEFORE             /* first quaternion entry of a state */
+#define RS (FVC_BEFORE + 4)       /* first rate entry (v, ω or ω) */
+#define NR (NS - RS)              /* rates */
+#define OM (NS - 3)               /* first ω entry */
+
+enum { LIN_H, LIN_HN, LIN_G, LIN_GN, LIN_AB, LIN_GAPS, LIN_COST, LIN_COUNT };
+
+struct fvc_controller {
+    double X[(N + 1) * NS], U[N * M];        /* the plan */
+    double CX[(N + 1) * NS], CU[N * M];      /* a cold guess being improved */
+    double BX[(N + 1) * NS], BU[N * M];      /* the best cold plan */
+    double NX_[(N + 1) * NS], NU[N * M];     /* an iteration's result */
+    double ref[(N + 1) * NS], scales[N], u_s[N * M];
+    double u_goal[M], d[M], limit[M];
+    double pred_rates[NR], pred_inverse[M * NR]; /* the last one-step prediction (column-major inverse) */
+    int have_plan, prepared, have_prediction, pending_prediction;
+    double sent_x[NS], sent_u[M];            /* the last call's state and control, for the prediction */
+    double time;
+    double *lin[LIN_COUNT];
+    /* CasADi work memory, shared by the three functions */
+    const casadi_real **arg;
+    casadi_real **res;
+    casadi_int *iw;
+    casadi_real *w;
+    fvc_status status;
+};
+
+static const char *guess_names[] = {"goal", "rollout+", "rollout-"};
+
+void fvc_dims(int *ns, int *nd, int *m, int *n) { *ns = NS; *nd = FVC_ND; *m = M; *n = N; }
+double fvc_step_size(void) { return FVC_STEP_SIZE; }
+const char *fvc_cold_guess_name(int index) { return index >= 0 && index < 3 ? guess_names[index] : "none"; }
+
+static double clip(double v, double lo, double hi) { return v < lo ? lo : (v > hi ? hi : v); }
+
+static casadi_int out_size(const casadi_int *sp) { return sp[0] * sp[1]; } /* every output is dense */
+
+/* u_s,k = clip(s_k u_goal − d): the control that holds the reference in the corrected model (reference_window) */
+static void targets(fvc_controller *c) {
+    for (int k = 0; k < N; k++)
+        for (int j = 0; j < M; j++)
+            c->u_s[k * M + j] = clip(c->scales[k] * c->u_goal[j] - c->d[j], fvc_torque_low[j], fvc_torque_high[j]);
+}
+
+/* ------------------------------------------------------------------ generated calls */
+static void call_linearize(fvc_controller *c, double *X, double *U) {
+    if (FVC_IMPLICIT) {
+        /* Both ends of a stage on one sheet of S³ (RealTimeMPC._linearize_at): flip every node after a sign change. */
+        double turns[N];
+        int any = 0;
+        for (int k = 0; k < N; k++) {
+            double t = 0.0;
+            for (int i = 0; i < 4; i++) t += X[k * NS + QS + i] * X[(k + 1) * NS + QS + i];
+            turns[k] = t;
+            any |= t < 0.0;
+        }
+        if (any) {
+            double sign = 1.0;
+            for (int k = 1; k <= N; k++) {
+                if (turns[k - 1] < 0.0) sign = -sign;
+                for (int i = 0; i < 4; i++) X[k * NS + QS + i] *= sign;
+            }
+        }
+    }
+    targets(c);
+    c->arg[0] = X; c->arg[1] = U; c->arg[2] = c->ref; c->arg[3] = c->d; c->arg[4] = c->u_s;
+    for (int i = 0; i < LIN_COUNT; i++) c->res[i] = c->lin[i];
+    rti_linearize_blocks(c->arg, c->res, c->iw, c->w, 0);
+}
+
+static void call_predict(fvc_controller *c, const double *x, const double *u, double *next, double *b,
+                         double *residual, double *inverse) {
+    c->arg[0] = x; c->arg[1] = u;
+    c->res[0] = next; c->res[1] = b; c->res[2] = residual; c->res[3] = inverse;
+    rti_predict(c->arg, c->res, c->iw, c->w, 0);
+}
+
+static int all_finite(const double *v, int count) {
+    for (int i = 0; i < count; i++)
+        if (!isfinite(v[i])) return 0;
+    return 1;
+}
+
+/* One SQP iteration (RealTimeMPC._iterate_riccati): the new plan into NX_, NU; 0 if not finite. */
+static int iterate(fvc_controller *c, const double *X, const double *U, const double *x0) {
+    double step, mu;
+    c->arg[0] = X; c->arg[1] = U; c->arg[2] = x0;
+    for (int i = 0; i < LIN_GAPS + 1; i++) c->arg[3 + i] = c->lin[i];
+    c->res[0] = c->NX_; c->res[1] = c->NU; c->res[2] = &step; c->res[3] = &mu;
+    rti_feedback(c->arg, c->res, c->iw, c->w, 0);
+    c->status.last_step = step;
+    c->status.qp_mu = mu;
+    return all_finite(c->NX_, (N + 1) * NS) && all_finite(c->NU, N * M);
+}
+
+/* Up to `iterations` iterations on the plan (X, U) in place (RealTimeMPC._improve without the wall
+ * clock): the first always, each further one while the last step was not below the tolerance.
+ * Returns the iterations done; *failed when the first gave no finite plan (X, U unchanged). */
+static int improve(fvc_controller *c, double *X, double *U, const double *x0, int iterations, int linearized,
+                   int *failed) {
+    int done = 0;
+    *failed = 0;
+    while (done < iterations) {
+        if (done > 0 && c->status.last_step < FVC_TOL) break;
+        if (!linearized) call_linearize(c, X, U);
+        linearized = 0;
+        if (!iterate(c, X, U, x0)) {
+            *failed = done == 0;
+            return done;
+        }
+        memcpy(X, c->NX_, sizeof c->NX_);
+        memcpy(U, c->NU, sizeof c->NU);
+        done++;
+    }
+    return done;
+}
+
+/* ------------------------------------------------------------------ cold start (MPC._first_guess) */
+static void goal_guess(fvc_controller *c, const double *x0, double *X, double *U) {
+#if FVC_FREE_GOAL_GUESS
+    targets(c);  /* a free body: the generated geodesic to the reference (rti_goal_guess) */
+    c->arg[0] = x0; c->arg[1] = c->ref; c->arg[2] = c->u_s;
+    c->res[0] = X; c->res[1] = U;
+    rti_goal_guess(c->arg, c->res, c->iw, c->w, 0);
+    return;
+#endif
+    const double *q0 = x0 + QS;
+    double goal[4], dot = 0.0;
+    for (int i = 0; i < 4; i++) dot += q0[i] * fvc_goal_state[QS + i];
+    for (int i = 0; i < 4; i++) goal[i] = (dot >= 0 ? 1.0 : -1.0) * fvc_goal_state[QS + i];
+    double cosine = 0.0;
+    for (int i = 0; i < 4; i++) cosine += q0[i] * goal[i];
+    double angle = acos(clip(cosine, -1.0, 1.0));
+    int third = N / 3 > 1 ? N / 3 : 1;
+    memset(X, 0, sizeof(double) * (N + 1) * NS);
+    for (int k = 0; k <= N; k++) {
+        double weight = clip((double)k / third, 0.0, 1.0);
+        for (int i = 0; i < 4; i++)
+            X[k * NS + QS + i] = angle < 1e-9 ? q0[i]
+                : (sin((1 - weight) * angle) * q0[i] + sin(weight * angle) * goal[i]) / sin(angle);
+    }
+    memcpy(X, x0, sizeof(double) * NS);
+    memset(U, 0, sizeof(double) * N * M);
+    (void)c;
+}
+
+static void rollout_guess(fvc_controller *c, const double *x0, double sign, double *X, double *U) {
+    double b[NR * M], residual, inverse[M * NR];
+    for (int k = 0; k < N; k++)
+        for (int j = 0; j < M; j++)
+            U[k * M + j] = clip(sign * FVC_INITIAL_TORQUE_FRACTION * fvc_torque_high[j], fvc_torque_low[j],
+                                fvc_torque_high[j]);
+    memcpy(X, x0, sizeof(double) * NS);
+    for (int k = 0; k < N; k++) call_predict(c, X + k * NS, U + k * M, X + (k + 1) * NS, b, &residual, inverse);
+    for (int k = 1; k <= N; k++)
+        for (int i = OM; i < NS; i++) X[k * NS + i] = clip(X[k * NS + i], -FVC_OMEGA_BOUND, FVC_OMEGA_BOUND);
+}
+
+static double score(fvc_controller *c, double *X, double *U) {
+    call_linearize(c, X, U);
+    double gaps = 0.0;
+    for (int i = 0; i < N * FVC_ND; i++) gaps += c->lin[LIN_GAPS][i] * c->lin[LIN_GAPS][i];
+    return c->lin[LIN_COST][0] + 1e3 * gaps;
+}
+
+static int cold_start(fvc_controller *c, const double *x0) {
+    int iterations = 0, have_best = 0, failed;
+    double best = 0.0;
+    for (int g = 0; g < FVC_N_COLD; g++) {
+        int guess = fvc_cold_order[g];
+        if (guess == 0) goal_guess(c, x0, c->CX, c->CU);
+        else rollout_guess(c, x0, guess == 1 ? 1.0 : -1.0, c->CX, c->CU);
+        iterations += improve(c, c->CX, c->CU, x0, FVC_COLD_ITER, 0, &failed);
+        double value = score(c, c->CX, c->CU);
+        if (!have_best || value < best) {
+            have_best = 1;
+            best = value;
+            c->status.cold_guess = guess;
+            memcpy(c->BX, c->CX, sizeof c->CX);
+            memcpy(c->BU, c->CU, sizeof c->CU);
+        }
+    }
+    memcpy(c->X, c->BX, sizeof c->BX);
+    memcpy(c->U, c->BU, sizeof c->BU);
+    return iterations;
+}
+
+/* ------------------------------------------------------------------ disturbance estimate (DisturbanceEstimate) */
+static void update_estimate(fvc_controller *c, const double *x0) {
+    if (FVC_DISTURBANCE_GAIN == 0.0 || !c->have_prediction) return;
+    double cosine = 0.0, speed = 0.0;
+    for (int i = 0; i < 4; i++) cosine += x0[QS + i] * c->ref[QS + i];
+    cosine = fabs(cosine) < 1.0 ? fabs(cosine) : 1.0;
+    for (int i = OM; i < NS; i++) speed = fabs(x0[i]) > speed ? fabs(x0[i]) : speed;
+    if (2.0 * acos(cosine) > FVC_DISTURBANCE_REGION_RAD || speed > FVC_DISTURBANCE_REGION_SPEED) return;
+    for (int j = 0; j < M; j++) {
+        double step = 0.0;
+        for (int i = 0; i < NR; i++) step += c->pred_inverse[j + i * M] * (x0[RS + i] - c->pred_rates[i]);
+        c->d[j] = clip(c->d[j] + FVC_DISTURBANCE_GAIN * step, -c->limit[j], c->limit[j]);
+    }
+}
+
+/* The model's prediction after the control just sent (with d), for the next estimate (MPC._predicted).
+ * fvc_feedback only records its arguments: the step is computed after the control is out — in
+ * fvc_prepare, or at the next call — since nothing in this period's control depends on it. */
+static void complete_prediction(fvc_controller *c) {
+    if (!c->pending_prediction) return;
+    double applied[M], next[NS], b[NR * M], residual;
+    for (int j = 0; j < M; j++) applied[j] = c->sent_u[j] + c->d[j];
+    call_predict(c, c->sent_x, applied, next, b, &residual, c->pred_inverse);
+    memcpy(c->pred_rates, next + RS, sizeof c->pred_rates);
+    c->have_prediction = 1;
+    c->pending_prediction = 0;
+    c->status.step_residual = residual;
+}
+
+/* ------------------------------------------------------------------ API */
+fvc_controller *fvc_create(void) {
+    fvc_controller *c = calloc(1, sizeof *c);
+    if (c == NULL) return NULL;
+    casadi_int sz_arg = 0, sz_res = 0, sz_iw = 0, sz_w = 0, a, r, i, w;
+    rti_linearize_blocks_work(&a, &r, &i, &w);
+    sz_arg = a > sz_arg ? a : sz_arg; sz_res = r > sz_res ? r : sz_res; sz_iw = i > sz_iw ? i : sz_iw; sz_w = w > sz_w ? w : sz_w;
+    rti_predict_work(&a, &r, &i, &w);
+    sz_arg = a > sz_arg ? a : sz_arg; sz_res = r > sz_res ? r : sz_res; sz_iw = i > sz_iw ? i : sz_iw; sz_w = w > sz_w ? w : sz_w;
+    rti_feedback_work(&a, &r, &i, &w);
+    sz_arg = a > sz_arg ? a : sz_arg; sz_res = r > sz_res ? r : sz_res; sz_iw = i > sz_iw ? i : sz_iw; sz_w = w > sz_w ? w : sz_w;
+#if FVC_FREE_GOAL_GUESS
+    rti_goal_guess_work(&a, &r, &i, &w);
+#endif
+    sz_arg = a > sz_arg ? a : sz_arg; sz_res = r > sz_res ? r : sz_res; sz_iw = i > sz_iw ? i : sz_iw; sz_w = w > sz_w ? w : sz_w;
+    c->arg = calloc(sz_arg > 9 ? sz_arg : 9, sizeof *c->arg);
+    c->res = calloc(sz_res > 7 ? sz_res : 7, sizeof *c->res);
+    c->iw = calloc(sz_iw + 1, sizeof *c->iw);
+    c->w = calloc(sz_w + 1, sizeof *c->w);
+    int ok = c->arg && c->res && c->iw && c->w;
+    for (int k = 0; k < LIN_COUNT && ok; k++) {
+        c->lin[k] = calloc(out_size(rti_linearize_blocks_sparsity_out(k)), sizeof(double));
+        ok = c->lin[k] != NULL;
+    }
+    if (!ok) {
+        fvc_free(c);
+        return NULL;
+    }
+    for (int k = 0; k <= N; k++) memcpy(c->ref + k * NS, fvc_goal_state, sizeof(double) * NS);
+    for (int k = 0; k < N; k++) c->scales[k] = 1.0;
+    for (int j = 0; j < M; j++) c->limit[j] = 0.5 * (fvc_torque_high[j] - fvc_torque_low[j]);
+    /* u_goal: the control that holds the goal at rest in the model (MPC._goal_control, 5 Newton steps) */
+    double x_goal[NS], next[NS], b[NR * M], residual, inverse[M * NR];
+    memcpy(x_goal, fvc_goal_state, sizeof x_goal);
+    for (int k = RS; k < NS; k++) x_goal[k] = 0.0;
+    for (int it = 0; it < 5; it++) {
+        call_predict(c, x_goal, c->u_goal, next, b, &residual, inverse);
+        double change[M];
+        for (int j = 0; j < M; j++) {
+            change[j] = 0.0;
+            for (int k = 0; k < NR; k++) change[j] += inverse[j + k * M] * next[RS + k];
+        }
+        for (int j = 0; j < M; j++) c->u_goal[j] -= change[j];
+    }
+    fvc_reset(c);
+    return c;
+}
+
+void fvc_free(fvc_controller *c) {
+    if (c == NULL) return;
+    for (int k = 0; k < LIN_COUNT; k++) free(c->lin[k]);
+    free(c->arg); free(c->res); free(c->iw); free(c->w);
+    free(c);
+}
+
+void fvc_reset(fvc_controller *c) {
+    c->have_plan = c->prepared = c->have_prediction = c->pending_prediction = 0;
+    memset(c->d, 0, sizeof c->d);
+    c->time = 0.0;
+}
+
+void fvc_complete(fvc_controller *c) { complete_prediction(c); }
+
+void fvc_prepare(fvc_controller *c) {
+    complete_prediction(c);
+    if (!c->have_plan || c->prepared) return;
+    double applied[M], last[NS], b[NR * M], residual, inverse[M * NR];
+    for (int j = 0; j < M; j++) applied[j] = c->U[(N - 1) * M + j] + c->d[j];
+    call_predict(c, c->X + N * NS, applied, last, b, &residual, inverse);
+    memmove(c->X, c->X + NS, sizeof(double) * N * NS);
+    memcpy(c->X + N * NS, last, sizeof last);
+    for (int i = OM; i < NS; i++) c->X[N * NS + i] = clip(c->X[N * NS + i], -FVC_OMEGA_BOUND, FVC_OMEGA_BOUND);
+    memmove(c->U, c->U + M, sizeof(double) * (N - 1) * M);
+    call_linearize(c, c->X, c->U);
+    c->prepared = 1;
+    c->status.prepares++;
+}
+
+int fvc_feedback(fvc_controller *c, const double *x, double *u) {
+    double x0[NS], norm = 0.0;
+    memcpy(x0, x, sizeof x0);
+    for (int i = 0; i < 4; i++) norm += x0[QS + i] * x0[QS + i];
+    norm = sqrt(norm);
+    if (!all_finite(x0, NS) || fabs(norm - 1.0) > 1e-3) {
+        c->status.bad_states++;
+        return FVC_BAD_STATE;
+    }
+    /* A quaternion already unit to rounding is left as it is: dividing by a norm of 1 ± 1 ulp would
+     * only add rounding (and make the C loop differ from a caller that normalized it already). */
+    if (fabs(norm - 1.0) > 4.0 * DBL_EPSILON)
+        for (int i = 0; i < 4; i++) x0[QS + i] /= norm;
+    complete_prediction(c);
+    c->status.calls++;
+    c->status.cold_guess = -1;
+    update_estimate(c, x0);
+    int status, failed = 0;
+    if (!c->have_plan) {
+        c->status.iterations = cold_start(c, x0);
+        c->status.cold_calls++;
+        status = FVC_COLD;
+    } else {
+        if (!c->prepared) fvc_prepare(c);
+        memcpy(c->CX, c->X, sizeof c->X);
+        memcpy(c->CU, c->U, sizeof c->U);
+        c->status.iterations = improve(c, c->CX, c->CU, x0, FVC_MAX_ITER, 1, &failed);
+        if (failed) {  /* the shifted previous plan */
+            c->status.fallbacks++;
+            status = FVC_FALLBACK;
+        } else {
+            memcpy(c->X, c->CX, sizeof c->X);
+            memcpy(c->U, c->CU, sizeof c->U);
+            status = FVC_RTI;
+        }
+    }
+    c->have_plan = 1;
+    c->prepared = 0;
+    for (int j = 0; j < M; j++) u[j] = clip(c->U[j], fvc_torque_low[j], fvc_torque_high[j]);
+    memcpy(c->sent_x, x0, sizeof x0);
+    memcpy(c->sent_u, u, sizeof c->sent_u);
+    c->pending_prediction = 1;
+    c->time += FVC_STEP_SIZE;  /* the next measurement's time unless fvc_set_time says otherwise */
+    c->status.status = status;
+    return status;
+}
+
+void fvc_set_reference(fvc_controller *c, const double *states, const double *scales, int new_reference) {
+    memcpy(c->ref, states, sizeof c->ref);
+    memcpy(c->scales, scales, sizeof c->scales);
+    if (new_reference) c->prepared = 0;
+}
+
+void fvc_set_time(fvc_controller *c, double t, int time_varying_reference) {
+    if (fabs(t - c->time) > 1e-9) {
+        c->have_prediction = c->pending_prediction = 0;
+        if (time_varying_reference) c->prepared = 0;
+    }
+    c->time = t;
+}
+
+double fvc_time(const fvc_controller *c) { return c->time; }
+void fvc_get_status(const fvc_controller *c, fvc_status *out) { *out = c->status; }
+void fvc_get_plan(const fvc_controller *c, double *states, double *controls) {
+    memcpy(states, c->X, sizeof c->X);
+    memcpy(controls, c->U, sizeof c->U);
+}
+void fvc_get_disturbance(const fvc_controller *c, double *d) { memcpy(d, c->d, sizeof c->d); }
+void fvc_set_disturbance(fvc_controller *c, const double *d) { memcpy(c->d, d, sizeof c->d); }
+void fvc_get_goal_control(const fvc_controller *c, double *u_goal) { memcpy(u_goal, c->u_goal, sizeof c->u_goal); }

@@ -1,0 +1,174 @@
+"""The C controller (``python -m fvin_mpc.export --controller``, :mod:`fvin_mpc.control.c_controller`)
+computes the Python :class:`~fvin_mpc.control.rti.RealTimeMPC`'s controls: whole closed-loop episodes in
+MuJoCo, the library built with the system compiler and driven through ``ctypes``, the controls equal to
+1e-9 in the waiting mode and with a fixed latency (deterministic; a measured latency differs by the
+loops' timings, which is the point of the C loop).
+
+The Python loop's wall-clock budgets (``rti_cold_budget_s``, ``rti_budget_s``) are set so that they do
+not bind: the C loop is bounded by iteration counts only, and the two agree where the Python loop
+finishes its counts — on a loaded machine its budgets would otherwise cut it short at random. Every
+other setting is the scene's default: multi-start cold starts, the disturbance estimate, implicit
+dynamics on the pendulum, three iterations per period on the ball joint.
+
+The default suite builds one small case (the closed-form pendulum); the others are ``slow``.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+
+import numpy as np
+import pytest
+
+from fvin_mpc.control.c_controller import ControllerNotExportable, CRealTimeMPC
+from fvin_mpc.control.closed_loop import episode_metrics, run_episode
+from fvin_mpc.control.scene import scene_env, scene_model, scene_mpc, scene_mpc_settings
+
+COMPILER = os.environ.get("CC", "cc")
+pytestmark = pytest.mark.skipif(shutil.which(COMPILER) is None,
+                                reason=f"no C compiler {COMPILER!r} on PATH: the C controller cannot be built")
+
+#: Wall-clock budgets that never bind (s): the C loop is bounded by counts, so is the Python loop then.
+UNBOUNDED = {"rti_cold_budget_s": 600.0, "rti_budget_s": 600.0}
+
+
+def pendulum_pair(scene: str, true_model: bool, **overrides):
+    env = scene_env(scene, true_model=true_model)
+    model = scene_model(env, true_model=true_model)
+    python = scene_mpc(env, model, scene_mpc_settings(env, solver="rti", **UNBOUNDED, **overrides))
+    return env, python, CRealTimeMPC(python)
+
+
+def quadrotor_pair(true_model: bool):
+    from fvin_mpc.control.flight import quadrotor_model, quadrotor_mpc, quadrotor_mpc_settings
+    from fvin_mpc.envs import QuadrotorEnv
+    from fvin_mpc.envs.scenes import resolve_scene
+
+    env = QuadrotorEnv(resolve_scene("quadrotor"))
+    python = quadrotor_mpc(env, quadrotor_model(env, true_model=true_model), quadrotor_mpc_settings(**UNBOUNDED))
+    return env, python, CRealTimeMPC(python)
+
+
+def assert_same_closed_loops(env, python, c_loop, duration_s: float, latency, **episode):
+    """Both loops over one episode: controls to 1e-9, the same fallbacks, the same outcome and cost."""
+    python_episode, _ = run_episode(env, python, duration_s, latency=latency, **episode)
+    c_episode, _ = run_episode(env, c_loop, duration_s, latency=latency, **episode)
+    assert c_episode.u.shape == python_episode.u.shape
+    np.testing.assert_allclose(c_episode.u, python_episode.u, rtol=0.0, atol=1e-9)
+    assert c_episode.fallback == python_episode.fallback
+    assert [i.get("cold_start") for i in c_episode.controller_info] == \
+        [i.get("cold_start") for i in python_episode.controller_info]
+    python_metrics, c_metrics = episode_metrics(python_episode), episode_metrics(c_episode)
+    assert c_metrics["success"] == python_metrics["success"]
+    assert c_metrics["accumulated_cost"] == pytest.approx(python_metrics["accumulated_cost"], rel=1e-6)
+    return python_episode, c_episode
+
+
+@pytest.fixture(scope="module")
+def closed_form_pendulum():
+    return pendulum_pair("pendulum", true_model=True)
+
+
+def test_closed_form_pendulum_c_loop_equals_python_loop(closed_form_pendulum):
+    env, python, c_loop = closed_form_pendulum
+    _, c_episode = assert_same_closed_loops(env, python, c_loop, 4.0, "none", seed=0)
+    assert episode_metrics(c_episode)["success"], "the swing-up must reach the top: the comparison covers the catch"
+    # the estimate was active near the top, so the comparison covers it too
+    disturbances = np.array([i["disturbance"] for i in c_episode.controller_info])
+    assert np.abs(disturbances).max() > 0.0
+    assert_same_closed_loops(env, python, c_loop, 2.0, 0.012, seed=3)
+    counters = c_loop.counters()
+    assert counters["cold_calls"] == 2 and counters["calls"] == counters["prepares"] > 100
+
+
+def test_skipped_observations_reach_the_c_loop_as_a_jump_of_its_clock(closed_form_pendulum):
+    """A latency over the period: the controller is busy at the next instant, that observation is lost,
+    and the clock jump drops the one-step prediction from the disturbance estimate in both loops."""
+    env, python, c_loop = closed_form_pendulum
+    python_episode, _ = assert_same_closed_loops(env, python, c_loop, 2.0, 0.06, seed=5)
+    assert python_episode.skipped > 0
+
+
+def test_the_c_loop_refuses_a_state_that_is_not_one(closed_form_pendulum):
+    _, _, c_loop = closed_form_pendulum
+    with pytest.raises(ValueError, match="bad-state"):
+        c_loop.feedback(np.array([2.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]))
+    assert c_loop.counters()["bad_states"] == 1
+
+
+def test_an_ipopt_cold_start_is_refused_with_the_reason():
+    env = scene_env("pendulum", true_model=True)
+    model = scene_model(env, true_model=True)
+    python = scene_mpc(env, model, scene_mpc_settings(env, solver="rti", rti_cold_solver="ipopt", compile="none"))
+    with pytest.raises(ControllerNotExportable, match="IPOPT cannot be generated as C"):
+        CRealTimeMPC(python)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("latency", ["none", 0.02])
+def test_learned_pendulum_c_loop_equals_python_loop(latency):
+    env, python, c_loop = pendulum_pair("pendulum", true_model=False)
+    for seed in (0, 1):
+        assert_same_closed_loops(env, python, c_loop, 8.0, latency, seed=seed, reset_options={"random": True})
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("true_model", [True, False], ids=["closed-form", "learned"])
+def test_ball_joint_c_loop_equals_python_loop(true_model):
+    env, python, c_loop = pendulum_pair("spherical_pendulum", true_model=true_model)
+    assert python.settings.rti_max_iter == 3  # the preset's three iterations per period
+    assert_same_closed_loops(env, python, c_loop, 6.0, "none", seed=0, reset_options={"random": True})
+    assert_same_closed_loops(env, python, c_loop, 4.0, 0.01, seed=1, reset_options={"random": True})
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("true_model", [True, False], ids=["closed-form", "learned"])
+def test_quadrotor_c_loop_equals_python_loop(true_model):
+    from fvin_mpc.control.flight import recovery_starts
+
+    env, python, c_loop = quadrotor_pair(true_model)
+    starts = recovery_starts(env.unwrapped.goal_state[:3], count=3)
+    for (options, seed), latency in zip(starts, ["none", 0.004, "none"]):
+        assert_same_closed_loops(env, python, c_loop, 3.0, latency, seed=seed, reset_options=options)
+
+
+@pytest.mark.slow
+def test_export_command_writes_a_library_that_builds_and_runs(tmp_path):
+    from fvin_mpc.export import main
+
+    if shutil.which("make") is None:
+        pytest.skip("no make on PATH")
+    directory = tmp_path / "controller"
+    assert main(["--controller", str(directory), "--true-model", "--build"]) == 0
+    for name in ("fvin_controller.h", "fvin_controller.c", "fvc_model.c", "fvc_config.h", "Makefile", "main.c"):
+        assert (directory / name).is_file()
+    run = subprocess.run([str(directory / "example"), "30"], capture_output=True, text=True, check=True)
+    assert "calls=30 cold=1 fallbacks=0 prepares=30" in run.stdout
+    # nothing of Python, CasADi or torch at run time: the example links libc and libm only
+    linked = subprocess.run(["ldd", str(directory / "example")], capture_output=True, text=True).stdout
+    assert "casadi" not in linked and "python" not in linked and "torch" not in linked
+
+
+@pytest.mark.slow
+def test_quadrotor_figure_eight_reference_reaches_the_c_loop_each_period():
+    """A time-varying reference: sampled in Python, pushed to the library every period."""
+    from fvin_mpc.control.flight import FigureEight
+
+    env, python, c_loop = quadrotor_pair(true_model=True)
+    reference = FigureEight(center=tuple(env.unwrapped.hover_point), amplitude=0.5, period=3.0, ramp_s=1.0)
+    for controller in (python, c_loop):
+        controller.set_reference(reference)
+    _, c_episode = assert_same_closed_loops(env, python, c_loop, 3.0, "none", reset_options={"hover": True})
+    # the craft left its hover point: the comparison covers a moving reference, not a constant one
+    assert np.abs(c_episode.states[:, :3] - c_episode.states[0, :3]).max() > 0.2
+    assert_same_closed_loops(env, python, c_loop, 2.0, 0.004, reset_options={"hover": True})
+
+
+def test_export_options_that_need_a_controller_are_refused_without_one(capsys):
+    from fvin_mpc.core.errors import run_command
+    from fvin_mpc.export import main
+
+    assert run_command(main, ["--build"]) == 2
+    assert "go with --controller DIR" in capsys.readouterr().err
