@@ -4,7 +4,7 @@ MuJoCo, the library built with the system compiler and driven through ``ctypes``
 1e-9 in the waiting mode and with a fixed latency (deterministic; a measured latency differs by the
 loops' timings, which is the point of the C loop).
 
-The Python loop's wall-clock budgets (``rti_cold_budget_s``, ``rti_budget_s``) are set so that they do
+The Python loop's wall-clock budgets (``RTIOptions.cold_budget_s``, ``budget_s``) are set so that they do
 not bind: the C loop is bounded by iteration counts only, and the two agree where the Python loop
 finishes its counts — on a loaded machine its budgets would otherwise cut it short at random. Every
 other setting is the scene's default: multi-start cold starts, the disturbance estimate, implicit
@@ -31,13 +31,13 @@ pytestmark = pytest.mark.skipif(shutil.which(COMPILER) is None,
                                 reason=f"no C compiler {COMPILER!r} on PATH: the C controller cannot be built")
 
 #: Wall-clock budgets that never bind (s): the C loop is bounded by counts, so is the Python loop then.
-UNBOUNDED = {"rti_cold_budget_s": 600.0, "rti_budget_s": 600.0}
+UNBOUNDED = {"cold_budget_s": 600.0, "budget_s": 600.0}
 
 
 def pendulum_pair(scene: str, true_model: bool, **overrides):
     env = scene_env(scene, true_model=true_model)
     model = scene_model(env, true_model=true_model)
-    python = scene_mpc(env, model, scene_mpc_settings(env, solver="rti", **UNBOUNDED, **overrides))
+    python = scene_mpc(env, model, scene_mpc_settings(env, solver="rti", **overrides).updated(rti=UNBOUNDED))
     return env, python, CRealTimeMPC(python)
 
 
@@ -47,7 +47,8 @@ def quadrotor_pair(true_model: bool):
     from fvin_mpc.envs.scenes import resolve_scene
 
     env = QuadrotorEnv(resolve_scene("quadrotor"))
-    python = quadrotor_mpc(env, quadrotor_model(env, true_model=true_model), quadrotor_mpc_settings(**UNBOUNDED))
+    settings = quadrotor_mpc_settings().updated(rti=UNBOUNDED)
+    python = quadrotor_mpc(env, quadrotor_model(env, true_model=true_model), settings)
     return env, python, CRealTimeMPC(python)
 
 
@@ -101,7 +102,7 @@ def test_the_c_loop_refuses_a_state_that_is_not_one(closed_form_pendulum):
 def test_an_ipopt_cold_start_is_refused_with_the_reason():
     env = scene_env("pendulum", true_model=True)
     model = scene_model(env, true_model=True)
-    python = scene_mpc(env, model, scene_mpc_settings(env, solver="rti", rti_cold_solver="ipopt", compile="none"))
+    python = scene_mpc(env, model, scene_mpc_settings(env, solver="rti", rti={"cold_solver": "ipopt"}, compile="none"))
     with pytest.raises(ControllerNotExportable, match="IPOPT cannot be generated as C"):
         CRealTimeMPC(python)
 
@@ -118,7 +119,7 @@ def test_learned_pendulum_c_loop_equals_python_loop(latency):
 @pytest.mark.parametrize("true_model", [True, False], ids=["closed-form", "learned"])
 def test_ball_joint_c_loop_equals_python_loop(true_model):
     env, python, c_loop = pendulum_pair("spherical_pendulum", true_model=true_model)
-    assert python.settings.rti_max_iter == 3  # the preset's three iterations per period
+    assert python.settings.rti.max_iter == 3  # the preset's three iterations per period
     assert_same_closed_loops(env, python, c_loop, 6.0, "none", seed=0, reset_options={"random": True})
     assert_same_closed_loops(env, python, c_loop, 4.0, 0.01, seed=1, reset_options={"random": True})
 

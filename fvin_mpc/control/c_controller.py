@@ -11,10 +11,10 @@ the shifted plan, the disturbance estimate, the reference as a run-time input. A
 (``fvin_controller.h``), a ``Makefile`` and an example ``main.c`` come with it. Nothing of Python,
 NumPy, CasADi or torch at run time.
 
-Iteration counts bound the C loop, not the wall clock: a cold call runs ``rti_cold_iter`` iterations
-per guess (fewer once a step is below ``rti_tol``) and every guess of ``cold_starts``; a warm call up
-to ``rti_max_iter``. The Python loop stops earlier where its wall-clock budgets
-(``rti_cold_budget_s``, ``rti_budget_s``) bind; where they do not, both loops compute the same
+Iteration counts bound the C loop, not the wall clock: a cold call runs ``RTIOptions.cold_iter`` iterations
+per guess (fewer once a step is below ``tol``) and every guess of ``cold_starts``; a warm call up
+to ``max_iter``. The Python loop stops earlier where its wall-clock budgets
+(``RTIOptions.cold_budget_s``, ``budget_s``) bind; where they do not, both loops compute the same
 controls (tests/test_c_controller.py checks whole closed-loop episodes to 1e-9).
 
 :class:`CRealTimeMPC` builds (once, cached by the SHA-256 of the sources) and loads such a library
@@ -23,7 +23,7 @@ through ``ctypes`` and is a controller like :class:`~fvin_mpc.control.rti.RealTi
 study can run the Python loop and the C loop side by side.
 
 Refused, with the reason: a QP solver other than the generated Riccati one, and an IPOPT cold start
-(``rti_cold_solver="ipopt"``: IPOPT is not generated code; the C cold start is the RTI's own).
+(``RTIOptions(cold_solver="ipopt")``: IPOPT is not generated code; the C cold start is the RTI's own).
 
 The first guesses of the cold start: a pivoted body's ``"goal"`` slerp and the ``"rollout±"``
 rollouts are a few lines of the C driver; a free body's ``"goal"`` guess (the geodesic from the
@@ -74,10 +74,10 @@ class ControllerNotExportable(FvinMpcError, ValueError):
 def solver_settings(controller: RealTimeMPC) -> dict[str, Any]:
     """The real-time iteration's own settings the C loop reads, by their names here — the one place
     that knows where :class:`~fvin_mpc.control.mpc.MPCSettings` keeps them."""
-    s = controller.settings
-    return {"cold_solver": s.rti_cold_solver, "qp_solver": s.rti_qp_solver, "dynamics": s.rti_dynamics,
-            "max_iter": s.rti_max_iter, "cold_iter": s.rti_cold_iter, "tol": s.rti_tol,
-            "qp_iterations": s.rti_qp_iterations}
+    s = controller.settings.rti
+    return {"cold_solver": s.cold_solver, "qp_solver": s.qp_solver, "dynamics": s.dynamics,
+            "max_iter": s.max_iter, "cold_iter": s.cold_iter, "tol": s.tol,
+            "qp_iterations": s.qp_iterations}
 
 
 def check_exportable(controller: RealTimeMPC) -> None:
@@ -85,10 +85,10 @@ def check_exportable(controller: RealTimeMPC) -> None:
     s = SimpleNamespace(**solver_settings(controller))
     if s.cold_solver != "rti":
         raise ControllerNotExportable(
-            f"rti_cold_solver={s.cold_solver!r}: a cold start with IPOPT cannot be generated as C; "
-            "use rti_cold_solver='rti' (the real-time iteration's own multi-start cold start)")
+            f"RTIOptions.cold_solver={s.cold_solver!r}: a cold start with IPOPT cannot be generated as C; "
+            "use cold_solver='rti' (the real-time iteration's own multi-start cold start)")
     if s.qp_solver != "riccati":
-        raise ControllerNotExportable(f"rti_qp_solver={s.qp_solver!r}: only the generated Riccati "
+        raise ControllerNotExportable(f"RTIOptions.qp_solver={s.qp_solver!r}: only the generated Riccati "
                                       "interior-point QP ('riccati') is generated as C")
     names = tuple(function.name() for function in controller.loop_functions)
     if names != LOOP_FUNCTION_NAMES:
