@@ -292,6 +292,9 @@ class CraftScales:
         attitude_time: s, ``1/√α`` with ``α`` the smaller of the roll and pitch angular accelerations
             that half the actuators' ranges give about the centre of mass (rad/s²).
         hover_control: ``(nu,)``, the controls that hold the craft level at rest (:func:`hover_control`).
+        angular_control: the size of the controls (RMS over the three body axes of the norm of the
+            least-squares controls, no thrust change) that turn the level craft at 1 rad/s²: what
+            turning costs in control units, which a controller's control weight scales with.
     """
 
     mass: float
@@ -299,6 +302,7 @@ class CraftScales:
     thrust_to_weight: float
     attitude_time: float
     hover_control: np.ndarray
+    angular_control: float
 
 
 #: The control period as a share of the attitude time scale: 0.3 gives the built-in craft's 20 ms
@@ -401,8 +405,11 @@ def craft_scales(model: mujoco.MjModel, physics: ScenePhysics, body: str) -> Cra
     arm = max((float(np.linalg.norm(model.site_pos[s] - com)) for s in sites), default=0.0)
     if arm == 0.0:  # one thrust site at the centre of mass and body moments: the size of its inertia
         arm = math.sqrt(float(np.max(np.diag(inertia))) / mass)
+    allocation = np.linalg.pinv(np.vstack([force[2], torque]))  # [thrust along z; body torque] = (force_z; B) u
+    per_axis = [np.linalg.norm(allocation @ np.concatenate([[0.0], inertia[:, k]])) for k in range(3)]
     return CraftScales(mass=mass, arm=arm, thrust_to_weight=lift / weight,
-                       attitude_time=1.0 / math.sqrt(alpha) if alpha > 0.0 else math.inf, hover_control=hover)
+                       attitude_time=1.0 / math.sqrt(alpha) if alpha > 0.0 else math.inf, hover_control=hover,
+                       angular_control=float(np.sqrt(np.mean(np.square(per_axis)))))
 
 
 def craft_control_period(model: mujoco.MjModel, physics: ScenePhysics, body: str) -> float:

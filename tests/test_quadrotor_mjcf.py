@@ -136,3 +136,40 @@ def test_the_geometric_controller_allocates_any_layout(crafts):
         u = controller(env.goal_state, env.hover_point)
         np.testing.assert_allclose(controller.allocation() @ u,
                                    [craft.mass * craft.gravity, 0.0, 0.0, 0.0], atol=1e-6 * craft.mass * 10)
+
+
+def test_the_tuned_craft_keeps_its_control_weight():
+    from fvin_mpc.control.flight import TUNED_ANGULAR_CONTROL, TUNED_CONTROL_WEIGHT, scaled_control_weight
+
+    scales = QuadrotorEnv("quadrotor").scales
+    assert scales.angular_control == pytest.approx(TUNED_ANGULAR_CONTROL, rel=1e-12)
+    assert scaled_control_weight(scales) == pytest.approx(TUNED_CONTROL_WEIGHT, rel=1e-12)
+
+
+def test_the_figure_eight_scales_with_the_craft(crafts):
+    from fvin_mpc.studies.flight_report import figure_eight, make_env
+
+    built_in = figure_eight(make_env())
+    assert (built_in.amplitude, built_in.period, built_in.ramp_s) == (0.5, 3.0, 1.0)  # the tuned task, unchanged
+    for path in crafts:
+        env = make_env(scene=path)
+        loop = figure_eight(env)
+        scales = env.unwrapped.scales
+        assert loop.amplitude == pytest.approx(0.5 / 0.17 * scales.arm, rel=0.05)
+        _, _, acceleration = loop.trajectory(np.linspace(loop.ramp_s, loop.ramp_s + loop.period, 400))
+        lateral = 9.81 * np.sqrt(scales.thrust_to_weight**2 - 1.0)
+        assert 0.2 < np.linalg.norm(acceleration, axis=1).max() / lateral < 0.35
+
+
+@pytest.mark.slow
+def test_fly_takes_a_generated_craft(crafts, tmp_path):
+    """``fly --scene X.xml`` end to end with the closed form (a CasADi build: slow)."""
+    import json
+
+    from fvin_mpc.fly import main
+
+    out = tmp_path / "fly.json"
+    assert main(["--scene", str(crafts[0]), "--model", "closed-form", "--episodes", "2", "--latency", "none",
+                 "--quiet", "--json", str(out)]) == 0
+    summary = json.loads(out.read_text())["summary"]
+    assert summary["recovered_count"] == 2 and summary["failures"] == 0
