@@ -275,3 +275,4 @@ def flight_metrics(episode: Any, reference: Any, settle_s: float = 0.0,
                                              "skipped_observations", "controller_failures", "control_period_s",
                                              "duration_s")},
     }
+
