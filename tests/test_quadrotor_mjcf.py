@@ -173,3 +173,22 @@ def test_fly_takes_a_generated_craft(crafts, tmp_path):
                  "--quiet", "--json", str(out)]) == 0
     summary = json.loads(out.read_text())["summary"]
     assert summary["recovered_count"] == 2 and summary["failures"] == 0
+
+
+def test_collect_records_a_craft_by_path_without_the_closed_form(crafts, tmp_path, monkeypatch):
+    """``collect --scene X.xml`` on a free body: random-excitation bursts, the closed form never read."""
+    import fvin_mpc.core.quadrotor as closed_form
+    from fvin_mpc import collect
+    from fvin_mpc.core.data import load_data
+    from fvin_mpc.learning import collection
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("collection read the closed form")
+
+    monkeypatch.setattr(closed_form, "from_mujoco", refuse)
+    monkeypatch.setattr(collection, "from_mujoco", refuse)  # the stabilized-flight pilot's own import
+    out = tmp_path / "craft.npz"
+    assert collect.main(["--scene", str(crafts[1]), "--trajectories", "4", "--steps", "5", "--out", str(out),
+                         "--quiet"]) == 0
+    data = load_data(out)
+    assert data.metadata["collector"] == EXCITATION and data.state.shape == (4, 6, 13)

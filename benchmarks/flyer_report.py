@@ -1,4 +1,4 @@
-"""The free-flyer family through the whole pipeline: ``python -m benchmarks.flyer_family``.
+"""The free-flyer family through the whole pipeline: ``python -m benchmarks.flyer_report``.
 
 Seeds from ``--seed-offset`` on are drawn (:mod:`fvin_mpc.envs.flyer_family`) and filtered: a draw
 enters the family only if the closed-form MPC (``fly --model closed-form``, the craft read off its
@@ -38,14 +38,17 @@ from typing import Any, Sequence
 import numpy as np
 
 from fvin_mpc import collect, train
+from fvin_mpc._cli import run_command
+from fvin_mpc.core.quadrotor import from_mujoco
 from fvin_mpc.envs.flyer_family import write_flyers
+from fvin_mpc.studies.flight_report import make_controller, make_env, run_figure_eight, run_recovery
 
 DEFAULT_SEED_OFFSET = 7000
 DEVELOPMENT_SEEDS = "0–39 and 5000–5015"
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="python -m benchmarks.flyer_family", description=__doc__,
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.flyer_report", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--scenes", type=int, default=8, help="family members to run (default: %(default)s)")
     parser.add_argument("--starts", type=int, default=5, help="recovery starts per scene (default: %(default)s)")
@@ -62,8 +65,6 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _recovery(env: Any, controller: Any, starts: int, seed: int, latency: str) -> list[dict[str, Any]]:
-    from fvin_mpc.studies.flight_report import run_recovery
-
     rows, _, _ = run_recovery(env, controller, starts, seed, latency, progress=False)
     keys = ("recovered", "time_to_recover_s", "final_position_m", "final_angle_rad", "solve_time_ms",
             "deadline_misses", "controller_failures")
@@ -71,8 +72,6 @@ def _recovery(env: Any, controller: Any, starts: int, seed: int, latency: str) -
 
 
 def _figure_eight(env: Any, controller: Any, latency: str) -> dict[str, Any]:
-    from fvin_mpc.studies.flight_report import run_figure_eight
-
     tracking, _, _ = run_figure_eight(env, controller, latency, progress=False)
     keys = ("rms_position_m", "max_position_m", "deadline_misses", "controller_failures", "amplitude_m", "period_s")
     return {key: tracking[key] for key in keys if key in tracking}
@@ -81,9 +80,6 @@ def _figure_eight(env: Any, controller: Any, latency: str) -> dict[str, Any]:
 def filter_verdict(path: Path, starts: int, seed: int, latency: str) -> dict[str, Any]:
     """The closed-form MPC on ``path``'s craft from ``starts`` recovery starts: in the family if it
     recovers from all of them (the recoveries are the closed form's results in the report too)."""
-    from fvin_mpc.core.quadrotor import from_mujoco
-    from fvin_mpc.studies.flight_report import make_controller, make_env
-
     env = make_env(scene=path)
     t0 = time.perf_counter()
     try:
@@ -103,8 +99,6 @@ def run_scene(seed: int, path: Path, work: Path, verdict: dict[str, Any], starts
               latency: str) -> dict[str, Any]:
     """Collect → train → build → fly one member; the record cached for it."""
     import torch
-
-    from fvin_mpc.studies.flight_report import make_controller, make_env
 
     torch.set_num_threads(1)
     data, stem = work / f"flyer_{seed}.npz", work / f"flyer_{seed}_model"
@@ -279,13 +273,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     records, verdicts = run(args)
     args.load_average = os.getloadavg()[0]
     summary = summarize(records, verdicts)
-    command = "python -m benchmarks.flyer_family " + " ".join(shlex.quote(a) for a in argv)
+    command = "python -m benchmarks.flyer_report " + " ".join(shlex.quote(a) for a in argv)
     print(json.dumps(summary, indent=1))
     print(f"report: {write_report(records, verdicts, summary, args, command)}", file=sys.stderr)
     return 0
 
 
 if __name__ == "__main__":
-    from fvin_mpc._cli import run_command
-
     raise SystemExit(run_command(main))
