@@ -7,6 +7,11 @@ Gauss–Newton SQP iteration per period, a compiled Riccati interior-point QP, o
 estimate), planning with the learned R³ × S³ model (``--model learned``, the scene's checkpoint) or
 the closed-form craft read off the MJCF (``--model closed-form``).
 
+``--scene X.xml`` flies any MJCF of one body on a free joint with site actuators (docs/flyers.md): the
+state is its centre of mass's; the control period (when the MJCF names none), the figure-eight's size
+and period and the MPC's control weight come from the craft's own scales; what the closed form leaves
+out (fluid drag) is printed as a note.
+
 Tasks:
 
 * ``recovery`` — from ``--episodes`` seeded starts at the hover point (upside down at rest, upside
