@@ -9,6 +9,7 @@ declare is switched off (there is no floor and no contact: the craft can fall fo
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -21,14 +22,14 @@ from fvin_mpc.core.space import R3S3, ConfigurationSpace
 from fvin_mpc.core.state import as_float_array, unit_quaternion
 
 from .rigid_body_env import MujocoBodyEnv, geodesic_angle
-from .scenes import ScenePhysics, SceneSpec
+from .scenes import ScenePhysics, SceneSpec, build_model, resolve_scene
 
 #: Largest initial |ω| (rad/s) of a default reset: a tumbling craft (the recovery task of ``python -m fvin_mpc.fly``).
 DEFAULT_RESET_MAX_OMEGA = 10.0
 #: Weights of the quadratic cost: |x − x*|², angle², |v|², |ω|², |u − u_hover|².
 COST_WEIGHTS = (1.0, 1.0, 0.1, 0.01, 0.01)
 
-_RESET_OPTIONS = frozenset({"qpos", "qvel", "hover", "max_omega", "max_speed", "max_offset"})
+_RESET_OPTIONS = frozenset({"state", "qpos", "qvel", "hover", "max_omega", "max_speed", "max_offset"})
 
 
 class QuadrotorEnv(MujocoBodyEnv):
@@ -60,13 +61,15 @@ class QuadrotorEnv(MujocoBodyEnv):
 
     | Num   | Observation                                                   | Min  | Max |
     |-------|---------------------------------------------------------------|------|-----|
-    | 0–2   | x, position of the body origin (the centre of mass), world (m) | -Inf | Inf |
+    | 0–2   | x, position of the centre of mass (``xipos``), world (m)       | -Inf | Inf |
     | 3–6   | q (w, x, y, z), orientation body → world (`xquat`)             | -1.0 | 1.0 |
-    | 7–9   | v, linear velocity, world frame (m/s)                          | -Inf | Inf |
+    | 7–9   | v, velocity of the centre of mass, world frame (m/s)           | -Inf | Inf |
     | 10–12 | ω, angular velocity, body frame (rad/s), ``Ṙ = R[ω]×``          | -Inf | Inf |
 
-    These are MuJoCo's free-joint coordinates: ``qvel[:3]`` is the world-frame linear velocity of
-    the body origin and ``qvel[3:]`` the body-frame angular velocity (checked against
+    With the centre of mass at the body origin these are MuJoCo's free-joint coordinates: ``qvel[:3]``
+    is the world-frame linear velocity of the body origin and ``qvel[3:]`` the body-frame angular
+    velocity; otherwise ``x = xpos + R c``, ``v = qvel[:3] + R (ω × c)`` with ``c`` the centre of mass in
+    the body frame (``body_ipos``; :meth:`joint_state` inverts it) (checked against
     ``mj_objectVelocity`` and finite differences in ``tests/test_quadrotor_env.py``). ``q`` and
     ``−q`` are the same rotation; MuJoCo's sign is left as is. With ``sensor_noise_std > 0`` Gaussian
     noise is added to all 13 entries and ``q`` renormalized; reward and ``info`` use the true state.
@@ -82,6 +85,7 @@ class QuadrotorEnv(MujocoBodyEnv):
     velocity uniform in the ball ``|ω| ≤ 10`` rad/s, drawn from the env's ``np_random``.
     ``reset(options=...)`` accepts:
 
+    - ``{"state": (13,)}``: the observed state ``(x, q, v, ω)`` exactly (of the centre of mass).
     - ``{"qpos": (7,), "qvel": (6,)}``: the free joint's state exactly (position, quaternion
       (w, x, y, z) normalized here; world-frame v, body-frame ω). Either may be omitted (the hover
       point level / zero).
@@ -104,7 +108,9 @@ class QuadrotorEnv(MujocoBodyEnv):
     - ``scene``: ``"quadrotor"``, a path to an MJCF, or a :class:`~envs.scenes.SceneSpec`.
     - ``physics``, ``control_period``: as :class:`~envs.RigidBodyEnv` (default: the scene's; 20 ms
       for ``quadrotor``).
-    - ``hover_point``: the goal position (m); default the body's position in the MJCF.
+    - ``hover_point``: the goal position of the centre of mass (m); default where the MJCF puts it, level.
+    - ``control_period``: default the scene's, or for an MJCF that names none
+      :data:`CONTROL_PERIOD_SHARE` of the craft's attitude time scale (:func:`craft_control_period`).
     - ``render_mode``: ``None`` or ``"rgb_array"``; ``width``, ``height`` in pixels.
 
     Requirements on the MJCF (``ValueError`` otherwise): the observed body has exactly one joint, a
@@ -122,19 +128,24 @@ class QuadrotorEnv(MujocoBodyEnv):
     def __init__(self, scene: str | Path | SceneSpec = "quadrotor", physics: ScenePhysics | None = None,
                  control_period: float | None = None, hover_point: Any = None, render_mode: str | None = None,
                  width: int = 480, height: int = 480) -> None:
+        spec = resolve_scene(scene)
+        if control_period is None and spec.control_period is None:
+            control_period = craft_control_period(*build_model(spec.xml_path, physics or spec.physics),
+                                                  _craft_body_name(spec))
         super().__init__(scene, physics, control_period, render_mode, width, height)
         spec, model = self.scene_spec, self._model
-        self._body_name = spec.body or "quadrotor"
+        self._body_name = _craft_body_name(spec, model)
         self._body_id, self._joint_id = _free_body(model, self._body_name)
+        # The state's x is the centre of mass, where Newton–Euler separates translation from rotation
+        # (the body origin of a description is wherever its author put it).
+        self._com = np.asarray(model.body_ipos[self._body_id], dtype=float).copy()
 
-        qpos0 = np.asarray(model.qpos0, dtype=float)
-        self._hover_point = (qpos0[:3].copy() if hover_point is None
-                             else as_float_array(hover_point, (3,), "hover_point"))
         self._goal = unit_quaternion(spec.goal if spec.goal is not None else (1.0, 0.0, 0.0, 0.0), "goal")
-        weight = -float(model.body_subtreemass[self._body_id]) * float(model.opt.gravity[2])
-        if not self._physics.gravity:
-            weight = 0.0
-        self._hover_thrust = np.full(model.nu, weight / max(model.nu, 1))
+        qpos0 = np.asarray(model.qpos0, dtype=float)
+        self._hover_point = (qpos0[:3] + _rotate(self._goal, self._com) if hover_point is None
+                             else as_float_array(hover_point, (3,), "hover_point"))
+        self._scales = craft_scales(model, self._physics, self._body_name)
+        self._hover_thrust = hover_control(model, self._body_id, self._goal, self._physics.gravity)
 
         obs_high = np.array([np.inf] * 3 + [1.0] * 4 + [np.inf] * 6)
         self.observation_space = spaces.Box(low=-obs_high, high=obs_high, dtype=np.float64)
@@ -147,19 +158,35 @@ class QuadrotorEnv(MujocoBodyEnv):
         return self._hover_point.copy()
 
     @property
+    def scales(self) -> CraftScales:
+        """The craft's sizes (:class:`CraftScales`), read off the MJCF by MuJoCo."""
+        return self._scales
+
+    @property
     def goal_state(self) -> np.ndarray:
         """The 13-number hover state: at the hover point, level, at rest."""
         return np.concatenate([self._hover_point, self._goal, np.zeros(6)])
 
     @property
     def hover_thrust(self) -> np.ndarray:
-        """Per-rotor thrust that holds the level craft at rest, ``m g / nu`` each (N), ``(nu,)``."""
+        """The controls that hold the level craft at rest (:func:`hover_control`; ``m g / nu`` each for a
+        symmetric craft), ``(nu,)``."""
         return self._hover_thrust.copy()
 
     def state(self) -> np.ndarray:
         """The noise-free state ``(x, q, v, ω)`` ``(13,)`` (see the class docstring)."""
         qvel = self._data.qvel
-        return np.concatenate([self._data.xpos[self._body_id], self._data.xquat[self._body_id], qvel[:3], qvel[3:6]])
+        q = self._data.xquat[self._body_id]
+        velocity = qvel[:3] + _rotate(q, np.cross(qvel[3:6], self._com))
+        return np.concatenate([self._data.xipos[self._body_id], q, velocity, qvel[3:6]])
+
+    def joint_state(self, state: Any) -> tuple[np.ndarray, np.ndarray]:
+        """The free joint's ``(qpos (7,), qvel (6,))`` of a state ``(x, q, v, ω)`` of the centre of mass."""
+        state = as_float_array(state, (13,), "state")
+        q = unit_quaternion(state[3:7], "state quaternion")
+        offset = _rotate(q, self._com)
+        velocity = state[7:10] - _rotate(q, np.cross(state[10:13], self._com))
+        return np.concatenate([state[:3] - offset, q]), np.concatenate([velocity, state[10:13]])
 
     def set_state(self, qpos: Any, qvel: Any) -> None:
         """Set the free joint's state exactly and run ``mj_forward``; the quaternion is normalized.
@@ -175,11 +202,16 @@ class QuadrotorEnv(MujocoBodyEnv):
         mujoco.mj_forward(self._model, self._data)
 
     def _hover_joint_state(self) -> tuple[np.ndarray, np.ndarray]:
-        return np.concatenate([self._hover_point, self._goal]), np.zeros(6)
+        return self.joint_state(self.goal_state)
 
     # ------------------------------------------------------------------ gymnasium API
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
         options = self._reset_options(seed, options, _RESET_OPTIONS)
+        if "state" in options:
+            if len(options) > 1:
+                others = sorted(set(options) - {"state"})
+                raise ValueError(f"reset options: 'state' is the whole start, not with {others}")
+            return self._reset_to(*self.joint_state(options["state"]))
         exact = {"qpos", "qvel", "hover"} & set(options)
         random_bounds = {"max_omega", "max_speed", "max_offset"} & set(options)
         if exact and random_bounds:
@@ -230,7 +262,7 @@ class QuadrotorEnv(MujocoBodyEnv):
     def _info(self) -> dict[str, float]:
         return {
             "angle_from_goal": geodesic_angle(self._data.xquat[self._body_id], self._goal),
-            "position_error": float(np.linalg.norm(self._data.xpos[self._body_id] - self._hover_point)),
+            "position_error": float(np.linalg.norm(self._data.xipos[self._body_id] - self._hover_point)),
             "time": float(self._data.time),
             "energy": float(self._data.energy.sum()),
         }
@@ -244,8 +276,151 @@ class QuadrotorEnv(MujocoBodyEnv):
         rng = self.np_random
         quaternion = rng.normal(size=4)
         position = self._hover_point + uniform_in_ball(rng, max_offset)
-        qpos = np.concatenate([position, quaternion / np.linalg.norm(quaternion)])
-        return qpos, np.concatenate([uniform_in_ball(rng, max_speed), uniform_in_ball(rng, max_omega)])
+        return self.joint_state(np.concatenate([position, quaternion / np.linalg.norm(quaternion),
+                                                uniform_in_ball(rng, max_speed), uniform_in_ball(rng, max_omega)]))
+
+
+@dataclass(frozen=True)
+class CraftScales:
+    """The sizes of a craft, read off its compiled MJCF through MuJoCo alone (no closed form): what
+    data collection and the flight tasks scale with.
+
+    Attributes:
+        mass: kg (the body's subtree).
+        arm: m, the largest distance from the centre of mass to a site that carries an actuator's force.
+        thrust_to_weight: the largest total upward force the actuators give level, over the weight.
+        attitude_time: s, ``1/√α`` with ``α`` the smaller of the roll and pitch angular accelerations
+            that half the actuators' ranges give about the centre of mass (rad/s²).
+        hover_control: ``(nu,)``, the controls that hold the craft level at rest (:func:`hover_control`).
+        angular_control: the size of the controls (RMS over the three body axes of the norm of the
+            least-squares controls, no thrust change) that turn the level craft at 1 rad/s²: what
+            turning costs in control units, which a controller's control weight scales with.
+    """
+
+    mass: float
+    arm: float
+    thrust_to_weight: float
+    attitude_time: float
+    hover_control: np.ndarray
+    angular_control: float
+
+
+#: The control period as a share of the attitude time scale: 0.3 gives the built-in craft's 20 ms
+#: (its ``attitude_time`` is 69 ms), where a 10 rad/s tumble turns 0.2 rad per step.
+CONTROL_PERIOD_SHARE = 0.3
+
+
+def _rotate(q: Any, vector: Any) -> np.ndarray:
+    """``R(q) vector`` for a unit quaternion ``(w, x, y, z)``."""
+    out = np.zeros(3)
+    mujoco.mju_rotVecQuat(out, np.asarray(vector, dtype=float), np.asarray(q, dtype=float))
+    return out
+
+
+def _craft_body_name(spec: SceneSpec, model: mujoco.MjModel | None = None) -> str:
+    """The scene's observed body: the declared one, else the body of the MJCF's free joint."""
+    if spec.body:
+        return spec.body
+    if model is None:
+        model = mujoco.MjModel.from_xml_path(str(spec.xml_path))
+    free = np.flatnonzero(model.jnt_type == mujoco.mjtJoint.mjJNT_FREE)
+    if free.size == 1:
+        return mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, int(model.jnt_bodyid[free[0]])) or "quadrotor"
+    return "quadrotor"
+
+
+def actuator_wrenches(model: mujoco.MjModel, body_id: int, attitude: Any) -> tuple[np.ndarray, np.ndarray]:
+    """Per unit control, the world-frame force ``(3, nu)`` and the body-frame torque about the centre of
+    mass ``(3, nu)`` each actuator puts on the free body at ``attitude``, at rest — by MuJoCo itself
+    (``qfrc_actuator`` per control, less that at zero control), whatever its transmission and gear."""
+    data = mujoco.MjData(model)
+    data.qpos[:3] = 0.0
+    data.qpos[3:7] = attitude
+    saved = int(model.opt.disableflags)
+    # a unit control may lie outside a small ctrlrange: the column is a rate, not a feasible control
+    model.opt.disableflags = saved | int(mujoco.mjtDisableBit.mjDSBL_CLAMPCTRL)
+    try:
+        columns = []
+        for control in np.vstack([np.zeros(model.nu), np.eye(model.nu)]):
+            data.ctrl[:] = control
+            mujoco.mj_forward(model, data)
+            columns.append(data.qfrc_actuator[:6].copy())
+    finally:
+        model.opt.disableflags = saved
+    generalized = (np.array(columns[1:]) - columns[0]).T
+    force = generalized[:3]
+    rotation = np.zeros(9)
+    mujoco.mju_quat2Mat(rotation, np.asarray(attitude, dtype=float))
+    body_force = rotation.reshape(3, 3).T @ force
+    # the free joint's rotational forces are torques about the body origin; move them to the centre of mass
+    torque = generalized[3:] - np.cross(np.asarray(model.body_ipos[body_id], dtype=float), body_force.T).T
+    return force, torque
+
+
+def hover_control(model: mujoco.MjModel, body_id: int, attitude: Any, gravity: bool = True) -> np.ndarray:
+    """The controls whose force and torque come closest (least squares, within ``ctrlrange``; the
+    smallest such) to holding the body still at ``attitude``: ``qfrc_actuator(u) = `` the weight, at rest,
+    by MuJoCo — so a centre of mass off the rotors' centre gets unequal thrusts. Zeros without gravity.
+    When no controls within the bounds hold it (a craft whose hover is infeasible) the residual stays."""
+    from scipy.optimize import lsq_linear
+
+    if not gravity or model.nu == 0:
+        return np.zeros(model.nu)
+    force, torque = actuator_wrenches(model, body_id, attitude)
+    weight = float(model.body_subtreemass[body_id]) * -np.asarray(model.opt.gravity, dtype=float)
+    matrix, wanted = np.vstack([force, torque]), np.concatenate([weight, np.zeros(3)])
+    control = np.linalg.lstsq(matrix, wanted, rcond=None)[0]
+    limited = model.actuator_ctrllimited.astype(bool) & ~(int(model.opt.disableflags)
+                                                          & int(mujoco.mjtDisableBit.mjDSBL_CLAMPCTRL))
+    low = np.where(limited, model.actuator_ctrlrange[:, 0], -np.inf)
+    high = np.where(limited, model.actuator_ctrlrange[:, 1], np.inf)
+    if np.all((control >= low) & (control <= high)):
+        return control
+    # rows scaled by the force and torque sizes, so that newtons and newton-metres weigh alike
+    scale = np.maximum(np.abs(matrix).max(axis=1, keepdims=True), 1e-12)
+    return lsq_linear(matrix / scale, wanted / scale[:, 0], bounds=(low, high)).x
+
+
+def craft_scales(model: mujoco.MjModel, physics: ScenePhysics, body: str) -> CraftScales:
+    """:class:`CraftScales` of ``body`` in a model built with ``physics``."""
+    body_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, body)
+    level = np.array([1.0, 0.0, 0.0, 0.0])
+    force, torque = actuator_wrenches(model, body_id, level)
+    hover = hover_control(model, body_id, level, physics.gravity)
+    limited = physics.actuator_limits & model.actuator_ctrllimited.astype(bool)
+    low = np.where(limited, model.actuator_ctrlrange[:, 0], np.minimum(0.0, 2.0 * hover))
+    high = np.where(limited, model.actuator_ctrlrange[:, 1], np.maximum(0.0, 2.0 * hover))
+    mass = float(model.body_subtreemass[body_id])
+    weight = mass * float(np.linalg.norm(model.opt.gravity)) or 1.0
+    lift = float(np.sum(np.maximum(force[2] * low, force[2] * high)))
+    frame = np.zeros(9)
+    mujoco.mju_quat2Mat(frame, np.asarray(model.body_iquat[body_id], dtype=float))
+    frame = frame.reshape(3, 3)
+    inertia = frame @ np.diag(model.body_inertia[body_id]) @ frame.T
+    authority = np.abs(torque[:2]) @ (0.5 * (high - low))
+    alpha = float(np.min(authority / np.diag(inertia)[:2]))
+    sites = [int(model.actuator_trnid[a, 0]) for a in range(model.nu)
+             if model.actuator_trntype[a] == mujoco.mjtTrn.mjTRN_SITE and np.linalg.norm(force[:, a]) > 0.0]
+    com = np.asarray(model.body_ipos[body_id], dtype=float)
+    arm = max((float(np.linalg.norm(model.site_pos[s] - com)) for s in sites), default=0.0)
+    if arm == 0.0:  # one thrust site at the centre of mass and body moments: the size of its inertia
+        arm = math.sqrt(float(np.max(np.diag(inertia))) / mass)
+    allocation = np.linalg.pinv(np.vstack([force[2], torque]))  # [thrust along z; body torque] = (force_z; B) u
+    per_axis = [np.linalg.norm(allocation @ np.concatenate([[0.0], inertia[:, k]])) for k in range(3)]
+    return CraftScales(mass=mass, arm=arm, thrust_to_weight=lift / weight,
+                       attitude_time=1.0 / math.sqrt(alpha) if alpha > 0.0 else math.inf, hover_control=hover,
+                       angular_control=float(np.sqrt(np.mean(np.square(per_axis)))))
+
+
+def craft_control_period(model: mujoco.MjModel, physics: ScenePhysics, body: str) -> float:
+    """The control period of a craft whose scene names none: :data:`CONTROL_PERIOD_SHARE` of its attitude
+    time scale, down to a whole number of MJCF timesteps (at least one); the pivoted scenes' 20 ms
+    default when the actuators give no bounded torque to measure it by."""
+    timestep = float(model.opt.timestep)
+    scales = craft_scales(model, physics, body)
+    if not math.isfinite(scales.attitude_time):
+        return timestep * math.ceil(0.02 / timestep - 1e-9)
+    return round(timestep * max(1, math.floor(CONTROL_PERIOD_SHARE * scales.attitude_time / timestep + 1e-9)), 12)
 
 
 def uniform_in_ball(rng: np.random.Generator, radius: float) -> np.ndarray:

@@ -32,10 +32,12 @@ installed under this name):
 * ``pendulum_v1`` — conversions between Gymnasium's ``Pendulum-v1`` and the ``pendulum`` scene.
 * ``disturbance`` — a known constant torque disturbance (the offset-free tests' oracle).
 * ``families`` — seeded random scene families (hinge, ball) and what an MJCF has that the package cannot take.
+* ``flyer_family`` — a seeded random family of free-flying crafts (rotor layouts, wrench actuators, drag).
 
 :mod:`fvin_mpc.learning` — the only torch importers:
 
 * ``collection`` — trajectories from a scene (``python -m fvin_mpc.collect``).
+* ``excitation`` — free-body data from the MJCF alone: random-excitation bursts from random states.
 * ``model`` — the trainable torch model, one shell parametrized by the configuration space (fast
   rollouts for S³ and SO(3)).
 * ``space_training`` — what training does per space: settings, loss scales, the free body's report.

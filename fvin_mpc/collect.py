@@ -6,10 +6,12 @@ the paper's experiments) or random piecewise constant (a new level every
 ``--hold-steps`` control periods), drawn uniformly inside the actuators' range. Half
 of the trajectories use each mode. Everything is seeded.
 
-Free-body scenes (``--scene quadrotor``) are flown instead by a closed-form stabilizing controller
-towards random waypoints, with random thrust perturbations, half of the episodes starting in a
-tumble (upside down included, ``|ω|`` up to ``--max-omega``, default 10 rad/s there); defaults
-300 episodes of 50 periods (15,000 transitions).
+Free-body scenes (``--scene quadrotor`` or any MJCF of one body on a free joint) are recorded from the
+MJCF alone (``--collector excitation``, the default): short bursts of random piecewise-constant controls
+around hover from random states (attitudes uniform on S³, tumbling at up to ``--max-omega``, default
+10 rad/s there, or near level), sized from the craft; defaults 750 bursts of 20 periods (15,000
+transitions). ``--collector stabilized-flight`` flies instead a closed-form stabilizing controller
+towards random waypoints (300 episodes of 50 periods), for crafts the closed form represents.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ from fvin_mpc._cli import run_command
 from fvin_mpc.core.data import save_data
 from fvin_mpc.envs.scenes import existing_scene
 from fvin_mpc.learning.collection import collect, collect_quadrotor
+from fvin_mpc.learning.excitation import collect_excitation
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -29,9 +32,11 @@ def build_parser() -> argparse.ArgumentParser:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--scene", default="pendulum", help="built-in scene name or MJCF path (default: %(default)s)")
     parser.add_argument("--body", default=None, help="body to observe (default: the scene's)")
-    parser.add_argument("--trajectories", type=int, default=None, help="default: 320 (free body: 300)")
+    parser.add_argument("--trajectories", type=int, default=None,
+                        help="default: 320 (free body: 750 bursts; stabilized flight: 300)")
     parser.add_argument(
-        "--steps", type=int, default=None, help="control periods per trajectory (default: 20; free body: 50)"
+        "--steps", type=int, default=None,
+        help="control periods per trajectory (default: 20; stabilized flight: 50)"
     )
     parser.add_argument(
         "--max-omega", type=float, default=None, help="largest initial |ω| (rad/s; default: 6; free body: 10)"
@@ -47,6 +52,9 @@ def build_parser() -> argparse.ArgumentParser:
                         help="their largest initial angle from the goal (rad; default: %(default)s)")
     parser.add_argument("--near-goal-omega", type=float, default=2.0,
                         help="their largest initial |ω_i| (rad/s; default: %(default)s)")
+    parser.add_argument("--collector", choices=["excitation", "stabilized-flight"], default="excitation",
+                        help="free bodies only: random-excitation bursts from the MJCF alone, or a closed-form "
+                             "stabilizing pilot (default: %(default)s)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument(
         "--out",
@@ -62,9 +70,13 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     spec = existing_scene(args.scene)
     if not spec.space.pivoted:
-        free = collect_quadrotor(args.scene, trajectories=args.trajectories or 300, steps=args.steps or 50,
-                                 seed=args.seed, max_omega=10.0 if args.max_omega is None else args.max_omega,
-                                 progress=not args.quiet)
+        max_omega = 10.0 if args.max_omega is None else args.max_omega
+        if args.collector == "excitation":
+            free = collect_excitation(args.scene, trajectories=args.trajectories or 750, steps=args.steps or 20,
+                                      seed=args.seed, max_omega=max_omega, progress=not args.quiet)
+        else:
+            free = collect_quadrotor(args.scene, trajectories=args.trajectories or 300, steps=args.steps or 50,
+                                     seed=args.seed, max_omega=max_omega, progress=not args.quiet)
         out = args.out or Path("data") / f"{spec.name}.npz"
         save_data(out, free)
         print(json.dumps({"out": str(out), **{k: free.metadata[k] for k in ("scene", "trajectories", "transitions",

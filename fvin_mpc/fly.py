@@ -20,6 +20,9 @@ from fvin_mpc.core.errors import UsageError
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m fvin_mpc.fly", description=study.__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--scene", default=study.SCENE,
+                        help="the built-in quadrotor or the path of an MJCF of one body on a free joint "
+                             "(default: %(default)s)")
     parser.add_argument("--task", choices=["recovery", "figure-eight"], default="recovery", help="(default: recovery)")
     parser.add_argument("--model", choices=list(study.MODELS), default="learned",
                         help="plan with the learned R³ × S³ checkpoint or the closed form read off the MJCF "
@@ -48,16 +51,22 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     if args.episodes < 1:
         raise UsageError(f"--episodes must be >= 1, got {args.episodes}")
-    if args.model == "learned" or args.report is not None:
-        checked_scene_and_checkpoint(study.SCENE, args.checkpoint)  # an R3xS3 model of this scene, before any build
+    # an R3xS3 model of this scene, before any build
+    spec, _ = checked_scene_and_checkpoint(args.scene, args.checkpoint,
+                                           true_model=args.model == "closed-form" and args.report is None)
+    if spec.space.pivoted:
+        raise UsageError(f"scene {spec.name!r} is a body on a pivot; swing it up with python -m fvin_mpc.swingup")
     if args.report is not None:
         results = study.side_by_side(args.report, argv, args.episodes, args.seed, args.latency, args.checkpoint,
-                                     progress=not args.quiet)
+                                     progress=not args.quiet, scene=args.scene)
         study.print_rows([model["summary"] for model in results["models"].values()])
         print(f"report: {args.report / 'quadrotor.md'}", file=sys.stderr)
         return 0
-    env = study.make_env(render=args.video is not None)
+    env = study.make_env(render=args.video is not None, scene=args.scene)
     controller = study.make_controller(env, args.model, args.checkpoint, solver=args.solver)
+    if args.model == "closed-form":
+        for left_out in env.space.closed_form(env.model, env.body_name).unmodelled:
+            print(f"note: the closed form leaves out {left_out}", file=sys.stderr)
     print(f"model {controller.model.name}, horizon {controller.settings.horizon} "
           f"({controller.settings.horizon * controller.model.step_size:.2f} s), built in {controller.build_s:.1f} s, "
           f"solver {args.solver}, latency {args.latency}", file=sys.stderr)

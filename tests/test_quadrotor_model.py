@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from dataclasses import replace
 
+import mujoco
 import numpy as np
 import pytest
 
@@ -34,11 +35,15 @@ def test_what_from_mujoco_reads_follows_the_model():
     inertia = np.array(from_mujoco(model, "quadrotor").inertia)
     np.testing.assert_allclose(np.linalg.eigvalsh(inertia), [2.3e-3, 2.9e-3, 4.6e-3], rtol=1e-12)
     assert abs(inertia[0, 1]) > 1e-5
-    model.actuator_gear[1, 5] = 0.02
-    with pytest.raises(ValueError, match="yaw coefficients differ"):
-        from_mujoco(model, "quadrotor")
-    model.actuator_gear[1, 5], model.actuator_gear[1, 0] = 0.016, 0.1
-    with pytest.raises(ValueError, match="push along body z"):
+    # unequal yaw gears and a gear with a lateral force: read as axes and moments, not refused
+    model.actuator_gear[1, 5], model.actuator_gear[2, 0] = 0.02, 0.1
+    body = from_mujoco(model, "quadrotor")
+    np.testing.assert_allclose(np.array(body.force_map)[:, 2], [0.1, 0.0, 1.0])
+    np.testing.assert_allclose(np.array(body.torque_map)[:, 1], [0.1202082, 0.1202082, 0.02])
+    site = model.site_pos[model.actuator_trnid[2, 0]]
+    np.testing.assert_allclose(np.array(body.torque_map)[:, 2], np.cross(site, [0.1, 0.0, 1.0]) + [0, 0, 0.016])
+    model.actuator_biastype[0], model.actuator_biasprm[0, 1] = mujoco.mjtBias.mjBIAS_AFFINE, -1.0
+    with pytest.raises(ValueError, match="fixed gain"):
         from_mujoco(model, "quadrotor")
     with pytest.raises(ValueError, match="free joint"):
         from_mujoco(RigidBodyEnv("spherical_pendulum").model, "pendulum")

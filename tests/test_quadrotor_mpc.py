@@ -61,7 +61,7 @@ def test_flips_from_exactly_upside_down_at_rest(craft):
     rotation-vector residual turns the craft over (differential thrust on the first call) and recovers."""
     env, model = craft
     options, seed = flight.recovery_starts(env.hover_point, count=1)[0]
-    np.testing.assert_allclose(options["qpos"][3:], [0.0, 1.0, 0.0, 0.0])
+    np.testing.assert_allclose(options["state"][3:], [0.0, 1.0, 0.0, 0.0, 0, 0, 0, 0, 0, 0])
     controller = flight.quadrotor_mpc(env, model, flight.quadrotor_mpc_settings(**DETERMINISTIC))
     x0, _ = env.reset(seed=seed, options=options)
     u, info = controller(x0)

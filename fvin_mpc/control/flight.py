@@ -189,6 +189,41 @@ class FigureEight:
         return np.concatenate([position, q, velocity, omega], axis=1), scale
 
 
+#: The figure-eight's peak acceleration as a share of the largest lateral acceleration the craft holds
+#: at constant height, ``g √(T/W² − 1)``: 0.27 gives the tuned craft (T/W 2.04) its 0.5 m, 3 s loop.
+FIGURE_EIGHT_ACCELERATION_SHARE = 0.27
+#: The figure-eight's amplitude in arm lengths (the tuned craft: 0.5 m on 0.17 m arms).
+FIGURE_EIGHT_ARMS = 0.5 / 0.17
+
+
+def scaled_figure_eight(center: Any, scales: Any, gravity: float = 9.81) -> FigureEight:
+    """The task's figure-eight for a craft of ``scales`` (:class:`~fvin_mpc.envs.quadrotor_env.CraftScales`):
+    :data:`FIGURE_EIGHT_ARMS` arm lengths wide, the loop period that makes its peak acceleration
+    :data:`FIGURE_EIGHT_ACCELERATION_SHARE` of what the thrust can hold (a third of it the ramp), both
+    rounded (two significant digits, 0.1 s) — the tuned craft's 0.5 m, 3 s, 1 s."""
+    amplitude = float(f"{FIGURE_EIGHT_ARMS * scales.arm:.2g}")
+    peak = FIGURE_EIGHT_ACCELERATION_SHARE * gravity * math.sqrt(max(scales.thrust_to_weight**2 - 1.0, 0.1))
+    phase = np.linspace(0.0, 2.0 * math.pi, 2001)
+    # |p''| at unit phase rate is A·max|(sin φ, 2 sin 2φ)|
+    shape = float(np.max(np.hypot(np.sin(phase), 2.0 * np.sin(2.0 * phase))))
+    period = round(2.0 * math.pi * math.sqrt(shape * amplitude / peak), 1)
+    return FigureEight(center=tuple(float(c) for c in center), amplitude=amplitude, period=period,
+                       gravity=gravity, ramp_s=round(period / 3.0, 1))
+
+
+#: The control weight tuned on the built-in craft, and that craft's
+#: :attr:`~fvin_mpc.envs.quadrotor_env.CraftScales.angular_control` (N per rad/s², checked in the tests).
+TUNED_CONTROL_WEIGHT, TUNED_ANGULAR_CONTROL = 0.5, 0.08346872974418619
+
+
+def scaled_control_weight(scales: Any) -> float:
+    """The tuned control weight for a craft of ``scales``: the same cost for turning at the same angular
+    acceleration, ``0.5 (c₀ / c)²`` with ``c`` the controls one rad/s² takes. Scaling by the hover thrust
+    instead left a 1.7 kg hexacopter's yaw (12× the tuned craft's control per rad/s²) too dear to damp:
+    it swung ±2 rad for seconds after righting itself."""
+    return TUNED_CONTROL_WEIGHT * (TUNED_ANGULAR_CONTROL / scales.angular_control) ** 2
+
+
 def recovery_starts(hover_point: Any, count: int = 20, seed: int = 0,
                     max_omega: float = 10.0) -> list[tuple[dict[str, Any], int]]:
     """``count`` seeded starts at ``hover_point`` as ``(env reset options, env seed)``: upside down at
@@ -197,12 +232,10 @@ def recovery_starts(hover_point: Any, count: int = 20, seed: int = 0,
     rng = np.random.default_rng(seed)
     upside_down = np.concatenate([np.asarray(hover_point, dtype=float), [0.0, 1.0, 0.0, 0.0]])
     axis = rng.normal(size=3)
+    # as observed states (the centre of mass at the hover point), not joint coordinates
     starts: list[tuple[dict[str, Any], int]] = [
-        ({"qpos": upside_down, "qvel": np.zeros(6)}, seed),
-        (
-            {"qpos": upside_down, "qvel": np.concatenate([np.zeros(3), max_omega * axis / np.linalg.norm(axis)])},
-            seed + 1,
-        ),
+        ({"state": np.concatenate([upside_down, np.zeros(6)])}, seed),
+        ({"state": np.concatenate([upside_down, np.zeros(3), max_omega * axis / np.linalg.norm(axis)])}, seed + 1),
     ]
     starts += [({"max_omega": max_omega}, seed + i) for i in range(2, count)]
     return starts[:count]
@@ -245,3 +278,4 @@ def flight_metrics(episode: Any, reference: Any, settle_s: float = 0.0,
                                              "skipped_observations", "controller_failures", "control_period_s",
                                              "duration_s")},
     }
+

@@ -1,12 +1,15 @@
 """A closed-form free rigid body with rotors (a quadrotor) in R³ × S³ — the ground truth for the
 combined step (:mod:`fvin_mpc.core.fvin_r3s3`), on components for every backend.
 
-Physics (world z up, gravity ``−g e_z``; body origin at the centre of mass):
+Physics (world z up, gravity ``−g e_z``; body frame at the centre of mass, which need not be the
+origin of the MJCF's body: :func:`from_mujoco` measures the sites from it):
 
-* rotor ``i`` at body site ``rᵢ`` pushes with thrust ``uᵢ ≥ 0`` (N) along the body z axis:
-  ``F_x = R(q) e_z Σ uᵢ`` (world frame);
-* body torque ``τ = B u`` with column ``i`` of ``B`` equal to ``rᵢ × e_z + κ sᵢ e_z``
-  (arm × thrust plus the yaw reaction of a rotor spinning in direction ``sᵢ = ±1``);
+* actuator ``i`` at body site ``rᵢ`` pushes with ``aᵢ uᵢ`` (N), ``aᵢ`` its body-frame force per unit
+  control — ``e_z`` for a rotor pushing along the body z axis (the default), a tilted axis for a
+  tilted rotor, zero for a pure body-moment actuator: ``F_x = R(q) Σ aᵢ uᵢ`` (world frame);
+* body torque ``τ = B u`` with column ``i`` of ``B`` equal to ``rᵢ × aᵢ + mᵢ``, ``mᵢ`` its pure
+  torque per unit control — by default ``κ sᵢ e_z``, the yaw reaction of a rotor spinning in
+  direction ``sᵢ = ±1``;
   the model's gain is ``g = 2 B`` (DESIGN.md, factor of two);
 * ``U(x, q) = m g x_z + ½ k |x + R(q) a − b|²``: gravity, plus an optional tether — a spring of
   stiffness ``k`` from the body site ``a`` to the world anchor ``b`` (``k = 0``: a free quadrotor,
@@ -44,6 +47,10 @@ class Quadrotor:
         tether_site: ``a``, body frame (m).
         tether_anchor: ``b``, world frame (m).
         thrust_low, thrust_high: per-rotor thrust bounds (N); ``None``: unbounded.
+        thrust_axes: ``aᵢ``, body-frame force per unit control; ``None``: ``e_z`` for every rotor.
+        rotor_moments: ``mᵢ``, body-frame pure torque per unit control; ``None``: ``κ sᵢ e_z``.
+        unmodelled: what the description simulates that this closed form leaves out (e.g. fluid drag),
+            one phrase each; empty when it represents the description fully.
     """
 
     mass: float
@@ -57,14 +64,23 @@ class Quadrotor:
     tether_anchor: Vector = (0.0, 0.0, 0.0)
     thrust_low: tuple[float, ...] | None = None
     thrust_high: tuple[float, ...] | None = None
+    thrust_axes: tuple[Vector, ...] | None = None
+    rotor_moments: tuple[Vector, ...] | None = None
+    unmodelled: tuple[str, ...] = ()
     constant_inertia: bool = field(default=True, init=False)
 
     def __post_init__(self) -> None:
         if len(self.rotor_sites) != len(self.rotor_spins):
             raise ValueError("one spin per rotor site")
-        for bounds in (self.thrust_low, self.thrust_high):
+        for bounds in (self.thrust_low, self.thrust_high, self.thrust_axes, self.rotor_moments):
             if bounds is not None and len(bounds) != len(self.rotor_sites):
-                raise ValueError("one thrust bound per rotor site")
+                raise ValueError("one thrust bound, axis and moment per rotor site")
+
+    @property
+    def force_map(self) -> Matrix:
+        """``A`` (3×m): body-frame force per unit control, the ``aᵢ`` as columns."""
+        axes = self.thrust_axes or ((0.0, 0.0, 1.0),) * self.control_dim
+        return tuple(tuple(float(a[i]) for a in axes) for i in range(3))
 
     @property
     def control_dim(self) -> int:
@@ -72,14 +88,27 @@ class Quadrotor:
 
     @property
     def torque_map(self) -> Matrix:
-        """``B`` (3×m): body torque per newton of each rotor's thrust."""
-        columns = [(r[1], -r[0], self.yaw_coefficient * s) for r, s in zip(self.rotor_sites, self.rotor_spins)]
-        return tuple(tuple(c[i] for c in columns) for i in range(3))
+        """``B`` (3×m): body torque about the centre of mass per unit control, ``rᵢ × aᵢ + mᵢ``."""
+        axes = self.thrust_axes or ((0.0, 0.0, 1.0),) * self.control_dim
+        moments = self.rotor_moments or tuple((0.0, 0.0, self.yaw_coefficient * s) for s in self.rotor_spins)
+        columns = [s3.add(s3.cross(r, a), m) for r, a, m in zip(self.rotor_sites, axes, moments)]
+        return tuple(tuple(float(c[i]) for c in columns) for i in range(3))
 
     @property
     def hover_thrust(self) -> float:
-        """Per-rotor thrust that holds the untethered craft level at rest: ``m g / n``."""
+        """Per-rotor thrust that holds a symmetric untethered craft level at rest: ``m g / n``
+        (:attr:`hover_controls` for any craft)."""
         return self.mass * self.gravity / self.control_dim
+
+    @property
+    def hover_controls(self) -> tuple[float, ...]:
+        """The smallest controls (least squares) whose force and torque hold the untethered craft
+        level at rest: ``A u = m g e_z``, ``B u = 0``."""
+        import numpy as np
+
+        wrench = np.vstack([np.array(self.force_map), np.array(self.torque_map)])
+        wanted = np.array([0.0, 0.0, self.mass * self.gravity, 0.0, 0.0, 0.0])
+        return tuple(float(u) for u in np.linalg.lstsq(wrench, wanted, rcond=None)[0])
 
     def terms(self, ops: Ops) -> "QuadrotorTerms":
         return QuadrotorTerms(self, ops)
@@ -144,13 +173,23 @@ class QuadrotorTerms:
         return (k * d_w, k * d_v[0], k * d_v[1], k * d_v[2])
 
     def translational_force(self, x: s3.Vec3, q: s3.Quat, u: tuple[Any, ...]) -> s3.Vec3:
-        """``R(q) e_z Σ uᵢ``: the third column of ``R(q)`` times the total thrust."""
+        """``R(q) A u``; for rotors along body z, the third column of ``R(q)`` times the total thrust."""
         w, qx, qy, qz = q
-        total = u[0]
-        for u_i in u[1:]:
-            total = total + u_i
-        return (2.0 * (qx * qz + w * qy) * total, 2.0 * (qy * qz - w * qx) * total,
-                (w * w - qx * qx - qy * qy + qz * qz) * total)
+        if self.body.thrust_axes is None:
+            total = u[0]
+            for u_i in u[1:]:
+                total = total + u_i
+            return (2.0 * (qx * qz + w * qy) * total, 2.0 * (qy * qz - w * qx) * total,
+                    (w * w - qx * qx - qy * qy + qz * qz) * total)
+        force_map = self.body.force_map
+        body_force = []
+        for row in force_map:
+            entry = 0.0 * u[0]
+            for a_i, u_i in zip(row, u):
+                if a_i:
+                    entry = entry + a_i * u_i
+            body_force.append(entry)
+        return s3.matvec(s3.rotation_matrix(q), body_force)  # type: ignore[return-value]
 
     def control_gain(self, x: s3.Vec3, q: s3.Quat) -> tuple[tuple[Any, ...], ...]:
         zero = 0.0 * q[0]
@@ -174,16 +213,18 @@ def from_mujoco(model: Any, body: str) -> Quadrotor:
     """The closed-form :class:`Quadrotor` of ``body`` in a compiled MuJoCo model (as
     :func:`fvin_mpc.core.rigid_body.from_mujoco` for pivoted bodies).
 
-    Read off the model, not the scene file: mass; inertia about the centre of mass (rotated from
-    the principal frame ``body_iquat``); gravity (zero when the model's flags disable it); one
-    rotor per actuator, each a site transmission on ``body`` whose gear pushes along the body z
-    axis, ``gear = (0, 0, 1, 0, 0, ±κ)`` in the body frame: its site (``rᵢ``), the sign of its
-    yaw reaction (``sᵢ``) and ``κ``, which must be the same for every rotor; the thrust bounds
-    (``ctrlrange`` when limited and clamping is not disabled).
+    Read off the model, not the scene file: mass; inertia about the centre of mass in the body frame
+    (rotated from the principal frame ``body_iquat``); the centre of mass ``c`` (``body_ipos``), from
+    which every site is measured; gravity (zero when the model's flags disable it); one control per
+    actuator, each a site transmission on ``body`` (no ``refsite``) with a fixed gain ``k`` and no
+    bias: its gear ``(f, t)`` in the site's frame gives the body-frame force ``aᵢ = k R_site f`` at the
+    site ``rᵢ − c`` and the pure torque ``mᵢ = k R_site t`` — rotors along body z with a yaw gear,
+    tilted rotors, a thrust site beside three body-moment actuators alike; the bounds (``ctrlrange``
+    when limited and clamping is not disabled). What the model simulates beyond this — fluid drag
+    (``density``, ``viscosity``, ``wind``) — is named in ``unmodelled``, not represented.
 
-    Requirements (``ValueError`` otherwise): ``body`` has one free joint and is the model's only
-    moving body; its centre of mass is the body origin (the free joint's position is then the
-    model's ``x``); every actuator is a plain gain (``force = ctrl``, no bias, no dynamics).
+    Requirements (``ValueError`` otherwise): ``body`` has one free joint, the model's only degree of
+    freedom; every actuator is as above.
 
     Args:
         model: a ``mujoco.MjModel``.
@@ -198,9 +239,8 @@ def from_mujoco(model: Any, body: str) -> Quadrotor:
     free = int(mujoco.mjtJoint.mjJNT_FREE)
     if model.body_jntnum[body_id] != 1 or int(model.jnt_type[model.body_jntadr[body_id]]) != free or model.nv != 6:
         raise ValueError(f"body {body!r} must have one free joint, the model's only degree of freedom")
-    if np.linalg.norm(model.body_ipos[body_id]) > 1e-12:
-        raise ValueError(f"body {body!r}: the centre of mass must be the body origin, got {model.body_ipos[body_id]}")
-    mass = float(model.body_mass[body_id])
+    centre = np.asarray(model.body_ipos[body_id], dtype=float)
+    mass = float(model.body_subtreemass[body_id])
     frame = np.zeros(9)
     mujoco.mju_quat2Mat(frame, np.asarray(model.body_iquat[body_id], dtype=float))
     frame = frame.reshape(3, 3)
@@ -210,37 +250,45 @@ def from_mujoco(model: Any, body: str) -> Quadrotor:
         raise ValueError(f"gravity must point along −z, got {gravity}")
     if model.opt.disableflags & mujoco.mjtDisableBit.mjDSBL_GRAVITY:
         gravity = np.zeros(3)
-    sites, spins, yaw = [], [], []
+    sites, axes, moments = [], [], []
     for a in range(model.nu):
         name = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_ACTUATOR, a) or f"#{a}"
         site = int(model.actuator_trnid[a, 0])
-        if model.actuator_trntype[a] != mujoco.mjtTrn.mjTRN_SITE or model.site_bodyid[site] != body_id:
-            raise ValueError(f"actuator {name!r} must act through a site of body {body!r}")
+        if (model.actuator_trntype[a] != mujoco.mjtTrn.mjTRN_SITE or model.site_bodyid[site] != body_id
+                or model.actuator_trnid[a, 1] >= 0):
+            raise ValueError(f"actuator {name!r} must act through a site of body {body!r} (no refsite)")
         plain = (model.actuator_dyntype[a] == mujoco.mjtDyn.mjDYN_NONE
                  and model.actuator_gaintype[a] == mujoco.mjtGain.mjGAIN_FIXED
-                 and model.actuator_gainprm[a, 0] == 1.0 and not np.any(model.actuator_biasprm[a])
+                 and not np.any(model.actuator_biasprm[a])
                  and model.actuator_biastype[a] == mujoco.mjtBias.mjBIAS_NONE)
         if not plain:
-            raise ValueError(f"actuator {name!r} must be a plain gain (force = ctrl, no bias, no dynamics)")
+            raise ValueError(f"actuator {name!r} must be a fixed gain (force = gain·ctrl, no bias, no dynamics)")
         site_frame = np.zeros(9)
         mujoco.mju_quat2Mat(site_frame, np.asarray(model.site_quat[site], dtype=float))
-        site_frame = site_frame.reshape(3, 3)
-        force, torque = site_frame @ model.actuator_gear[a, :3], site_frame @ model.actuator_gear[a, 3:]
-        if not np.allclose(force, [0.0, 0.0, 1.0], atol=1e-12) or not np.allclose(torque[:2], 0.0, atol=1e-12):
-            raise ValueError(f"actuator {name!r}: the gear must push along body z with a yaw torque only, "
-                             f"got force {force}, torque {torque} (body frame)")
-        sites.append(tuple(float(c) for c in model.site_pos[site]))
-        spins.append(1.0 if torque[2] >= 0.0 else -1.0)
-        yaw.append(abs(float(torque[2])))
-    if np.ptp(yaw) > 1e-12 * max(max(yaw), 1.0):
-        raise ValueError(f"the rotors' yaw coefficients differ ({yaw}); a Quadrotor has one κ")
+        site_frame = float(model.actuator_gainprm[a, 0]) * site_frame.reshape(3, 3)
+        sites.append(tuple(float(c) for c in model.site_pos[site] - centre))
+        axes.append(tuple(float(c) for c in site_frame @ model.actuator_gear[a, :3]))
+        moments.append(tuple(float(c) for c in site_frame @ model.actuator_gear[a, 3:]))
+    unmodelled = []
+    if model.opt.density > 0.0 or model.opt.viscosity > 0.0 or np.any(model.opt.wind != 0.0):
+        unmodelled.append(f"fluid drag (density {model.opt.density:g} kg/m³, viscosity {model.opt.viscosity:g} Pa·s, "
+                          f"wind {tuple(float(w) for w in model.opt.wind)} m/s)")
     clamped = not model.opt.disableflags & mujoco.mjtDisableBit.mjDSBL_CLAMPCTRL
     limited = clamped and bool(np.all(model.actuator_ctrllimited))
     as_tuple = lambda matrix: tuple(tuple(float(x) for x in row) for row in matrix)  # noqa: E731
-    return Quadrotor(mass=mass, inertia=as_tuple(inertia), rotor_sites=tuple(sites), rotor_spins=tuple(spins),
-                     yaw_coefficient=float(yaw[0]), gravity=-float(gravity[2]),
+    # the rotor description of the common case (every gear along body z with a yaw reaction of one κ)
+    # keeps the closed form's rotor parameters; anything else is stated by its axes and moments
+    yaw = [m[2] for m in moments]
+    rotors = (all(np.allclose(a, (0.0, 0.0, 1.0), atol=1e-12) for a in axes)
+              and all(abs(m[0]) < 1e-12 and abs(m[1]) < 1e-12 for m in moments)
+              and np.ptp(np.abs(yaw)) <= 1e-12 * max(max(np.abs(yaw), default=0.0), 1.0))
+    return Quadrotor(mass=mass, inertia=as_tuple(inertia), rotor_sites=tuple(sites),
+                     rotor_spins=tuple(1.0 if y >= 0.0 else -1.0 for y in yaw),
+                     yaw_coefficient=abs(float(yaw[0])) if rotors and yaw else 0.0, gravity=-float(gravity[2]),
                      thrust_low=tuple(float(v) for v in model.actuator_ctrlrange[:, 0]) if limited else None,
-                     thrust_high=tuple(float(v) for v in model.actuator_ctrlrange[:, 1]) if limited else None)
+                     thrust_high=tuple(float(v) for v in model.actuator_ctrlrange[:, 1]) if limited else None,
+                     thrust_axes=None if rotors else tuple(axes), rotor_moments=None if rotors else tuple(moments),
+                     unmodelled=tuple(unmodelled))
 
 
 @dataclass(frozen=True)
@@ -265,10 +313,10 @@ class GeometricController:
     min_thrust_fraction: float = 1.0
 
     def allocation(self) -> Any:
-        """``A`` (4×m): ``[Σuᵢ; τ] = A u``."""
+        """``A`` (4×m): ``[thrust along body z; τ] = A u`` (for rotors along body z the first row is ones)."""
         import numpy as np
 
-        return np.vstack([np.ones(self.body.control_dim), np.array(self.body.torque_map)])
+        return np.vstack([np.array(self.body.force_map)[2], np.array(self.body.torque_map)])
 
     def __call__(self, state: Any, target_position: Any, target_velocity: Any = (0.0, 0.0, 0.0),
                  target_yaw: float = 0.0) -> Any:
@@ -299,7 +347,8 @@ class GeometricController:
         thrust = max(float(force @ rotation[:, 2]), self.min_thrust_fraction * m * body.gravity)
         low = -np.inf if body.thrust_low is None else np.array(body.thrust_low)
         high = np.inf if body.thrust_high is None else np.array(body.thrust_high)
-        inverse = np.linalg.inv(self.allocation())
+        # the least-squares inverse: square for four rotors, the smallest controls for more
+        inverse = np.linalg.pinv(self.allocation())
         # Yaw authority is small (κ ≪ arm): the yaw torque is limited to what the rotors can give on
         # top of the thrust and the roll and pitch torques; if even those saturate, the thrust moves
         # towards mid-range, then roll and pitch are scaled down together (their direction kept) —

@@ -56,7 +56,12 @@ class SpaceTraining:
 def free_body_report(weights: Mapping[str, Any], config: R3S3Config, data: Trajectories,
                      test: Trajectories | None) -> dict[str, Any]:
     """The recovered mass and inertia against the scene's closed form, and with held-out ``test``
-    data the open-loop errors of the learned and the closed-form model."""
+    data the open-loop errors of the learned and the closed-form model; for a craft the closed form
+    cannot read (:func:`~fvin_mpc.core.quadrotor.from_mujoco` refuses its actuators), the reason instead."""
+    try:
+        scene_quadrotor(str(data.metadata.get("scene", "quadrotor")))
+    except ValueError as error:
+        return {"closed_form": f"not compared: {error}"}
     report: dict[str, Any] = {
         "recovered": recovered_parameters(
             weights, config, scene_quadrotor(str(data.metadata.get("scene", "quadrotor")))

@@ -7,6 +7,11 @@ Gauss–Newton SQP iteration per period, a compiled Riccati interior-point QP, o
 estimate), planning with the learned R³ × S³ model (``--model learned``, the scene's checkpoint) or
 the closed-form craft read off the MJCF (``--model closed-form``).
 
+``--scene X.xml`` flies any MJCF of one body on a free joint with site actuators (docs/flyers.md): the
+state is its centre of mass's; the control period (when the MJCF names none), the figure-eight's size
+and period and the MPC's control weight come from the craft's own scales; what the closed form leaves
+out (fluid drag) is printed as a note.
+
 Tasks:
 
 * ``recovery`` — from ``--episodes`` seeded starts at the hover point (upside down at rest, upside
@@ -36,13 +41,14 @@ import numpy as np
 
 from fvin_mpc.control.closed_loop import NOT_MEASURED, run_episode
 from fvin_mpc.control.flight import (
-    FigureEight,
     flight_metrics,
     hover_reference,
     quadrotor_model,
     quadrotor_mpc,
     quadrotor_mpc_settings,
     recovery_starts,
+    scaled_control_weight,
+    scaled_figure_eight,
 )
 from fvin_mpc.envs.quadrotor_env import QuadrotorEnv
 from fvin_mpc.studies.report import markdown_table, write_report
@@ -57,8 +63,9 @@ FIGURE_EIGHT_SETTLE_LOOPS = 1
 MODELS = ("learned", "closed-form")
 
 
-def make_env(render: bool = False) -> Any:
-    return QuadrotorEnv(SCENE, render_mode="rgb_array" if render else None)
+def make_env(render: bool = False, scene: Any = SCENE) -> Any:
+    """The env of a free-body ``scene`` (built-in name or MJCF path; default the built-in ``quadrotor``)."""
+    return QuadrotorEnv(scene, render_mode="rgb_array" if render else None)
 
 
 def make_controller(env: Any, model_kind: str, checkpoint: Any = None, **overrides: Any) -> Any:
@@ -68,13 +75,16 @@ def make_controller(env: Any, model_kind: str, checkpoint: Any = None, **overrid
     if model_kind not in MODELS:
         raise ValueError(f"model must be one of {MODELS}, got {model_kind!r}")
     model = quadrotor_model(env, checkpoint, true_model=model_kind == "closed-form")
+    base = env.unwrapped
+    overrides.setdefault("control_weight", scaled_control_weight(base.scales))
     return quadrotor_mpc(env, model, quadrotor_mpc_settings(**overrides))
 
 
 def figure_eight(env: Any) -> Any:
-    """The task's figure-eight around the env's hover point."""
+    """The task's figure-eight around the env's hover point, scaled to the craft (the built-in: 0.5 m, 3 s)."""
 
-    return FigureEight(center=tuple(env.unwrapped.hover_point), amplitude=0.5, period=3.0, ramp_s=1.0)
+    base = env.unwrapped
+    return scaled_figure_eight(base.hover_point, base.scales, float(np.linalg.norm(base.model.opt.gravity)))
 
 
 def run_recovery(
@@ -156,11 +166,13 @@ COLUMNS = ("model", "recovered", "recover_s_median", "recover_s_max", "figure_ei
 
 
 def side_by_side(out_dir: Path, argv: Sequence[str], episodes: int = 20, seed: int = 0, latency: Any = "measured",
-                 checkpoint: Any = None, models: Sequence[str] = MODELS, progress: bool = True) -> dict[str, Any]:
+                 checkpoint: Any = None, models: Sequence[str] = MODELS, progress: bool = True,
+                 scene: Any = SCENE) -> dict[str, Any]:
     """Both tasks with each model under the same controller; writes ``out_dir/quadrotor.{json,md}``
     and ``recovery.png``, ``figure_eight.png``; returns the data."""
 
-    env = make_env()
+    env = make_env(scene=scene)
+    loop = figure_eight(env)
     results: dict[str, Any] = {"episodes": episodes, "seed": seed, "latency": latency, "models": {}}
     flights: dict[str, tuple[list[Any], Any]] = {}
     rows = []
@@ -181,9 +193,10 @@ def side_by_side(out_dir: Path, argv: Sequence[str], episodes: int = 20, seed: i
     command = "python -m fvin_mpc.fly " + " ".join(shlex.quote(a) for a in argv)
     body = "\n".join([
         f"Latency mode: `{latency}`; {episodes} recovery starts (seed {seed}), {RECOVERY_DURATION_S:g} s each; one "
-        f"figure-eight flight ({FIGURE_EIGHT_LOOPS} loops of 3 s after a 1 s ramp, RMS after the first loop). "
+        f"figure-eight flight ({FIGURE_EIGHT_LOOPS} loops of {loop.period:g} s, {2 * loop.amplitude:g} m wide, after a "
+        f"{loop.ramp_s:g} s ramp, RMS after the first loop). "
         "Controller times are over every period of every episode of that model (wall clock, the whole call: "
-        "feedback + preparation); the control period is 20 ms."
+        f"feedback + preparation); the control period is {env.unwrapped.dt * 1e3:g} ms."
         + ("" if latency == "measured" else
            " With a fixed delay the thrust acts after that delay whatever the compute time, and a period's busy"
            " time is the delay: deadline misses cannot occur and are not judged; the times are measured all the same."),

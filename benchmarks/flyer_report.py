@@ -1,0 +1,283 @@
+"""The free-flyer family through the whole pipeline: ``python -m benchmarks.flyer_report``.
+
+Seeds from ``--seed-offset`` on are drawn (:mod:`fvin_mpc.envs.flyer_family`) and filtered: a draw
+enters the family only if the closed-form MPC (``fly --model closed-form``, the craft read off its
+MJCF) recovers it to hover from every one of ``--starts`` recovery starts (fly's starts and criterion:
+upside down at rest, upside down tumbling, then random attitudes tumbling at up to 10 rad/s; within
+0.1 m and 0.1 rad from some time on), never looking at a learned model. For each of the first
+``--scenes`` members: ``collect`` → ``train`` → build, each with the commands' defaults (library calls;
+training on one torch thread), then the learned-model MPC from the same starts and both models on the
+craft's figure-eight (:func:`fvin_mpc.control.flight.scaled_figure_eight`).
+
+As :mod:`benchmarks.scene_families`: each finished scene and each filter verdict is cached as JSON in
+``--cache-dir`` (a stopped run resumes), the report — per scene and for the family: starts recovered
+(learned / closed form), figure-eight RMS (learned / closed form), time per controller call, deadline
+misses, collect + train + build wall time, the filter's rejection rate — goes to ``--out-dir`` as
+``flyer-family.md`` with the command that produced it, and ``flyer-family.png``.
+
+``--latency none`` (default) is the waiting mode: model-quality figures, not real time (deadline
+misses are then "not measured"); ``--latency measured`` charges the controller's compute time.
+
+Seeds: development used 0–39 (tests/test_quadrotor_mjcf.py) and 5000–5015; the report's default
+``--seed-offset`` is 7000.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import io
+import json
+import os
+import shlex
+import sys
+import time
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from fvin_mpc import collect, train
+from fvin_mpc._cli import run_command
+from fvin_mpc.core.quadrotor import from_mujoco
+from fvin_mpc.envs.flyer_family import write_flyers
+from fvin_mpc.studies.flight_report import make_controller, make_env, run_figure_eight, run_recovery
+
+DEFAULT_SEED_OFFSET = 7000
+DEVELOPMENT_SEEDS = "0–39 and 5000–5015"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.flyer_report", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--scenes", type=int, default=8, help="family members to run (default: %(default)s)")
+    parser.add_argument("--starts", type=int, default=5, help="recovery starts per scene (default: %(default)s)")
+    parser.add_argument("--seed-offset", type=int, default=DEFAULT_SEED_OFFSET,
+                        help="first seed (default: %(default)s)")
+    parser.add_argument("--max-draws", type=int, default=None, help="seeds to try at most (default: 3 × --scenes)")
+    parser.add_argument("--latency", choices=["none", "measured"], default="none", help="(default: %(default)s)")
+    parser.add_argument("--cache-dir", type=Path, default=Path("build/flyer-family-cache"),
+                        help="per-scene JSON and the data and checkpoints (default: %(default)s)")
+    parser.add_argument("--out-dir", type=Path, default=Path("docs/flyer-family"),
+                        help="report folder (default: %(default)s)")
+    parser.add_argument("--seed", type=int, default=0, help="seeds the recovery starts (default: %(default)s)")
+    return parser
+
+
+def _recovery(env: Any, controller: Any, starts: int, seed: int, latency: str) -> list[dict[str, Any]]:
+    rows, _, _ = run_recovery(env, controller, starts, seed, latency, progress=False)
+    keys = ("recovered", "time_to_recover_s", "final_position_m", "final_angle_rad", "solve_time_ms",
+            "deadline_misses", "controller_failures")
+    return [{key: row[key] for key in keys if key in row} for row in rows]
+
+
+def _figure_eight(env: Any, controller: Any, latency: str) -> dict[str, Any]:
+    tracking, _, _ = run_figure_eight(env, controller, latency, progress=False)
+    keys = ("rms_position_m", "max_position_m", "deadline_misses", "controller_failures", "amplitude_m", "period_s")
+    return {key: tracking[key] for key in keys if key in tracking}
+
+
+def filter_verdict(path: Path, starts: int, seed: int, latency: str) -> dict[str, Any]:
+    """The closed-form MPC on ``path``'s craft from ``starts`` recovery starts: in the family if it
+    recovers from all of them (the recoveries are the closed form's results in the report too)."""
+    env = make_env(scene=path)
+    t0 = time.perf_counter()
+    try:
+        craft = from_mujoco(env.model, env.body_name)
+    except ValueError as error:
+        return {"ok": False, "reason": str(error)}
+    controller = make_controller(env, "closed-form")
+    recovery = _recovery(env, controller, starts, seed, latency)
+    figure_eight = _figure_eight(env, controller, latency)
+    env.close()
+    return {"ok": all(r["recovered"] for r in recovery), "recovery": recovery, "figure_eight": figure_eight,
+            "unmodelled": list(craft.unmodelled), "control_period_s": float(env.dt),
+            "build_s": float(controller.build_s), "wall_s": time.perf_counter() - t0}
+
+
+def run_scene(seed: int, path: Path, work: Path, verdict: dict[str, Any], starts: int, seed_starts: int,
+              latency: str) -> dict[str, Any]:
+    """Collect → train → build → fly one member; the record cached for it."""
+    import torch
+
+    torch.set_num_threads(1)
+    data, stem = work / f"flyer_{seed}.npz", work / f"flyer_{seed}_model"
+    quiet = io.StringIO()
+    t0 = time.perf_counter()
+    with contextlib.redirect_stdout(quiet):
+        collect.main(["--scene", str(path), "--out", str(data), "--quiet"])
+    t1 = time.perf_counter()
+    with contextlib.redirect_stdout(quiet):
+        train.main(["--data", str(data), "--out", str(stem), "--quiet", "--threads", "1"])
+    t2 = time.perf_counter()
+    env = make_env(scene=path)
+    learned = make_controller(env, "learned", str(stem))
+    t3 = time.perf_counter()
+    sidecar = json.loads(Path(f"{stem}.json").read_text()) if Path(f"{stem}.json").exists() else {}
+    training = sidecar.get("training", {})
+    record = {
+        "seed": seed, "scene": str(path), "latency": latency,
+        "facts": json.loads(path.with_suffix(".json").read_text()),
+        "collect_s": t1 - t0, "train_s": t2 - t1, "build_s": t3 - t2, "pipeline_s": t3 - t0,
+        "control_period_s": float(env.dt), "horizon": learned.settings.horizon,
+        "training": {k: training.get(k) for k in ("iterations", "stopped", "final_validation_loss", "wall_clock_s")},
+        "learned": {"recovery": _recovery(env, learned, starts, seed_starts, latency),
+                    "figure_eight": _figure_eight(env, learned, latency)},
+        "closed_form": {"recovery": verdict["recovery"], "figure_eight": verdict["figure_eight"]},
+        "unmodelled": verdict["unmodelled"],
+    }
+    env.close()
+    return record
+
+
+def run(args: argparse.Namespace) -> tuple[list[dict[str, Any]], dict[int, dict[str, Any]]]:
+    cache = args.cache_dir / args.latency
+    scenes_dir, work = cache / "scenes", cache / "work"
+    work.mkdir(parents=True, exist_ok=True)
+    records, verdicts = [], {}
+    for seed in range(args.seed_offset, args.seed_offset + (args.max_draws or 3 * args.scenes)):
+        if len(records) >= args.scenes:
+            break
+        (path,) = write_flyers([seed], scenes_dir)
+        cached = cache / f"filter_{seed}.json"
+        if cached.exists():
+            verdict = json.loads(cached.read_text())
+        else:
+            verdict = filter_verdict(path, args.starts, args.seed, args.latency)
+            cached.write_text(json.dumps(verdict, indent=1) + "\n")
+        verdicts[seed] = verdict
+        print(f"flyer {seed}: filter {'in' if verdict['ok'] else 'out'}", file=sys.stderr)
+        if not verdict["ok"]:
+            continue
+        done = cache / f"scene_{seed}.json"
+        if done.exists():
+            record = json.loads(done.read_text())
+        else:
+            record = run_scene(seed, path, work, verdict, args.starts, args.seed, args.latency)
+            done.write_text(json.dumps(record, indent=1) + "\n")
+        learned = sum(r["recovered"] for r in record["learned"]["recovery"])
+        print(f"flyer {seed}: learned {learned}/{args.starts}, figure-eight RMS "
+              f"{record['learned']['figure_eight']['rms_position_m']:.4f} m vs "
+              f"{record['closed_form']['figure_eight']['rms_position_m']:.4f} m", file=sys.stderr)
+        records.append(record)
+    return records, verdicts
+
+
+def summarize(records: list[dict[str, Any]], verdicts: dict[int, dict[str, Any]]) -> dict[str, Any]:
+    """The family's numbers against the issue's targets."""
+    learned = [r["recovered"] for rec in records for r in rec["learned"]["recovery"]]
+    closed = [r["recovered"] for rec in records for r in rec["closed_form"]["recovery"]]
+    both = sum(a and b for rec in records for a, b in zip((r["recovered"] for r in rec["learned"]["recovery"]),
+                                                           (r["recovered"] for r in rec["closed_form"]["recovery"])))
+    ratios = [rec["learned"]["figure_eight"]["rms_position_m"] / rec["closed_form"]["figure_eight"]["rms_position_m"]
+              for rec in records]
+    rejected = [seed for seed, v in verdicts.items() if not v["ok"]]
+    return {
+        "scenes": len(records), "starts": len(learned), "recovered_learned": int(sum(learned)),
+        "recovered_closed": int(sum(closed)),
+        "learned_on_closed_recoveries": both / max(sum(closed), 1),
+        "scenes_learned_at_least_4_of_5": sum(sum(r["recovered"] for r in rec["learned"]["recovery"]) >= 4
+                                             for rec in records),
+        "figure_eight_ratio_median": float(np.median(ratios)) if ratios else None,
+        "figure_eight_ratio_worst": float(np.max(ratios)) if ratios else None,
+        "pipeline_s_median": float(np.median([r["pipeline_s"] for r in records])) if records else None,
+        "pipeline_s_max": float(np.max([r["pipeline_s"] for r in records])) if records else None,
+        "draws_filtered": len(verdicts), "draws_rejected": len(rejected),
+        "rejection_rate": len(rejected) / len(verdicts) if verdicts else None,
+    }
+
+
+def write_report(records: list[dict[str, Any]], verdicts: dict[int, dict[str, Any]], summary: dict[str, Any],
+                 args: argparse.Namespace, command: str) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    args.out_dir.mkdir(parents=True, exist_ok=True)
+    figure, axes = plt.subplots(1, 2, figsize=(11, 4))
+    for i, rec in enumerate(records):
+        learned, closed = rec["learned"]["figure_eight"], rec["closed_form"]["figure_eight"]
+        axes[0].bar(i - 0.2, 1e3 * learned["rms_position_m"], width=0.4, color="tab:blue")
+        axes[0].bar(i + 0.2, 1e3 * closed["rms_position_m"], width=0.4, color="tab:gray")
+        axes[1].bar(i, rec["collect_s"], color="tab:gray")
+        axes[1].bar(i, rec["train_s"], bottom=rec["collect_s"], color="tab:orange")
+        axes[1].bar(i, rec["build_s"], bottom=rec["collect_s"] + rec["train_s"], color="tab:green")
+    for ax in axes:
+        ax.set_xticks(range(len(records)), [str(r["seed"]) for r in records])
+        ax.set_xlabel("craft seed")
+    axes[0].set_ylabel("figure-eight RMS (mm): learned blue, closed form grey")
+    axes[1].set_ylabel("s (collect grey, train orange, build green)")
+    axes[1].axhline(900.0, color="k", lw=0.5)
+    figure.tight_layout()
+    figure.savefig(args.out_dir / "flyer-family.png", dpi=90)
+    plt.close(figure)
+
+    s = summary
+    fmt = lambda v, spec=".2f": "—" if v is None else format(v, spec)  # noqa: E731
+    lines = [
+        "# The free-flyer family through the whole pipeline", "",
+        f"Produced by `{command}` (seeds from {args.seed_offset}; development used {DEVELOPMENT_SEEDS}).",
+        f"Latency mode **{args.latency}**" + (": the simulator waits for the controller — model-quality figures, "
+                                              "not real time; deadline misses are not measured." if args.latency
+                                              == "none" else "."),
+        f"Timings are from the shared 2-core CPU machine with other jobs running (1-minute load average "
+        f"{args.load_average:.1f} when the report was written): wall times are several times an idle machine's.", "",
+        "Crafts are drawn by `fvin_mpc.envs.flyer_family` (its docstring gives the ranges), kept if the closed-form "
+        "MPC recovers them from every start, then `collect` (random-excitation bursts, the MJCF alone) → `train` "
+        "(defaults, one torch thread) → the learned-model RTI MPC beside the closed-form one (`fly`'s settings, the "
+        "control weight and figure-eight scaled to the craft).", "",
+        "| scenes | starts recovered (learned / closed form) | learned on the closed form's recoveries | scenes with "
+        "learned ≥ 4 of 5 | figure-eight RMS learned / closed form (median, worst) | collect + train + build s "
+        "(median, max) | filter rejection |",
+        "|---|---|---|---|---|---|---|",
+        f"| {s['scenes']} | {s['recovered_learned']}/{s['starts']} / {s['recovered_closed']}/{s['starts']} | "
+        f"{100 * s['learned_on_closed_recoveries']:.0f} % | {s['scenes_learned_at_least_4_of_5']}/{s['scenes']} | "
+        f"{fmt(s['figure_eight_ratio_median'])}, {fmt(s['figure_eight_ratio_worst'])} | "
+        f"{fmt(s['pipeline_s_median'], '.0f')}, {fmt(s['pipeline_s_max'], '.0f')} | "
+        f"{s['draws_rejected']}/{s['draws_filtered']} |", "",
+        "![flyer family](flyer-family.png)", "",
+        "| seed | mass kg | actuation | rotors | drag | com off / arm | tilt ° | T/W | dt ms | period ms | "
+        "learned recovered | closed recovered | fig-8 RMS mm learned / closed | fig-8 size m, period s | "
+        "collect / train / build s | training |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in records:
+        f, le, cl = r["facts"], r["learned"], r["closed_form"]
+        lines.append(
+            f"| {r['seed']} | {f['mass_kg']:.3g} | {f['actuation']} | {f['rotors']} | "
+            f"{'yes' if f['fluid_drag'] else 'no'} | {f['com_offset_arm_fraction']:.2f} | {f['max_tilt_deg']:.1f} | "
+            f"{f['thrust_to_weight']:.2f} | "
+            f"{1e3 * f['timestep_s']:.1f} | {1e3 * r['control_period_s']:.1f} | "
+            f"{sum(x['recovered'] for x in le['recovery'])}/{len(le['recovery'])} | "
+            f"{sum(x['recovered'] for x in cl['recovery'])}/{len(cl['recovery'])} | "
+            f"{1e3 * le['figure_eight']['rms_position_m']:.1f} / {1e3 * cl['figure_eight']['rms_position_m']:.1f} | "
+            f"{2 * le['figure_eight']['amplitude_m']:.2g}, {le['figure_eight']['period_s']:.1f} | "
+            f"{r['collect_s']:.0f} / {r['train_s']:.0f} / {r['build_s']:.0f} | "
+            f"{r['training'].get('iterations')} it, val {fmt(r['training'].get('final_validation_loss'), '.1e')} |")
+    rejected = {seed: v for seed, v in verdicts.items() if not v["ok"]}
+    if rejected:
+        lines += ["", "Rejected by the filter (closed-form recoveries):", ""]
+        lines += [f"* {seed}: " + (v.get("reason") or f"{sum(x['recovered'] for x in v['recovery'])}/"
+                                   f"{len(v['recovery'])} starts recovered") for seed, v in rejected.items()]
+    path = args.out_dir / "flyer-family.md"
+    path.write_text("\n".join(lines) + "\n")
+    (args.out_dir / "flyer-family.json").write_text(json.dumps({"command": command, "summary": summary,
+                                                                "records": records}, indent=1) + "\n")
+    return path
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    args = build_parser().parse_args(argv)
+    records, verdicts = run(args)
+    args.load_average = os.getloadavg()[0]
+    summary = summarize(records, verdicts)
+    command = "python -m benchmarks.flyer_report " + " ".join(shlex.quote(a) for a in argv)
+    print(json.dumps(summary, indent=1))
+    print(f"report: {write_report(records, verdicts, summary, args, command)}", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(run_command(main))
