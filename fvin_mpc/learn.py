@@ -57,6 +57,9 @@ def build_parser() -> argparse.ArgumentParser:
                         help="most rounds after the first (default: %(default)s)")
     parser.add_argument("--train-iterations", type=int, default=None,
                         help="most training iterations per round (default: the training command's)")
+    parser.add_argument("--time-limit", type=float, default=None,
+                        help="seconds: end (before exploring) when another round as long as the last would "
+                             "end past this (default: none)")
     parser.add_argument("--seed", type=int, default=0, help="seeds excitation, exploration, training (default: 0)")
     parser.add_argument("--out-dir", type=Path, default=None, help="default: learn/<scene name>")
     parser.add_argument("--quiet", action="store_true", help="no progress display")
@@ -72,7 +75,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         explore_episodes=args.explore_episodes, explore_segments=args.explore_segments,
         exploration_noise=args.exploration_noise, evaluation_starts=args.evaluation_starts,
         evaluation_duration_s=args.evaluation_duration, max_rounds=args.max_rounds,
-        train_iterations=args.train_iterations, seed=args.seed,
+        train_iterations=args.train_iterations, seed=args.seed, time_limit_s=args.time_limit,
         mpc={k: v for k, v in mpc_overrides(args).items() if v is not None},
     )
     out_dir = args.out_dir or Path("learn") / spec.name

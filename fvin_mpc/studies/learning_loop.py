@@ -83,6 +83,8 @@ class LoopSettings:
         max_rounds: most rounds after round 0.
         train_iterations: most training iterations per round (``None``: the training command's default).
         seed: seeds the excitation, the exploration and training.
+        time_limit_s: end the loop (before exploring) when another round as long as the last would end
+            past this many seconds of wall time; ``None``: no limit.
         mpc: MPC setting overrides of the scene's (``None`` values ignored), for the learned and the
             closed-form MPC alike, over :data:`LOOP_SOLVER`.
     """
@@ -100,6 +102,7 @@ class LoopSettings:
     train_iterations: int | None = None
     seed: int = 0
     mpc: dict[str, Any] = field(default_factory=dict)
+    time_limit_s: float | None = None
 
     def __post_init__(self) -> None:
         counts = {"budget": self.budget, "excitation_trajectories": self.excitation_trajectories,
@@ -285,6 +288,19 @@ def run_loop(scene: str, settings: LoopSettings, out_dir: Path, progress: bool =
                                       "threads": 1, "iterations": settings.train_iterations})
     rounds: list[dict[str, Any]] = []
     evaluation_transitions = 0
+
+    def summary() -> dict[str, Any]:
+        return {
+            "scene": str(scene), "settings": {**asdict(settings), "mpc": mpc_settings},
+            "latency": "none", "evaluation_duration_s": duration,
+            "closed_form": {"episodes": closed, "wall_s": closed_s,
+                            **{k: v for k, v in _verdict(closed, closed).items()
+                               if k in ("closed_up", "starts", "cost_closed")}},
+            "rounds": rounds, "transitions_to_success": None,
+            "training_transitions": rounds[-1]["transitions"], "evaluation_transitions": evaluation_transitions,
+            "data": str(out_dir / "data.npz"), "wall_s": time.perf_counter() - started,
+        }
+
     outcome = "budget spent"
     bar = tqdm(total=settings.budget, desc=f"learn {spec.name}", unit="transition", disable=not progress)
     bar.update(data.num_transitions)
@@ -320,7 +336,9 @@ def run_loop(scene: str, settings: LoopSettings, out_dir: Path, progress: bool =
         }
         done = verdict["success"]
         room = settings.budget - data.num_transitions
-        if not done and round_index < settings.max_rounds and room >= settings.segment_steps:
+        late = settings.time_limit_s is not None and \
+            (time.perf_counter() - started) + (time.perf_counter() - t_round) > settings.time_limit_s
+        if not done and not late and round_index < settings.max_rounds and room >= settings.segment_steps:
             t0 = time.perf_counter()
             data, added = _explore(env, learned_mpc, data, settings, round_index, room)
             gather_s = time.perf_counter() - t0
@@ -338,24 +356,22 @@ def run_loop(scene: str, settings: LoopSettings, out_dir: Path, progress: bool =
         if done:
             outcome = "success"
             break
-        if record["transitions"] == data.num_transitions:  # nothing added: the budget or the rounds are spent
-            outcome = "budget spent" if room < settings.segment_steps else "rounds spent"
+        if record["transitions"] == data.num_transitions:  # nothing added: the budget, rounds or time are spent
+            outcome = "budget spent" if room < settings.segment_steps else "time limit" if late else "rounds spent"
             break
+        # What is known so far, in case the process is stopped (the data file matches the last round).
+        _write_record(out_dir, {**summary(), "outcome": "running"})
     bar.close()
     final = save_checkpoint(out_dir / "final", config, weights, **_sidecar(out_dir, rounds[-1]["checkpoint"]))
-    result = {
-        "scene": str(scene), "settings": {**asdict(settings), "mpc": mpc_settings},
-        "latency": "none", "evaluation_duration_s": duration,
-        "closed_form": {"episodes": closed, "wall_s": closed_s, **{k: v for k, v in _verdict(closed, closed).items()
-                                                                   if k in ("closed_up", "starts", "cost_closed")}},
-        "rounds": rounds, "outcome": outcome,
-        "transitions_to_success": rounds[-1]["transitions"] if outcome == "success" else None,
-        "training_transitions": rounds[-1]["transitions"], "evaluation_transitions": evaluation_transitions,
-        "final_checkpoint": str(final), "data": str(out_dir / "data.npz"),
-        "wall_s": time.perf_counter() - started,
-    }
-    (out_dir / "learn.json").write_text(json.dumps(result, indent=1, default=float) + "\n")
+    result = {**summary(), "outcome": outcome,
+              "transitions_to_success": rounds[-1]["transitions"] if outcome == "success" else None,
+              "final_checkpoint": str(final)}
+    _write_record(out_dir, result)
     return result
+
+
+def _write_record(out_dir: Path, result: dict[str, Any]) -> None:
+    (out_dir / "learn.json").write_text(json.dumps(result, indent=1, default=float) + "\n")
 
 
 def _sidecar(out_dir: Path, stem: str) -> dict[str, Any]:
