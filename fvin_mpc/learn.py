@@ -57,6 +57,9 @@ def build_parser() -> argparse.ArgumentParser:
                         help="most rounds after the first (default: %(default)s)")
     parser.add_argument("--train-iterations", type=int, default=None,
                         help="most training iterations per round (default: the training command's)")
+    parser.add_argument("--cost-tolerance", type=float, default=None,
+                        help="stop only once the learned cost summed over the starts is at most this times the "
+                             "closed form's, e.g. 1.05 (default: success alone stops)")
     parser.add_argument("--time-limit", type=float, default=None,
                         help="seconds: end (before exploring) when another round as long as the last would "
                              "end past this (default: none)")
@@ -76,6 +79,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         exploration_noise=args.exploration_noise, evaluation_starts=args.evaluation_starts,
         evaluation_duration_s=args.evaluation_duration, max_rounds=args.max_rounds,
         train_iterations=args.train_iterations, seed=args.seed, time_limit_s=args.time_limit,
+        cost_tolerance=args.cost_tolerance,
         mpc={k: v for k, v in mpc_overrides(args).items() if v is not None},
     )
     out_dir = args.out_dir or Path("learn") / spec.name

@@ -89,6 +89,8 @@ class LoopSettings:
         max_rounds: most rounds after round 0.
         train_iterations: most training iterations per round (``None``: the training command's default).
         seed: seeds the excitation, the exploration and training.
+        cost_tolerance: also required to stop: the learned cost summed over the starts at most this
+            times the closed form's (e.g. 1.05); ``None``: success alone stops the loop.
         time_limit_s: end the loop (before exploring) when another round as long as the last would end
             past this many seconds of wall time; ``None``: no limit.
         mpc: MPC setting overrides of the scene's (``None`` values ignored), for the learned and the
@@ -109,6 +111,7 @@ class LoopSettings:
     seed: int = 0
     mpc: dict[str, Any] = field(default_factory=dict)
     time_limit_s: float | None = None
+    cost_tolerance: float | None = None
 
     def __post_init__(self) -> None:
         counts = {"budget": self.budget, "excitation_trajectories": self.excitation_trajectories,
@@ -125,6 +128,8 @@ class LoopSettings:
         if not 0.0 <= self.exploration_noise <= 2.0:
             raise UsageError(f"exploration_noise must be in [0, 2] (a share of the bound), "
                              f"got {self.exploration_noise}")
+        if self.cost_tolerance is not None and not self.cost_tolerance >= 1.0:
+            raise UsageError(f"cost_tolerance must be >= 1 (learned over closed-form cost), got {self.cost_tolerance}")
         if self.evaluation_duration_s is not None and not self.evaluation_duration_s > 0.0:
             raise UsageError(f"evaluation_duration_s must be > 0, got {self.evaluation_duration_s}")
 
@@ -340,7 +345,8 @@ def run_loop(scene: str, settings: LoopSettings, out_dir: Path, progress: bool =
             **verdict, "learned": learned, "checkpoint": str(stem),
             "gather_s": gather_s, "train_s": train_s, "evaluate_s": eval_s,
         }
-        done = verdict["success"]
+        done = verdict["success"] and (settings.cost_tolerance is None
+                                       or verdict["cost_learned"] <= settings.cost_tolerance * verdict["cost_closed"])
         room = settings.budget - data.num_transitions
         late = settings.time_limit_s is not None and \
             (time.perf_counter() - started) + (time.perf_counter() - t_round) > settings.time_limit_s
