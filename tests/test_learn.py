@@ -83,9 +83,11 @@ def test_a_free_body_is_refused_in_one_line(capsys):
     assert capsys.readouterr().err.count("\n") == 1
 
 
-def test_settings_refuse_an_excitation_batch_over_the_budget():
+def test_settings_refuse_an_excitation_batch_over_the_budget_and_a_cost_tolerance_below_one():
     with pytest.raises(ValueError, match="larger than the budget"):
         LoopSettings(budget=100, excitation_trajectories=20, segment_steps=20)
+    with pytest.raises(ValueError, match="cost_tolerance"):
+        LoopSettings(cost_tolerance=0.9)
 
 
 def test_episodes_are_cut_into_whole_trajectories_and_the_tail_dropped():
