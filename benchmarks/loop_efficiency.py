@@ -80,8 +80,9 @@ def plot(results: dict[str, dict[str, Any]], path: Path) -> None:
         axes[0].plot(x, [r["learned_up"] / r["starts"] for r in rounds], "o-", color=f"C{i}", label=name)
         axes[0].axhline(result["closed_form"]["closed_up"] / rounds[0]["starts"], color=f"C{i}", ls=":", lw=1)
         axes[1].plot(x, [r["cost_learned"] / r["cost_closed"] for r in rounds], "o-", color=f"C{i}", label=name)
-    axes[0].set_ylabel("share of evaluation starts swung up (dotted: closed form)")
-    axes[1].set_ylabel("cost learned / closed form, summed over the starts")
+    axes[0].set_ylabel("starts swung up (share)")
+    axes[0].set_title("dotted: closed form", fontsize=9)
+    axes[1].set_ylabel("learned / closed-form cost (sum)")
     axes[1].axhline(1.0, color="k", lw=0.8)
     axes[1].set_yscale("log")
     for ax in axes:
