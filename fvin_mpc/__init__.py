@@ -52,7 +52,6 @@ installed under this name):
 * ``mpc`` — the problem solved to convergence (IPOPT), with multi-start cold solves.
 * ``presets`` — the built-in scenes' controller presets, each with its reason.
 * ``family_filter`` — whether the closed-form controller swings a generated scene up (the family filter).
-* ``family_filter`` — whether the closed-form controller swings a generated scene up (the family filter).
 * ``rti`` — the real-time iteration MPC (any state layout ``R^a × S³ × R^b``).
 * ``implicit_dynamics`` — the step's own equations as the real-time iteration's dynamics constraint.
 * ``buffered`` — CasADi calls through preallocated buffers, without per-call conversions.
@@ -69,6 +68,8 @@ installed under this name):
 * ``model_quality`` — a checkpoint's model quality: planar on a hinge, the recovered inertia on a ball joint.
 * ``flight_report`` — the quadrotor's recovery and figure-eight study.
 * ``training_sweep`` — training sweeps.
+* ``learning_loop`` — learning in the loop: the learned controller gathers its model's data (excitation,
+  train, evaluate, explore, retrain).
 * ``pool`` — the one way to run many tasks (in order, process pool or Ray).
 * ``starts`` — the episodes' initial conditions.
 * ``report`` — the one report writer.
@@ -83,6 +84,7 @@ The commands, thin over the library (``python -m fvin_mpc.<name>``):
 * ``evaluate`` — closed-loop evaluation of the controllers.
 * ``quality`` — model quality of checkpoints (hinge or ball joint).
 * ``sweep`` — a training sweep.
+* ``learn`` — learn a scene's model in the loop (needs the ``train`` extra: torch).
 * ``_cli`` — the command-line options the commands share.
 
 The research studies (accuracy against time, the paper's figures, data efficiency, Pendulum-v1, the

@@ -1,0 +1,97 @@
+"""Learn a scene's model in the loop: ``python -m fvin_mpc.learn --scene X.xml``.
+
+Starts from a small excitation batch (the collector of ``python -m fvin_mpc.collect``), trains the
+scene's default model (``python -m fvin_mpc.train``'s defaults), then repeats: run the scene's task
+with the learned MPC on fixed evaluation starts (never trained on) beside the closed-form MPC
+(computed once); stop once the learned controller swings up from every start the closed form swings
+up from, or when the transition budget is spent; else run the learned MPC with exploration noise on
+the plant from fresh starts, add those transitions and retrain from the previous weights.
+
+Every plant transition gathered for training counts (excitation and exploration); evaluation
+episodes are reported separately and never trained on. Closed loops run in waiting mode (the
+simulator waits for the controller: model-quality figures, not real time).
+
+Writes to ``--out-dir`` (default ``learn/<scene>``): ``data.npz`` (exactly the transitions counted),
+``round_<k>`` checkpoints, ``final`` (an ordinary checkpoint: ``python -m fvin_mpc.swingup --scene X.xml
+--checkpoint learn/X/final``), ``learn.json``, ``learn.md`` (a table per round) and ``learn.png``
+(success and cost against transitions). See fvin_mpc/studies/learning_loop.py and docs/learning-loop.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shlex
+import sys
+from pathlib import Path
+from typing import Sequence
+
+from fvin_mpc._cli import add_mpc_arguments, mpc_overrides, run_command
+from fvin_mpc.envs.scenes import existing_scene
+from fvin_mpc.studies.learning_loop import LoopSettings, run_loop, write_loop_report
+
+
+def build_parser() -> argparse.ArgumentParser:
+    defaults = LoopSettings()
+    parser = argparse.ArgumentParser(prog="python -m fvin_mpc.learn", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--scene", default="pendulum", help="built-in scene name or MJCF path (default: %(default)s)")
+    parser.add_argument("--budget", type=int, default=defaults.budget,
+                        help="most training transitions from the plant (default: %(default)s)")
+    parser.add_argument("--excitation-trajectories", type=int, default=defaults.excitation_trajectories,
+                        help="trajectories of the first, random-control batch (default: %(default)s)")
+    parser.add_argument("--segment-steps", type=int, default=defaults.segment_steps,
+                        help="control periods per stored trajectory (default: %(default)s)")
+    parser.add_argument("--explore-episodes", type=int, default=defaults.explore_episodes,
+                        help="exploration episodes per round (default: %(default)s)")
+    parser.add_argument("--explore-segments", type=int, default=defaults.explore_segments,
+                        help="length of an exploration episode in trajectories of --segment-steps "
+                             "(default: %(default)s)")
+    parser.add_argument("--exploration-noise", type=float, default=defaults.exploration_noise,
+                        help="exploration noise as a share of the torque bound (default: %(default)s)")
+    parser.add_argument("--evaluation-starts", type=int, default=defaults.evaluation_starts,
+                        help="fixed evaluation starts: hanging at rest, then random (default: %(default)s)")
+    parser.add_argument("--evaluation-duration", type=float, default=None,
+                        help="seconds per evaluation episode (default: the swing-up command's for the scene)")
+    parser.add_argument("--max-rounds", type=int, default=defaults.max_rounds,
+                        help="most rounds after the first (default: %(default)s)")
+    parser.add_argument("--train-iterations", type=int, default=None,
+                        help="most training iterations per round (default: the training command's)")
+    parser.add_argument("--cost-tolerance", type=float, default=None,
+                        help="stop only once the learned cost summed over the starts is at most this times the "
+                             "closed form's, e.g. 1.05 (default: success alone stops)")
+    parser.add_argument("--time-limit", type=float, default=None,
+                        help="seconds: end (before exploring) when another round as long as the last would "
+                             "end past this (default: none)")
+    parser.add_argument("--seed", type=int, default=0, help="seeds excitation, exploration, training (default: 0)")
+    parser.add_argument("--out-dir", type=Path, default=None, help="default: learn/<scene name>")
+    parser.add_argument("--quiet", action="store_true", help="no progress display")
+    add_mpc_arguments(parser)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    spec = existing_scene(args.scene)
+    settings = LoopSettings(
+        budget=args.budget, excitation_trajectories=args.excitation_trajectories, segment_steps=args.segment_steps,
+        explore_episodes=args.explore_episodes, explore_segments=args.explore_segments,
+        exploration_noise=args.exploration_noise, evaluation_starts=args.evaluation_starts,
+        evaluation_duration_s=args.evaluation_duration, max_rounds=args.max_rounds,
+        train_iterations=args.train_iterations, seed=args.seed, time_limit_s=args.time_limit,
+        cost_tolerance=args.cost_tolerance,
+        mpc={k: v for k, v in mpc_overrides(args).items() if v is not None},
+    )
+    out_dir = args.out_dir or Path("learn") / spec.name
+    log = (lambda message: None) if args.quiet else (lambda message: print(message, file=sys.stderr))
+    result = run_loop(args.scene, settings, out_dir, progress=not args.quiet, log=log)
+    command = "python -m fvin_mpc.learn " + " ".join(shlex.quote(a) for a in (argv if argv is not None
+                                                                               else sys.argv[1:]))
+    write_loop_report(result, out_dir, command)
+    print(json.dumps({key: result[key] for key in ("scene", "outcome", "transitions_to_success", "training_transitions",
+                                                   "evaluation_transitions", "final_checkpoint", "wall_s")}, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(run_command(main))

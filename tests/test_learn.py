@@ -1,0 +1,112 @@
+"""Learning in the loop (fvin_mpc/studies/learning_loop.py, ``python -m fvin_mpc.learn``): a small
+end-to-end run on a tiny budget, its counting checked against the data it saved, the evaluation starts
+kept out of the training data, and the final checkpoint an ordinary one."""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from fvin_mpc.studies.learning_loop import Exploring, LoopSettings, episode_segments
+
+WEAK = str(Path(__file__).parent / "data" / "weak_damped_point_pendulum.xml")
+#: A tiny, uncompiled controller (the test's speed, not the loop's defaults).
+TINY_MPC = {"horizon": 5, "compile": "none", "cold_starts": ("rollout+",)}
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory):
+    from fvin_mpc.studies.learning_loop import run_loop, write_loop_report
+
+    out = tmp_path_factory.mktemp("learn")
+    settings = LoopSettings(budget=100, excitation_trajectories=3, segment_steps=10, explore_episodes=2,
+                            explore_segments=2, evaluation_starts=2, evaluation_duration_s=0.3, max_rounds=2,
+                            train_iterations=2, seed=3, mpc=TINY_MPC)
+    result = run_loop(WEAK, settings, out, progress=False)
+    write_loop_report(result, out, "python -m fvin_mpc.learn (the test's settings)")
+    return out, result
+
+
+def test_every_reported_transition_is_in_the_saved_data_and_no_other(tiny_run):
+    from fvin_mpc.core.data import load_data
+
+    out, result = tiny_run
+    data = load_data(out / "data.npz")
+    rounds = result["rounds"]
+    assert len(rounds) == 3  # round 0 and two exploring rounds: the tiny model never swings up
+    assert result["training_transitions"] == rounds[-1]["transitions"] == data.num_transitions
+    # 3 × 10 excitation, then 2 episodes × 2 segments × 10 per round: 30, 70, 100 (the budget cuts the last)
+    assert [r["transitions"] for r in rounds] == [30, 70, 100]
+    assert [r["excitation_transitions"] for r in rounds] == [30, 30, 30]
+    assert [r["closed_loop_transitions"] for r in rounds] == [0, 40, 70]
+    assert data.metadata["excitation_transitions"] + data.metadata["closed_loop_transitions"] == 100
+    # evaluation: 2 starts × 0.3 s / 20 ms per round, counted apart and never trained on
+    assert [r["evaluation_transitions"] for r in rounds] == [30, 60, 90] == [
+        sum(e["periods"] for r2 in rounds[: i + 1] for e in r2["learned"]) for i in range(3)]
+    for i, r in enumerate(rounds):
+        assert load_data(out / "data.npz").num_transitions >= r["transitions"]
+        assert json.loads((out / f"round_{i}.json").read_text())["data"]["transitions"] == r["transitions"]
+
+
+def test_the_evaluation_starts_are_not_in_the_training_data(tiny_run):
+    from fvin_mpc.core.data import load_data
+
+    out, result = tiny_run
+    states = load_data(out / "data.npz").state.reshape(-1, 7)
+    starts = np.array([e["initial_state"] for e in result["closed_form"]["episodes"]])
+    assert np.array_equal(starts, np.array([e["initial_state"] for e in result["rounds"][-1]["learned"]]))
+    distance = np.linalg.norm(states[:, None, :] - starts[None], axis=-1).min()
+    assert distance > 1e-3
+
+
+def test_the_final_checkpoint_is_an_ordinary_one_the_swingup_command_loads(tiny_run):
+    from fvin_mpc.control.scene import scene_env, scene_model
+
+    out, result = tiny_run
+    assert Path(result["final_checkpoint"]) == out / "final"
+    final = json.loads((out / "final.json").read_text())
+    last = json.loads((out / "round_2.json").read_text())
+    assert final["weights_sha256"] == last["weights_sha256"]
+    env = scene_env(WEAK, checkpoint=str(out / "final"))  # what swingup --checkpoint builds its model from
+    assert scene_model(env, str(out / "final")).step_size == env.unwrapped.dt
+    report = (out / "learn.md").read_text()
+    assert "python -m fvin_mpc.learn" in report and "not trained on" in report
+    assert (out / "learn.png").stat().st_size > 0
+
+
+def test_a_free_body_is_refused_in_one_line(capsys):
+    from fvin_mpc import learn
+    from fvin_mpc.core.errors import run_command
+
+    assert run_command(learn.main, ["--scene", "quadrotor", "--quiet"]) == 2
+    assert capsys.readouterr().err.count("\n") == 1
+
+
+def test_settings_refuse_an_excitation_batch_over_the_budget_and_a_cost_tolerance_below_one():
+    with pytest.raises(ValueError, match="larger than the budget"):
+        LoopSettings(budget=100, excitation_trajectories=20, segment_steps=20)
+    with pytest.raises(ValueError, match="cost_tolerance"):
+        LoopSettings(cost_tolerance=0.9)
+
+
+def test_episodes_are_cut_into_whole_trajectories_and_the_tail_dropped():
+    states, controls = np.arange(26 * 7.0).reshape(26, 7), np.arange(25.0).reshape(25, 1)
+    state, u = episode_segments(states, controls, 10)
+    assert state.shape == (2, 11, 7) and u.shape == (2, 10, 1)
+    assert np.array_equal(state[1, 0], states[10]) and np.array_equal(state[0, -1], states[10])
+    assert np.array_equal(u.reshape(-1), controls[:20, 0])
+
+
+def test_exploration_noise_is_held_and_clipped_to_the_bounds():
+    class Constant:
+        def __call__(self, x):
+            return np.array([0.9]), {}
+
+        def reset(self):
+            pass
+
+    exploring = Exploring(Constant(), np.array([-1.0]), np.array([1.0]), 0.5, 3, np.random.default_rng(0))
+    u = np.array([exploring(None)[0][0] for _ in range(9)])
+    assert np.all(u <= 1.0) and np.all(u >= 0.4)
+    assert len(set(u[:3])) == 1 and len(set(u[3:6])) == 1
