@@ -40,9 +40,10 @@ machine) solve the same problem, for the comparison in ``docs/bench/solver.md``.
 
 Hanging at rest is a stationary point of the swing-up problem (mirror symmetry), so the
 first guess is the model rolled out under a constant torque (``initial_torque_fraction``
-of the upper bound). A failed or non-finite solve never reaches the actuator: the
-controller returns the previous plan shifted by one step, else zero, clipped to the
-bounds, and says so in ``info``.
+of the upper bound). A non-finite solve never reaches the actuator. An unconverged one (its
+iteration limit) is flown only when its last iterate is a model trajectory cheaper than the
+previous plan shifted (``IpoptOptions.last_iterate_max_defect``); otherwise the controller
+returns the previous plan shifted by one step, else zero, clipped to the bounds; ``info`` says which.
 """
 
 from __future__ import annotations
