@@ -242,14 +242,19 @@ def closed_form_step(scene: str, body: str | None = None, control_period: float 
     """A :data:`BatchStep` of the closed-form body read off the scene's MJCF (same integrator as the
     learned model: the forced variational step)."""
     env = RigidBodyEnv(scene=scene, body=body, control_period=control_period)
-    base = env.unwrapped
-    ops = get_ops("numpy")
-    terms = from_mujoco(base.model, base.body_name).terms(ops)
-    h = float(base.dt)
+    rigid_body, step_size = from_mujoco(env.unwrapped.model, env.unwrapped.body_name), float(env.unwrapped.dt)
     env.close()
+    return rigid_body_step(rigid_body, step_size, newton_iters)
+
+
+def rigid_body_step(rigid_body: Any, step_size: float, newton_iters: int = 8) -> BatchStep:
+    """A :data:`BatchStep` of a :class:`~fvin_mpc.core.rigid_body.PivotedRigidBody` (e.g. one with
+    deliberately wrong damping) through the forced variational step."""
+    ops = get_ops("numpy")
+    terms = rigid_body.terms(ops)
 
     def step(q: np.ndarray, omega: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        out = fvin.fvin_step(tuple(q.T), tuple(omega.T), tuple(u.T), terms, h, newton_iters, ops)
+        out = fvin.fvin_step(tuple(q.T), tuple(omega.T), tuple(u.T), terms, step_size, newton_iters, ops)
         return np.stack(np.broadcast_arrays(*out.q), axis=-1), np.stack(np.broadcast_arrays(*out.omega), axis=-1)
 
     return step
