@@ -16,9 +16,11 @@ A body on a pivot is also measured where its controller needs it (docs/excitatio
 hanging at 0.6–1.3× the scene's speed scale, the plant (the data's MJCF, MuJoCo) and the model swing
 under full torque along the motion, and the swing measure is the mean difference of the true energy
 at the plant's apex, in units of the swing-up's energy span (``swing_energy_error``; the apex angles
-beside it). It is evaluated with the validation loss, and by default (``--select measure``) the
-returned iteration is the one with the lowest measure among those whose validation loss is within
-twice the best; the report and the checkpoint's metadata (``training.swing``) carry it.
+beside it). The training window is half the scene's natural period (8–32 steps) unless ``--window``
+is given: long enough for a wrong damping to show. The measure is evaluated with the validation
+loss, and by default (``--select measure``) the returned iteration is the one with the lowest
+measure among those whose validation loss is within twice the best; the report and the
+checkpoint's metadata (``training.swing``) carry it.
 """
 
 from __future__ import annotations
@@ -143,7 +145,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--lr", type=float, default=None, help=f"Adam learning rate (default: {TrainSettings.learning_rate})"
     )
     parser.add_argument(
-        "--window", type=int, default=None, help=f"rollout steps per training window (default: {TrainSettings.window})"
+        "--window", type=int, default=None,
+        help="rollout steps per training window (default: on a pivot half the scene's natural period 2π/ω_s, "
+             f"8–32 steps; else {TrainSettings.window})"
     )
     parser.add_argument("--omega-weight", type=float, default=None,
                         help=f"weight of the angular-velocity error (default: {TrainSettings.omega_weight})")
@@ -220,6 +224,9 @@ def main(argv: list[str] | None = None) -> int:
     given = {
         field: getattr(args, option) for option, field in _SETTINGS_OPTIONS.items() if getattr(args, option) is not None
     }
+    probe, measure = _swing_measure(data, space)
+    if probe is not None and "window" not in given:
+        given["window"] = min(probe.physics.scales.training_window, int(data.u.shape[1]))
     try:
         settings = TrainSettings(**{**preset.settings, **given, "seed": args.seed, "compile": args.compile})
     except ValueError as error:
@@ -230,11 +237,11 @@ def main(argv: list[str] | None = None) -> int:
     out = args.out or default_output_stem(data, args.data, config.variant)
     if args.out is None:
         refuse_to_overwrite(out, args.force)
-    probe, measure = _swing_measure(data, space)
     model, report = train_model(data, config, settings, progress=not args.quiet, initial_weights=initial,
                                 measure=measure)
     if probe is not None:
         report["swing"] = swing_apex_error(torch_model_step(model), probe)
+        report["window_chosen"] = "given" if args.window is not None else "scene scales: half a natural period"
     if previous is not None:
         report["continued_from"] = {"checkpoint": str(args.init), "iterations": previous.get("iterations"),
                                     "wall_clock_s": previous.get("wall_clock_s"), "cpu_s": previous.get("cpu_s"),

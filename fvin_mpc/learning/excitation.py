@@ -49,6 +49,8 @@ SHARES = {"energy": 0.6, "near_goal": 0.2, "uniform": 0.2}
 TRANSITIONS = 8000
 #: Bounds on the control periods per trajectory (two natural periods within them).
 MIN_STEPS, MAX_STEPS = 20, 200
+#: Bounds on the training window derived from the scales (:attr:`SwingScales.training_window`).
+MIN_WINDOW, MAX_WINDOW = 8, 32
 #: Highest energy above hanging of an energy-spread start, in units of the energy span.
 MAX_ENERGY = 1.4
 #: Segment kinds of the switching policy and their probabilities.
@@ -80,6 +82,14 @@ class SwingScales:
     def trajectory_steps(self) -> int:
         """Control periods of a default trajectory: two natural periods, within [MIN_STEPS, MAX_STEPS]."""
         return int(min(MAX_STEPS, max(MIN_STEPS, round(2.0 * self.natural_period / self.step_size))))
+
+    @property
+    def training_window(self) -> int:
+        """Rollout steps per training window: half a natural period, within [MIN_WINDOW, MAX_WINDOW].
+        A window of a few steps sees the damping act for a few percent of a swing, where its effect
+        on the rollout is below the fit's noise; half a swing lets a wrong damping (issue 26's
+        20–40 % low) show as the energy it wrongly keeps."""
+        return int(min(MAX_WINDOW, max(MIN_WINDOW, round(0.5 * self.natural_period / self.step_size))))
 
     @property
     def dwell_steps(self) -> int:
