@@ -114,7 +114,8 @@ class SwingPhysics:
         self.low = np.asarray(base.torque_low, dtype=np.float64)
         self.high = np.asarray(base.torque_high, dtype=np.float64)
         if not (np.all(np.isfinite(self.low)) and np.all(np.isfinite(self.high))):
-            raise ValueError("swing excitation needs finite actuator bounds (declare the actuators' ctrlrange)")
+            raise ValueError("swing excitation needs finite actuator bounds (declare the actuators' ctrlrange, "
+                             "or collect with --excitation random)")
         self.rest_energy = self.potential(base.rest)
         span = abs(self.potential(base.goal) - self.rest_energy)
         if not span > 0.0:
