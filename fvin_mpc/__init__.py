@@ -37,7 +37,9 @@ installed under this name):
 :mod:`fvin_mpc.learning` — the only torch importers:
 
 * ``collection`` — trajectories from a scene (``python -m fvin_mpc.collect``).
-* ``excitation`` — free-body data from the MJCF alone: random-excitation bursts from random states.
+* ``excitation`` — a pivoted scene's default data: energy-pumping bursts sized from its scales.
+* ``swing_measure`` — the model measure that predicts control: a full-torque swing, plant against model.
+* ``free_body_excitation`` — free-body data from the MJCF alone: random-excitation bursts from random states.
 * ``model`` — the trainable torch model, one shell parametrized by the configuration space (fast
   rollouts for S³ and SO(3)).
 * ``space_training`` — what training does per space: settings, loss scales, the free body's report.

@@ -1,5 +1,15 @@
 """Collect trajectories from a scene: ``python -m fvin_mpc.collect``.
 
+Pivoted scenes, by default (``--collector swings``): data that excite what a swing-up needs,
+sized from the scene's own scales (energy span, speed scale, actuator bounds, control period):
+starts spread over the energies from hanging to 1.4× the swing-up's span (upright and fast
+included), near the goal and uniform, driven by energy-pumping bursts — every actuator at its
+bound along the motion — with random switching to braking, random levels and coasting, plus some
+random piecewise-constant controls; trajectories of two natural periods, about 8,000 transitions
+(``fvin_mpc.learning.excitation``; docs/excitation.md). The metadata record the energies reached
+and the share of saturated controls.
+
+``--collector random`` is the former collector (the shipped pendulum checkpoints' data).
 Initial states are drawn uniformly (angle(s) over the whole circle/sphere, angular
 velocity up to ``--max-omega``), controls are either constant over a trajectory (as in
 the paper's experiments) or random piecewise constant (a new level every
@@ -7,7 +17,7 @@ the paper's experiments) or random piecewise constant (a new level every
 of the trajectories use each mode. Everything is seeded.
 
 Free-body scenes (``--scene quadrotor`` or any MJCF of one body on a free joint) are recorded from the
-MJCF alone (``--collector excitation``, the default): short bursts of random piecewise-constant controls
+MJCF alone (``--collector bursts``, the default): short bursts of random piecewise-constant controls
 around hover from random states (attitudes uniform on S³, tumbling at up to ``--max-omega``, default
 10 rad/s there, or near level), sized from the craft; defaults 750 bursts of 20 periods (15,000
 transitions). ``--collector stabilized-flight`` flies instead a closed-form stabilizing controller
@@ -22,9 +32,17 @@ from pathlib import Path
 
 from fvin_mpc._cli import run_command
 from fvin_mpc.core.data import save_data
+from fvin_mpc.core.errors import UsageError
 from fvin_mpc.envs.scenes import existing_scene
 from fvin_mpc.learning.collection import collect, collect_quadrotor
-from fvin_mpc.learning.excitation import collect_excitation
+from fvin_mpc.learning.excitation import collect_swings
+from fvin_mpc.learning.free_body_excitation import collect_excitation
+
+#: Options of the former random collector only (``--collector random``).
+RANDOM_ONLY = ("max_omega", "near_goal_trajectories", "near_goal_angle", "near_goal_omega", "max_speed")
+#: ``--collector`` choices per kind of scene, the first the default.
+PIVOT_COLLECTORS = ("swings", "random")
+FREE_BODY_COLLECTORS = ("bursts", "stabilized-flight")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -32,29 +50,33 @@ def build_parser() -> argparse.ArgumentParser:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--scene", default="pendulum", help="built-in scene name or MJCF path (default: %(default)s)")
     parser.add_argument("--body", default=None, help="body to observe (default: the scene's)")
+    parser.add_argument("--collector", choices=PIVOT_COLLECTORS + FREE_BODY_COLLECTORS, default=None,
+                        help="pivoted scenes: swings (energy-pumping bursts sized from the scene's scales; default) or "
+                             "random (the former uniform states and random constant/piecewise controls); free bodies: "
+                             "bursts (random-excitation bursts from the MJCF alone; default) or stabilized-flight "
+                             "(a closed-form pilot, for crafts the closed form represents)")
     parser.add_argument("--trajectories", type=int, default=None,
-                        help="default: 320 (free body: 750 bursts; stabilized flight: 300)")
+                        help="default: swings ≈ 8,000 transitions / steps; random 320; bursts 750; stabilized flight 300")
     parser.add_argument(
         "--steps", type=int, default=None,
-        help="control periods per trajectory (default: 20; stabilized flight: 50)"
+        help="control periods per trajectory (default: swings two natural periods, 20–200; random and bursts 20; "
+             "stabilized flight 50)"
     )
     parser.add_argument(
         "--max-omega", type=float, default=None, help="largest initial |ω| (rad/s; default: 6; free body: 10)"
     )
-    parser.add_argument("--hold-steps", type=int, default=4, help="periods per level of piecewise-constant controls")
+    parser.add_argument("--hold-steps", type=int, default=4,
+                        help="random: periods per level of piecewise-constant controls (default: %(default)s)")
     parser.add_argument("--control-period", type=float, default=None,
                         help="seconds per step (default: the scene's; a whole multiple of its MJCF timestep)")
     parser.add_argument("--max-speed", type=float, default=None,
                         help="keep only trajectories with every |ω_i| ≤ this (rad/s) at every step (default: keep all)")
-    parser.add_argument("--near-goal-trajectories", type=int, default=0,
-                        help="this many more trajectories started near the goal (default: %(default)s)")
-    parser.add_argument("--near-goal-angle", type=float, default=1.0,
-                        help="their largest initial angle from the goal (rad; default: %(default)s)")
-    parser.add_argument("--near-goal-omega", type=float, default=2.0,
-                        help="their largest initial |ω_i| (rad/s; default: %(default)s)")
-    parser.add_argument("--collector", choices=["excitation", "stabilized-flight"], default="excitation",
-                        help="free bodies only: random-excitation bursts from the MJCF alone, or a closed-form "
-                             "stabilizing pilot (default: %(default)s)")
+    parser.add_argument("--near-goal-trajectories", type=int, default=None,
+                        help="random: this many more trajectories started near the goal (default: 0)")
+    parser.add_argument("--near-goal-angle", type=float, default=None,
+                        help="their largest initial angle from the goal (rad; default: 1)")
+    parser.add_argument("--near-goal-omega", type=float, default=None,
+                        help="their largest initial |ω_i| (rad/s; default: 2)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument(
         "--out",
@@ -69,9 +91,14 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     spec = existing_scene(args.scene)
+    allowed = PIVOT_COLLECTORS if spec.space.pivoted else FREE_BODY_COLLECTORS
+    collector = args.collector or allowed[0]
+    if collector not in allowed:
+        kind = "a pivoted" if spec.space.pivoted else "a free-body"
+        raise UsageError(f"--collector {collector} does not record {kind} scene; use one of {', '.join(allowed)}")
     if not spec.space.pivoted:
         max_omega = 10.0 if args.max_omega is None else args.max_omega
-        if args.collector == "excitation":
+        if collector == "bursts":
             free = collect_excitation(args.scene, trajectories=args.trajectories or 750, steps=args.steps or 20,
                                       seed=args.seed, max_omega=max_omega, progress=not args.quiet)
         else:
@@ -82,13 +109,27 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps({"out": str(out), **{k: free.metadata[k] for k in ("scene", "trajectories", "transitions",
                                                                            "control_period", "coverage")}}))
         return 0
+    if collector == "swings":
+        given = [name for name in RANDOM_ONLY if getattr(args, name) not in (None, 0)]
+        if given:
+            raise UsageError(f"--{given[0].replace('_', '-')} applies to --collector random only")
+        data = collect_swings(args.scene, args.trajectories, args.steps, args.seed, args.body,
+                              control_period=args.control_period, progress=not args.quiet)
+        out = args.out or Path("data") / f"{spec.name}.npz"
+        save_data(out, data)
+        print(json.dumps({"out": str(out), **{k: data.metadata[k] for k in (
+            "scene", "collector", "trajectories", "steps", "transitions", "control_period", "saturated_share",
+            "energy_coverage")}}))
+        return 0
     args.trajectories = args.trajectories or 320
     args.steps = args.steps or 20
     args.max_omega = 6.0 if args.max_omega is None else args.max_omega
+    near_goal = {"near_goal_trajectories": args.near_goal_trajectories or 0,
+                 "near_goal_angle": 1.0 if args.near_goal_angle is None else args.near_goal_angle,
+                 "near_goal_omega": 2.0 if args.near_goal_omega is None else args.near_goal_omega}
     data = collect(args.scene, args.trajectories, args.steps, args.seed, args.max_omega, args.hold_steps,
                    args.body, progress=not args.quiet, control_period=args.control_period, max_speed=args.max_speed,
-                   near_goal_trajectories=args.near_goal_trajectories, near_goal_angle=args.near_goal_angle,
-                   near_goal_omega=args.near_goal_omega)
+                   **near_goal)
     out = args.out or Path("data") / f"{spec.name}.npz"
     save_data(out, data)
     print(

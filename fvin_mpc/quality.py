@@ -109,7 +109,10 @@ def main(argv: list[str] | None = None) -> int:
                                   "with its scene's closed form")
         checked_scene_and_checkpoint(recorded_scene, name, command="quality")  # a body on a pivot, of its scene
         scenes.append(recorded_scene)
-    hinges = [scene_env(scene).joint_axis is not None for scene in scenes]  # a ball joint has no one axis
+    # A ball joint has no one axis. The env of each checkpoint (its step), not of the scene's default
+    # checkpoint, which a scene a user brings need not have.
+    hinges = [scene_env(scene, load_checkpoint(name)).joint_axis is not None
+              for scene, name in zip(scenes, args.checkpoint)]
     if any(hinges):
         if len(args.checkpoint) > 1:
             parser.error("the planar (hinge) report takes one --checkpoint; several are compared on ball joints only")

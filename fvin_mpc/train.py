@@ -11,6 +11,16 @@ scaled), averaged over windows and steps. Trajectories are split into train/vali
 windowing. Default optimizer: Levenberg–Marquardt on the stacked residuals (tens of iterations,
 seconds); ``--optimizer adam`` is full-batch Adam. Training stops early once the validation loss
 stops improving. See docs/training.md (free bodies: docs/quadrotor.md).
+
+A body on a pivot is also measured where its controller needs it (docs/excitation.md): from
+hanging at 0.6–1.3× the scene's speed scale, the plant (the data's MJCF, MuJoCo) and the model swing
+under full torque along the motion, and the swing measure is the mean difference of the true energy
+at the plant's apex, in units of the swing-up's energy span (``swing_energy_error``; the apex angles
+beside it). The training window is half the scene's natural period (8–32 steps) unless ``--window``
+is given: long enough for a wrong damping to show. The measure is evaluated with the validation
+loss, and by default (``--select measure``) the returned iteration is the one with the lowest
+measure among those whose validation loss is within twice the best; the report and the
+checkpoint's metadata (``training.swing``) carry it.
 """
 
 from __future__ import annotations
@@ -30,8 +40,9 @@ import numpy as np
 from fvin_mpc._cli import run_command
 from fvin_mpc.core.checkpoint import load_checkpoint, save_checkpoint
 from fvin_mpc.core.data import load_data
-from fvin_mpc.core.space import space_for_variant, space_of_config, spaces
+from fvin_mpc.core.space import S3, space_for_variant, space_of_config, spaces
 from fvin_mpc.learning.space_training import train_model, training_for
+from fvin_mpc.learning.swing_measure import swing_apex_error, swing_probe, torch_model_step
 from fvin_mpc.learning.training import (
     DEFAULT_DATA,
     DEFAULT_ITERATIONS,
@@ -134,7 +145,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--lr", type=float, default=None, help=f"Adam learning rate (default: {TrainSettings.learning_rate})"
     )
     parser.add_argument(
-        "--window", type=int, default=None, help=f"rollout steps per training window (default: {TrainSettings.window})"
+        "--window", type=int, default=None,
+        help="rollout steps per training window (default: on a pivot half the scene's natural period 2π/ω_s, "
+             f"8–32 steps; else {TrainSettings.window})"
     )
     parser.add_argument("--omega-weight", type=float, default=None,
                         help=f"weight of the angular-velocity error (default: {TrainSettings.omega_weight})")
@@ -145,6 +158,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="torch intra-op threads (default: free bodies 1; else the cores the 1-minute load average leaves "
         f"at least half free, at least 1; now {safe_thread_count()})",
     )
+    parser.add_argument("--select", choices=("measure", "validation"), default=None,
+                        help="the iteration returned: measure — the lowest swing measure among those within "
+                             "--selection-tolerance of the best validation loss (default on a pivot); validation — "
+                             "the lowest validation loss")
+    parser.add_argument("--selection-tolerance", type=float, default=None,
+                        help="how far above the best validation loss (relative) a selected iteration may be "
+                             f"(default: {TrainSettings.selection_tolerance})")
     parser.add_argument(
         "--compile",
         action="store_true",
@@ -161,7 +181,8 @@ def build_parser() -> argparse.ArgumentParser:
 _SETTINGS_OPTIONS = {"optimizer": "optimizer", "iterations": "iterations", "lr": "learning_rate", "window": "window",
                      "omega_weight": "omega_weight", "eval_every": "eval_every", "patience": "patience",
                      "min_improvement": "min_improvement", "target_loss": "target_loss",
-                     "jacobian_windows": "jacobian_windows", "threads": "threads", "time_limit": "time_limit_s"}
+                     "jacobian_windows": "jacobian_windows", "threads": "threads", "time_limit": "time_limit_s",
+                     "select": "selection", "selection_tolerance": "selection_tolerance"}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -203,6 +224,9 @@ def main(argv: list[str] | None = None) -> int:
     given = {
         field: getattr(args, option) for option, field in _SETTINGS_OPTIONS.items() if getattr(args, option) is not None
     }
+    probe, measure = _swing_measure(data, space)
+    if probe is not None and "window" not in given:
+        given["window"] = min(probe.physics.scales.training_window, int(data.u.shape[1]))
     try:
         settings = TrainSettings(**{**preset.settings, **given, "seed": args.seed, "compile": args.compile})
     except ValueError as error:
@@ -213,7 +237,11 @@ def main(argv: list[str] | None = None) -> int:
     out = args.out or default_output_stem(data, args.data, config.variant)
     if args.out is None:
         refuse_to_overwrite(out, args.force)
-    model, report = train_model(data, config, settings, progress=not args.quiet, initial_weights=initial)
+    model, report = train_model(data, config, settings, progress=not args.quiet, initial_weights=initial,
+                                measure=measure)
+    if probe is not None:
+        report["swing"] = swing_apex_error(torch_model_step(model), probe)
+        report["window_chosen"] = "given" if args.window is not None else "scene scales: half a natural period"
     if previous is not None:
         report["continued_from"] = {"checkpoint": str(args.init), "iterations": previous.get("iterations"),
                                     "wall_clock_s": previous.get("wall_clock_s"), "cpu_s": previous.get("cpu_s"),
@@ -249,9 +277,26 @@ def main(argv: list[str] | None = None) -> int:
     }
     if "dissipation" in _field_names(config):
         summary["dissipation"] = config.dissipation
+    if probe is not None:
+        summary.update({key: report["swing"][key] for key in ("swing_energy_error", "swing_apex_error_deg")})
+        summary["selected"] = report.get("selected")
     print(json.dumps({**summary, **evaluation}, indent=2))
     sys.stdout.flush()
     return 0
+
+
+def _swing_measure(data: Any, space: Any) -> tuple[Any, Any]:
+    """``(probe, measure)`` of the data's scene for a model on S³ (``(None, None)`` otherwise, or when
+    the scene cannot be swung: no scene recorded, unbounded actuators, nothing to swing up)."""
+    scene = data.metadata.get("scene")
+    if space is not S3 or not scene:
+        return None, None
+    try:
+        probe = swing_probe(str(scene), data.metadata.get("body"), data.control_period)
+    except (ValueError, FileNotFoundError, OSError) as error:
+        print(f"train: no swing measure on {scene}: {error}", file=sys.stderr)
+        return None, None
+    return probe, lambda model: swing_apex_error(torch_model_step(model), probe)["swing_energy_error"]
 
 
 def _field_names(config: Any) -> set[str]:

@@ -11,7 +11,7 @@ import pytest
 from fvin_mpc.core.quadrotor import GeometricController, from_mujoco
 from fvin_mpc.envs import QuadrotorEnv
 from fvin_mpc.envs.flyer_family import FLYER_RANGES, flyer_scene, write_flyers
-from fvin_mpc.learning.excitation import EXCITATION, collect_excitation
+from fvin_mpc.learning.free_body_excitation import EXCITATION, collect_excitation
 
 SEEDS = range(12)
 

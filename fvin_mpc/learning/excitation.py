@@ -1,99 +1,279 @@
-"""Free-body data from the MJCF alone: short random-excitation bursts from random states.
+"""Data that excite what a swing-up needs: energy-pumping bursts sized from the scene's own scales.
 
-Nothing here models the craft. A stabilizing pilot (:func:`fvin_mpc.learning.collection.collect_quadrotor`)
-needs the closed form to represent the craft, so a craft it cannot represent could not even be recorded
-and the learned model could only learn what the package already models. Instead each burst starts in a
-random state — attitude uniform on S³ (upside down included) or near level, tumbling, moving — and is
-driven by random piecewise-constant controls around the hover controls MuJoCo itself reports
-(:func:`fvin_mpc.envs.quadrotor_env.hover_control`). The simulator has no floor, and a burst is short,
-so the craft never leaves the envelope by more than a burst's fall.
+Random constant or piecewise-constant controls from random states (:func:`~fvin_mpc.learning.collection.collect`)
+excite a weak actuator little against gravity: a motor of a fifth of the gravity torque, switched at
+random, moves the body's energy by a few percent of the swing-up's span, so the data say little
+about the damping at swing speed, the saturated motor, or the last climb to upright — the states
+and controls an MPC's swing-up passes through (issue 26: a model fitted to such data learned a
+dissipation 20–40 % low and its MPC never swung the body up).
 
-Sizes come from the craft (:class:`~fvin_mpc.envs.quadrotor_env.CraftScales`): positions within a few
-arm lengths of the hover point, speeds up to what a tenth of a second of its thrust gives.
+:func:`collect_swings` collects instead, per trajectory, from a start drawn by one of three kinds:
+
+* **energy spread** (:data:`SHARES` ``"energy"``): a random orientation and a speed such that the
+  total energy above hanging is uniform in ``[0, 1.4·ΔE]`` (``ΔE`` the energy span between hanging
+  and upright): slow and fast states at every height, upright and fast included;
+* **near the goal** (``"near_goal"``): within 0.6 rad of upright, ``|ω_i| ≤ 0.5·ω_s``;
+* **uniform** (``"uniform"``): the former collector's states (angle uniform, ``|ω| ≤ 1.5·ω_s``)
+  under its random piecewise-constant controls.
+
+The first two are driven by a switching policy: segments of a random dwell (1 step to a quarter of
+the natural period ``2π/ω_s``), each one of pumping (every actuator at its bound in the direction of
+motion: the most power the motor can put in), braking (the opposite bound), a random constant
+level, or no torque (the unforced swing: the damping alone). Saturated controls, the energies of a
+swing-up and the neighbourhood of the goal are all in the data.
+
+The amount comes from the scales (:class:`SwingScales`, read off the MJCF through the closed-form
+body, as the control layer's ``SceneScales`` are): every trajectory lasts two natural periods
+(between :data:`MIN_STEPS` and :data:`MAX_STEPS` control periods), and there are as many
+trajectories as give about :data:`TRANSITIONS` transitions.
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import Any
 
+import mujoco
 import numpy as np
 
-from fvin_mpc.core import s3
+from fvin_mpc.core.backend import get_ops
 from fvin_mpc.core.data import Trajectories
-from fvin_mpc.envs.quadrotor_env import QuadrotorEnv, uniform_in_ball
+from fvin_mpc.core.rigid_body import from_mujoco
+from fvin_mpc.envs import RigidBodyEnv
+from fvin_mpc.learning.collection import control_sequence, near_goal_joint_state, random_joint_state
 
-#: ``metadata["collector"]`` of free-body data from random-excitation bursts.
-EXCITATION = "random-excitation"
+#: Shares of the trajectories by kind of start (module docstring).
+SHARES = {"energy": 0.6, "near_goal": 0.2, "uniform": 0.2}
+#: Transitions a default collection aims at (about the former default's 6,400, in longer trajectories).
+TRANSITIONS = 8000
+#: Bounds on the control periods per trajectory (two natural periods within them).
+MIN_STEPS, MAX_STEPS = 20, 200
+#: Bounds on the training window derived from the scales (:attr:`SwingScales.training_window`).
+MIN_WINDOW, MAX_WINDOW = 8, 32
+#: Highest energy above hanging of an energy-spread start, in units of the energy span.
+MAX_ENERGY = 1.4
+#: Segment kinds of the switching policy and their probabilities.
+SEGMENTS = {"pump": 0.5, "brake": 0.15, "level": 0.2, "coast": 0.15}
+#: Name of the method in ``metadata["collector"]``.
+SWING_EXCITATION = "swing-excitation"
 
 
-def collect_excitation(scene: Any = "quadrotor", trajectories: int = 750, steps: int = 20, seed: int = 0,
-                       max_omega: float = 10.0, level_fraction: float = 0.5, hold_steps: int = 2,
-                       progress: bool = True) -> Trajectories:
-    """``trajectories`` seeded bursts of ``steps`` control periods in a free-body scene.
+@dataclass(frozen=True)
+class SwingScales:
+    """The scales of a scene's swing-up, read off its MJCF.
 
-    A burst starts at the hover point plus a position uniform in a ball of three arm lengths, with a
-    velocity uniform in the ball of ``0.1 s × (thrust-to-weight − 1) g``; its attitude is uniform on S³
-    with ``|ω| ≤ max_omega`` (uniform in the ball) or, for ``level_fraction`` of the bursts, within
-    0.5 rad of level with ``|ω| ≤ max_omega / 5`` (the hover the tasks end in). Every ``hold_steps``
-    periods each actuator's control is drawn uniformly in ``hover ± a·(range/2)`` and clipped to its
-    range, ``a`` uniform in [0, 1] per burst (gentle to violent).
+    Attributes:
+        energy_span: ``|U(upright) − U(hanging)|`` (J).
+        speed: ``ω_s = √(2·energy_span / J_max)`` (rad/s): the speed that carries the body over the span.
+        step_size: the control period ``h`` (s).
+    """
 
-    Returns :class:`~fvin_mpc.core.data.Trajectories` on R³ × S³ (``state (N, steps+1, 13)``, ``u (N, steps, nu)``).
+    energy_span: float
+    speed: float
+    step_size: float
+
+    @property
+    def natural_period(self) -> float:
+        """``2π/ω_s`` (s)."""
+        return 2.0 * math.pi / self.speed
+
+    @property
+    def trajectory_steps(self) -> int:
+        """Control periods of a default trajectory: two natural periods, within [MIN_STEPS, MAX_STEPS]."""
+        return int(min(MAX_STEPS, max(MIN_STEPS, round(2.0 * self.natural_period / self.step_size))))
+
+    @property
+    def training_window(self) -> int:
+        """Rollout steps per training window: half a natural period, within [MIN_WINDOW, MAX_WINDOW].
+        A window of a few steps sees the damping act for a few percent of a swing, where its effect
+        on the rollout is below the fit's noise; half a swing lets a wrong damping (issue 26's
+        20–40 % low) show as the energy it wrongly keeps."""
+        return int(min(MAX_WINDOW, max(MIN_WINDOW, round(0.5 * self.natural_period / self.step_size))))
+
+    @property
+    def dwell_steps(self) -> int:
+        """Longest segment of the switching policy: a quarter of the natural period, at least 1 step."""
+        return max(1, round(0.25 * self.natural_period / self.step_size))
+
+
+class SwingPhysics:
+    """What the excitation and the swing measure need of a pivoted scene: its energy (from the
+    closed-form body of the MJCF), the direction of motion each actuator pushes along, its bounds.
+
+    Args:
+        env: the scene's :class:`~fvin_mpc.envs.RigidBodyEnv` (its control period is the data's).
+    """
+
+    def __init__(self, env: Any) -> None:
+        base = env.unwrapped
+        self.env = env
+        body = from_mujoco(base.model, base.body_name)
+        self.terms = body.terms(get_ops("numpy"))
+        self.center_of_mass = np.asarray(body.center_of_mass, dtype=float)
+        self.low = np.asarray(base.torque_low, dtype=np.float64)
+        self.high = np.asarray(base.torque_high, dtype=np.float64)
+        if not (np.all(np.isfinite(self.low)) and np.all(np.isfinite(self.high))):
+            raise ValueError("swing excitation needs finite actuator bounds (declare the actuators' ctrlrange, "
+                             "or collect with --collector random)")
+        self.rest_energy = self.potential(base.rest)
+        span = abs(self.potential(base.goal) - self.rest_energy)
+        if not span > 0.0:
+            raise ValueError("the scene's goal and rest have the same potential energy: nothing to swing up")
+        inertia = np.array(self.terms.inertia(tuple(base.rest)), dtype=float)
+        self.scales = SwingScales(span, math.sqrt(2.0 * span / float(np.linalg.eigvalsh(inertia).max())),
+                                  float(base.dt))
+        self.directions = actuator_directions(env)
+
+    def potential(self, q: Any) -> float:
+        return float(self.terms.potential(tuple(float(c) for c in q)))
+
+    def inertia(self, q: Any) -> np.ndarray:
+        return np.array(self.terms.inertia(tuple(float(c) for c in q)), dtype=float)
+
+    def pump(self, omega: np.ndarray, sign: float = 1.0, stalled: np.ndarray | None = None) -> np.ndarray:
+        """Every actuator at the bound that pushes along the motion (``sign = −1``: against it);
+        where the body barely moves along an actuator's direction, ``stalled`` (±1 per actuator)
+        picks the bound (``None``: the upper)."""
+        along = self.directions @ np.asarray(omega, dtype=float) * sign
+        slow = np.abs(along) < 1e-3 * self.scales.speed * np.linalg.norm(self.directions, axis=1)
+        choice = np.where(along > 0.0, 1.0, -1.0)
+        if stalled is not None:
+            choice = np.where(slow, stalled, choice)
+        return np.where(choice > 0.0, self.high, self.low)
+
+
+def actuator_directions(env: Any) -> np.ndarray:
+    """``(m, 3)``: row ``i`` is the body-frame direction along which a positive control of actuator
+    ``i`` does positive work (power ``u_i·(d_i·ω)``), read off MuJoCo (the generalized force of a unit
+    control, so gear and gain signs count)."""
+    base = env.unwrapped
+    model = base.model
+    data = mujoco.MjData(model)
+    data.qpos[:] = model.qpos0
+    axis = base.joint_axis
+    directions = np.zeros((model.nu, 3))
+    for i in range(model.nu):
+        data.ctrl[:] = 0.0
+        # A control inside the range (MuJoCo clamps); its sign only scales the direction.
+        level = base.torque_high[i] if base.torque_high[i] != 0.0 else base.torque_low[i]
+        data.ctrl[i] = level
+        mujoco.mj_forward(model, data)
+        force = np.asarray(data.qfrc_actuator, dtype=float) / level
+        directions[i] = force[0] * axis if axis is not None else force[:3]
+    return directions
+
+
+def energy_spread_state(env: Any, physics: SwingPhysics, rng: np.random.Generator,
+                        max_energy: float = MAX_ENERGY) -> tuple[np.ndarray, np.ndarray]:
+    """A joint state whose energy above hanging is uniform in ``[0, max_energy·ΔE]`` at a random
+    orientation (redrawn while the orientation alone is above the energy; after 20 tries at rest)."""
+    target = rng.uniform(0.0, max_energy) * physics.scales.energy_span
+    for _ in range(20):
+        qpos, _ = random_joint_state(env, rng, 0.0)
+        observation, _ = env.reset(options={"qpos": qpos})
+        kinetic = target - (physics.potential(observation[:4]) - physics.rest_energy)
+        if kinetic >= 0.0:
+            break
+    else:
+        return qpos, np.zeros(env.unwrapped.model.nv)
+    axis = env.unwrapped.joint_axis
+    if axis is not None:
+        speed = math.sqrt(2.0 * kinetic / float(axis @ physics.inertia(observation[:4]) @ axis))
+        return qpos, np.array([speed if rng.uniform() < 0.5 else -speed])
+    direction = rng.normal(size=3)
+    direction /= np.linalg.norm(direction)
+    speed = math.sqrt(2.0 * kinetic / float(direction @ physics.inertia(observation[:4]) @ direction))
+    return qpos, direction * speed
+
+
+def switching_controls(env: Any, physics: SwingPhysics, rng: np.random.Generator, steps: int,
+                       observation: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict[str, int]]:
+    """Roll the env ``steps`` periods from ``observation`` under the switching policy (module
+    docstring); returns ``(states (steps+1, 7), controls (steps, m), steps per segment kind)``."""
+    kinds, weights = list(SEGMENTS), np.array(list(SEGMENTS.values()))
+    states, controls = [observation], []
+    counts = dict.fromkeys(kinds, 0)
+    remaining, kind, level, stalled = 0, "coast", None, None
+    for _ in range(steps):
+        if remaining == 0:
+            remaining = int(rng.integers(1, physics.scales.dwell_steps + 1))
+            kind = kinds[int(rng.choice(len(kinds), p=weights / weights.sum()))]
+            level = rng.uniform(physics.low, physics.high)
+            stalled = rng.choice([-1.0, 1.0], size=physics.low.size)
+        remaining -= 1
+        counts[kind] += 1
+        omega = states[-1][4:]
+        if kind == "pump":
+            u = physics.pump(omega, 1.0, stalled)
+        elif kind == "brake":
+            u = physics.pump(omega, -1.0, stalled)
+        elif kind == "level":
+            u = level
+        else:
+            u = np.zeros_like(physics.low)
+        observation, *_ = env.step(u)
+        states.append(observation)
+        controls.append(u)
+    return np.array(states), np.array(controls), counts
+
+
+def collect_swings(scene: str = "pendulum", trajectories: int | None = None, steps: int | None = None,
+                   seed: int = 0, body: str | None = None, control_period: float | None = None,
+                   progress: bool = True) -> Trajectories:
+    """Seeded trajectories that excite what a swing-up needs (module docstring), sized from the
+    scene's :class:`SwingScales` unless ``trajectories``/``steps`` are given.
+
+    Metadata: the scales, the number of trajectories per kind of start, the share of saturated
+    controls and the energy reached (``energy_coverage``: the highest and the 5th–95th percentile
+    energies above hanging over all states, in units of the energy span).
     """
     from tqdm.auto import tqdm
 
-    if trajectories < 1 or steps < 1 or hold_steps < 1:
-        raise ValueError("trajectories, steps and hold_steps must be >= 1")
-    env = QuadrotorEnv(scene=scene)
-    scales = env.scales
+    env = RigidBodyEnv(scene=scene, body=body, control_period=control_period)
+    physics = SwingPhysics(env)
+    scales = physics.scales
+    steps = steps or scales.trajectory_steps
+    trajectories = trajectories or max(10, math.ceil(TRANSITIONS / steps))
     rng = np.random.default_rng(seed)
-    hover = env.hover_thrust
-    low, high = env.action_space.low.astype(np.float64), env.action_space.high.astype(np.float64)
-    # unbounded actuators: excite within the hover controls' own size
-    spread = np.where(np.isfinite(high - low), 0.5 * (high - low), np.maximum(np.abs(hover), 1e-3))
-    gravity = float(np.linalg.norm(env.model.opt.gravity))
-    max_speed = 0.1 * max(scales.thrust_to_weight - 1.0, 0.5) * gravity
-    radius = 3.0 * scales.arm
-    states = np.empty((trajectories, steps + 1, 13))
-    controls = np.empty((trajectories, steps, hover.size))
-    near_level = 0
-    for i in tqdm(range(trajectories), desc=f"excite {env.scene_spec.name}", disable=not progress):
-        if rng.uniform() < level_fraction:
-            near_level += 1
-            axis = rng.normal(size=3)
-            angle = rng.uniform(0.0, 0.5)
-            attitude = np.concatenate([[math.cos(angle / 2)], math.sin(angle / 2) * axis / np.linalg.norm(axis)])
-            omega = uniform_in_ball(rng, max_omega / 5.0)
+    cut = np.cumsum([SHARES["energy"], SHARES["near_goal"]]) * trajectories
+    states = np.empty((trajectories, steps + 1, 7))
+    controls = np.empty((trajectories, steps, physics.low.size))
+    starts = dict.fromkeys(SHARES, 0)
+    segments = dict.fromkeys(SEGMENTS, 0)
+    for i in tqdm(range(trajectories), desc=f"collect {env.scene_spec.name} (swings)", disable=not progress):
+        kind = "energy" if i < cut[0] else "near_goal" if i < cut[1] else "uniform"
+        starts[kind] += 1
+        if kind == "energy":
+            qpos, qvel = energy_spread_state(env, physics, rng)
+        elif kind == "near_goal":
+            qpos, qvel = near_goal_joint_state(env, rng, 0.6, 0.5 * scales.speed)
         else:
-            attitude = rng.normal(size=4)
-            attitude /= np.linalg.norm(attitude)
-            omega = uniform_in_ball(rng, max_omega)
-        start = np.concatenate([env.hover_point + uniform_in_ball(rng, radius), attitude,
-                                uniform_in_ball(rng, max_speed), omega])
-        observation = env.reset(options={"state": start})[0]
-        amplitude = rng.uniform()
-        states[i, 0] = observation
-        for k in range(steps):
-            if k % hold_steps == 0:
-                u = np.clip(hover + amplitude * spread * rng.uniform(-1.0, 1.0, size=hover.size), low, high)
-            observation = env.step(u)[0]
-            states[i, k + 1], controls[i, k] = observation, u
-    speeds = np.linalg.norm(states[..., 10:], axis=-1)
-    tilts = np.degrees(np.arccos(np.clip([[s3.rotation_matrix(tuple(q))[2][2] for q in trajectory]
-                                          for trajectory in states[..., 3:7]], -1.0, 1.0)))
+            qpos, qvel = random_joint_state(env, rng, 1.5 * scales.speed)
+        observation, _ = env.reset(seed=int(rng.integers(2**31)), options={"qpos": qpos, "qvel": qvel})
+        if kind == "uniform":
+            controls[i] = control_sequence(rng, physics.low, physics.high, steps, "piecewise", scales.dwell_steps)
+            states[i, 0] = observation
+            for k in range(steps):
+                states[i, k + 1] = env.step(controls[i, k])[0]
+        else:
+            states[i], controls[i], counts = switching_controls(env, physics, rng, steps, observation)
+            for name, count in counts.items():
+                segments[name] += count
+    energies = np.array([[physics.potential(s[:4]) - physics.rest_energy
+                          + 0.5 * s[4:] @ physics.inertia(s[:4]) @ s[4:] for s in trajectory]
+                         for trajectory in states]) / scales.energy_span
+    saturated = (controls <= physics.low + 1e-12) | (controls >= physics.high - 1e-12)
     metadata = {
-        "scene": str(scene), "body": env.body_name, "control_period": float(env.dt), "seed": seed,
-        "trajectories": trajectories, "steps": steps, "transitions": trajectories * steps, "collector": EXCITATION,
-        "max_omega": max_omega, "level_fraction": level_fraction, "near_level_bursts": near_level,
-        "hold_steps": hold_steps, "start_radius_m": radius, "start_speed_mps": max_speed,
-        "coverage": {
-            "max_abs_omega": float(speeds.max()), "median_abs_omega": float(np.median(speeds)),
-            "max_speed": float(np.linalg.norm(states[..., 7:10], axis=-1).max()),
-            "max_distance": float(np.linalg.norm(states[..., :3] - env.hover_point, axis=-1).max()),
-            "upside_down_share": float((tilts > 90.0).mean()), "max_tilt_deg": float(tilts.max()),
-            "saturated_share": float(((controls <= low + 1e-12) | (controls >= high - 1e-12)).mean()),
-        },
+        "scene": str(scene), "body": env.unwrapped.body_name, "control_period": float(env.unwrapped.dt),
+        "seed": seed, "trajectories": trajectories, "steps": steps, "transitions": trajectories * steps,
+        "collector": SWING_EXCITATION,
+        "scales": {"energy_span": scales.energy_span, "speed": scales.speed, "natural_period": scales.natural_period,
+                   "dwell_steps": scales.dwell_steps},
+        "starts": starts, "segment_steps": segments,
+        "saturated_share": float(saturated.mean()),
+        "energy_coverage": {"max": float(energies.max()), "p5": float(np.percentile(energies, 5)),
+                            "p95": float(np.percentile(energies, 95))},
     }
     env.close()
-    return Trajectories(states, controls, {**metadata, "configuration_space": env.space.name})
+    return Trajectories.from_parts(states[..., :4], states[..., 4:], controls, metadata)

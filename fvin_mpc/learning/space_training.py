@@ -101,10 +101,11 @@ def training_for(space: ConfigurationSpace) -> SpaceTraining:
 
 
 def train_model(data: Trajectories, config: Any, settings: Any, progress: bool = True,
-                initial_weights: Mapping[str, Any] | None = None) -> tuple[Any, dict[str, Any]]:
+                initial_weights: Mapping[str, Any] | None = None,
+                measure: Callable[[Any], float] | None = None) -> tuple[Any, dict[str, Any]]:
     """:func:`fvin_mpc.learning.training.train` on the model of ``config``'s space in the space's
     training layout (its ``rest_scale``), from ``initial_weights`` when given (continued training)
-    or the seeded initialization; the report records the scales."""
+    or the seeded initialization; the report records the scales. ``measure``: :func:`train`'s."""
     from fvin_mpc.learning.model import model_for
 
     space = space_of_config(config)
@@ -114,7 +115,8 @@ def train_model(data: Trajectories, config: Any, settings: Any, progress: bool =
                          f"not {settings.optimizer!r}")
     extra = {} if preset.rest_scale is None else {"rest_scale": preset.rest_scale}
     model, report = train(data, config, settings, progress,
-                          model_factory=lambda config, seed: model_for(config, initial_weights, seed, **extra))
+                          model_factory=lambda config, seed: model_for(config, initial_weights, seed, **extra),
+                          measure=measure)
     if preset.rest_scale is not None:
         report["rest_scale"] = list(preset.rest_scale)
     return model, report

@@ -80,6 +80,12 @@ class TrainSettings:
             compilation once, then ≈ 3× faster iterations: worth it only for runs of many
             minutes (``docs/training.md``).
         time_limit_s: stop after this many seconds of training (``None``: no limit).
+        selection: which evaluated iteration's weights :func:`train` returns when it is given a
+            ``measure``: ``"measure"`` — the lowest measure among the iterations whose validation loss
+            is within ``selection_tolerance`` (relative) of the best; ``"validation"`` — the lowest
+            validation loss (the measure is only recorded). Without a measure, the lowest validation loss.
+        selection_tolerance: how much above the best validation loss a selected iteration may be
+            (``1.0``: up to twice it).
     """
 
     optimizer: Optimizer = "lm"
@@ -98,6 +104,8 @@ class TrainSettings:
     threads: int | None = None
     compile: bool = False
     time_limit_s: float | None = None
+    selection: Literal["measure", "validation"] = "measure"
+    selection_tolerance: float = 1.0
 
     def __post_init__(self) -> None:
         if self.optimizer not in OPTIMIZERS:
@@ -110,6 +118,9 @@ class TrainSettings:
             raise ValueError("patience must be >= 0, jacobian_windows and curvature_reuse >= 1")
         if self.threads is not None and self.threads < 1:
             raise ValueError(f"threads must be >= 1, got {self.threads}")
+        if self.selection not in ("measure", "validation") or not self.selection_tolerance >= 0.0:
+            raise ValueError(f"selection must be 'measure' or 'validation' and selection_tolerance >= 0, got "
+                             f"{self.selection!r}, {self.selection_tolerance!r}")
         if self.compile and self.optimizer == "lm":
             raise ValueError(
                 "compile applies to the adam and lbfgs optimizers only (LM differentiates with torch.func)"
@@ -405,7 +416,8 @@ def _rollout_module(model: Any) -> Any:
 
 def train(data: Any, config: Any, settings: TrainSettings, progress: bool = True,
           model_factory: Callable[..., Any] | None = None,
-          window_tensors: Callable[[Any, Any, int], tuple[Any, ...]] | None = None) -> tuple[Any, dict[str, Any]]:
+          window_tensors: Callable[[Any, Any, int], tuple[Any, ...]] | None = None,
+          measure: Callable[[Any], float] | None = None) -> tuple[Any, dict[str, Any]]:
     """Train a model; returns ``(model, report)`` with losses, timings, threads and machine load.
 
     One loop for every model: ``data`` is anything with ``subset``, ``windows``, ``u``,
@@ -421,11 +433,16 @@ def train(data: Any, config: Any, settings: TrainSettings, progress: bool = True
             train (a model class will do); default :func:`~fvin_mpc.learning.model.model_for`.
         window_tensors: ``(model, subset, window) → tensors`` for :func:`rollout_loss` (``q``, the
             rest of the state, ``u``) from a split of ``data``; default :func:`trajectory_windows`.
+        measure: ``model → float``, lower is better, evaluated with the validation loss (e.g. the
+            swing measure, :func:`fvin_mpc.learning.swing_measure.swing_apex_error`'s
+            ``swing_energy_error``): recorded in the history and, with ``settings.selection ==
+            "measure"``, what picks the returned iteration (``report["selected"]``).
     """
     threads = settings.threads if settings.threads is not None else safe_thread_count()
     load_before = os.getloadavg()
     with torch_threads(threads):
-        model, report = _train(data, config, settings, progress, model_factory, window_tensors or trajectory_windows)
+        model, report = _train(data, config, settings, progress, model_factory, window_tensors or trajectory_windows,
+                               measure)
     report["threads"] = threads
     report["threads_chosen"] = "given" if settings.threads is not None else "safe_thread_count"
     report["cpu_cores"] = available_cores()
@@ -448,7 +465,8 @@ def trajectory_windows(model: Any, data: Trajectories, window: int) -> tuple[Any
 
 
 def _train(data: Any, config: Any, settings: TrainSettings, progress: bool, model_factory: Callable[..., Any] | None,
-           window_tensors: Callable[[Any, Any, int], tuple[Any, ...]]) -> tuple[Any, dict[str, Any]]:
+           window_tensors: Callable[[Any, Any, int], tuple[Any, ...]],
+           measure: Callable[[Any], float] | None = None) -> tuple[Any, dict[str, Any]]:
     import torch
     from tqdm.auto import tqdm
 
@@ -501,6 +519,7 @@ def _train(data: Any, config: Any, settings: TrainSettings, progress: bool, mode
 
     stopping = _EarlyStopping(settings)
     history: list[dict[str, float]] = []
+    candidates: list[tuple[dict[str, float], dict[str, Any]]] = []
     validation_loss = float("nan")
     start, cpu_start = time.perf_counter(), time.process_time()
     completed = 0
@@ -516,8 +535,12 @@ def _train(data: Any, config: Any, settings: TrainSettings, progress: bool, mode
         if completed % eval_every == 0 or completed == iterations:
             with torch.no_grad():
                 validation_loss = rollout_loss(model, *validation_windows, settings.omega_weight).item()
-            history.append({"iteration": completed, "train": loss, "validation": validation_loss,
-                            "elapsed_s": time.perf_counter() - start, "cpu_s": time.process_time() - cpu_start})
+            entry = {"iteration": completed, "train": loss, "validation": validation_loss,
+                     "elapsed_s": time.perf_counter() - start, "cpu_s": time.process_time() - cpu_start}
+            if measure is not None:
+                entry["measure"] = float(measure(model))
+                candidates.append((entry, {name: p.detach().clone() for name, p in model.weights.items()}))
+            history.append(entry)
             bar.set_postfix(train=f"{loss:.2e}", val=f"{validation_loss:.2e}")
             if stopping.update(validation_loss, model):
                 break
@@ -525,6 +548,7 @@ def _train(data: Any, config: Any, settings: TrainSettings, progress: bool, mode
             stopping.reason = f"time limit of {settings.time_limit_s:g} s"
             break
     stopping.restore(model)
+    selected = _select(candidates, stopping.best, settings, model) if candidates else None
     seconds, cpu_seconds = time.perf_counter() - start, time.process_time() - cpu_start
     bar.close()
     with torch.no_grad():
@@ -544,7 +568,30 @@ def _train(data: Any, config: Any, settings: TrainSettings, progress: bool, mode
         "seconds_per_iteration": seconds / max(completed, 1),
         "history": history,
     }
+    if selected is not None:
+        report["selected"] = selected
     return model, report
+
+
+def _select(candidates: list[tuple[dict[str, float], dict[str, Any]]], best_validation: float,
+            settings: TrainSettings, model: Any) -> dict[str, Any]:
+    """Load the weights ``settings.selection`` picks among the evaluated ``candidates`` into ``model``
+    (already holding the best validation loss's); what was picked and why."""
+    import torch
+
+    by_validation = min(candidates, key=lambda c: c[0]["validation"])[0]
+    summary = {"by": settings.selection, "best_validation_iteration": by_validation["iteration"],
+               "best_validation_measure": by_validation["measure"]}
+    if settings.selection == "validation":
+        return {**summary, "iteration": by_validation["iteration"], "validation": by_validation["validation"],
+                "measure": by_validation["measure"]}
+    limit = best_validation * (1.0 + settings.selection_tolerance)
+    entry, weights = min((c for c in candidates if c[0]["validation"] <= limit), key=lambda c: c[0]["measure"])
+    with torch.no_grad():
+        for name, p in model.weights.items():
+            p.copy_(weights[name])
+    return {**summary, "iteration": entry["iteration"], "validation": entry["validation"], "measure": entry["measure"],
+            "validation_limit": limit}
 
 
 def split_losses(weights: Mapping[str, Any], config: ModelConfig, data: Trajectories,
