@@ -56,7 +56,8 @@ def build_parser() -> argparse.ArgumentParser:
                              "bursts (random-excitation bursts from the MJCF alone; default) or stabilized-flight "
                              "(a closed-form pilot, for crafts the closed form represents)")
     parser.add_argument("--trajectories", type=int, default=None,
-                        help="default: swings ≈ 8,000 transitions / steps; random 320; bursts 750; stabilized flight 300")
+                        help="default: swings ≈ 8,000 transitions / steps; random 320; bursts 750; "
+                             "stabilized flight 300")
     parser.add_argument(
         "--steps", type=int, default=None,
         help="control periods per trajectory (default: swings two natural periods, 20–200; random and bursts 20; "

@@ -48,6 +48,7 @@ from fvin_mpc.core.space import space_for_variant, space_of_config
 from fvin_mpc.envs.scenes import existing_scene
 from fvin_mpc.learning.collection import collect
 from fvin_mpc.learning.space_training import train_model, training_for
+from fvin_mpc.learning.swing_measure import swing_apex_error, swing_probe, torch_model_step
 from fvin_mpc.learning.training import TrainSettings, package_versions, scene_has_joint_damping
 from fvin_mpc.studies.report import write_report
 
@@ -66,8 +67,6 @@ LOOP_SOLVER = "rti"
 #: that call (20 ms) made waiting-mode episodes depend on the machine's load: on this shared machine
 #: the same model and starts gave 1/5 and 0/5 swing-ups in two runs. Unbudgeted, a run is repeatable.
 LOOP_MPC: dict[str, Any] = {"solver": LOOP_SOLVER, "rti": {"cold_budget_s": math.inf}}
-#: Where the lead adds issue 26's model measure that predicts control (branch i26-model) on merging.
-CONTROL_MEASURE_PENDING = "pending: issue 26's model measure that predicts control (i26-model) is not merged yet"
 
 
 @dataclass(frozen=True)
@@ -200,16 +199,6 @@ def exploration_seeds(seed: int, round_index: int, episodes: int) -> list[int]:
     return [100_000 * seed + 100 * round_index + e for e in range(episodes)]
 
 
-def control_measure(checkpoint: Path, scene: str) -> Any:
-    """The model measure that predicts control, per round.
-
-    MERGE POINT: issue 26 (branch i26-model) adds this measure to the learning layer (e.g. the apex
-    angle or energy error of full-torque swings, plant vs model); the lead calls it here on merging.
-    Until then the rounds report :data:`CONTROL_MEASURE_PENDING`.
-    """
-    return CONTROL_MEASURE_PENDING
-
-
 def _model_config(data: Trajectories) -> Any:
     """The training command's default model for the data: the space's first variant, dissipation on
     when the scene declares joint damping."""
@@ -297,8 +286,16 @@ def run_loop(scene: str, settings: LoopSettings, out_dir: Path, progress: bool =
                    {"excitation_transitions": data.num_transitions, "closed_loop_transitions": 0})
     gather_s = time.perf_counter() - t0
     config, weights = _model_config(data), None
+    # The model measure that predicts control (docs/excitation.md) is trained and reported as `train` does:
+    # it selects the returned iteration, and its scene's scales give the training window.
+    probe = swing_probe(str(scene), data.metadata.get("body"), data.control_period)
+    window = min(probe.physics.scales.training_window, settings.segment_steps)
     train_settings = TrainSettings(**{**training_for(space_of_config(config)).settings, "seed": settings.seed,
-                                      "threads": 1, "iterations": settings.train_iterations})
+                                      "threads": 1, "iterations": settings.train_iterations, "window": window})
+
+    def swing_error(model: Any) -> float:
+        return swing_apex_error(torch_model_step(model), probe)["swing_energy_error"]
+
     rounds: list[dict[str, Any]] = []
     evaluation_transitions = 0
 
@@ -319,7 +316,8 @@ def run_loop(scene: str, settings: LoopSettings, out_dir: Path, progress: bool =
     bar.update(data.num_transitions)
     for round_index in range(settings.max_rounds + 1):
         t_round = time.perf_counter()
-        model, report = train_model(data, config, train_settings, progress=False, initial_weights=weights)
+        model, report = train_model(data, config, train_settings, progress=False, initial_weights=weights,
+                                    measure=swing_error)
         weights = model.numpy_weights()
         train_s = time.perf_counter() - t_round
         stem = save_checkpoint(
@@ -343,7 +341,7 @@ def run_loop(scene: str, settings: LoopSettings, out_dir: Path, progress: bool =
             "closed_loop_transitions": data.metadata["closed_loop_transitions"],
             "evaluation_transitions": evaluation_transitions,
             "validation_loss": report["final_validation_loss"], "train_loss": report["final_train_loss"],
-            "train_iterations": report["iterations"], "control_measure": control_measure(stem, scene),
+            "train_iterations": report["iterations"], "control_measure": swing_error(model),
             **verdict, "learned": learned, "checkpoint": str(stem),
             "gather_s": gather_s, "train_s": train_s, "evaluate_s": eval_s,
         }
@@ -456,11 +454,11 @@ def plot_rounds(result: dict[str, Any], path: Path, title: str = "") -> None:
 
 def round_table(result: dict[str, Any]) -> str:
     """Markdown: one row per round."""
-    lines = ["| round | training transitions (excitation + closed loop) | validation loss | control measure | "
+    lines = ["| round | training transitions (excitation + closed loop) | validation loss | swing energy error (ΔE) | "
              "learned up | closed form up | cost learned / closed form | median cost ratio | evaluation steps "
              "(not trained on) | round wall s |", "|---|---|---|---|---|---|---|---|---|---|"]
     for r in result["rounds"]:
-        measure = "—" if r["control_measure"] == CONTROL_MEASURE_PENDING else r["control_measure"]
+        measure = "—" if not isinstance(r["control_measure"], float) else f"{r['control_measure']:.3f}"
         ratio = "—" if r["cost_ratio_median"] is None else f"{r['cost_ratio_median']:.2f}"
         lines.append(
             f"| {r['round']} | {r['transitions']} ({r['excitation_transitions']} + {r['closed_loop_transitions']}) "
