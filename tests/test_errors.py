@@ -162,6 +162,19 @@ def test_other_bad_counts_are_one_line_errors(command, argv, message, capsys):
     assert message in refused(module.main, argv, capsys)
 
 
+
+@pytest.mark.parametrize("scene, collector, allowed", [
+    ("pendulum", "bursts", "swings, random"),
+    ("quadrotor", "swings", "bursts, stabilized-flight"),
+])
+def test_collect_refuses_a_collector_of_the_other_kind_of_scene(scene, collector, allowed, capsys, tmp_path):
+    from fvin_mpc import collect
+
+    message = refused(collect.main, ["--scene", scene, "--collector", collector, "--out", str(tmp_path / "d.npz"),
+                                     "--quiet"], capsys)
+    assert f"--collector {collector}" in message and allowed in message
+    assert not (tmp_path / "d.npz").exists()
+
 # ---------------------------------------------------------------------- checkpoints for another space or scene
 def test_a_checkpoint_of_another_configuration_space_is_refused(capsys):
     from fvin_mpc import evaluate, swingup
