@@ -545,12 +545,16 @@ class RealTimeMPC(MPC):
             costs: dict[str, float] = {}
             iterations, status = 0, "cold"
             for number, guess_name in enumerate(sorted(s.cold_starts, key=RTI_COLD_ORDER.index)):
-                if number > 0 and time.perf_counter() > deadline:
-                    status = "budget"
-                    break
                 guess = self._first_guess(x0, guess_name)
                 guess = Plan(guess.states, guess.controls, None, None)
-                plan, done, step_status, _ = self._improve(guess, x0, s.rti_cold_iter, deadline)
+                # Past the budget a guess is still scored, un-iterated: the budget must not decide which
+                # guess wins. On a loaded machine it ran out inside the first ("goal") guess, whose gaps
+                # were still open, and the others were never looked at: from 7 of 20 starts near hanging
+                # that half-iterated plan (off the hinge, where a learned model means nothing) was kept and
+                # the torque chattered at the bottom. A rollout is a plan of the model from the start.
+                over = number > 0 and time.perf_counter() > deadline
+                plan, done, step_status, _ = (None, 0, "budget", None) if over else self._improve(
+                    guess, x0, s.rti_cold_iter, deadline)
                 iterations += done
                 status = "budget" if step_status == "budget" else status
                 plan = guess if plan is None else plan
