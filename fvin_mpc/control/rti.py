@@ -43,7 +43,9 @@ an unbiased model). Solved differently (Diehl's real-time iteration, as in acado
 * **cold start** — after :meth:`reset`, ``cold_starts``' first guesses in :data:`RTI_COLD_ORDER`
   (``"goal"`` first: an orientation path to the goal, or the model rolled out under ``±f·u_max``;
   neither is the symmetric rest, so the first torque is non-zero), each improved by up to
-  ``rti_cold_iter`` iterations while ``rti_cold_budget_s`` lasts; the best is kept. The budget is
+  ``rti_cold_iter`` iterations while ``rti_cold_budget_s`` lasts; the best is kept. Guesses reached
+  after the budget is spent are still scored, un-iterated (a rollout is a plan of the model with no
+  gaps), so the clock never hands the call a half-iterated guess unchallenged. The budget is
   what bounds the first call (it is below the 50 ms period by default); the plan keeps improving by
   one iteration per period afterwards.
 * **offset-free** (``disturbance_gain = α > 0``) — the model is ``x⁺ = F(x, u + d)`` with a
