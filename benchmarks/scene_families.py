@@ -402,7 +402,8 @@ def write_report(
             ": the simulator waits for the controller — model-quality figures, not real "
             "time; deadline misses are not measured."
             if args.latency == "none"
-            else "."
+            else ": the controller's compute time is charged to the plant (a torque is applied that long after "
+            "the state it was computed from), and a call longer than the scene's control period is a deadline miss."
         ),
         "Timings are from the shared 2-core CPU machine (other jobs running).",
         "",
