@@ -16,7 +16,9 @@ import mujoco
 import numpy as np
 from gymnasium import spaces
 
+from fvin_mpc.core.backend import get_ops
 from fvin_mpc.core.errors import SceneError, UsageError
+from fvin_mpc.core.rigid_body import from_mujoco
 from fvin_mpc.core.space import S3, ConfigurationSpace
 from fvin_mpc.core.state import as_float_array, split_state, unit_quaternion
 
@@ -25,6 +27,11 @@ from .scenes import MIN_CONTROL_PERIOD, ScenePhysics, SceneSpec, build_model, re
 #: Largest initial |ω| (rad/s) of ``reset(options={"random": True})`` unless ``"max_omega"`` is given
 #: (Pendulum-v1 draws θ̇ from [−1, 1]).
 DEFAULT_RANDOM_MAX_OMEGA = 1.0
+#: Rotation (rad) per control period at a scene's speed scale, for a scene that declares no period:
+#: the ``pendulum`` scene's ``h·ω_s = 0.05 s × √60 rad/s`` (the controllers were tuned there), so a
+#: new scene is sampled as finely *in its own time* — a slow body gets a longer period, not a finer
+#: timestep's hundreds of steps per horizon.
+STEP_ANGLE = 0.05 * math.sqrt(60.0)
 #: Weights of the quadratic cost (Pendulum-v1's): angle², |ω|², |u|².
 COST_WEIGHTS = (1.0, 0.1, 0.001)
 
@@ -60,10 +67,12 @@ class MujocoBodyEnv(gymnasium.Env):
         model = self._model
 
         timestep = float(model.opt.timestep)
+        #: Whether the period was chosen by the caller or the scene; if not, a subclass that knows the
+        #: scene's time scale may choose it (:meth:`_set_control_period`).
+        self._control_period_given = control_period is not None or spec.control_period is not None
         if control_period is None:
-            control_period = spec.control_period or timestep * math.ceil(MIN_CONTROL_PERIOD / timestep - 1e-9)
-        self._frame_skip = _frame_skip(float(control_period), timestep)
-        self._dt = self._frame_skip * timestep
+            control_period = spec.control_period or timestep * _min_frames(timestep)
+        self._set_control_period(float(control_period))
 
         limited = self._physics.actuator_limits & model.actuator_ctrllimited.astype(bool)
         low = np.where(limited, model.actuator_ctrlrange[:, 0], -np.inf)
@@ -73,10 +82,14 @@ class MujocoBodyEnv(gymnasium.Env):
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode must be None or one of {self.metadata['render_modes']}, got {render_mode!r}")
         self.render_mode = render_mode
-        self.metadata = {**type(self).metadata, "render_fps": round(1.0 / self._dt)}
         self._width, self._height = int(width), int(height)
         self._renderer: mujoco.Renderer | None = None
         self._camera: mujoco.MjvCamera | None = None
+
+    def _set_control_period(self, control_period: float) -> None:
+        self._frame_skip = _frame_skip(control_period, float(self._model.opt.timestep))
+        self._dt = self._frame_skip * float(self._model.opt.timestep)
+        self.metadata = {**type(self).metadata, "render_fps": round(1.0 / self._dt)}
 
     # ------------------------------------------------------------------ accessors
     @property
@@ -274,8 +287,10 @@ class RigidBodyEnv(MujocoBodyEnv):
     - ``physics``: the :class:`~envs.scenes.ScenePhysics` to simulate. Default: the scene's; for an
       MJCF, :func:`~envs.scenes.infer_physics` (what the file would simulate).
     - ``control_period``: seconds per step, a whole multiple of the MJCF timestep. Default: the
-      scene's (0.05 s for the built-ins); else the smallest multiple of the timestep that is at least
-      :data:`~envs.scenes.MIN_CONTROL_PERIOD` (20 ms).
+      scene's (0.05 s for the built-ins); else one chosen from the scene's speed scale
+      (:func:`scale_control_period`: the multiple of the timestep nearest to ``STEP_ANGLE / ω_s``,
+      at least :data:`~envs.scenes.MIN_CONTROL_PERIOD`, 20 ms); for a body the closed form cannot
+      read, the smallest multiple of the timestep that is at least 20 ms.
     - ``render_mode``: ``None`` or ``"rgb_array"`` (``MUJOCO_GL=egl`` headless); ``width``,
       ``height``: image size in pixels (at most the MJCF's offscreen buffer, 640×480 built in).
 
@@ -320,11 +335,46 @@ class RigidBodyEnv(MujocoBodyEnv):
             self._rest_qpos = self._qpos_of_orientation(unit_quaternion(spec.rest, "rest"))
         self._set_joint_state(self._rest_qpos, np.zeros(model.nv))
         self._rest = self._data.xquat[self._body_id].copy()
+        self._scales: tuple[float, float] | None = None
+        if not self._control_period_given:
+            try:
+                self._set_control_period(scale_control_period(self.speed_scale, float(model.opt.timestep)))
+            except ValueError:
+                pass  # a body the closed form cannot read keeps the timestep rule (the scales say why when asked)
 
         obs_high = np.array([1.0] * 4 + [np.inf] * 3)
         self.observation_space = spaces.Box(low=-obs_high, high=obs_high, dtype=np.float64)
 
     # ------------------------------------------------------------------ accessors
+    @property
+    def energy_span(self) -> float:
+        """``|U(goal) − U(rest)|`` (J), read off the MJCF (the closed-form body of
+        :func:`~fvin_mpc.core.rigid_body.from_mujoco`): the energy a swing-up must gain.
+
+        Raises:
+            ValueError: the body is one ``from_mujoco`` cannot read, or goal and rest have the same
+                potential (nothing to swing up).
+        """
+        return self._energy_and_speed()[0]
+
+    @property
+    def speed_scale(self) -> float:
+        """``ω_s = √(2·energy_span / J_max)`` (rad/s), ``J_max`` the largest principal inertia about
+        the pivot: the speed that carries the body over the whole energy span — the scene's time
+        scale, from which its default control period (:func:`scale_control_period`) and the
+        controllers' settings are derived. Raises as :attr:`energy_span`."""
+        return self._energy_and_speed()[1]
+
+    def _energy_and_speed(self) -> tuple[float, float]:
+        if self._scales is None:
+            terms = from_mujoco(self._model, self._body_name).terms(get_ops("numpy"))
+            span = abs(float(terms.potential(tuple(self._goal))) - float(terms.potential(tuple(self._rest))))
+            if not span > 0.0:
+                raise ValueError("the scene's goal and rest have the same potential energy: nothing to swing up")
+            inertia = np.array(terms.inertia(tuple(self._rest)), dtype=float)
+            self._scales = (span, math.sqrt(2.0 * span / float(np.linalg.eigvalsh(inertia).max())))
+        return self._scales
+
     @property
     def joint_type(self) -> str:
         """``"hinge"`` or ``"ball"``."""
@@ -541,6 +591,22 @@ def _validate_body_and_joint(model: mujoco.MjModel, body: str) -> tuple[int, int
             "actuators with internal state (dyntype != none) are not supported: (q, ω) would not be the whole state"
         )
     return body_id, joint_id
+
+
+def scale_control_period(speed_scale: float, timestep: float) -> float:
+    """The control period of a scene that declares none: the whole multiple of ``timestep`` nearest
+    to :data:`STEP_ANGLE` ``/ speed_scale``, and at least :data:`~envs.scenes.MIN_CONTROL_PERIOD`.
+
+    One rule for every consumer: ``collect`` records at the env's period, ``train`` learns a model
+    of that step, and the controllers plan on it, so a model step never follows a fine simulator
+    timestep (a 4 ms timestep would otherwise give a slow body horizons of hundreds of steps).
+    """
+    frames = max(_min_frames(timestep), round(STEP_ANGLE / speed_scale / timestep))
+    return frames * timestep
+
+
+def _min_frames(timestep: float) -> int:
+    return max(1, math.ceil(MIN_CONTROL_PERIOD / timestep - 1e-9))
 
 
 def _frame_skip(control_period: float, timestep: float) -> int:

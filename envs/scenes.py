@@ -95,7 +95,8 @@ class SceneSpec:
         xml_path: the MJCF file.
         body: name of the observed body; ``None``: the MJCF's only body with a joint.
         control_period: seconds per env step, a whole multiple of the MJCF timestep; ``None``:
-            the smallest multiple of the timestep that is at least :data:`MIN_CONTROL_PERIOD`.
+            chosen from the scene's speed scale (``envs.rigid_body_env.scale_control_period``),
+            at least :data:`MIN_CONTROL_PERIOD`.
         physics: the effects simulated (see :class:`ScenePhysics`); ``None``: what the MJCF
             would simulate (:func:`infer_physics`).
         goal: goal orientation ``(w, x, y, z)``; ``None``: the maximum of the potential.
@@ -123,8 +124,8 @@ class SceneSpec:
         return self.checkpoint or f"{self.name}_sign-invariant"
 
 
-#: A scene whose MJCF names no control period steps at the smallest multiple of its timestep
-#: that is at least this long (s): an MJCF written with a 20 ms timestep is controlled at 20 ms.
+#: The shortest control period (s) of a scene that declares none: its period follows its speed scale
+#: but never drops below this, whatever the MJCF's timestep (an MPC solve must fit in a period).
 MIN_CONTROL_PERIOD = 0.02
 
 _ACTUATED = ScenePhysics(gravity=True, joint_damping=False, dry_friction=False, actuator_limits=True, contact=False)

@@ -399,7 +399,10 @@ def test_user_mjcf_defaults(tmp_path):
     xml = write_mjcf(tmp_path / "p.xml", HINGE_BODY, option='timestep="0.002" gravity="0 0 -9.81"')
     env = RigidBodyEnv(str(xml))
     assert env.body_name == "link" and env.joint_type == "hinge"
-    assert env.frame_skip == 10 and env.dt == pytest.approx(0.02)  # the first multiple of 2 ms from 20 ms on
+    # The period follows the speed scale ω_s = √(2·ΔE/J) = √(2 · 9.81 J / 0.35 kg·m²) = 7.49 rad/s: the
+    # multiple of 2 ms nearest to 0.387 rad / ω_s = 51.7 ms (the pendulum scene's turn per step, 50 ms × √60).
+    assert env.speed_scale == pytest.approx((2 * 9.81 / 0.35) ** 0.5)
+    assert env.frame_skip == 26 and env.dt == pytest.approx(0.052)
     # The task read off the potential: the centre of mass hangs below the pivot at qpos0, so the
     # goal is half a turn about the hinge, and episodes start at rest at qpos0.
     np.testing.assert_allclose(env.goal, [0, 0, 1, 0], atol=1e-15)
@@ -438,6 +441,16 @@ def test_user_mjcf_validation(tmp_path):
     # Unbounded actuators without declared limits give an unbounded action space.
     env = RigidBodyEnv("pendulum", physics=replace(SCENES["pendulum"].physics, actuator_limits=False))
     assert np.all(np.isinf(env.action_space.high))
+
+
+def test_a_fast_scene_keeps_the_shortest_default_period(tmp_path):
+    """A body whose speed scale asks for less than 20 ms (ω_s = 40 rad/s: 9.7 ms) is still controlled
+    at 20 ms, the multiple of its 2 ms timestep (an MPC solve must fit in a period)."""
+    from fvin_mpc.envs.rigid_body_env import STEP_ANGLE, scale_control_period
+
+    assert scale_control_period(40.0, 0.002) == pytest.approx(0.02)
+    assert scale_control_period(STEP_ANGLE / 0.1, 0.002) == pytest.approx(0.1)  # a slow body: 100 ms
+    assert scale_control_period(STEP_ANGLE / 0.1, 0.03) == pytest.approx(0.09)  # the nearest multiple of 30 ms
 
 
 def test_control_period_multiple():

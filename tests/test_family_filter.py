@@ -47,9 +47,7 @@ def test_a_scene_the_package_refuses_is_infeasible_with_the_reason(tmp_path):
 
 
 def test_the_filter_duration_is_the_swingup_commands_rule_with_the_gear_counted(tmp_path):
-    from dataclasses import replace
-
-    from fvin_mpc.control.family_filter import motor_scales, swingup_duration
+    from fvin_mpc.control.family_filter import swingup_duration
     from fvin_mpc.control.scene import scene_scales
     from fvin_mpc.swingup import MIN_DEFAULT_DURATION_S, default_duration
 
@@ -57,9 +55,9 @@ def test_the_filter_duration_is_the_swingup_commands_rule_with_the_gear_counted(
     assert swingup_duration(weak) == pytest.approx(default_duration(scene_scales(weak)), rel=1e-12)
     (path,) = write_family("hinge", [1002], tmp_path)
     env = RigidBodyEnv(str(path))
-    gear = abs(env.model.actuator_gear[0, 0])
-    assert motor_scales(env).torque == pytest.approx(scene_scales(env).torque * gear, rel=1e-12)
-    assert swingup_duration(env) == pytest.approx(
-        default_duration(replace(scene_scales(env), torque=scene_scales(env).torque * gear))
-    )
+    gear, bound = abs(env.model.actuator_gear[0, 0]), abs(env.model.actuator_ctrlrange[0]).max()
+    assert gear != pytest.approx(1.0)  # the draw this test needs: a gear that changes the torque
+    scales = scene_scales(env)
+    assert (scales.control, scales.torque) == pytest.approx((bound, bound * gear), rel=1e-12)
+    assert swingup_duration(env) == pytest.approx(default_duration(scales), rel=1e-12)
     assert MIN_DEFAULT_DURATION_S == 10.0

@@ -41,8 +41,9 @@ def test_every_reported_transition_is_in_the_saved_data_and_no_other(tiny_run):
     assert [r["excitation_transitions"] for r in rounds] == [30, 30, 30]
     assert [r["closed_loop_transitions"] for r in rounds] == [0, 40, 70]
     assert data.metadata["excitation_transitions"] + data.metadata["closed_loop_transitions"] == 100
-    # evaluation: 2 starts × 0.3 s / 20 ms per round, counted apart and never trained on
-    assert [r["evaluation_transitions"] for r in rounds] == [30, 60, 90] == [
+    # evaluation: 2 starts × 0.3 s at the scene's control period per round, counted apart and never trained on
+    per_round = 2 * round(0.3 / data.control_period)
+    assert [r["evaluation_transitions"] for r in rounds] == [per_round, 2 * per_round, 3 * per_round] == [
         sum(e["periods"] for r2 in rounds[: i + 1] for e in r2["learned"]) for i in range(3)]
     for i, r in enumerate(rounds):
         assert load_data(out / "data.npz").num_transitions >= r["transitions"]

@@ -19,7 +19,7 @@ def test_the_quick_benchmark_runs_three_scenes_and_resumes_from_its_cache(tmp_pa
         str(tmp_path / "cache"),
     ]
     assert main(args) == 0
-    cached = sorted((tmp_path / "cache" / "hinge" / "quick").glob("scene_*.json"))
+    cached = sorted((tmp_path / "cache" / "hinge" / "quick" / "rti-none").glob("scene_*.json"))
     assert len(cached) == 3
     record = json.loads(cached[0].read_text())
     assert {"collect_s", "train_s", "build_s", "learned", "closed_form", "facts"} <= set(record)

@@ -14,6 +14,7 @@ from helpers import assert_same_rotation, hinge_quaternion
 from fvin_mpc.control.mpc import COLD_STARTS, MPCSettings
 from fvin_mpc.control.scene import (
     DEFAULT_TERMINAL_ENERGY_WEIGHT,
+    MAX_DEFAULT_HORIZON,
     REFERENCE_SCALES,
     default_mpc_settings,
     scene_env,
@@ -48,7 +49,9 @@ def test_a_pendulum_written_upright_at_qpos_zero_gets_its_task_from_the_potentia
     assert info["angle_from_goal"] == pytest.approx(np.pi)
     assert info["energy"] == pytest.approx(-5.0)  # the potential's minimum: m g z = 10 · (−0.5)
     assert env.physics.joint_damping  # what the file simulates, without a declaration
-    assert env.dt == pytest.approx(0.02)  # the file's 20 ms timestep, not a multiple of it near 50 ms
+    # Its period follows its speed scale (√60 rad/s, the pendulum's): 0.05 s × √60 / ω_s rounded to the
+    # file's 20 ms timestep, so 40 ms (the same turn per step as the pendulum scene's 50 ms).
+    assert env.speed_scale == pytest.approx(60.0**0.5) and env.dt == pytest.approx(0.04)
 
 
 def test_the_task_of_a_ball_joint_puts_the_centre_of_mass_above_and_below_the_pivot():
@@ -124,15 +127,18 @@ def test_settings_scale_with_the_step_speed_and_torque():
     assert weak.control_weight == pytest.approx(4 * base.control_weight)
     slow = default_mpc_settings(replace(REFERENCE_SCALES, speed=REFERENCE_SCALES.speed / 2))
     assert slow.omega_weight == pytest.approx(4 * base.omega_weight)
+    # A forced fine period does not explode the horizon: past MAX_DEFAULT_HORIZON steps the terminal
+    # energy term does the look-ahead.
+    assert default_mpc_settings(replace(REFERENCE_SCALES, step_size=0.005)).horizon == MAX_DEFAULT_HORIZON
     assert slow.horizon == 2 * base.horizon
 
 
 def test_the_weak_pendulums_settings_and_cli_overrides():
     env = scene_env(str(WEAK_PENDULUM), true_model=True)
     scales = scene_scales(env)
-    assert (scales.energy_span, scales.torque, scales.step_size) == pytest.approx((10.0, 1.0, 0.02))
+    assert (scales.energy_span, scales.torque, scales.step_size) == pytest.approx((10.0, 1.0, 0.04))
     settings = scene_mpc_settings(env)
-    assert settings.horizon == 75 and settings.terminal_energy_weight == DEFAULT_TERMINAL_ENERGY_WEIGHT
+    assert settings.horizon == 37 and settings.terminal_energy_weight == DEFAULT_TERMINAL_ENERGY_WEIGHT
     assert scene_mpc_settings(env, omega_weight=1e-4, horizon=None).omega_weight == 1e-4
     with pytest.raises(ValueError, match="unknown MPC settings"):
         scene_mpc_settings(env, omega_wieght=1.0)
@@ -151,7 +157,7 @@ def test_the_weak_pendulum_swings_up_with_default_settings(tmp_path):
     assert summary["swung_up"], summary
     derived = swingup.default_duration(scene_scales(RigidBodyEnv(str(WEAK_PENDULUM))))
     assert derived > 10.0 and summary["duration_s"] == pytest.approx(derived, abs=0.02)
-    assert summary["control_period_s"] == pytest.approx(0.02) and summary["horizon"] == 75
+    assert summary["control_period_s"] == pytest.approx(0.04) and summary["horizon"] == 37
     assert summary["max_abs_torque"] <= 1.0
 
 
@@ -226,16 +232,16 @@ def test_a_user_mjcf_goes_through_collect_train_swingup_with_default_settings(tm
     assert collect.main(["--scene", str(WEAK_PENDULUM), "--trajectories", "12", "--steps", "8", "--out",
                          str(data_path), "--quiet"]) == 0
     data = load_data(data_path)
-    assert data.control_period == pytest.approx(0.02)
+    assert data.control_period == pytest.approx(0.04)  # the scene's own period (its speed scale)
     assert train.main(["--data", str(data_path), "--out", str(stem), "--iterations", "2", "--quiet"]) == 0
     checkpoint = load_checkpoint(stem)
-    assert checkpoint.config.step_size == pytest.approx(0.02)
+    assert checkpoint.config.step_size == pytest.approx(0.04)
     assert checkpoint.config.dissipation  # the scene's joint damping switched it on by default
     capsys.readouterr()
     assert swingup.main(["--scene", str(WEAK_PENDULUM), "--checkpoint", str(stem), "--duration", "0.1",
                          "--horizon", "5", "--plot", "", "--quiet", "--json", str(summary_path)]) == 0
     summary = json.loads(summary_path.read_text())
-    assert summary["control_period_s"] == pytest.approx(0.02)
+    assert summary["control_period_s"] == pytest.approx(0.04)
     assert summary["terminal_energy_weight"] == DEFAULT_TERMINAL_ENERGY_WEIGHT
     assert tuple(summary["cold_starts"]) == COLD_STARTS
 

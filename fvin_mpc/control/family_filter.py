@@ -143,30 +143,18 @@ def run_judged(
 MAX_FILTER_DURATION_S = 40.0
 
 
-def motor_scales(env: Any) -> Any:
-    """:func:`~fvin_mpc.control.scene.scene_scales` with ``torque`` the largest actuator *torque* (bound
-    × |gear|) instead of the largest control: the swing-up duration compares it with gravity's torque."""
-    from dataclasses import replace
-
-    from fvin_mpc.control.scene import scene_scales
-
-    base = env.unwrapped
-    scales = scene_scales(env)
-    axes = np.asarray(from_mujoco(base.model, base.body_name).actuator_axes, dtype=float)
-    bounds = np.maximum(np.abs(base.torque_low), np.abs(base.torque_high))
-    return replace(scales, torque=float(np.max(bounds * np.linalg.norm(axes, axis=0))))
-
-
 #: The swing-up command's shortest default episode (``fvin_mpc.swingup.MIN_DEFAULT_DURATION_S``).
 MIN_DURATION_S = 10.0
 
 
 def swingup_duration(env: Any) -> float:
     """The swing-up command's default duration on the scene's scales, with the actuators' torque counted
-    through their gear (:func:`motor_scales`): ``(1 + peak gravity torque / motor torque)`` natural periods
+    through their gear (``scene_scales().torque``): ``(1 + peak gravity torque / motor torque)`` natural periods
     plus the hold window, at least 10 s — ``fvin_mpc.swingup.default_duration``'s rule, restated here
     because a library module does not import a command (tests check the two agree)."""
-    scales = motor_scales(env)
+    from fvin_mpc.control.scene import scene_scales
+
+    scales = scene_scales(env)
     natural_period = 4.0 * math.pi / scales.speed
     swing_up_s = (1.0 + scales.energy_span / 2.0 / scales.torque) * natural_period
     return max(MIN_DURATION_S, swing_up_s + HOLD_WINDOW_S)

@@ -37,7 +37,6 @@ from fvin_mpc.control.model_export import ExportedModel, from_checkpoint, from_c
 from fvin_mpc.control.mpc import COLD_STARTS, MPC, MPCSettings
 from fvin_mpc.control.presets import preset_for
 from fvin_mpc.control.rti import RealTimeMPC
-from fvin_mpc.core.backend import get_ops
 from fvin_mpc.core.checkpoint import Checkpoint, CheckpointError, load_checkpoint
 from fvin_mpc.core.rigid_body import from_mujoco
 from fvin_mpc.envs import RigidBodyEnv
@@ -52,14 +51,22 @@ class SceneScales:
         energy_span: ``|U(goal) − U(rest)|`` (J).
         speed: ``ω_s = √(2·energy_span / J_max)`` (rad/s), ``J_max`` the largest principal
             inertia about the pivot.
-        torque: the largest actuator bound ``max |u|`` (the scene's units).
+        torque: the largest actuator *torque* (N·m): control bound × the actuator's gear (the norm
+            of its body-frame torque per unit control) — what a swing-up compares with gravity.
         step_size: the control period ``h`` (s).
+        control: the largest actuator bound ``max |u|`` (the controls' own units): what the
+            control weight is measured against. ``None``: the same as ``torque`` (unit gear).
     """
 
     energy_span: float
     speed: float
     torque: float
     step_size: float
+    control: float | None = None
+
+    @property
+    def control_bound(self) -> float:
+        return self.torque if self.control is None else self.control
 
 
 #: The scales of the ``pendulum`` scene, on which :class:`MPCSettings`' numbers were tuned.
@@ -67,49 +74,54 @@ REFERENCE_SCALES = SceneScales(energy_span=10.0, speed=math.sqrt(60.0), torque=2
 #: The terminal energy-deficit weight a scene gets unless it declares otherwise (docs/evaluation.md:
 #: with it a 1.5 s horizon swings the pendulum up from every start).
 DEFAULT_TERMINAL_ENERGY_WEIGHT = 1000.0
+#: The longest default horizon (steps), whatever the control period a caller forces: the horizon
+#: follows the scene's natural period, but past this the terminal energy-deficit term does the
+#: look-ahead (a scene at its own period, ``envs.rigid_body_env.scale_control_period``, gets about
+#: the reference's 30 steps; a forced fine period would otherwise give hundreds, and solves of
+#: hundreds of milliseconds).
+MAX_DEFAULT_HORIZON = 60
 
 
 def scene_scales(env: Any) -> SceneScales:
     """The :class:`SceneScales` of a scene's physics: read off its MJCF (the closed-form body of
-    :func:`~fvin_mpc.core.rigid_body.from_mujoco`), not off a planning model, so that a learned and
-    the closed-form model get the same settings on the same scene.
+    :func:`~fvin_mpc.core.rigid_body.from_mujoco`, through the env's ``energy_span`` and
+    ``speed_scale``, which also choose its default control period), not off a planning model, so
+    that a learned and the closed-form model get the same settings on the same scene.
 
     Raises:
         ValueError: the actuator bounds are not finite, goal and rest have the same potential, or
             the body is one ``from_mujoco`` cannot read (pass the settings explicitly then).
     """
     base = env.unwrapped
-    bounds = np.abs(np.concatenate([base.torque_low, base.torque_high]))
+    bounds = np.maximum(np.abs(base.torque_low), np.abs(base.torque_high))
     if not np.all(np.isfinite(bounds)):
         raise ValueError("deriving MPC settings from the scene's scales needs finite actuator bounds "
                          "(declare actuator limits, or pass the MPC settings explicitly)")
-    terms = from_mujoco(base.model, base.body_name).terms(get_ops("numpy"))
-    span = abs(float(terms.potential(tuple(base.goal))) - float(terms.potential(tuple(base.rest))))
-    if not span > 0.0:
-        raise ValueError("the scene's goal and rest have the same potential energy: nothing to swing up")
-    inertia = np.array(terms.inertia(tuple(base.rest)), dtype=float)
-    return SceneScales(energy_span=span, speed=math.sqrt(2.0 * span / float(np.linalg.eigvalsh(inertia).max())),
-                       torque=float(bounds.max()), step_size=float(base.dt))
+    axes = np.asarray(from_mujoco(base.model, base.body_name).actuator_axes, dtype=float)
+    torques = bounds * np.linalg.norm(axes, axis=0)
+    return SceneScales(energy_span=base.energy_span, speed=base.speed_scale, torque=float(torques.max()),
+                       step_size=float(base.dt), control=float(bounds.max()))
 
 
 def default_mpc_settings(scales: SceneScales) -> MPCSettings:
     """:class:`MPCSettings` whose costs mean on ``scales`` what the defaults mean on the pendulum.
 
     Multi-start cold solves (every guess of :data:`~fvin_mpc.control.mpc.COLD_STARTS`) and the
-    terminal energy-deficit cost are on: the controller the evaluation reports.
+    terminal energy-deficit cost are on: the controller the evaluation reports. The horizon is at
+    most :data:`MAX_DEFAULT_HORIZON` steps.
     """
     reference, base = REFERENCE_SCALES, MPCSettings()
     per_second = scales.step_size / reference.step_size  # stage weights are a rate × h
     speed = (reference.speed / scales.speed) ** 2  # weights on |ω|² in units of ω_s
-    torque = (reference.torque / scales.torque) ** 2  # weights on |u|² in units of u_max
+    control = (reference.control_bound / scales.control_bound) ** 2  # weights on |u|² in units of u_max
     horizon_s = base.horizon * reference.step_size * reference.speed / scales.speed
     tidy = lambda value: float(f"{value:.10g}")  # noqa: E731  (the reference's own numbers, not 0.0999…)
     return replace(
         base,
-        horizon=max(1, round(horizon_s / scales.step_size)),
+        horizon=min(MAX_DEFAULT_HORIZON, max(1, round(horizon_s / scales.step_size))),
         orientation_weight=tidy(base.orientation_weight * per_second),
         omega_weight=tidy(base.omega_weight * speed * per_second),
-        control_weight=tidy(base.control_weight * torque * per_second),
+        control_weight=tidy(base.control_weight * control * per_second),
         terminal_omega_weight=tidy(base.terminal_omega_weight * speed),
         terminal_energy_weight=DEFAULT_TERMINAL_ENERGY_WEIGHT,
         cold_starts=COLD_STARTS,
