@@ -22,9 +22,9 @@ motion: the most power the motor can put in), braking (the opposite bound), a ra
 level, or no torque (the unforced swing: the damping alone). Saturated controls, the energies of a
 swing-up and the neighbourhood of the goal are all in the data.
 
-The amount comes from the scales (:class:`SwingScales`, read off the MJCF through the closed-form
-body, as the control layer's ``SceneScales`` are): every trajectory lasts two natural periods
-(between :data:`MIN_STEPS` and :data:`MAX_STEPS` control periods), and there are as many
+The amount comes from the scales (:class:`SwingScales`: the env's ``energy_span`` and ``speed_scale``,
+the same the control period and the control layer's ``SceneScales`` come from): every trajectory
+lasts two natural periods (between :data:`MIN_STEPS` and :data:`MAX_STEPS` control periods), and there are as many
 trajectories as give about :data:`TRANSITIONS` transitions.
 """
 
@@ -117,12 +117,8 @@ class SwingPhysics:
             raise ValueError("swing excitation needs finite actuator bounds (declare the actuators' ctrlrange, "
                              "or collect with --collector random)")
         self.rest_energy = self.potential(base.rest)
-        span = abs(self.potential(base.goal) - self.rest_energy)
-        if not span > 0.0:
-            raise ValueError("the scene's goal and rest have the same potential energy: nothing to swing up")
-        inertia = np.array(self.terms.inertia(tuple(base.rest)), dtype=float)
-        self.scales = SwingScales(span, math.sqrt(2.0 * span / float(np.linalg.eigvalsh(inertia).max())),
-                                  float(base.dt))
+        # The env's scales are the ones its control period and the controllers' settings come from.
+        self.scales = SwingScales(base.energy_span, base.speed_scale, float(base.dt))
         self.directions = actuator_directions(env)
 
     def potential(self, q: Any) -> float:
