@@ -41,7 +41,7 @@ from fvin_mpc._cli import run_command
 from fvin_mpc.core.checkpoint import load_checkpoint, save_checkpoint
 from fvin_mpc.core.data import load_data
 from fvin_mpc.core.space import S3, space_for_variant, space_of_config, spaces
-from fvin_mpc.learning.space_training import train_model, training_for
+from fvin_mpc.learning.space_training import default_model_config, train_model, training_for
 from fvin_mpc.learning.swing_measure import swing_apex_error, swing_probe, torch_model_step
 from fvin_mpc.learning.training import (
     DEFAULT_DATA,
@@ -52,7 +52,6 @@ from fvin_mpc.learning.training import (
     package_versions,
     refuse_to_overwrite,
     safe_thread_count,
-    scene_has_joint_damping,
 )
 
 #: Every model variant of every registered space.
@@ -304,22 +303,19 @@ def _field_names(config: Any) -> set[str]:
 
 
 def _model_config(parser: argparse.ArgumentParser, args: argparse.Namespace, space: Any, data: Any) -> Any:
-    """The model config of ``space`` from the data and the options; an option the space's config
-    has no field for is refused."""
+    """The model config of ``space`` from the data and the options (:func:`default_model_config` for what
+    they leave open); an option the space's config has no field for is refused."""
     names = {field.name for field in fields(space.config_type)}
-    chosen = {"variant": args.variant or space.variants[0], "control_dim": int(data.u.shape[2]),
-              "step_size": data.control_period}
+    given = {"variant": args.variant} if args.variant else {}
     for option in ("hidden_width", "hidden_layers", "newton_iters", "dissipation"):
         value = getattr(args, option)
         if value is None:
             continue
         if option not in names:
             parser.error(f"--{option.replace('_', '-')} does not apply to models on {space.description}")
-        chosen[option] = value
-    if "dissipation" in names and args.dissipation is None:
-        chosen["dissipation"] = bool(scene_has_joint_damping(data.metadata))
+        given[option] = value
     try:
-        return space.config_type(**chosen)
+        return default_model_config(data, space, **given)
     except ValueError as error:
         parser.error(str(error))
 

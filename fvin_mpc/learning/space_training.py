@@ -14,7 +14,7 @@ inertia (:func:`recovered_parameters`).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import Any, Callable, Mapping
 
 import numpy as np
@@ -24,9 +24,9 @@ from fvin_mpc.core.backend import get_ops
 from fvin_mpc.core.data import Trajectories
 from fvin_mpc.core.networks_r3s3 import LearnedCombinedTerms, R3S3Config, physical_scale
 from fvin_mpc.core.quadrotor import from_mujoco
-from fvin_mpc.core.space import R3S3, ConfigurationSpace, space_of_config
+from fvin_mpc.core.space import R3S3, ConfigurationSpace, space_for_variant, space_of_config
 from fvin_mpc.envs import QuadrotorEnv
-from fvin_mpc.learning.training import train
+from fvin_mpc.learning.training import scene_has_joint_damping, train
 
 #: Position and velocity scales of the free body's loss (1/m, s/m): 1 mm of position error weighs as 0.03 rad/s.
 POSITION_SCALE, VELOCITY_SCALE = 30.0, 10.0
@@ -93,6 +93,19 @@ TRAINING: dict[ConfigurationSpace, SpaceTraining] = {
                         rest_scale=(POSITION_SCALE,) * 3 + (VELOCITY_SCALE,) * 3 + (1.0,) * 3,
                         report=free_body_report, evaluate=free_body_evaluation, optimizers=("lm",)),
 }
+
+
+def default_model_config(data: Trajectories, space: ConfigurationSpace | None = None, **given: Any) -> Any:
+    """The model ``python -m fvin_mpc.train`` builds for ``data`` unless told otherwise, ``given`` fields on
+    top: ``space`` (default: the data's, with its first variant) and its first variant, the data's control
+    size and step, and dissipation on where the data's scene declares joint damping (where the space's
+    config has that field). ``ValueError`` from the config on a bad field."""
+    space = space or space_for_variant(data.space, data.space.variants[0])
+    chosen = {"variant": space.variants[0], "control_dim": int(data.u.shape[2]), "step_size": data.control_period,
+              **given}
+    if "dissipation" in {f.name for f in fields(space.config_type)} and "dissipation" not in given:
+        chosen["dissipation"] = bool(scene_has_joint_damping(data.metadata))
+    return space.config_type(**chosen)
 
 
 def training_for(space: ConfigurationSpace) -> SpaceTraining:

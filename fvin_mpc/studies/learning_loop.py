@@ -32,7 +32,7 @@ from __future__ import annotations
 import json
 import math
 import time
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
@@ -44,12 +44,12 @@ from fvin_mpc.control.scene import scene_env, scene_model, scene_mpc, scene_mpc_
 from fvin_mpc.core.checkpoint import save_checkpoint
 from fvin_mpc.core.data import Trajectories, save_data
 from fvin_mpc.core.errors import SceneError, UsageError
-from fvin_mpc.core.space import space_for_variant, space_of_config
+from fvin_mpc.core.space import space_of_config
 from fvin_mpc.envs.scenes import existing_scene
 from fvin_mpc.learning.collection import collect
-from fvin_mpc.learning.space_training import train_model, training_for
+from fvin_mpc.learning.space_training import default_model_config, train_model, training_for
 from fvin_mpc.learning.swing_measure import swing_apex_error, swing_probe, torch_model_step
-from fvin_mpc.learning.training import TrainSettings, package_versions, scene_has_joint_damping
+from fvin_mpc.learning.training import TrainSettings, package_versions
 from fvin_mpc.studies.report import write_report
 
 #: Seeds of the evaluation starts: far from the collector's (``seed``) and the exploration's, so
@@ -199,17 +199,6 @@ def exploration_seeds(seed: int, round_index: int, episodes: int) -> list[int]:
     return [100_000 * seed + 100 * round_index + e for e in range(episodes)]
 
 
-def _model_config(data: Trajectories) -> Any:
-    """The training command's default model for the data: the space's first variant, dissipation on
-    when the scene declares joint damping."""
-    space = space_for_variant(data.space, data.space.variants[0])
-    chosen: dict[str, Any] = {"variant": space.variants[0], "control_dim": int(data.u.shape[2]),
-                              "step_size": data.control_period}
-    if "dissipation" in {f.name for f in fields(space.config_type)}:
-        chosen["dissipation"] = bool(scene_has_joint_damping(data.metadata))
-    return space.config_type(**chosen)
-
-
 def _joined(data: Trajectories, state: np.ndarray, u: np.ndarray, added: dict[str, int]) -> Trajectories:
     metadata = dict(data.metadata)
     total = np.concatenate([data.u, u]) if u.size else data.u
@@ -285,7 +274,7 @@ def run_loop(scene: str, settings: LoopSettings, out_dir: Path, progress: bool =
     data = _joined(data, data.state[:0], data.u[:0],
                    {"excitation_transitions": data.num_transitions, "closed_loop_transitions": 0})
     gather_s = time.perf_counter() - t0
-    config, weights = _model_config(data), None
+    config, weights = default_model_config(data), None
     # The model measure that predicts control (docs/excitation.md) is trained and reported as `train` does:
     # it selects the returned iteration, and its scene's scales give the training window.
     probe = swing_probe(str(scene), data.metadata.get("body"), data.control_period)
