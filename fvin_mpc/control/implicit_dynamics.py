@@ -58,6 +58,7 @@ class _ExpandedTerms:
         self._entries = values + ca.mtimes(derivatives, delta)
         self.control_dim = terms.control_dim
         self.constant_inertia = terms.constant_inertia
+        self.hinge_axis = fvin.hinge_axis_of(terms)
 
     def _matrix(self, start: int) -> s3.Mat3:
         e = self._entries

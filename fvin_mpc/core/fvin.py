@@ -29,6 +29,15 @@ the step is exactly (bit for bit) the undamped one.
 ``J`` in steps 3 and 5 is the discrete Lagrangian's inertia, evaluated at ``q_k``; the
 Legendre map at ``q_{k+1}`` uses ``J(q_{k+1})``. For a constant ``J`` the two agree.
 
+On a hinge (terms with a ``hinge_axis`` ``a``, unit, in the body frame): the body can only turn
+about ``a``, so the increment is ``ξ = φ a`` and the hinge's reaction — a force perpendicular to
+``a`` in both equations — drops out of their components along ``a`` (Lagrange–d'Alembert with the
+holonomic constraint). Step 3 becomes ``aᵀΦ(φ a) = −½ sin(2φ) aᵀJa = aᵀC``, solved exactly,
+``φ = ½ asin(−2 aᵀC / aᵀJa)`` (no Newton iterations: the ``K`` of the step is not used), and step 5
+``ω_{k+1} = a (aᵀP) / (aᵀ(2J + (h/2)D)a)``. Only ``aᵀJa``, ``aᵀD a``, ``aᵀg`` and the torque of
+``U`` about ``a`` enter, so a learned 3-D body trained on a hinge's motion cannot plan across the
+hinge with terms its data never saw (:func:`hinge_step`). The same solvability limit: ``h|θ̇| ≲ 1``.
+
 Where it breaks down: for ``J = jI``, ``|Φ| ≤ j/2`` so a solution exists only while
 ``h|ω| ≲ 1``, and ``∂Φ/∂ξ`` is singular at ``|ξ| = π/4``. Unrolled Newton still returns
 numbers past that — always finite: iterates are kept within ``|ξ| ≤ 3π/8`` and the Newton
@@ -53,7 +62,9 @@ class RigidBodyTerms(Protocol):
     All methods take a quaternion ``q`` (4-tuple of components) and return tuples of
     components: ``inertia`` a symmetric 3×3 ``Mat3``; ``potential_gradient`` the
     Euclidean gradient of ``U`` in R⁴ (4-tuple); ``control_gain`` 3 rows of ``m``
-    entries; ``dissipation`` a PSD ``Mat3`` or ``None`` when the model has none.
+    entries; ``dissipation`` a PSD ``Mat3`` or ``None`` when the model has none. Terms may also
+    carry a ``hinge_axis`` (a unit 3-tuple of floats in the body frame): the body then turns about
+    it only (:func:`hinge_axis_of`, :func:`hinge_step`).
     """
 
     control_dim: int
@@ -251,6 +262,60 @@ def _end_momentum_map(inertia_next: s3.Mat3, damping_next: s3.Mat3 | None, step_
                  for i in range(3))  # type: ignore[return-value]
 
 
+def hinge_axis_of(terms: RigidBodyTerms) -> tuple[float, float, float] | None:
+    """The hinge axis ``terms`` constrain the body to (their ``hinge_axis``), or ``None``."""
+    return getattr(terms, "hinge_axis", None)
+
+
+def hinge_basis(axis: tuple[float, float, float]) -> tuple[s3.Vec3, s3.Vec3]:
+    """Two unit vectors completing the unit ``axis`` to a right-handed orthonormal basis (floats)."""
+    # Start from the coordinate axis least aligned with the hinge: the cross product is then well
+    # conditioned for any axis.
+    least = min(range(3), key=lambda i: abs(axis[i]))
+    start = tuple(1.0 if i == least else 0.0 for i in range(3))
+    first = s3.cross(axis, start)
+    norm = math.sqrt(s3.dot(first, first))
+    first = s3.scale(1.0 / norm, first)
+    return first, s3.cross(axis, first)  # type: ignore[return-value]
+
+
+def _quadratic_form(matrix: s3.Mat3, axis: s3.Vec3) -> Any:
+    return s3.dot(axis, s3.matvec(matrix, axis))
+
+
+def hinge_step(q: s3.Quat, omega: s3.Vec3, u: tuple[Any, ...], terms: RigidBodyTerms, step_size: float,
+               axis: tuple[float, float, float], ops: Ops, with_residual: bool = False) -> StepResult:
+    """One step constrained to the hinge ``axis`` (module docstring, "On a hinge"): the same steps
+    1–2 and 5 as :func:`fvin_step`, projected on ``a``, and step 3 solved exactly.
+
+    ``φ`` exists while ``|2 aᵀC| ≤ aᵀJa`` (``h|θ̇| ≲ 1``); past it the step takes ``|φ| = π/4``
+    with zero derivative, and the residual (the mismatch of ``aᵀΦ = aᵀC`` in rad/s) says so.
+    """
+    h = step_size
+    problem = implicit_problem(q, omega, u, terms, h)
+    inertia_along = _quadratic_form(problem.inertia, axis)
+    sine = -2.0 * s3.dot(axis, problem.rhs) / inertia_along  # sin 2φ
+    inside = sine * sine < 1.0
+    cosine = ops.sqrt(ops.where(inside, 1.0 - sine * sine, 1.0 + 0.0 * sine))
+    # Both branches as arrays of sine's type: torch.where of two Python floats would be float32.
+    limit = 0.25 * math.pi * ops.where(sine >= 0.0, 1.0 + 0.0 * sine, -1.0 + 0.0 * sine)
+    angle = ops.where(inside, 0.5 * ops.atan2(sine, cosine), limit)  # φ: the increment is exp(φ a)
+    increment = (ops.cos(angle), *s3.scale(ops.sin(angle), axis))
+    q_next = s3.multiply(q, increment)
+    momentum_next = _end_momentum(q_next, increment, problem, terms, h)
+    momentum_map = _end_momentum_map(*_end_inertia_and_damping(q_next, problem, terms), h)
+    rate = s3.dot(axis, momentum_next) / _quadratic_form(momentum_map, axis)
+    omega_next = s3.scale(rate, axis)
+
+    residual = None
+    if with_residual:
+        mismatch = -0.5 * ops.sin(2.0 * angle) * inertia_along - s3.dot(axis, problem.rhs)
+        nonzero = mismatch * mismatch > 0.0
+        magnitude = ops.sqrt(ops.where(nonzero, mismatch * mismatch, 1.0 + 0.0 * mismatch))
+        residual = ops.where(nonzero, magnitude, 0.0 * mismatch) * (2.0 / h) / inertia_along
+    return StepResult(q=q_next, omega=omega_next, residual=residual)  # type: ignore[arg-type]
+
+
 def step_residual(q: s3.Quat, omega: s3.Vec3, u: tuple[Any, ...], q_next: s3.Quat, omega_next: s3.Vec3,
                   terms: RigidBodyTerms, step_size: float, ops: Ops,
                   terms_next: RigidBodyTerms | None = None) -> tuple[Any, ...]:
@@ -274,7 +339,15 @@ def step_residual(q: s3.Quat, omega: s3.Vec3, u: tuple[Any, ...], q_next: s3.Qua
     momentum = _end_momentum(q_next, increment, problem, terms_next, step_size)
     momentum_map = _end_momentum_map(*_end_inertia_and_damping(q_next, problem, terms_next), step_size)
     dynamic = s3.sub(momentum, s3.matvec(momentum_map, omega_next))
-    return (*kinematic, *dynamic)
+    axis = hinge_axis_of(terms)
+    if axis is None:
+        return (*kinematic, *dynamic)
+    # On a hinge: both equations along a (the reaction drops out), and the constraint itself — ξ and
+    # ω_{k+1} along a — in the same units (scaled by aᵀJa, resp. aᵀ(2J + (h/2)D)a).
+    across = hinge_basis(axis)
+    inertia_along, map_along = _quadratic_form(problem.inertia, axis), _quadratic_form(momentum_map, axis)
+    return (s3.dot(axis, kinematic), *(inertia_along * s3.dot(b, xi) for b in across),
+            s3.dot(axis, dynamic), *(map_along * s3.dot(b, omega_next) for b in across))
 
 
 def fvin_step(
@@ -287,7 +360,11 @@ def fvin_step(
     ops: Ops,
     with_residual: bool = False,
 ) -> StepResult:
-    """One forced S3FVIN step ``(q_k, ω_k, u_k) → (q_{k+1}, ω_{k+1})``; see the module docstring."""
+    """One forced S3FVIN step ``(q_k, ω_k, u_k) → (q_{k+1}, ω_{k+1})``; see the module docstring.
+    Terms with a hinge axis take :func:`hinge_step` (``newton_iters`` is then not used)."""
+    axis = hinge_axis_of(terms)
+    if axis is not None:
+        return hinge_step(q, omega, u, terms, step_size, axis, ops, with_residual)
     problem = implicit_problem(q, omega, u, terms, step_size)
     xi = solve_implicit(problem.rhs, problem.inertia, newton_iters, ops)
     return finish_step(q, xi, problem, terms, step_size, ops, with_residual)

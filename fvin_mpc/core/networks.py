@@ -44,6 +44,14 @@ class DictConfig:
         return cls(**data)
 
 
+def unit_axis(values: Any, name: str) -> tuple[float, float, float]:
+    """``values`` as a unit 3-tuple of floats; ``ValueError`` naming ``name`` unless 3 finite numbers, not all 0."""
+    axis = np.asarray(values, dtype=float)
+    if axis.shape != (3,) or not np.all(np.isfinite(axis)) or not np.linalg.norm(axis) > 0.0:
+        raise ValueError(f"{name} must be 3 finite numbers, not all zero; got {values!r}")
+    return tuple(float(v) for v in axis / np.linalg.norm(axis))  # type: ignore[return-value]
+
+
 def add_mlp_shapes(shapes: dict[str, tuple[int, ...]], name: str, inputs: int, outputs: int, hidden_width: int,
                    hidden_layers: int) -> None:
     """Add the weights ``{name}_w{i}`` ``(out, in)`` and ``{name}_b{i}`` of a tanh MLP to ``shapes``."""
@@ -97,13 +105,20 @@ class ModelConfig(ModelFields):
         dissipation: learn a constant PSD damping ``D`` (force ``−Dω``); off for
             conservative scenes.
         inertia_epsilon: ``ε`` in ``J = LLᵀ + εI``.
+        hinge_axis: the body's hinge axis in its own frame (stored unit), or ``None`` for a body that
+            turns about any axis (a ball joint). A hinged model steps on the hinge only
+            (:func:`fvin_mpc.core.fvin.hinge_step`): the terms across it, which hinge data cannot
+            identify, never enter its predictions.
     """
 
     variant: Variant = "sign-invariant"
     dissipation: bool = False
     inertia_epsilon: float = 1e-3
+    hinge_axis: tuple[float, float, float] | None = None
 
     def __post_init__(self) -> None:
+        if self.hinge_axis is not None:
+            object.__setattr__(self, "hinge_axis", unit_axis(self.hinge_axis, "hinge_axis"))
         if self.variant not in VARIANTS:
             raise ValueError(f"unknown variant {self.variant!r}; expected one of {VARIANTS}")
         if self.control_dim < 1:
@@ -205,6 +220,7 @@ class LearnedTerms:
         self.ops = ops
         self.control_dim = config.control_dim
         self.constant_inertia = config.constant_inertia
+        self.hinge_axis = config.hinge_axis
 
     # -- helpers --------------------------------------------------------------
     def _vector_net(self, name: str, q: s3.Quat) -> tuple[Any, ...]:

@@ -34,6 +34,13 @@ def _joint_kind(env: Any) -> str:
     raise ValueError(f"expected one hinge (nq=nv=1) or ball joint (nq=4, nv=3), got nq={model.nq}, nv={model.nv}")
 
 
+def hinge_axis_record(env: Any) -> list[float] | None:
+    """The env's hinge axis for a data file's metadata (a list; ``None`` for a ball joint): a model of
+    the data steps on it (:func:`fvin_mpc.learning.space_training.default_model_config`)."""
+    axis = env.unwrapped.joint_axis
+    return None if axis is None else [float(v) for v in axis]
+
+
 def random_joint_state(env: Any, rng: np.random.Generator, max_omega: float) -> tuple[np.ndarray, np.ndarray]:
     """A uniformly random ``(qpos, qvel)`` for the env's single hinge or ball joint."""
     if _joint_kind(env) == "hinge":
@@ -148,6 +155,7 @@ def collect(scene: str = "pendulum", trajectories: int = 320, steps: int = 20, s
         "seed": seed, "trajectories": trajectories, "steps": steps, "transitions": trajectories * steps,
         "max_omega": max_omega, "hold_steps": hold_steps,
         "control_modes": {"constant": modes.count("constant"), "piecewise": modes.count("piecewise")},
+        "hinge_axis": hinge_axis_record(env),
     }
     if near_goal_trajectories:
         metadata.update(near_goal_trajectories=near_goal_trajectories, near_goal_angle=near_goal_angle,

@@ -41,7 +41,7 @@ from fvin_mpc.core.backend import get_ops
 from fvin_mpc.core.data import Trajectories
 from fvin_mpc.core.rigid_body import from_mujoco
 from fvin_mpc.envs import RigidBodyEnv
-from fvin_mpc.learning.collection import control_sequence, near_goal_joint_state, random_joint_state
+from fvin_mpc.learning.collection import control_sequence, hinge_axis_record, near_goal_joint_state, random_joint_state
 
 #: Shares of the trajectories by kind of start (module docstring).
 SHARES = {"energy": 0.6, "near_goal": 0.2, "uniform": 0.2}
@@ -263,7 +263,7 @@ def collect_swings(scene: str = "pendulum", trajectories: int | None = None, ste
     metadata = {
         "scene": str(scene), "body": env.unwrapped.body_name, "control_period": float(env.unwrapped.dt),
         "seed": seed, "trajectories": trajectories, "steps": steps, "transitions": trajectories * steps,
-        "collector": SWING_EXCITATION,
+        "collector": SWING_EXCITATION, "hinge_axis": hinge_axis_record(env),
         "scales": {"energy_span": scales.energy_span, "speed": scales.speed, "natural_period": scales.natural_period,
                    "dwell_steps": scales.dwell_steps},
         "starts": starts, "segment_steps": segments,

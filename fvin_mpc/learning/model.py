@@ -91,6 +91,7 @@ class RolloutTerms:
         self.terms = terms
         self.control_dim = terms.control_dim
         self.constant_inertia = terms.constant_inertia
+        self.hinge_axis = fvin.hinge_axis_of(terms)
         self._memory: dict[tuple[str, int], tuple[s3.Quat, object]] = {}
 
     def _remembered(self, name: str, q: s3.Quat):

@@ -213,6 +213,27 @@ def scene_has_joint_damping(metadata: Mapping[str, Any]) -> bool | None:
         env.close()
 
 
+def scene_hinge_axis(metadata: Mapping[str, Any]) -> tuple[float, float, float] | None:
+    """The hinge axis (body frame, unit) of the data's scene: the collection metadata's ``hinge_axis``
+    when recorded (``None`` there: a ball joint), else the scene's env's; ``None`` when the joint is not
+    a hinge or neither can tell (no scene, or its MJCF is gone)."""
+    if "hinge_axis" in metadata:
+        axis = metadata["hinge_axis"]
+        return None if axis is None else tuple(float(v) for v in axis)  # type: ignore[return-value]
+    scene = metadata.get("scene")
+    if not scene:
+        return None
+    try:
+        env = RigidBodyEnv(scene=scene, body=metadata.get("body"))
+    except (ValueError, FileNotFoundError, OSError):
+        return None
+    try:
+        axis = env.unwrapped.joint_axis
+        return None if axis is None else tuple(float(v) for v in axis)  # type: ignore[return-value]
+    finally:
+        env.close()
+
+
 # ---------------------------------------------------------------------------- loss
 def rollout_loss(model: Any, q: Any, omega: Any, u: Any, omega_weight: float, step: Any = None) -> Any:
     """Mean multi-step loss of ``model`` on windows ``q (W, T+1, 4)``, ``ω (W, T+1, 3)``, ``u (W, T, m)``.
