@@ -158,8 +158,8 @@ def weight_shapes(config: ModelConfig) -> dict[str, tuple[int, ...]]:
 
 
 def init_weights(config: ModelConfig, seed: int, initial_inertia: float = 0.3) -> dict[str, np.ndarray]:
-    """Seeded initial weights: Glorot-uniform hidden layers, small output layers, the
-    inertia starting near ``initial_inertia · I`` and no damping."""
+    """Seeded initial weights: Glorot-uniform hidden layers with small random biases, small output
+    layers, the inertia starting near ``initial_inertia · I`` and no damping."""
     rng = np.random.default_rng(seed)
     weights: dict[str, np.ndarray] = {}
     diag_root = np.sqrt(initial_inertia)
@@ -172,11 +172,21 @@ def init_weights(config: ModelConfig, seed: int, initial_inertia: float = 0.3) -
             is_output = name.endswith(f"_w{config.hidden_layers}")
             limit = np.sqrt(6.0 / (shape[0] + shape[1])) * (0.1 if is_output else 1.0)
             weights[name] = rng.uniform(-limit, limit, size=shape)
-        else:
+        elif name.endswith(f"_b{config.hidden_layers}"):
             weights[name] = np.zeros(shape)
             if name == f"inertia_b{config.hidden_layers}":
                 weights[name][:3] = diag_root
+        else:
+            # Hidden biases not zero: with zero biases a tanh MLP is odd in q, so the sign-invariant
+            # average ½(f(q) + f(−q)) is identically 0 and every weight's gradient vanishes — the
+            # potential and the gain could only start through their biases, and Levenberg–Marquardt
+            # then drove those into tanh saturation (a dead potential) on hinge data.
+            weights[name] = rng.uniform(-HIDDEN_BIAS_RANGE, HIDDEN_BIAS_RANGE, size=shape)
     return weights
+
+
+#: Hidden-layer biases start uniform in ``±HIDDEN_BIAS_RANGE`` (see :func:`init_weights`).
+HIDDEN_BIAS_RANGE = 0.5
 
 
 def check_weights(weights: Mapping[str, Any], config: ModelConfig) -> None:
