@@ -1,6 +1,7 @@
 """Learn a scene's model in the loop: ``python -m fvin_mpc.learn --scene X.xml``.
 
-Starts from a small excitation batch (the collector of ``python -m fvin_mpc.collect``), trains the
+Starts from a small excitation batch (the default collector of ``python -m fvin_mpc.collect``, the
+swing excitation; ``--excitation random`` for random torques), trains the
 scene's default model (``python -m fvin_mpc.train``'s defaults), then repeats: run the scene's task
 with the learned MPC on fixed evaluation starts (never trained on) beside the closed-form MPC
 (computed once); stop once the learned controller swings up from every start the closed form swings
@@ -28,7 +29,7 @@ from typing import Sequence
 
 from fvin_mpc._cli import add_mpc_arguments, mpc_overrides, run_command
 from fvin_mpc.envs.scenes import existing_scene
-from fvin_mpc.studies.learning_loop import LoopSettings, run_loop, write_loop_report
+from fvin_mpc.studies.learning_loop import EXCITATIONS, LoopSettings, run_loop, write_loop_report
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -38,8 +39,11 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--scene", default="pendulum", help="built-in scene name or MJCF path (default: %(default)s)")
     parser.add_argument("--budget", type=int, default=defaults.budget,
                         help="most training transitions from the plant (default: %(default)s)")
+    parser.add_argument("--excitation", choices=EXCITATIONS, default=defaults.excitation,
+                        help="collector of the first batch: swings (collect's default) or random torques "
+                             "(default: %(default)s)")
     parser.add_argument("--excitation-trajectories", type=int, default=defaults.excitation_trajectories,
-                        help="trajectories of the first, random-control batch (default: %(default)s)")
+                        help="trajectories of the first batch (default: %(default)s)")
     parser.add_argument("--segment-steps", type=int, default=defaults.segment_steps,
                         help="control periods per stored trajectory (default: %(default)s)")
     parser.add_argument("--explore-episodes", type=int, default=defaults.explore_episodes,
@@ -74,7 +78,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     spec = existing_scene(args.scene)
     settings = LoopSettings(
-        budget=args.budget, excitation_trajectories=args.excitation_trajectories, segment_steps=args.segment_steps,
+        budget=args.budget, excitation=args.excitation, excitation_trajectories=args.excitation_trajectories,
+        segment_steps=args.segment_steps,
         explore_episodes=args.explore_episodes, explore_segments=args.explore_segments,
         exploration_noise=args.exploration_noise, evaluation_starts=args.evaluation_starts,
         evaluation_duration_s=args.evaluation_duration, max_rounds=args.max_rounds,

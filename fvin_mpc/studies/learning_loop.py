@@ -1,8 +1,9 @@
 """Learning in the loop: the controller gathers the data its model needs (``python -m fvin_mpc.learn``).
 
-Round 0 collects a small excitation batch with the collector of ``python -m fvin_mpc.collect``
-(:func:`fvin_mpc.learning.collection.collect`, its defaults but the count) and trains the scene's
-default model on it (:func:`fvin_mpc.learning.space_training.train_model`, the training command's
+Round 0 collects a small excitation batch with the default collector of ``python -m fvin_mpc.collect``
+(the swing excitation, :func:`fvin_mpc.learning.excitation.collect_swings`; ``excitation="random"``: the
+random-torque collector :func:`fvin_mpc.learning.collection.collect`), its defaults but the count, and
+trains the scene's default model on it (:func:`fvin_mpc.learning.space_training.train_model`, the training command's
 defaults, one torch thread). Every round then
 
 1. evaluates the learned model's MPC (the scene's default settings with the real-time iteration,
@@ -47,6 +48,7 @@ from fvin_mpc.core.errors import SceneError, UsageError
 from fvin_mpc.core.space import space_of_config
 from fvin_mpc.envs.scenes import existing_scene
 from fvin_mpc.learning.collection import collect
+from fvin_mpc.learning.excitation import collect_swings
 from fvin_mpc.learning.space_training import default_model_config, train_model, training_for
 from fvin_mpc.learning.swing_measure import swing_apex_error, swing_probe, torch_model_step
 from fvin_mpc.learning.training import TrainSettings, package_versions
@@ -62,6 +64,9 @@ START_MAX_OMEGA = 2.0
 #: 2-core machine under load): 7 ms per call against IPOPT's 197 ms — a 15 s evaluation episode in
 #: about 5 s instead of 150 s, which is what makes several rounds fit in minutes.
 LOOP_SOLVER = "rti"
+
+#: Round 0's collectors: ``collect``'s default first (what matters against gravity), then random torques.
+EXCITATIONS = ("swings", "random")
 #: The loop's MPC settings over the scene's: the real-time iteration, its cold call (the first of an
 #: episode) given every first guess's iterations whatever they take. Its default wall-clock budget for
 #: that call (20 ms) made waiting-mode episodes depend on the machine's load: on this shared machine
@@ -75,6 +80,8 @@ class LoopSettings:
 
     Attributes:
         budget: most training transitions gathered from the plant (excitation + exploration).
+        excitation: the round-0 collector, one of :data:`EXCITATIONS` (``"swings"``: the swing excitation
+            of ``collect``'s default; ``"random"``: random constant and piecewise-constant torques).
         excitation_trajectories: trajectories of the round-0 excitation batch.
         segment_steps: control periods per stored trajectory (the excitation's length; exploration
             episodes are cut into pieces of this length).
@@ -97,6 +104,7 @@ class LoopSettings:
     """
 
     budget: int = 2000
+    excitation: str = "swings"
     excitation_trajectories: int = 15
     segment_steps: int = 20
     explore_episodes: int = 3
@@ -124,6 +132,8 @@ class LoopSettings:
         if self.excitation_trajectories * self.segment_steps > self.budget:
             raise UsageError(f"the excitation batch ({self.excitation_trajectories} × {self.segment_steps} "
                              f"transitions) is larger than the budget ({self.budget})")
+        if self.excitation not in EXCITATIONS:
+            raise UsageError(f"excitation must be one of {', '.join(EXCITATIONS)}, got {self.excitation!r}")
         if not 0.0 <= self.exploration_noise <= 2.0:
             raise UsageError(f"exploration_noise must be in [0, 2] (a share of the bound), "
                              f"got {self.exploration_noise}")
@@ -269,8 +279,8 @@ def run_loop(scene: str, settings: LoopSettings, out_dir: Path, progress: bool =
         f"{sum(e['cost'] for e in closed):.1f} ({closed_s:.0f} s, computed once)")
 
     t0 = time.perf_counter()
-    data = collect(scene, settings.excitation_trajectories, settings.segment_steps, settings.seed,
-                   progress=False)
+    collector = collect_swings if settings.excitation == "swings" else collect
+    data = collector(scene, settings.excitation_trajectories, settings.segment_steps, settings.seed, progress=False)
     data = _joined(data, data.state[:0], data.u[:0],
                    {"excitation_transitions": data.num_transitions, "closed_loop_transitions": 0})
     gather_s = time.perf_counter() - t0
