@@ -585,7 +585,10 @@ class RigidBodyEnv(MujocoBodyEnv):
             turn = np.concatenate([[math.cos(0.5 * error)], math.sin(0.5 * error) * axis])
             observation[:4] = _quaternion_product(observation[:4], turn)
         if self._physics.gyro_noise_std > 0.0:
-            observation[4:] += self.np_random.normal(0.0, self._physics.gyro_noise_std, size=3)
+            noise = self.np_random.normal(0.0, self._physics.gyro_noise_std, size=3)
+            if self._physics.gyro_axes == "joint" and self._joint_type == "hinge":
+                noise = float(noise @ self.joint_axis) * self.joint_axis
+            observation[4:] += noise
         noise_std = self._physics.sensor_noise_std
         if noise_std > 0.0:
             observation = observation + self.np_random.normal(0.0, noise_std, size=7)

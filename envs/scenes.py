@@ -56,6 +56,9 @@ class ScenePhysics:
             observation entries (the quaternion is then renormalized); 0 draws nothing.
         gyro_noise_std: standard deviation (rad/s) of Gaussian noise added to the observed angular
             velocity only (a rate gyro); 0 draws nothing.
+        gyro_axes: ``"body"``: a three-axis gyro, noise on every body-frame rate (about axes the joint
+            cannot turn too); ``"joint"``: a gyro on the joint's axis, noise on the rate about a hinge's
+            axis only (a ball joint turns about every axis: the same as ``"body"``).
         encoder_bits: the hinge angle is observed through an absolute encoder of this many bits per
             turn (the joint angle rounded to a multiple of ``2π / 2**bits``; the quaternion is the
             rounded angle's); ``None``: exact. A hinge's effect only.
@@ -77,6 +80,7 @@ class ScenePhysics:
     contact: bool
     sensor_noise_std: float = 0.0
     gyro_noise_std: float = 0.0
+    gyro_axes: str = "body"
     encoder_bits: int | None = None
     actuation_delay_s: float = 0.0
     mass_scale: float = 1.0
@@ -87,6 +91,8 @@ class ScenePhysics:
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0.0):
                 raise ValueError(f"{name} must be finite and >= 0, got {value!r}")
+        if self.gyro_axes not in ("body", "joint"):
+            raise ValueError(f"gyro_axes must be 'body' or 'joint', got {self.gyro_axes!r}")
         if not (math.isfinite(self.mass_scale) and self.mass_scale > 0.0):
             raise ValueError(f"mass_scale must be finite and > 0, got {self.mass_scale!r}")
         if self.encoder_bits is not None and not (isinstance(self.encoder_bits, int) and 1 <= self.encoder_bits <= 32):

@@ -134,3 +134,13 @@ def test_effects_are_validated_and_refused_where_not_simulated():
     quadrotor = FREE_BODY_SCENES["quadrotor"]
     with pytest.raises(SceneError, match="gyro_noise_std"):
         QuadrotorEnv(physics=replace(quadrotor.physics, gyro_noise_std=0.1))
+
+
+def test_a_gyro_on_the_hinge_axis_leaves_the_other_rates_exact():
+    env, exact = pendulum(gyro_noise_std=0.1, gyro_axes="joint"), RigidBodyEnv("pendulum")
+    observation, _ = env.reset(seed=5, options={"qpos": [1.0], "qvel": [0.5]})
+    truth, _ = exact.reset(options={"qpos": [1.0], "qvel": [0.5]})
+    assert observation[5] != truth[5]  # the hinge is about +y
+    np.testing.assert_array_equal(observation[[0, 1, 2, 3, 4, 6]], truth[[0, 1, 2, 3, 4, 6]])
+    with pytest.raises(ValueError, match="gyro_axes"):
+        replace(PENDULUM, gyro_axes="yaw")
