@@ -15,9 +15,13 @@ def test_small_run_reports_every_cell_and_resumes_from_the_cache(tmp_path, capsy
             "--cache-dir", str(tmp_path / "cache"), "--out-dir", str(tmp_path / "docs")]
     assert robustness.main(argv) == 0
     report = json.loads((tmp_path / "docs" / "robustness.json").read_text())
-    assert set(report["cells"]) == {f"pendulum/{c}/{n}" for c in ("nominal", "delay-1-period", "knock-2")
-                                    for n in ("energy-learned", "energy-true")}
-    for cell in report["cells"].values():
+    assert set(report["per_start"]) == {f"pendulum/{c}/{n}" for c in ("nominal", "delay-1-period", "knock-2")
+                                        for n in ("energy-learned", "energy-true")}
+    for key, cell in report["per_start"].items():
+        assert len(cell["swung_up"]) == 2 and report["summary"][key]["success_pct"] in (0.0, 50.0, 100.0)
+    cells = [json.loads(path.read_text()) for path in (tmp_path / "cache").rglob("*.json")]
+    assert len(cells) == 6
+    for cell in cells:
         assert [e["start"] for e in cell["episodes"]] == [0, 1]
         assert cell["duration_s"] == (6.0 if cell["condition"] == "knock-2" else 4.0)
     text = (tmp_path / "docs" / "robustness.md").read_text()
