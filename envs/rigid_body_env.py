@@ -232,8 +232,9 @@ class RigidBodyEnv(MujocoBodyEnv):
     ``spherical_pendulum`` is a body with a cross bar on a ball joint with a motor per body axis.
 
     Only the effects the scene's :class:`~envs.scenes.ScenePhysics` declares are simulated
-    (gravity, joint damping, dry friction, actuator limits, contact, sensor noise); MuJoCo's
-    other effects are switched off (:func:`envs.scenes.build_model`).
+    (gravity, joint damping, dry friction, actuator limits, contact, sensor noise, and the plant
+    perturbations a model does not know: gyro noise, encoder quantization, actuation delay, a scaled
+    mass, a knock while holding); MuJoCo's other effects are switched off (:func:`envs.scenes.build_model`).
 
     ## Action Space
 
