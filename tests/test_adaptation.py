@@ -17,6 +17,7 @@ from fvin_mpc.control.adaptation import (
     nominal_parameters,
 )
 from fvin_mpc.control.model_export import CA, NP, from_rigid_body, from_terms
+from fvin_mpc.control.scene import scene_env, scene_model
 from fvin_mpc.core.rigid_body import PENDULUM
 from fvin_mpc.core.space import S3
 from fvin_mpc.envs import SCENES, RigidBodyEnv
@@ -132,3 +133,30 @@ def test_the_free_scale_one_factor_on_all_terms_moves_nothing():
     x, u = pendulum_state(2.5, 1.5), np.array([0.7])
     np.testing.assert_allclose(scaled(x, u)[0], base(x, u)[0], rtol=0, atol=1e-12)
     assert nominal_parameters(1) == {"mass": 1.0, "gain0": 1.0, "damping": 0.0}
+
+
+def test_a_window_without_excitation_moves_nothing():
+    """Half a second near upright with next to no torque (it leaves 1 mrad only at 3.9/s): a mass change is
+    invisible there; fitting anyway would chase the learned model's own one-step error (its drift at the
+    goal) with absurd values."""
+    env = scene_env("pendulum")
+    model = scene_model(env)
+    rng = np.random.default_rng(5)
+    window = TransitionWindow(10)
+    x, _ = env.reset(options={"qpos": env.unwrapped.goal_qpos + 1e-3})
+    for _ in range(10):
+        u = rng.uniform(-1e-3, 1e-3, size=1)
+        x_next = env.step(u)[0]
+        window.add(x, u, x_next)
+        x = x_next
+    gated = ParameterEstimator(model)
+    # The learned model's own one-step error there: what MIN_EFFECT is set from.
+    assert 1e-3 < math.sqrt(gated.prediction_error(window)) < 4e-3
+    update = gated.update(window)
+    assert update.fitted == () and not update.accepted and gated.parameters == nominal_parameters(1)
+    ungated = ParameterEstimator(model, min_effect=0.0)
+    for _ in range(10):
+        ungated.update(window)
+    moved = ungated.parameters
+    assert abs(moved["mass"] - 1.0) > 0.5 or moved["damping"] > 1.0  # what the gate prevents
+    assert not gated.consider(window, {"mass": 1.0 / MINIMUM_SCALE + 1.0}).accepted  # above the upper bound

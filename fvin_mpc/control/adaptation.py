@@ -25,10 +25,18 @@ to the model's (for a learned model, relative to the body it was trained on, wha
 and ``damping`` is in that model's units. If actuators and body may both change, pin one of them: a
 fitted ``mass`` with the gains pinned is the true mass ratio divided by the true gain ratio.
 
-Physical bounds: ``mass`` and the gains stay at or above :data:`MINIMUM_SCALE` (positive inertia and
-potential, actuators that still push the way the model says), ``damping`` keeps the total dissipation
-positive semi-definite. A step that leaves the bounds is projected onto them; a step that does not
-lower the window's prediction error is rejected (the parameters stay, the damping grows).
+Physical bounds: ``mass`` and the gains stay within ``[MINIMUM_SCALE, 1 / MINIMUM_SCALE]`` of the model's
+(positive inertia and potential, actuators that still push the way the model says), ``damping`` keeps the
+total dissipation positive semi-definite. A step that leaves the bounds is projected onto them; a step that
+does not lower the window's prediction error is rejected (the parameters stay, the damping grows).
+
+Excitation: a window in which a parameter barely moves the predictions says nothing about it — a body
+held still at upright swings the same whatever its mass — and fitting it there only chases the model's own
+one-step error (half a second near upright with next to no torque: mass 9.8 and damping 16 after ten
+steps, tests/test_adaptation.py). So a parameter is fitted only while a *relevant change* of it
+(:data:`RELEVANT_CHANGE`: 10 % of a mass or gain; a damping that changes the decay rate by 0.1 s⁻¹) would
+move the window's predictions by at least ``min_effect`` (rad/s, RMS over the window); otherwise it is
+held this call.
 
 The interface is a plain ``{name: value}`` dict (:attr:`ParameterEstimator.parameters`), for a real-time
 MPC that takes model parameters at run time to read at its next preparation.
@@ -38,7 +46,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Mapping, Sequence
 
 import casadi as ca
@@ -50,8 +58,15 @@ from fvin_mpc.core.backend import get_ops
 from fvin_mpc.core.space import S3, chart_local
 
 CA = get_ops("casadi")
-#: The smallest value ``mass`` and a gain may take: a tenth of the model's.
+#: The smallest value ``mass`` and a gain may take: a tenth of the model's (the largest: ten times).
 MINIMUM_SCALE = 0.1
+#: The change of each kind of parameter that matters: 10 % of a mass or a gain; for ``damping``, the
+#: damping that changes the decay rate ``d/J`` by 0.1 s⁻¹ (times the model's inertia, in its units).
+RELEVANT_CHANGE = {"mass": 0.1, "gain": 0.1, "damping_rate": 0.1}
+#: ``min_effect``'s default (rad/s): the learned pendulum's own one-step RMS prediction error near upright
+#: (2.0e-3 rad/s, checked in tests/test_adaptation.py) — a parameter that moves the predictions by less than
+#: the model's own error cannot be told from it.
+MIN_EFFECT = 2e-3
 
 
 def parameter_names(control_dim: int) -> tuple[str, ...]:
@@ -116,6 +131,10 @@ def prediction_residual(model: ExportedModel) -> ca.Function:
                        ["x", "u", "x_next", "p"], ["r", "dr_dp"])
 
 
+#: The identity orientation as a one-sample NumPy quaternion, where a model's constant terms are read.
+_IDENTITY = (np.ones(1), np.zeros(1), np.zeros(1), np.zeros(1))
+
+
 class TransitionWindow:
     """The last ``capacity`` measured transitions ``(x_k, u_k, x_{k+1})``, oldest dropped first."""
 
@@ -149,6 +168,7 @@ class Update:
         error_after: the same at the kept parameters (``error_before`` when rejected).
         candidate_error: the error the proposed step would have given.
         damping: the Levenberg–Marquardt damping after the call.
+        fitted: the free parameters the window excited enough to be fitted (``()``: none, nothing proposed).
     """
 
     accepted: bool
@@ -157,6 +177,7 @@ class Update:
     error_after: float
     candidate_error: float
     damping: float
+    fitted: tuple[str, ...] = ()
 
 
 class ParameterEstimator:
@@ -168,10 +189,13 @@ class ParameterEstimator:
             docstring on the free scale); the others keep their values in ``initial``.
         initial: starting values (default: :func:`nominal_parameters`).
         damping: the Levenberg–Marquardt damping λ to start with (relative to ``diag(JᵀJ)``).
+        min_effect: a parameter is fitted only while a relevant change of it moves the window's predictions
+            by at least this (rad/s, RMS; module docstring, "Excitation"); 0 fits whatever the window.
     """
 
     def __init__(self, model: ExportedModel, free: Sequence[str] = ("mass", "damping"),
-                 initial: Mapping[str, float] | None = None, damping: float = 1e-3) -> None:
+                 initial: Mapping[str, float] | None = None, damping: float = 1e-3,
+                 min_effect: float = MIN_EFFECT) -> None:
         self.names = parameter_names(model.control_dim)
         unknown = [name for name in (*free, *(initial or {})) if name not in self.names]
         if unknown or not free:
@@ -180,16 +204,23 @@ class ParameterEstimator:
         self._free_index = np.array([self.names.index(name) for name in self.free])
         self._residual = prediction_residual(model)
         self._mapped: dict[int, ca.Function] = {}
-        self._lower = self._lower_bounds(model)
+        self._lower, self._relevant = self._lower_bounds(model), self._relevant_changes(model)
+        self._upper = np.where(np.arange(len(self.names)) == len(self.names) - 1, np.inf, 1.0 / MINIMUM_SCALE)
+        self.min_effect = float(min_effect)
         values = {**nominal_parameters(model.control_dim), **(initial or {})}
         self._p = np.array([float(values[name]) for name in self.names])
-        if np.any(self._p < self._lower - 1e-12):
+        if np.any(self._p < self._lower - 1e-12) or np.any(self._p > self._upper + 1e-12):
             raise ValueError(f"initial parameters {values} are outside their physical bounds")
         self.damping = float(damping)
 
+    def _relevant_changes(self, model: ExportedModel) -> np.ndarray:
+        inertia = np.array(model.numpy_terms.inertia(_IDENTITY), dtype=float)[..., 0]
+        scale = RELEVANT_CHANGE["damping_rate"] * float(np.trace(inertia)) / 3.0
+        return np.array([RELEVANT_CHANGE["mass"]] + [RELEVANT_CHANGE["gain"]] * (len(self.names) - 2) + [scale])
+
     def _lower_bounds(self, model: ExportedModel) -> np.ndarray:
         lower = np.full(len(self.names), MINIMUM_SCALE)
-        own = model.numpy_terms.dissipation((np.ones(1), np.zeros(1), np.zeros(1), np.zeros(1)))
+        own = model.numpy_terms.dissipation(_IDENTITY)
         # The added damping may take away at most what the model's own (constant) dissipation has.
         smallest = 0.0 if own is None else float(np.linalg.eigvalsh(np.array(own, dtype=float)[..., 0]).min())
         lower[-1] = -max(smallest, 0.0) / 2.0
@@ -226,15 +257,23 @@ class ParameterEstimator:
             raise ValueError("the window holds no transitions")
         r, jac = self._evaluate(window, self._p, jacobian=True)
         before = float(np.mean(r * r))
+        # How far a relevant change of each free parameter moves the window's predictions (rad/s, RMS).
+        effect = np.linalg.norm(jac, axis=0) / math.sqrt(len(window)) * self._relevant[self._free_index]
+        excited = effect >= self.min_effect
+        if not np.any(excited):
+            return Update(accepted=False, parameters=self.parameters, error_before=before, error_after=before,
+                          candidate_error=before, damping=self.damping, fitted=())
+        jac = jac[:, excited]
         normal = jac.T @ jac
         # Marquardt's scaling (λ·diag) makes the step independent of the parameters' units; the tiny
-        # absolute term keeps it solvable where the window does not excite a parameter at all.
-        regular = normal + self.damping * np.diag(np.diag(normal)) + 1e-12 * np.eye(len(self.free))
+        # absolute term keeps it solvable.
+        regular = normal + self.damping * np.diag(np.diag(normal)) + 1e-12 * np.eye(int(excited.sum()))
         step = -np.linalg.solve(regular, jac.T @ r)
         candidate = self._p.copy()
-        candidate[self._free_index] += step
-        candidate = np.maximum(candidate, self._lower)
-        return self.consider(window, candidate, before)
+        candidate[self._free_index[excited]] += step
+        candidate = np.clip(candidate, self._lower, self._upper)
+        update = self.consider(window, candidate, before)
+        return replace(update, fitted=tuple(name for name, on in zip(self.free, excited) if on))
 
     def consider(self, window: TransitionWindow, candidate: Mapping[str, float] | np.ndarray,
                  error_before: float | None = None) -> Update:
@@ -244,7 +283,7 @@ class ParameterEstimator:
             candidate = np.array([float({**self.parameters, **candidate}[k]) for k in self.names])
         candidate = np.asarray(candidate, dtype=float)
         before = self.prediction_error(window) if error_before is None else error_before
-        within = bool(np.all(candidate >= self._lower - 1e-12))
+        within = bool(np.all(candidate >= self._lower - 1e-12) and np.all(candidate <= self._upper + 1e-12))
         r, _ = self._evaluate(window, candidate, jacobian=False)
         after = float(np.mean(r * r)) if np.all(np.isfinite(r)) else math.inf
         accepted = within and after < before
@@ -254,4 +293,5 @@ class ParameterEstimator:
         else:
             self.damping = min(self.damping * 4.0, 1e9)
         return Update(accepted=accepted, parameters=self.parameters, error_before=before,
-                      error_after=after if accepted else before, candidate_error=after, damping=self.damping)
+                      error_after=after if accepted else before, candidate_error=after, damping=self.damping,
+                      fitted=self.free)
