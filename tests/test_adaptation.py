@@ -160,3 +160,20 @@ def test_a_window_without_excitation_moves_nothing():
     moved = ungated.parameters
     assert abs(moved["mass"] - 1.0) > 0.5 or moved["damping"] > 1.0  # what the gate prevents
     assert not gated.consider(window, {"mass": 1.0 / MINIMUM_SCALE + 1.0}).accepted  # above the upper bound
+
+
+def test_scaled_terms_keep_the_models_hinge():
+    """A model that steps on a hinge (its terms carry a ``hinge_axis``) keeps it under the parameters."""
+
+    class OnHinge:
+        def __init__(self, terms):
+            self.__dict__.update(terms.__dict__)
+            self._terms = terms
+            self.hinge_axis = (0.0, 1.0, 0.0)
+
+        def __getattr__(self, name):
+            return getattr(self._terms, name)
+
+    hinge = OnHinge(PENDULUM.terms(NP))
+    assert ScaledTerms(hinge, [2.0, 1.0, 0.0]).hinge_axis == (0.0, 1.0, 0.0)
+    assert ScaledTerms(PENDULUM.terms(NP), [2.0, 1.0, 0.0]).hinge_axis is None

@@ -88,6 +88,8 @@ class ScaledTerms:
         self.terms = terms
         self.control_dim = terms.control_dim
         self.constant_inertia = terms.constant_inertia
+        # A model that steps on a hinge must keep doing so with its parameters changed.
+        self.hinge_axis = getattr(terms, "hinge_axis", None)
         self.mass, *gains, self.damping = parameters
         self.gains = tuple(gains)
 
