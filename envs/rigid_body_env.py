@@ -22,7 +22,18 @@ from fvin_mpc.core.rigid_body import from_mujoco
 from fvin_mpc.core.space import S3, ConfigurationSpace
 from fvin_mpc.core.state import as_float_array, split_state, unit_quaternion
 
-from .scenes import MIN_CONTROL_PERIOD, ScenePhysics, SceneSpec, build_model, resolve_scene
+from .scenes import (
+    IMPULSE_HOLD_S,
+    IMPULSE_HOLD_TOLERANCE,
+    MIN_CONTROL_PERIOD,
+    ScenePhysics,
+    SceneSpec,
+    build_model,
+    resolve_scene,
+)
+
+#: The value of each effect that :class:`MujocoBodyEnv` leaves to a subclass when it is off.
+_EFFECTS_OFF = {"gyro_noise_std": 0.0, "encoder_bits": None, "impulse_delta_omega": 0.0}
 
 #: Largest initial |ω| (rad/s) of ``reset(options={"random": True})`` unless ``"max_omega"`` is given
 #: (Pendulum-v1 draws θ̇ from [−1, 1]).
@@ -54,6 +65,9 @@ class MujocoBodyEnv(gymnasium.Env):
     observation space, and aims the camera (:meth:`_aim_camera`)."""
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 20}
+    #: The declarable effects on the observation or the state that this env simulates beyond what
+    #: every MuJoCo env does (noise on all entries, delay, mass); declaring another is refused.
+    simulated_effects: frozenset[str] = frozenset()
 
     def __init__(self, scene: str | Path | SceneSpec, physics: ScenePhysics | None, control_period: float | None,
                  render_mode: str | None, width: int, height: int) -> None:
@@ -63,10 +77,16 @@ class MujocoBodyEnv(gymnasium.Env):
                              f"{self.space.description}")
         self.scene_spec: SceneSpec = spec
         self._model, self._physics = build_model(spec.xml_path, physics if physics is not None else spec.physics)
+        unsimulated = [name for name, off in _EFFECTS_OFF.items()
+                       if getattr(self._physics, name) != off and name not in self.simulated_effects]
+        if unsimulated:
+            raise SceneError(f"{type(self).__name__} does not simulate {unsimulated}; declare them off")
         self._data = mujoco.MjData(self._model)
         model = self._model
-
         timestep = float(model.opt.timestep)
+        # The commanded torques in flight, oldest first, one per MuJoCo timestep of actuation delay.
+        self._delay_line = np.zeros((math.ceil(self._physics.actuation_delay_s / timestep - 1e-9), model.nu))
+
         #: Whether the period was chosen by the caller or the scene; if not, a subclass that knows the
         #: scene's time scale may choose it (:meth:`_set_control_period`).
         self._control_period_given = control_period is not None or spec.control_period is not None
@@ -139,13 +159,21 @@ class MujocoBodyEnv(gymnasium.Env):
         u = np.clip(u, self.action_space.low, self.action_space.high)
         if substeps is not None and not 1 <= substeps <= self._frame_skip:
             raise ValueError(f"substeps must be in [1, {self._frame_skip}], got {substeps}")
-        self._data.ctrl[:] = u
+        self._before_advance()
         for _ in range(self._frame_skip if substeps is None else substeps):
+            if len(self._delay_line):
+                self._data.ctrl[:] = self._delay_line[0]
+                self._delay_line = np.vstack([self._delay_line[1:], u])
+            else:
+                self._data.ctrl[:] = u
             mujoco.mj_step(self._model, self._data)
         # mj_step leaves positions/velocities-derived quantities (xpos, xquat, cvel, energy) at the
         # state *before* the last substep; bring them up to date.
         mujoco.mj_forward(self._model, self._data)
         return u
+
+    def _before_advance(self) -> None:
+        """Whatever a subclass's declared effects do to the state at the start of a (partial) period."""
 
     def _aim_camera(self, camera: mujoco.MjvCamera) -> None:
         """Point the free camera (MuJoCo's default one on entry) at the task."""
@@ -185,6 +213,7 @@ class MujocoBodyEnv(gymnasium.Env):
         qpos = as_float_array(qpos, (self._model.nq,), "qpos")
         qvel = as_float_array(qvel, (self._model.nv,), "qvel")
         mujoco.mj_resetData(self._model, self._data)
+        self._delay_line[:] = 0.0
         self.set_state(qpos, qvel)
         return self._observation(), self._info()
 
@@ -203,8 +232,9 @@ class RigidBodyEnv(MujocoBodyEnv):
     ``spherical_pendulum`` is a body with a cross bar on a ball joint with a motor per body axis.
 
     Only the effects the scene's :class:`~envs.scenes.ScenePhysics` declares are simulated
-    (gravity, joint damping, dry friction, actuator limits, contact, sensor noise); MuJoCo's
-    other effects are switched off (:func:`envs.scenes.build_model`).
+    (gravity, joint damping, dry friction, actuator limits, contact, sensor noise, and the plant
+    perturbations a model does not know: gyro noise, encoder quantization, actuation delay, a scaled
+    mass, a knock while holding); MuJoCo's other effects are switched off (:func:`envs.scenes.build_model`).
 
     ## Action Space
 
@@ -307,6 +337,7 @@ class RigidBodyEnv(MujocoBodyEnv):
     metadata = {"render_modes": ["rgb_array"], "render_fps": 20}
     #: The configuration space of the observations (:mod:`fvin_mpc.core.space`).
     space: ConfigurationSpace = S3
+    simulated_effects = frozenset({"gyro_noise_std", "encoder_bits", "impulse_delta_omega"})
 
     def __init__(
         self,
@@ -326,6 +357,10 @@ class RigidBodyEnv(MujocoBodyEnv):
         self._body_id, self._joint_id = _validate_body_and_joint(model, body)
         self._body_name = body
         self._joint_type = _JOINT_TYPES[int(model.jnt_type[self._joint_id])]
+        if self._physics.encoder_bits is not None and self._joint_type != "hinge":
+            raise SceneError("encoder_bits quantizes a hinge angle; the scene's joint is a ball joint")
+        #: The knock's state: ``None`` once it has come, else the time since when the body is held (or ``None``).
+        self._knock_pending, self._held_since = self._physics.impulse_delta_omega > 0.0, None
 
         derived_goal, self._rest_qpos = self._task_from_potential()
         derived_goal = _canonical_sign(derived_goal)
@@ -497,6 +532,7 @@ class RigidBodyEnv(MujocoBodyEnv):
                 raise ValueError("reset option 'max_omega' only applies with 'random': True")
             qpos = options.get("qpos", self._rest_qpos)
             qvel = options.get("qvel", np.zeros(self._model.nv))
+        self._knock_pending, self._held_since = self._physics.impulse_delta_omega > 0.0, None
         return self._reset_to(qpos, qvel)
 
     def step(self, action: Any, substeps: int | None = None):
@@ -506,9 +542,32 @@ class RigidBodyEnv(MujocoBodyEnv):
         u = self._advance(action, substeps)
         q, omega = split_state(self.state())
         angle = geodesic_angle(q, self._goal)
+        if self._knock_pending:
+            held = angle < IMPULSE_HOLD_TOLERANCE
+            self._held_since = (self._held_since if self._held_since is not None else self._data.time) if held else None
         w_angle, w_omega, w_u = COST_WEIGHTS
         reward = -(w_angle * angle**2 + w_omega * float(omega @ omega) + w_u * float(u @ u))
         return self._observation(), reward, False, False, self._info(angle)
+
+    def _before_advance(self) -> None:
+        # The knock lands between periods (or partial periods), never inside a MuJoCo step.
+        if not (self._knock_pending and self._held_since is not None
+                and self._data.time - self._held_since >= IMPULSE_HOLD_S - 1e-9):
+            return
+        delta = self._physics.impulse_delta_omega
+        start = int(self._model.jnt_dofadr[self._joint_id])
+        if self._joint_type == "hinge":
+            self._data.qvel[start] += delta * (1.0 if self.np_random.uniform() < 0.5 else -1.0)
+        else:  # a ball joint's qvel is the body-frame ω
+            direction = self.np_random.normal(size=3)
+            self._data.qvel[start:start + 3] += delta * direction / np.linalg.norm(direction)
+        mujoco.mj_forward(self._model, self._data)
+        self._knock_pending = False
+
+    @property
+    def knocked(self) -> bool:
+        """Whether this episode's knock (``physics.impulse_delta_omega``) has come."""
+        return self._physics.impulse_delta_omega > 0.0 and not self._knock_pending
 
     def _aim_camera(self, camera: mujoco.MjvCamera) -> None:
         camera.lookat[:] = self._data.xpos[self._body_id]
@@ -518,6 +577,19 @@ class RigidBodyEnv(MujocoBodyEnv):
     # ------------------------------------------------------------------ internals
     def _observation(self) -> np.ndarray:
         observation = self.state()
+        bits = self._physics.encoder_bits
+        if bits is not None:
+            angle = float(self._data.qpos[self._model.jnt_qposadr[self._joint_id]])
+            error = round(angle / (2.0 * math.pi) * 2**bits) * (2.0 * math.pi) / 2**bits - angle
+            # A hinge turns the body about its axis, fixed in the body frame: a body-frame rotation by the error.
+            axis = self.joint_axis
+            turn = np.concatenate([[math.cos(0.5 * error)], math.sin(0.5 * error) * axis])
+            observation[:4] = _quaternion_product(observation[:4], turn)
+        if self._physics.gyro_noise_std > 0.0:
+            noise = self.np_random.normal(0.0, self._physics.gyro_noise_std, size=3)
+            if self._physics.gyro_axes == "joint" and self._joint_type == "hinge":
+                noise = float(noise @ self.joint_axis) * self.joint_axis
+            observation[4:] += noise
         noise_std = self._physics.sensor_noise_std
         if noise_std > 0.0:
             observation = observation + self.np_random.normal(0.0, noise_std, size=7)

@@ -54,6 +54,23 @@ class ScenePhysics:
         contact: collisions are detected and resolved (``mjDSBL_CONTACT`` cleared).
         sensor_noise_std: standard deviation of Gaussian noise added to each of the 7
             observation entries (the quaternion is then renormalized); 0 draws nothing.
+        gyro_noise_std: standard deviation (rad/s) of Gaussian noise added to the observed angular
+            velocity only (a rate gyro); 0 draws nothing.
+        gyro_axes: ``"body"``: a three-axis gyro, noise on every body-frame rate (about axes the joint
+            cannot turn too); ``"joint"``: a gyro on the joint's axis, noise on the rate about a hinge's
+            axis only (a ball joint turns about every axis: the same as ``"body"``).
+        encoder_bits: the hinge angle is observed through an absolute encoder of this many bits per
+            turn (the joint angle rounded to a multiple of ``2π / 2**bits``; the quaternion is the
+            rounded angle's); ``None``: exact. A hinge's effect only.
+        actuation_delay_s: the torque reaches the joint this long after it is commanded (rounded up
+            to whole MuJoCo timesteps; zero torque before the first one arrives): a delay nothing in
+            the observation reveals.
+        mass_scale: every body's mass and rotational inertia are this multiple of the MJCF's (a
+            denser or lighter body of the same shape; 1: as written).
+        impulse_delta_omega: once per episode, after the body has stayed within
+            :data:`IMPULSE_HOLD_TOLERANCE` of its goal for :data:`IMPULSE_HOLD_S`, its angular velocity
+            jumps by this much (rad/s; a hinge: about its axis, the sign drawn from the env's
+            ``np_random``; a ball: in a drawn direction) — a knock while holding. 0: never.
     """
 
     gravity: bool
@@ -62,10 +79,24 @@ class ScenePhysics:
     actuator_limits: bool
     contact: bool
     sensor_noise_std: float = 0.0
+    gyro_noise_std: float = 0.0
+    gyro_axes: str = "body"
+    encoder_bits: int | None = None
+    actuation_delay_s: float = 0.0
+    mass_scale: float = 1.0
+    impulse_delta_omega: float = 0.0
 
     def __post_init__(self) -> None:
-        if not (math.isfinite(self.sensor_noise_std) and self.sensor_noise_std >= 0.0):
-            raise ValueError(f"sensor_noise_std must be finite and >= 0, got {self.sensor_noise_std!r}")
+        for name in ("sensor_noise_std", "gyro_noise_std", "actuation_delay_s", "impulse_delta_omega"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0.0):
+                raise ValueError(f"{name} must be finite and >= 0, got {value!r}")
+        if self.gyro_axes not in ("body", "joint"):
+            raise ValueError(f"gyro_axes must be 'body' or 'joint', got {self.gyro_axes!r}")
+        if not (math.isfinite(self.mass_scale) and self.mass_scale > 0.0):
+            raise ValueError(f"mass_scale must be finite and > 0, got {self.mass_scale!r}")
+        if self.encoder_bits is not None and not (isinstance(self.encoder_bits, int) and 1 <= self.encoder_bits <= 32):
+            raise ValueError(f"encoder_bits must be None or an integer in [1, 32], got {self.encoder_bits!r}")
 
     def disable_flags(self) -> int:
         """The ``mjtDisableBit`` mask that switches off everything not declared."""
@@ -123,6 +154,12 @@ class SceneSpec:
         """The checkpoint the CLIs use for this scene when none is given."""
         return self.checkpoint or f"{self.name}_sign-invariant"
 
+
+#: A knock (``ScenePhysics.impulse_delta_omega``) comes once the body has stayed this close to its goal
+#: (rad; the controllers' "upright") …
+IMPULSE_HOLD_TOLERANCE = 0.1
+#: … for this long (s).
+IMPULSE_HOLD_S = 1.0
 
 #: The shortest control period (s) of a scene that declares none: its period follows its speed scale
 #: but never drops below this, whatever the MJCF's timestep (an MPC solve must fit in a period).
@@ -354,6 +391,16 @@ def build_model(xml_path: str | Path, physics: ScenePhysics | None = None) -> tu
     if physics is None:
         physics = infer_physics(model)
     apply_physics(model, physics)
+    if physics.mass_scale != 1.0:
+        scale_mass(model, physics.mass_scale)
     model.opt.enableflags |= int(mujoco.mjtEnableBit.mjENBL_ENERGY)
     return model, physics
 
+
+
+def scale_mass(model: mujoco.MjModel, scale: float) -> None:
+    """Every body's mass and rotational inertia times ``scale`` (in place), and the constants MuJoCo derives
+    from them (subtree masses, ...) recomputed: the plant changes, the file and a model read off it do not."""
+    model.body_mass[1:] *= scale
+    model.body_inertia[1:] *= scale
+    mujoco.mj_setConst(model, mujoco.MjData(model))

@@ -63,6 +63,8 @@ installed under this name):
 * ``closed_loop`` — closed-loop episodes (waiting or latency-aware) and their metrics.
 * ``scene`` — a scene's env, model, MPC and settings (the one path every command takes).
 * ``flight`` — the quadrotor's MPC settings, references and flight metrics.
+* ``adaptation`` — a few physical parameters of a model (mass, actuator gains, damping) re-fitted online
+  from a sliding window of transitions by Levenberg–Marquardt.
 
 :mod:`fvin_mpc.studies` — evaluation, sweeps and reports:
 

@@ -1,0 +1,299 @@
+"""Online adaptation of a few physical parameters of a model from recent transitions.
+
+When the body changes in operation (a heavier bob, a weaker motor), an input-disturbance estimate
+absorbs a constant offset but not a changed mass, whose effect depends on the state. Here a small
+named parameter set of a pivoted (S³) model is re-fitted from a sliding window of measured
+transitions ``(x_k, u_k, x_{k+1})`` by damped Gauss–Newton (Levenberg–Marquardt), one bounded
+iteration per call, so that it can run in a control period's spare time. The estimator is told
+nothing about when or what changed: it sees only the window, whose length sets how fast old
+transitions are forgotten.
+
+The parameters act on the model's terms (:class:`ScaledTerms`, any backend, learned or closed form):
+
+* ``mass`` — multiplies the inertia ``J`` and the potential ``U`` together: the body made uniformly
+  denser or lighter (a pivoted rod whose density doubles, a point bob whose mass doubles);
+* ``gain<i>`` — multiplies column ``i`` of the control gain ``g``: actuator ``i``'s strength;
+* ``damping`` — joint damping added to the model's own dissipation, in the model's force units (the
+  dissipation ``D`` gets ``2·damping·I``: the factor of two of ``DESIGN.md``).
+
+**The free scale.** Multiplying ``J``, ``U``, ``g`` and ``D`` by one constant leaves every motion
+unchanged (the step's equations are homogeneous in them), so ``mass``, the gains and ``damping``
+cannot all be estimated at once: only ratios are observable. The estimator fits only the parameters
+named ``free`` and holds the others at their values; the default set pins the gains at 1 — the motor's
+torque constant is taken as known, the body is what changes — so ``mass`` is the body's mass relative
+to the model's (for a learned model, relative to the body it was trained on, whatever scale it learned)
+and ``damping`` is in that model's units. If actuators and body may both change, pin one of them: a
+fitted ``mass`` with the gains pinned is the true mass ratio divided by the true gain ratio.
+
+Physical bounds: ``mass`` and the gains stay within ``[MINIMUM_SCALE, 1 / MINIMUM_SCALE]`` of the model's
+(positive inertia and potential, actuators that still push the way the model says), ``damping`` keeps the
+total dissipation positive semi-definite. A step that leaves the bounds is projected onto them; a step that
+does not lower the window's prediction error is rejected (the parameters stay, the damping grows).
+
+Excitation: a window in which a parameter barely moves the predictions says nothing about it — a body
+held still at upright swings the same whatever its mass — and fitting it there only chases the model's own
+one-step error (half a second near upright with next to no torque: mass 9.8 and damping 16 after ten
+steps, tests/test_adaptation.py). So a parameter is fitted only while a *relevant change* of it
+(:data:`RELEVANT_CHANGE`: 10 % of a mass or gain; a damping that changes the decay rate by 0.1 s⁻¹) would
+move the window's predictions by at least ``min_effect`` (rad/s, RMS over the window); otherwise it is
+held this call.
+
+The interface is a plain ``{name: value}`` dict (:attr:`ParameterEstimator.parameters`), for a real-time
+MPC that takes model parameters at run time to read at its next preparation.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass, replace
+from typing import Any, Mapping, Sequence
+
+import casadi as ca
+import numpy as np
+
+from fvin_mpc.control.model_export import ExportedModel
+from fvin_mpc.core import s3
+from fvin_mpc.core.backend import get_ops
+from fvin_mpc.core.space import S3, chart_local
+
+CA = get_ops("casadi")
+#: The smallest value ``mass`` and a gain may take: a tenth of the model's (the largest: ten times).
+MINIMUM_SCALE = 0.1
+#: The change of each kind of parameter that matters: 10 % of a mass or a gain; for ``damping``, the
+#: damping that changes the decay rate ``d/J`` by 0.1 s⁻¹ (times the model's inertia, in its units).
+RELEVANT_CHANGE = {"mass": 0.1, "gain": 0.1, "damping_rate": 0.1}
+#: ``min_effect``'s default (rad/s): the learned pendulum's own one-step RMS prediction error near upright
+#: (2.0e-3 rad/s, checked in tests/test_adaptation.py) — a parameter that moves the predictions by less than
+#: the model's own error cannot be told from it.
+MIN_EFFECT = 2e-3
+
+
+def parameter_names(control_dim: int) -> tuple[str, ...]:
+    """Every parameter a model with ``control_dim`` actuators has, in vector order."""
+    return ("mass", *(f"gain{i}" for i in range(control_dim)), "damping")
+
+
+def nominal_parameters(control_dim: int) -> dict[str, float]:
+    """The values that leave a model as it is."""
+    return {name: (0.0 if name == "damping" else 1.0) for name in parameter_names(control_dim)}
+
+
+class ScaledTerms:
+    """A pivoted model's terms (``inertia``, ``potential``, ``control_gain``, ``dissipation``) with the
+    parameters of the module docstring applied; ``parameters`` in :func:`parameter_names`' order, numbers
+    or symbols of the terms' backend."""
+
+    def __init__(self, terms: Any, parameters: Sequence[Any]) -> None:
+        self.terms = terms
+        self.control_dim = terms.control_dim
+        self.constant_inertia = terms.constant_inertia
+        # A model that steps on a hinge must keep doing so with its parameters changed.
+        self.hinge_axis = getattr(terms, "hinge_axis", None)
+        self.mass, *gains, self.damping = parameters
+        self.gains = tuple(gains)
+
+    def inertia(self, q: s3.Quat) -> s3.Mat3:
+        return tuple(tuple(self.mass * entry for entry in row) for row in self.terms.inertia(q))  # type: ignore[return-value]
+
+    def potential(self, q: s3.Quat) -> Any:
+        return self.mass * self.terms.potential(q)
+
+    def potential_gradient(self, q: s3.Quat) -> s3.Quat:
+        return s3.scale(self.mass, self.terms.potential_gradient(q))
+
+    def control_gain(self, q: s3.Quat) -> tuple[tuple[Any, ...], ...]:
+        return tuple(tuple(entry * gain for entry, gain in zip(row, self.gains)) for row in self.terms.control_gain(q))
+
+    def dissipation(self, q: s3.Quat) -> s3.Mat3:
+        own = self.terms.dissipation(q)
+        added = 2.0 * self.damping
+        return tuple(tuple((0.0 if own is None else own[i][j]) + (added if i == j else 0.0) for j in range(3))
+                     for i in range(3))  # type: ignore[return-value]
+
+
+def prediction_residual(model: ExportedModel) -> ca.Function:
+    """``r(x[7], u[m], x_next[7], p) -> (r[6], ∂r/∂p)``: the measured next state against the one the model
+    with parameters ``p`` predicts from the measured ``x``, ``u`` — orientation as the chart's rotation over
+    the step (``2·Im/Re`` of ``q_pred* ⊗ q_meas`` divided by ``h``: rad/s, like the rate part), then
+    ``ω_meas − ω_pred``."""
+    model.require(S3, by="the parameter estimator")
+    if model.casadi_terms is None:
+        raise ValueError(f"model {model.name!r} has no rigid-body terms to put parameters on")
+    m = model.control_dim
+    x, x_next = ca.SX.sym("x", 7), ca.SX.sym("x_next", 7)
+    u, p = ca.SX.sym("u", m), ca.SX.sym("p", len(parameter_names(m)))
+    terms = ScaledTerms(model.casadi_terms, [p[i] for i in range(p.shape[0])])
+    predicted, _ = S3.step(x, u, terms, model.step_size, model.newton_iters, CA)
+    q_pred = tuple(predicted[i] for i in range(4))
+    q_meas = tuple(x_next[i] for i in range(4))
+    rotation = chart_local(q_pred, q_meas)
+    r = ca.vertcat(*[2.0 * c / model.step_size for c in rotation], x_next[4:7] - predicted[4:7])
+    return ca.Function("prediction_residual", [x, u, x_next, p], [r, ca.jacobian(r, p)],
+                       ["x", "u", "x_next", "p"], ["r", "dr_dp"])
+
+
+#: The identity orientation as a one-sample NumPy quaternion, where a model's constant terms are read.
+_IDENTITY = (np.ones(1), np.zeros(1), np.zeros(1), np.zeros(1))
+
+
+class TransitionWindow:
+    """The last ``capacity`` measured transitions ``(x_k, u_k, x_{k+1})``, oldest dropped first."""
+
+    def __init__(self, capacity: int) -> None:
+        if capacity < 1:
+            raise ValueError(f"a window holds at least one transition, got capacity {capacity}")
+        self.capacity = capacity
+        self._items: deque[tuple[np.ndarray, np.ndarray, np.ndarray]] = deque(maxlen=capacity)
+
+    def add(self, x: Any, u: Any, x_next: Any) -> None:
+        self._items.append((np.asarray(x, dtype=float).copy(), np.atleast_1d(np.asarray(u, dtype=float)).copy(),
+                            np.asarray(x_next, dtype=float).copy()))
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(X (7, N), U (m, N), X_next (7, N))``, columns oldest first."""
+        x, u, x_next = zip(*self._items)
+        return np.array(x).T, np.array(u).T, np.array(x_next).T
+
+
+@dataclass(frozen=True)
+class Update:
+    """What one call of :meth:`ParameterEstimator.update` did.
+
+    Attributes:
+        accepted: whether the step lowered the window's prediction error (and was kept).
+        parameters: the estimate after the call.
+        error_before: the window's mean squared prediction error (rad²/s²) at the old parameters.
+        error_after: the same at the kept parameters (``error_before`` when rejected).
+        candidate_error: the error the proposed step would have given.
+        damping: the Levenberg–Marquardt damping after the call.
+        fitted: the free parameters the window excited enough to be fitted (``()``: none, nothing proposed).
+    """
+
+    accepted: bool
+    parameters: dict[str, float]
+    error_before: float
+    error_after: float
+    candidate_error: float
+    damping: float
+    fitted: tuple[str, ...] = ()
+
+
+class ParameterEstimator:
+    """Levenberg–Marquardt on the one-step prediction error of a sliding window.
+
+    Args:
+        model: a pivoted (S³) model with rigid-body terms, learned or closed form.
+        free: the parameters to fit (default ``("mass", "damping")``: the gains pinned, see the module
+            docstring on the free scale); the others keep their values in ``initial``.
+        initial: starting values (default: :func:`nominal_parameters`).
+        damping: the Levenberg–Marquardt damping λ to start with (relative to ``diag(JᵀJ)``).
+        min_effect: a parameter is fitted only while a relevant change of it moves the window's predictions
+            by at least this (rad/s, RMS; module docstring, "Excitation"); 0 fits whatever the window.
+    """
+
+    def __init__(self, model: ExportedModel, free: Sequence[str] = ("mass", "damping"),
+                 initial: Mapping[str, float] | None = None, damping: float = 1e-3,
+                 min_effect: float = MIN_EFFECT) -> None:
+        self.names = parameter_names(model.control_dim)
+        unknown = [name for name in (*free, *(initial or {})) if name not in self.names]
+        if unknown or not free:
+            raise ValueError(f"unknown or no free parameters {unknown or list(free)}; expected some of {self.names}")
+        self.free = tuple(free)
+        self._free_index = np.array([self.names.index(name) for name in self.free])
+        self._residual = prediction_residual(model)
+        self._mapped: dict[int, ca.Function] = {}
+        self._lower, self._relevant = self._lower_bounds(model), self._relevant_changes(model)
+        self._upper = np.where(np.arange(len(self.names)) == len(self.names) - 1, np.inf, 1.0 / MINIMUM_SCALE)
+        self.min_effect = float(min_effect)
+        values = {**nominal_parameters(model.control_dim), **(initial or {})}
+        self._p = np.array([float(values[name]) for name in self.names])
+        if np.any(self._p < self._lower - 1e-12) or np.any(self._p > self._upper + 1e-12):
+            raise ValueError(f"initial parameters {values} are outside their physical bounds")
+        self.damping = float(damping)
+
+    def _relevant_changes(self, model: ExportedModel) -> np.ndarray:
+        inertia = np.array(model.numpy_terms.inertia(_IDENTITY), dtype=float)[..., 0]
+        scale = RELEVANT_CHANGE["damping_rate"] * float(np.trace(inertia)) / 3.0
+        return np.array([RELEVANT_CHANGE["mass"]] + [RELEVANT_CHANGE["gain"]] * (len(self.names) - 2) + [scale])
+
+    def _lower_bounds(self, model: ExportedModel) -> np.ndarray:
+        lower = np.full(len(self.names), MINIMUM_SCALE)
+        own = model.numpy_terms.dissipation(_IDENTITY)
+        # The added damping may take away at most what the model's own (constant) dissipation has.
+        smallest = 0.0 if own is None else float(np.linalg.eigvalsh(np.array(own, dtype=float)[..., 0]).min())
+        lower[-1] = -max(smallest, 0.0) / 2.0
+        return lower
+
+    @property
+    def parameters(self) -> dict[str, float]:
+        """The current estimate, ``{name: value}``."""
+        return {name: float(value) for name, value in zip(self.names, self._p)}
+
+    def _evaluate(self, window: TransitionWindow, p: np.ndarray,
+                  jacobian: bool) -> tuple[np.ndarray, np.ndarray | None]:
+        x, u, x_next = window.arrays()
+        n = x.shape[1]
+        if n not in self._mapped:
+            self._mapped[n] = self._residual.map(n)
+        r, dr = self._mapped[n](x, u, x_next, p)
+        r = np.asarray(r, dtype=float).T.reshape(-1)  # transition after transition
+        if not jacobian:
+            return r, None
+        blocks = np.asarray(dr, dtype=float).reshape(6, n, p.size)  # the map stacks the (6, P) blocks side by side
+        return r, blocks.transpose(1, 0, 2).reshape(6 * n, p.size)[:, self._free_index]
+
+    def prediction_error(self, window: TransitionWindow, parameters: Mapping[str, float] | None = None) -> float:
+        """The window's mean squared one-step prediction error at ``parameters`` (default: the estimate)."""
+        p = self._p if parameters is None else np.array([float({**self.parameters, **parameters}[k])
+                                                          for k in self.names])
+        r, _ = self._evaluate(window, p, jacobian=False)
+        return float(np.mean(r * r)) if np.all(np.isfinite(r)) else math.inf
+
+    def update(self, window: TransitionWindow) -> Update:
+        """One damped Gauss–Newton step on ``window``, kept only if it lowers the prediction error."""
+        if len(window) == 0:
+            raise ValueError("the window holds no transitions")
+        r, jac = self._evaluate(window, self._p, jacobian=True)
+        before = float(np.mean(r * r))
+        # How far a relevant change of each free parameter moves the window's predictions (rad/s, RMS).
+        effect = np.linalg.norm(jac, axis=0) / math.sqrt(len(window)) * self._relevant[self._free_index]
+        excited = effect >= self.min_effect
+        if not np.any(excited):
+            return Update(accepted=False, parameters=self.parameters, error_before=before, error_after=before,
+                          candidate_error=before, damping=self.damping, fitted=())
+        jac = jac[:, excited]
+        normal = jac.T @ jac
+        # Marquardt's scaling (λ·diag) makes the step independent of the parameters' units; the tiny
+        # absolute term keeps it solvable.
+        regular = normal + self.damping * np.diag(np.diag(normal)) + 1e-12 * np.eye(int(excited.sum()))
+        step = -np.linalg.solve(regular, jac.T @ r)
+        candidate = self._p.copy()
+        candidate[self._free_index[excited]] += step
+        candidate = np.clip(candidate, self._lower, self._upper)
+        update = self.consider(window, candidate, before)
+        return replace(update, fitted=tuple(name for name, on in zip(self.free, excited) if on))
+
+    def consider(self, window: TransitionWindow, candidate: Mapping[str, float] | np.ndarray,
+                 error_before: float | None = None) -> Update:
+        """Keep ``candidate`` (a ``{name: value}`` or a full vector) if it is within the bounds and lowers the
+        window's prediction error; otherwise keep the estimate and raise the damping."""
+        if isinstance(candidate, Mapping):
+            candidate = np.array([float({**self.parameters, **candidate}[k]) for k in self.names])
+        candidate = np.asarray(candidate, dtype=float)
+        before = self.prediction_error(window) if error_before is None else error_before
+        within = bool(np.all(candidate >= self._lower - 1e-12) and np.all(candidate <= self._upper + 1e-12))
+        r, _ = self._evaluate(window, candidate, jacobian=False)
+        after = float(np.mean(r * r)) if np.all(np.isfinite(r)) else math.inf
+        accepted = within and after < before
+        if accepted:
+            self._p = candidate
+            self.damping = max(self.damping / 3.0, 1e-9)
+        else:
+            self.damping = min(self.damping * 4.0, 1e9)
+        return Update(accepted=accepted, parameters=self.parameters, error_before=before,
+                      error_after=after if accepted else before, candidate_error=after, damping=self.damping,
+                      fitted=self.free)
