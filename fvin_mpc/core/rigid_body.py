@@ -36,6 +36,9 @@ class PivotedRigidBody:
             the axis (and ``mass_gravity`` scaled by its length, ``center_of_mass`` the part
             perpendicular to the axis), which gives the same potential along the hinge's motion
             and a gravity torque along the axis only — what the hinge lets act.
+        hinge_axis: a hinge's axis in the body frame (unit), on which the step stays
+            (:func:`fvin_mpc.core.fvin.hinge_step`): a measured rate across the hinge — sensor noise
+            the hinge cannot have — then moves nothing in a plan. ``None`` for a ball joint.
     """
 
     inertia: Matrix
@@ -45,6 +48,7 @@ class PivotedRigidBody:
     damping: float = 0.0
     constant_inertia: bool = field(default=True, init=False)
     vertical: tuple[float, float, float] = (0.0, 0.0, 1.0)
+    hinge_axis: tuple[float, float, float] | None = None
 
     @property
     def control_dim(self) -> int:
@@ -63,6 +67,7 @@ class PivotedRigidBodyTerms:
         self.body = body
         self.ops = ops
         self.control_dim = body.control_dim
+        self.hinge_axis = body.hinge_axis
 
     def inertia(self, q: s3.Quat) -> s3.Mat3:
         zero = 0.0 * q[0]
@@ -234,7 +239,8 @@ def from_mujoco(model: Any, body: str) -> PivotedRigidBody:
     as_tuple = lambda matrix: tuple(tuple(float(x) for x in row) for row in matrix)  # noqa: E731
     return PivotedRigidBody(inertia=as_tuple(inertia), center_of_mass=tuple(float(c) for c in com),
                             mass_gravity=-mass * float(gravity[2]), actuator_axes=as_tuple(axes), damping=damping,
-                            vertical=vertical)
+                            vertical=vertical,
+                            hinge_axis=tuple(float(a) for a in axis / np.linalg.norm(axis)) if is_hinge else None)
 
 
 def _subtree(model: Any, body_id: int) -> list[int]:
