@@ -109,16 +109,27 @@ class ModelConfig(ModelFields):
             turns about any axis (a ball joint). A hinged model steps on the hinge only
             (:func:`fvin_mpc.core.fvin.hinge_step`): the terms across it, which hinge data cannot
             identify, never enter its predictions.
+        control_scale: per control, the size of a full control (the data's largest ``|u|``), or
+            ``None`` (1). The gain network learns the force of a *full* control, ``g(q) = ĝ(q) / scale``:
+            an actuator whose control range is ±0.05 with a gear of 35 would otherwise need the
+            network's output near 70 from an initialization near 0.1, which training did not reach.
     """
 
     variant: Variant = "sign-invariant"
     dissipation: bool = False
     inertia_epsilon: float = 1e-3
     hinge_axis: tuple[float, float, float] | None = None
+    control_scale: tuple[float, ...] | None = None
 
     def __post_init__(self) -> None:
         if self.hinge_axis is not None:
             object.__setattr__(self, "hinge_axis", unit_axis(self.hinge_axis, "hinge_axis"))
+        if self.control_scale is not None:
+            scale = np.asarray(self.control_scale, dtype=float)
+            if scale.shape != (self.control_dim,) or not np.all(np.isfinite(scale)) or not np.all(scale > 0.0):
+                raise ValueError(f"control_scale must be {self.control_dim} positive numbers, "
+                                 f"got {self.control_scale!r}")
+            object.__setattr__(self, "control_scale", tuple(float(v) for v in scale))
         if self.variant not in VARIANTS:
             raise ValueError(f"unknown variant {self.variant!r}; expected one of {VARIANTS}")
         if self.control_dim < 1:
@@ -281,8 +292,10 @@ class LearnedTerms:
 
     def control_gain(self, q: s3.Quat) -> tuple[tuple[Any, ...], ...]:
         flat = self._vector_net("gain", q)
-        m = self.control_dim
-        return tuple(tuple(flat[i * m + j] for j in range(m)) for i in range(3))
+        m, scale = self.control_dim, self.config.control_scale
+        if scale is None:
+            return tuple(tuple(flat[i * m + j] for j in range(m)) for i in range(3))
+        return tuple(tuple(flat[i * m + j] / scale[j] for j in range(m)) for i in range(3))
 
     def dissipation(self, q: s3.Quat) -> s3.Mat3 | None:
         if not self.config.dissipation:

@@ -95,11 +95,19 @@ TRAINING: dict[ConfigurationSpace, SpaceTraining] = {
 }
 
 
+def data_control_scale(data: Trajectories) -> tuple[float, ...] | None:
+    """Per control, the largest ``|u|`` in ``data`` (the size of a full control, as the data saw it);
+    ``None`` when a control is never nonzero (nothing to scale by)."""
+    largest = np.abs(np.asarray(data.u, dtype=float)).reshape(-1, data.u.shape[-1]).max(axis=0)
+    return tuple(float(v) for v in largest) if np.all(largest > 0.0) else None
+
+
 def default_model_config(data: Trajectories, space: ConfigurationSpace | None = None, **given: Any) -> Any:
     """The model ``python -m fvin_mpc.train`` builds for ``data`` unless told otherwise, ``given`` fields on
     top: ``space`` (default: the data's, with its first variant) and its first variant, the data's control
-    size and step, dissipation on where the data's scene declares joint damping, and the scene's hinge
-    axis on a hinge (each where the space's config has that field). ``ValueError`` from the config on a bad field."""
+    size and step, dissipation on where the data's scene declares joint damping, the scene's hinge
+    axis on a hinge, and the data's control scale (each where the space's config has that field).
+    ``ValueError`` from the config on a bad field."""
     space = space or space_for_variant(data.space, data.space.variants[0])
     chosen = {"variant": space.variants[0], "control_dim": int(data.u.shape[2]), "step_size": data.control_period,
               **given}
@@ -108,6 +116,8 @@ def default_model_config(data: Trajectories, space: ConfigurationSpace | None = 
         chosen["dissipation"] = bool(scene_has_joint_damping(data.metadata))
     if "hinge_axis" in config_fields and "hinge_axis" not in given:
         chosen["hinge_axis"] = scene_hinge_axis(data.metadata)
+    if "control_scale" in config_fields and "control_scale" not in given:
+        chosen["control_scale"] = data_control_scale(data)
     return space.config_type(**chosen)
 
 
