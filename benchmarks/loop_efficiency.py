@@ -2,7 +2,7 @@
 
 Runs :func:`fvin_mpc.studies.learning_loop.run_loop` (``python -m fvin_mpc.learn``'s defaults) on
 each scene given — MJCF paths or built-in names (``--scene``, repeatable) and members of a random
-family (``--family hinge --seeds 5000 5001``, written by :mod:`fvin_mpc.envs.families`) — caching each
+family (``--family hinge --seeds 9002 9003``, written by :mod:`fvin_mpc.envs.families`) — caching each
 finished scene's ``learn.json`` under ``--cache-dir`` so that a stopped run resumes and one scene per
 command fits a time limit. Then writes ``--out-dir``/``learning-loop-runs.{md,json}`` (one row per
 scene: closed form up on the evaluation starts, outcome, training transitions to success, rounds,
@@ -10,8 +10,9 @@ evaluation steps not trained on, learned over closed-form cost, wall time) and
 ``learning-loop-runs.png`` (learned starts up against training transitions, one line per scene).
 
 Closed loops run in waiting mode (the simulator waits for the controller): model-quality figures.
-Seeds: the family report's seeds start at 5000 (benchmarks/scene_families.py); development of the
-loop used the weak damped pendulum of ``tests/data`` and no family seed.
+Seeds: the family report's seeds start at 9000 (benchmarks/scene_families.py; 5000–5019 and 7000–7023
+were earlier reports); development of the loop used the weak damped pendulum of ``tests/data`` and no
+family seed.
 """
 
 from __future__ import annotations
