@@ -157,6 +157,10 @@ class RTIOptions:
             Newton iterations, linearized per stage) or ``"implicit"`` (the step's own equations between
             consecutive plan nodes, the learned terms evaluated once per node; pivoted bodies only;
             :mod:`fvin_mpc.control.implicit_dynamics`).
+        model_parameters: the model's run-time parameters (:mod:`fvin_mpc.core.model_parameters`: gain
+            scales, physical values) are an input of the compiled functions, changed by
+            :meth:`~fvin_mpc.control.rti.RealTimeMPC.set_parameters` without recompiling; ``False`` bakes
+            them in as constants (what the parameters cost: docs/c-controller.md).
     """
 
     max_iter: int = 1
@@ -170,6 +174,7 @@ class RTIOptions:
     qp_solver: Literal["riccati", "hpipm", "qrqp", "osqp"] = "riccati"
     qp_iterations: int = 10
     dynamics: Literal["unrolled", "implicit"] = "unrolled"
+    model_parameters: bool = True
 
     def __post_init__(self) -> None:
         if self.max_iter < 1 or self.cold_iter < 1:
@@ -691,10 +696,15 @@ class MPC:
     def _rollout_guess(self, x0: np.ndarray, torque: np.ndarray) -> Plan:
         """The model rolled out under the constant ``torque`` (clipped to the bounds), ω clipped to its bound."""
         controls = np.clip(np.tile(torque, (self.horizon, 1)), self.torque_low, self.torque_high)
-        states = self.model.rollout(x0, controls)
+        states = self._rollout(x0, controls)
         omega = self.layout.omega
         states[1:, omega] = np.clip(states[1:, omega], -self.omega_bound, self.omega_bound)
         return Plan(states, controls, None, None)
+
+    def _rollout(self, x0: np.ndarray, controls: np.ndarray) -> np.ndarray:
+        """The model's states ``(N+1, n)`` from ``x0`` under ``controls`` (the solver's model: a solver
+        with run-time model parameters rolls out with them)."""
+        return self.model.rollout(x0, controls)
 
     def _shifted(self, plan: Plan, x0: np.ndarray) -> Plan:
         """``plan`` advanced one step: drop the first stage, repeat the last."""

@@ -146,15 +146,18 @@ def step_limits(layout: StateLayout, omega_step: float) -> np.ndarray:
 # ----------------------------------------------------------------------------- compiled QP + update
 def unrolled_stage_function(step: ca.Function, layout: StateLayout, m: int) -> ca.Function:
     """``stage(x̄_k, ū_k, x̄_{k+1}, d) -> (c, [A B])`` of the unrolled dynamics: ``c`` the gap between
-    ``F(x̄_k, ū_k + d)`` and ``x̄_{k+1}`` in ``x̄_{k+1}``'s chart, ``[A B]`` its derivatives in ``(δ_k, Δu_k)``."""
+    ``F(x̄_k, ū_k + d)`` and ``x̄_{k+1}`` in ``x̄_{k+1}``'s chart, ``[A B]`` its derivatives in ``(δ_k, Δu_k)``.
+    A ``step`` with a third input (the model parameters ``p``,
+    :attr:`~fvin_mpc.control.model_export.ExportedModel.parametric_step`) gives ``stage(…, d, p)``."""
     x_bar, x_next_bar = ca.SX.sym("x_bar", layout.state_dim), ca.SX.sym("x_next_bar", layout.state_dim)
     u_bar, d = ca.SX.sym("u_bar", m), ca.SX.sym("d", m)
     delta, du = ca.SX.sym("delta", layout.tangent_dim), ca.SX.sym("du", m)
-    gap = local_state(layout, x_next_bar, step(retract_state(layout, x_bar, delta), u_bar + du + d)[0])
+    parameters = [ca.SX.sym("p", step.size1_in(2))] if step.n_in() == 3 else []
+    gap = local_state(layout, x_next_bar, step(retract_state(layout, x_bar, delta), u_bar + du + d, *parameters)[0])
     c, jacobian = ca.substitute([gap, ca.jacobian(gap, ca.vertcat(delta, du))], [delta, du],
                                 [ca.DM.zeros(layout.tangent_dim), ca.DM.zeros(m)])
-    return ca.Function("rti_dynamics", [x_bar, u_bar, x_next_bar, d], [c, jacobian],
-                       ["x_bar", "u_bar", "x_next_bar", "d"], ["c", "AB"])
+    return ca.Function("rti_dynamics", [x_bar, u_bar, x_next_bar, d, *parameters], [c, jacobian],
+                       ["x_bar", "u_bar", "x_next_bar", "d", "p"][:4 + len(parameters)], ["c", "AB"])
 
 
 def riccati_feedback_function(layout: StateLayout, n: int, m: int, low: np.ndarray, high: np.ndarray,
@@ -306,6 +309,15 @@ class RealTimeMPC(MPC):
         def at_zero(expressions: list[Any]) -> list[Any]:
             return ca.substitute(expressions, [delta, du], zero)
 
+        # --- the model parameters: an input p of every function that evaluates the model (read by it
+        # with rti.model_parameters, else unused: the constants baked in behind the same interface)
+        parametric = s.rti.model_parameters
+        parameter_count = self.model.model_parameters.size
+        #: the model parameters the next preparation uses (:meth:`set_parameters`)
+        self._parameters = self.model.model_parameters.defaults
+        p_mx = ca.MX.sym("p", parameter_count)
+        p_stages = [ca.repmat(p_mx, 1, n)] if parametric else []
+
         # --- dynamics: e(δ, Δu) = F(x, u + d) in x̄_{k+1}'s chart
         implicit = s.rti.dynamics == "implicit"
         if implicit:
@@ -313,22 +325,29 @@ class RealTimeMPC(MPC):
                 raise ValueError(f"rti.dynamics='implicit' needs the step's own equations, which the "
                                  f"{self.model.space.description} space does not provide, and rigid-body terms "
                                  f"(model {self.model.name!r}); use rti.dynamics='unrolled'")
-            node_terms, term_layout = implicit_dynamics.node_terms_function(self.model.casadi_terms, retract)
+            parametrized = self.model if parametric else None
+            node_terms, term_layout = implicit_dynamics.node_terms_function(self.model.casadi_terms, retract,
+                                                                            parametrized)
             implicit_stage = implicit_dynamics.implicit_stage_function(self.model.casadi_terms, term_layout,
-                                                                       self.model.step_size, retract)
+                                                                       self.model.step_size, retract, parametrized)
         else:
-            stage_dynamics = unrolled_stage_function(self.model.step, layout, m)
+            stage_dynamics = unrolled_stage_function(self.model.parametric_step if parametric else self.model.step,
+                                                     layout, m)
 
         # --- cost: the problem's residuals (control/problem.py), the ω bound as a stiff penalty on its
         # excess (zero inside the bound): the linearized QP then has only the torque boxes and is always
         # feasible. Gauss–Newton.
         energy = None
+        rest_state = None if self.rest is None else np.concatenate([self.rest, np.zeros(3)])
         if s.terminal_energy_weight > 0:
-            energy = (self.model.energy_function, self.model.energy(np.concatenate([self.rest, np.zeros(3)])))
+            energy = ((self.model.parametric_energy, rest_state) if parametric
+                      else (self.model.energy_function, self.model.energy(rest_state)))
         stage_function, terminal_function = residual_functions(layout, s, m, self.omega_bound, s.rti.omega_penalty,
-                                                               energy)
+                                                               energy, parameter_count if parametric else 0)
         stage_residual = stage_function(x, u, reference, u_s)
-        terminal_residual = terminal_function(x, reference)
+        p_sx = ca.SX.sym("p", parameter_count)
+        terminal_parameters = [p_sx] if parametric else []
+        terminal_residual = terminal_function(x, reference, *terminal_parameters)
         regularization = s.rti.regularization
 
         def gauss_newton(residual: Any, variables: Any, size: int) -> list[Any]:
@@ -338,7 +357,8 @@ class RealTimeMPC(MPC):
 
         stage_cost = ca.Function("rti_stage_cost", [x_bar, u_bar, reference, u_s],
                                  gauss_newton(stage_residual, ca.vertcat(delta, du), stage_size))
-        terminal_cost = ca.Function("rti_terminal_cost", [x_bar, reference], gauss_newton(terminal_residual, delta, nd))
+        terminal_cost = ca.Function("rti_terminal_cost", [x_bar, reference, *terminal_parameters],
+                                    gauss_newton(terminal_residual, delta, nd))
 
         # --- the whole QP over the horizon, stage-wise, δ_0 eliminated (it is fixed by the measurement):
         # z = (Δu_0, δ_1, Δu_1, …, δ_N); the feedback adds A_0 δ_0 to the first gap and S_0 δ_0 to the
@@ -346,13 +366,17 @@ class RealTimeMPC(MPC):
         states, controls = ca.MX.sym("X", ns, n + 1), ca.MX.sym("U", m, n)
         references, d_mx, u_s_mx = ca.MX.sym("R", ns, n + 1), ca.MX.sym("d", m), ca.MX.sym("u_s", m, n)
         if implicit:  # the terms once per node, each stage reads its two nodes'
-            values, slopes = node_terms.map(n + 1)(states[qs, :])
+            node_parameters = [ca.repmat(p_mx, 1, n + 1)] if parametric else []
+            values, slopes = node_terms.map(n + 1)(states[qs, :], *node_parameters)
             gaps, jacobians = implicit_stage.map(n)(states[:, :n], controls, states[:, 1:], ca.repmat(d_mx, 1, n),
-                                                    values[:, :n], slopes[:, :3 * n], values[:, 1:], slopes[:, 3:])
+                                                    values[:, :n], slopes[:, :3 * n], values[:, 1:], slopes[:, 3:],
+                                                    *p_stages)
         else:
-            gaps, jacobians = stage_dynamics.map(n)(states[:, :n], controls, states[:, 1:], ca.repmat(d_mx, 1, n))
+            gaps, jacobians = stage_dynamics.map(n)(states[:, :n], controls, states[:, 1:], ca.repmat(d_mx, 1, n),
+                                                    *p_stages)
         hessians, gradients, costs = stage_cost.map(n)(states[:, :n], controls, references[:, :n], u_s_mx)
-        terminal_hessian, terminal_gradient, terminal_value = terminal_cost(states[:, n], references[:, n])
+        terminal_hessian, terminal_gradient, terminal_value = terminal_cost(states[:, n], references[:, n],
+                                                                            *([p_mx] if parametric else []))
         size = stage_size * n
         blocks = [hessians[:, k * stage_size:(k + 1) * stage_size] for k in range(n)]
         hessian = ca.diagcat(blocks[0][nd:, nd:], *blocks[1:], terminal_hessian)
@@ -363,15 +387,15 @@ class RealTimeMPC(MPC):
                                    -ca.MX.eye(nd), ca.MX(nd, size - column - stage_size - nd)))
         constraints = ca.vertcat(*rows)
         gradient = ca.vertcat(gradients[nd:, 0], ca.vec(gradients[:, 1:]), terminal_gradient)
-        linearize = ca.Function("rti_linearize", [states, controls, references, d_mx, u_s_mx],
+        linearize = ca.Function("rti_linearize", [states, controls, references, d_mx, u_s_mx, p_mx],
                                 [hessian, gradient, constraints, ca.vec(gaps), ca.sum2(costs) + terminal_value,
                                  jacobians[:, :nd], blocks[0][nd:, :nd]],
-                                ["X", "U", "R", "d", "u_s"], ["H", "g", "A", "gaps", "cost", "A0", "S0"])
-        linearize_blocks = ca.Function("rti_linearize_blocks", [states, controls, references, d_mx, u_s_mx],
+                                ["X", "U", "R", "d", "u_s", "p"], ["H", "g", "A", "gaps", "cost", "A0", "S0"])
+        linearize_blocks = ca.Function("rti_linearize_blocks", [states, controls, references, d_mx, u_s_mx, p_mx],
                                        [hessians, terminal_hessian, gradients, terminal_gradient, jacobians, gaps,
                                         ca.sum2(costs) + terminal_value],
-                                       ["X", "U", "R", "d", "u_s"], ["H", "HN", "g", "gN", "AB", "gaps", "cost"])
-        predict = predict_function(self.model, "rti_predict")
+                                       ["X", "U", "R", "d", "u_s", "p"], ["H", "HN", "g", "gN", "AB", "gaps", "cost"])
+        predict = predict_function(self.model, "rti_predict", "input" if parametric else "constant")
 
         self._implicit = implicit
         self._control_bounds = control_bounds(self.torque_low, self.torque_high, n, s.torque_reserve)
@@ -394,7 +418,7 @@ class RealTimeMPC(MPC):
             functions = [compiled[function.name()] for function in functions]
         if riccati:  # every argument of the Riccati path is dense: call through buffers, not DMs
             functions = [BufferedFunction(function) for function in functions]
-        self._linearize, self._predict = functions[:2]
+        self._linearize, self._predict_with_parameters = functions[:2]
         self._feedback = functions[2] if riccati else None
         self._qp = None if riccati else self._make_qp(hessian.sparsity(), constraints.sparsity())
         self._size = size
@@ -427,7 +451,48 @@ class RealTimeMPC(MPC):
         cached = getattr(self, "_targets_cache", None)
         if cached is None or cached[0] != key:  # u_s changes only with the time and d̂: compute once
             cached = self._targets_cache = (key, self.reference_window()[1].T)
-        return self._linearize(plan.states.T, plan.controls.T, references, self.disturbance, cached[1])
+        return self._linearize(plan.states.T, plan.controls.T, references, self.disturbance, cached[1],
+                               self._parameters)
+
+    # ------------------------------------------------------------------ model parameters
+    def _predict(self, x: Any, u: Any) -> tuple[Any, ...]:
+        """One model step with the current model parameters (``predict_function``'s outputs)."""
+        return self._predict_with_parameters(x, u, self._parameters)
+
+    def _rollout(self, x0: np.ndarray, controls: np.ndarray) -> np.ndarray:
+        if not self.settings.rti.model_parameters:
+            return super()._rollout(x0, controls)
+        states = [np.asarray(x0, dtype=float)]
+        for u in controls:
+            stepped = self.model.parametric_step(states[-1], u, self._parameters)[0]
+            states.append(np.asarray(stepped, dtype=float).ravel())
+        return np.array(states)
+
+    @property
+    def parameter_names(self) -> tuple[str, ...]:
+        """The model parameters' names (:mod:`fvin_mpc.core.model_parameters`), in the vector's order."""
+        return self.model.model_parameters.names
+
+    @property
+    def parameters(self) -> np.ndarray:
+        """The model parameters in use (a copy)."""
+        return self._parameters.copy()
+
+    def set_parameters(self, values: Any = None, **blocks: Any) -> None:
+        """New model parameters: ``values`` a whole vector (:attr:`parameter_names`' order) and/or blocks by
+        name, e.g. ``set_parameters(gain_scale=[0.8])`` (the rest as they are). No recompilation: the
+        compiled functions take them as an input. The plan prepared already keeps the values it was
+        linearized with; the next preparation (and any further iteration of the next call) uses the new
+        ones, and so do the control that holds the goal (``u_goal``) and the disturbance estimate's next
+        prediction. ``ValueError`` for a controller built with ``rti.model_parameters=False`` or values
+        of the wrong size or not finite."""
+        if not self.settings.rti.model_parameters:
+            raise ValueError("this controller has its model parameters baked in (rti.model_parameters=False); "
+                             "build it with rti.model_parameters=True to change them at run time")
+        parameters = self.model.model_parameters
+        self._parameters = parameters.values(self._parameters if values is None else values, **blocks)
+        self._u_goal = self._goal_control()
+        self._targets_cache = None
 
     # ------------------------------------------------------------------ one SQP iteration
     def _iterate(self, plan: Plan, linearization: tuple[Any, ...], x0: np.ndarray) -> tuple[Plan | None, str]:
