@@ -15,6 +15,7 @@ The default suite builds one small case (the closed-form pendulum); the others a
 
 from __future__ import annotations
 
+import ctypes
 import os
 import shutil
 import subprocess
@@ -24,6 +25,7 @@ import pytest
 
 from fvin_mpc.control.c_controller import ControllerNotExportable, CRealTimeMPC
 from fvin_mpc.control.closed_loop import episode_metrics, run_episode
+from fvin_mpc.control.model_export import CompileCount
 from fvin_mpc.control.scene import scene_env, scene_model, scene_mpc, scene_mpc_settings
 
 COMPILER = os.environ.get("CC", "cc")
@@ -97,6 +99,73 @@ def test_the_c_loop_refuses_a_state_that_is_not_one(closed_form_pendulum):
     with pytest.raises(ValueError, match="bad-state"):
         c_loop.feedback(np.array([2.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]))
     assert c_loop.counters()["bad_states"] == 1
+
+
+class ChangesParameters:
+    """A controller told new model parameters after its ``at``-th call, between the control and the
+    preparation — where an online adaptation would (issue 29)."""
+
+    def __init__(self, controller, at: int, **blocks):
+        self.controller, self.at, self.blocks = controller, at, blocks
+        self.defaults = controller.parameters
+
+    def reset(self):
+        self.calls = 0
+        self.controller.set_parameters(self.defaults)
+        self.controller.reset()
+
+    def __call__(self, x):
+        result = self.controller(x)
+        self.calls += 1
+        if self.calls == self.at:
+            self.controller.set_parameters(**self.blocks)
+        return result
+
+    def prepare(self):
+        self.controller.prepare()
+
+    def set_time(self, t):
+        self.controller.set_time(t)
+
+
+def test_default_model_parameters_leave_the_controls_as_they_were(closed_form_pendulum):
+    """The parameters as an input of the compiled functions (the default) against the constants baked in
+    (before they were inputs): the same controls to rounding over a whole swing-up."""
+    env, python, _ = closed_form_pendulum
+    constants = scene_mpc(env, python.model, python.settings.updated(rti={"model_parameters": False}))
+    baked, _ = run_episode(env, constants, 4.0, seed=0)
+    inputs, _ = run_episode(env, python, 4.0, seed=0)
+    np.testing.assert_allclose(inputs.u, baked.u, rtol=0.0, atol=1e-12)
+    with pytest.raises(ValueError, match="baked in"):
+        constants.set_parameters(gain_scale=[0.5])
+
+
+def test_changed_model_parameters_reach_both_loops_without_recompiling(closed_form_pendulum):
+    """New gains and physical values mid-episode: the Python and the C loop agree to 1e-9, the controls
+    differ from the unchanged model's from the change on, and nothing is compiled."""
+    env, python, c_loop = closed_form_pendulum
+    unchanged, _ = run_episode(env, python, 3.0, seed=2)
+    compilations = (CompileCount.calls, CompileCount.compiler_runs)
+    blocks = {"gain_scale": [0.7], "mass_gravity": 9.0}
+    python_episode, c_episode = assert_same_closed_loops(env, ChangesParameters(python, 10, **blocks),
+                                                         ChangesParameters(c_loop, 10, **blocks), 3.0, "none", seed=2)
+    assert (CompileCount.calls, CompileCount.compiler_runs) == compilations
+    np.testing.assert_array_equal(python_episode.u[:10], unchanged.u[:10])  # the change acts from the next call
+    assert np.max(np.abs(python_episode.u[10:] - unchanged.u[10:])) > 1e-3
+    np.testing.assert_array_equal(c_loop.parameters, python.parameters)
+    assert python.parameters[python.parameter_names.index("mass_gravity")] == 9.0
+    # the prediction is the model's with the gain scale: ∂ω⁺/∂u scales with it
+    x = np.array([1.0, 0.0, 0.0, 0.0, 0.0, 0.3, 0.0])
+    slope = python._predict(x, np.zeros(1))[1]
+    python.set_parameters(gain_scale=[0.35])
+    np.testing.assert_allclose(python._predict(x, np.zeros(1))[1], 0.5 * slope, rtol=1e-12, atol=1e-15)
+    # a non-finite value is refused by the library itself, and nothing changes
+    before = c_loop.parameters
+    refused = np.ascontiguousarray(np.where(np.arange(before.size) == 0, np.inf, before))
+    assert c_loop._lib.fvc_set_parameters(c_loop._handle, refused.ctypes.data_as(ctypes.POINTER(ctypes.c_double))) == -3
+    np.testing.assert_array_equal(c_loop.parameters, before)
+    for controller in (python, c_loop):
+        controller.set_parameters(python.model.model_parameters.defaults)
 
 
 def test_an_ipopt_cold_start_is_refused_with_the_reason():

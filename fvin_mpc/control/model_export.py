@@ -281,6 +281,15 @@ class CompileReport:
 COMPILER_FLAGS: tuple[str, ...] = ("-O2", "-fPIC", "-shared")
 
 
+class CompileCount:
+    """How many times this process generated C and loaded it (:func:`compile_functions`, cached or not),
+    and how many of those ran the compiler: what a change that must not recompile (the model
+    parameters) is checked against."""
+
+    calls = 0
+    compiler_runs = 0
+
+
 def compile_functions(functions: Sequence[ca.Function], prefix: str, flags: Sequence[str] = COMPILER_FLAGS,
                       external_options: dict[str, Any] | None = None) -> tuple[dict[str, ca.Function], CompileReport]:
     """Generate C for ``functions``, compile it once into a cached shared library, load it.
@@ -305,7 +314,9 @@ def compile_functions(functions: Sequence[ca.Function], prefix: str, flags: Sequ
         library = cache_dir() / f"{prefix}_{digest}.so"
         cached = library.is_file()
         compile_s = 0.0
+        CompileCount.calls += 1
         if not cached:
+            CompileCount.compiler_runs += 1
             compiler = os.environ.get("CC", "gcc")
             if shutil.which(compiler) is None:
                 raise RuntimeError(f"no C compiler {compiler!r} on PATH; install gcc or use compile='none'")
