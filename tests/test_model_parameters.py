@@ -95,7 +95,8 @@ def test_a_changed_physical_value_steps_as_the_model_rebuilt_with_it(models):
     """The parametrized terms are the terms code on symbols: changing a value is rebuilding with it."""
     cases = [("damped", dataclasses.replace(PENDULUM_DAMPED, damping=0.4, mass_gravity=7.0), 0.05, S3,
               {"damping": 0.4, "mass_gravity": 7.0}),
-             ("quadrotor", dataclasses.replace(CRAFT, mass=0.8, gravity=9.0), 0.02, R3S3, {"mass": 0.8, "gravity": 9.0})]
+             ("quadrotor", dataclasses.replace(CRAFT, mass=0.8, gravity=9.0), 0.02, R3S3,
+              {"mass": 0.8, "gravity": 9.0})]
     for name, body, h, space, blocks in cases:
         model = models[name]
         rebuilt = export.from_closed_form(space, body, h)

@@ -62,6 +62,7 @@ from fvin_mpc.control.problem import (
     DisturbanceEstimate,
     Reference,
     control_bounds,
+    ordered_matvec,
     predict_function,
     residual_functions,
 )
@@ -421,7 +422,7 @@ class MPC:
         u = np.zeros(self.model.control_dim)
         for _ in range(5):
             stepped, _, _, inverse = self._predict(x_goal, u)
-            u = u - np.asarray(inverse, dtype=float) @ np.asarray(stepped, dtype=float).ravel()[self.layout.rates]
+            u = u - ordered_matvec(inverse, np.asarray(stepped, dtype=float).ravel()[self.layout.rates])
         return u
 
     @property

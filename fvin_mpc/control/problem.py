@@ -132,6 +132,18 @@ def predict_function(model: Any, name: str = "predict", parameters: str = "none"
     return ca.Function(name, inputs, [stepped, b, residual, ca.solve(ca.mtimes(b.T, b), b.T)])
 
 
+def ordered_matvec(matrix: np.ndarray, vector: np.ndarray) -> np.ndarray:
+    """``matrix @ vector`` summed term by term in column order, each product and sum rounded: what the C
+    driver's loops compute (``c_template/fvin_controller.c``). NumPy's ``@`` goes to BLAS, whose fused
+    multiply–adds and blocking round differently; the real-time loops compare to 1e-9 over episodes that
+    amplify one ulp (docs/c-controller.md), so the small products they share are written this way."""
+    matrix, vector = np.asarray(matrix, dtype=float), np.asarray(vector, dtype=float)
+    result = np.zeros(matrix.shape[0])
+    for k in range(matrix.shape[1]):
+        result = result + matrix[:, k] * vector[k]
+    return result
+
+
 def control_bounds(low: np.ndarray, high: np.ndarray, horizon: int, reserve: float) -> tuple[np.ndarray, np.ndarray]:
     """Per-stage control bounds ``(N, m)``: the whole range for the first control, the middle
     ``1 − reserve`` of it for the later ones (constraint tightening)."""
@@ -184,7 +196,7 @@ class DisturbanceEstimate:
         if 2.0 * np.arccos(cosine) > self.region_rad or np.max(np.abs(x0[layout.omega])) > self.region_speed:
             return
         predicted, inverse = self._last
-        step = inverse @ (x0[layout.rates] - predicted)
+        step = ordered_matvec(inverse, x0[layout.rates] - predicted)
         self.value = np.clip(self.value + self.gain * step, -self.limit, self.limit)
 
 
