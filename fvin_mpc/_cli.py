@@ -70,6 +70,13 @@ def add_mpc_arguments(parser: argparse.ArgumentParser) -> None:
                             "learned terms once per node (default: the scene's)")
 
 
+def add_loop_argument(parser: argparse.ArgumentParser) -> None:
+    """``--loop python|c``: which loop runs the real-time MPC (:func:`fvin_mpc.control.c_controller.on_loop`)."""
+    parser.add_argument("--loop", choices=["python", "c"], default="python",
+                        help="rti only: python runs the real-time iteration in Python (default); c runs the same "
+                             "controller as its generated C library (needs a C compiler; built once, cached)")
+
+
 def parse_latency(text: str) -> Any:
     """``--latency``: ``none``, ``measured`` or a fixed delay in seconds."""
     if text in ("none", "measured"):

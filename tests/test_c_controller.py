@@ -242,3 +242,25 @@ def test_export_options_that_need_a_controller_are_refused_without_one(capsys):
 
     assert run_command(main, ["--build"]) == 2
     assert "go with --controller DIR" in capsys.readouterr().err
+
+
+def test_swingup_runs_on_the_c_loop_when_asked(tmp_path, capsys):
+    """``--loop c``: the command's controller is the C library (whose closed loops the tests above compare
+    with Python's); with a solver that is not the real-time iteration, a one-line error."""
+    import json
+
+    from fvin_mpc.core.errors import run_command
+    from fvin_mpc.swingup import main
+
+    out = tmp_path / "c.json"
+    calls = CompileCount.calls
+    assert main(["--true-model", "--solver", "rti", "--loop", "c", "--duration", "2", "--plot", "", "--quiet",
+                 "--json", str(out)]) == 0
+    result = json.loads(out.read_text())
+    assert result["loop"] == "c" and np.isfinite(result["accumulated_cost"])
+    assert CompileCount.calls == calls + 2  # the Python loop's functions and the C library (both cached)
+    capsys.readouterr()
+    assert run_command(main, ["--true-model", "--solver", "ipopt", "--loop", "c", "--duration", "1", "--plot", "",
+                              "--quiet"]) == 2
+    error = capsys.readouterr().err.strip().splitlines()
+    assert error[-1].startswith("error: --loop c runs the real-time iteration's generated C library")

@@ -72,6 +72,29 @@ class ControllerNotExportable(FvinMpcError, ValueError):
     """The controller's settings ask for something the C loop does not have (the message says what)."""
 
 
+#: Which loop runs a real-time controller: the Python :class:`~fvin_mpc.control.rti.RealTimeMPC` or its
+#: generated C library (:class:`CRealTimeMPC`).
+LOOPS = ("python", "c")
+
+
+def on_loop(controller: Any, loop: str) -> Any:
+    """``controller`` as it is (``loop="python"``) or run by its C library (``"c"``: :class:`CRealTimeMPC`,
+    built once and cached). ``ControllerNotExportable`` with the reason when ``"c"`` cannot run it: not
+    the real-time iteration, no C compiler, or settings the C loop does not have."""
+    if loop not in LOOPS:
+        raise ValueError(f"loop must be one of {LOOPS}, got {loop!r}")
+    if loop == "python":
+        return controller
+    if not isinstance(controller, RealTimeMPC):
+        raise ControllerNotExportable(f"--loop c runs the real-time iteration's generated C library; this "
+                                      f"controller solves with {controller.settings.solver!r}: add --solver rti")
+    compiler = os.environ.get("CC", "cc")
+    if shutil.which(compiler) is None:
+        raise ControllerNotExportable(f"--loop c needs a C compiler: no {compiler!r} on PATH (install cc, gcc or "
+                                      "clang, or set CC); --loop python runs the same controller without one")
+    return CRealTimeMPC(controller)
+
+
 def solver_settings(controller: RealTimeMPC) -> dict[str, Any]:
     """The real-time iteration's own settings the C loop reads, by their names here — the one place
     that knows where :class:`~fvin_mpc.control.mpc.MPCSettings` keeps them."""
@@ -307,6 +330,7 @@ class CRealTimeMPC:
         self.python = controller
         self.settings, self.model, self.layout = controller.settings, controller.model, controller.layout
         self.horizon = controller.horizon
+        self.build_s, self.compile_report = controller.build_s, controller.compile_report
         self._qp_iterations = solver_settings(controller)["qp_iterations"]
         self.library = Path(library) if library is not None else cached_library(controller)
         self._lib = load_library(self.library)
