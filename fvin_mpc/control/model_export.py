@@ -42,12 +42,12 @@ import numpy as np
 from fvin_mpc.core.backend import get_ops
 from fvin_mpc.core.checkpoint import Checkpoint, load_checkpoint
 from fvin_mpc.core.model_parameters import (
+    GAIN_SCALE,
     ModelParameters,
     body_parameters,
     gain_scale_block,
     learned_parameters,
     parametrized_body,
-    parametrized_weights,
 )
 from fvin_mpc.core.space import R3S3, S3, ConfigurationSpace, get_space, require
 
@@ -195,6 +195,21 @@ def from_terms(space: ConfigurationSpace, casadi_terms: Any, numpy_terms: Any, s
         energy_function=energy_function(casadi_terms, space=space), space=space, casadi_terms=casadi_terms,
         parameters=parameters, parametrize=parametrize, step_options=dict(options),
     )
+
+
+def parametrized_weights(weights: Mapping[str, Any], parameters: ModelParameters, p: Any) -> dict[str, Any]:
+    """``weights`` with every parameter block replaced by the entries of the CasADi column ``p``, in the
+    weight's shape (a matrix as a CasADi matrix, row-major): the learned terms built on it read ``p``."""
+    replaced = dict(weights)
+    for block in parameters.blocks:
+        if block.name == GAIN_SCALE:
+            continue
+        entries = ca.vertcat(*parameters.block(p, block.name))
+        if block.default.ndim == 2:
+            rows, cols = block.default.shape
+            entries = ca.reshape(entries, cols, rows).T  # CasADi reshapes column-major; p is row-major
+        replaced[block.name] = entries
+    return replaced
 
 
 def from_checkpoint(checkpoint: Checkpoint | str | Path, newton_iters: int | None = None) -> ExportedModel:

@@ -3,7 +3,8 @@ export (online adaptation; a payload, a weaker motor).
 
 A model's :class:`ModelParameters` lists its blocks, each a value the model's terms read as a constant
 otherwise; an exported function that takes ``p`` builds the **same** terms code on symbols in their place
-(:func:`parametrized_weights`, :func:`parametrized_body`), so the math keeps one source:
+(a closed form's fields: :func:`parametrized_body`; a learned model's weights:
+``fvin_mpc.control.model_export.parametrized_weights``), so the math keeps one source:
 
 * ``gain_scale`` (``m``, default ones), every model: control ``j``'s effect is multiplied by ``s_j`` — the
   step sees ``s ⊙ u`` (:meth:`ModelParameters.actuated`; ``g(q) diag(s)`` and, for a free body, the force
@@ -139,23 +140,6 @@ def learned_parameters(weights: Mapping[str, Any], config: Any) -> ModelParamete
         names.append(output)
     return ModelParameters((gain_scale_block(config.control_dim),
                             *(ParameterBlock(name, np.array(weights[name], dtype=float)) for name in names)))
-
-
-def parametrized_weights(weights: Mapping[str, Any], parameters: ModelParameters, p: Any) -> dict[str, Any]:
-    """``weights`` with every parameter block replaced by the entries of the CasADi column ``p``, in the
-    weight's shape (a matrix as a CasADi matrix, row-major): the learned terms built on it read ``p``."""
-    import casadi as ca
-
-    replaced = dict(weights)
-    for block in parameters.blocks:
-        if block.name == GAIN_SCALE:
-            continue
-        entries = ca.vertcat(*parameters.block(p, block.name))
-        if block.default.ndim == 2:
-            rows, cols = block.default.shape
-            entries = ca.reshape(entries, cols, rows).T  # CasADi reshapes column-major; p is row-major
-        replaced[block.name] = entries
-    return replaced
 
 
 def body_parameters(body: Any) -> ModelParameters:
