@@ -264,3 +264,16 @@ def test_swingup_runs_on_the_c_loop_when_asked(tmp_path, capsys):
                               "--quiet"]) == 2
     error = capsys.readouterr().err.strip().splitlines()
     assert error[-1].startswith("error: --loop c runs the real-time iteration's generated C library")
+
+
+def test_evaluate_runs_its_mpc_on_the_c_loop_when_asked(tmp_path, capsys):
+    from fvin_mpc.core.errors import run_command
+    from fvin_mpc.evaluate import main
+
+    common = ["--controllers", "mpc-true", "--episodes", "1", "--duration", "2", "--quiet", "--loop", "c",
+              "--out-dir", str(tmp_path)]
+    assert main([*common, "--solver", "rti"]) == 0
+    assert "the C loop" in (tmp_path / "evaluation.md").read_text()
+    capsys.readouterr()
+    assert run_command(main, [*common, "--solver", "ipopt"]) == 2
+    assert "add --solver rti" in capsys.readouterr().err

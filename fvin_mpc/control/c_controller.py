@@ -85,14 +85,20 @@ def on_loop(controller: Any, loop: str) -> Any:
         raise ValueError(f"loop must be one of {LOOPS}, got {loop!r}")
     if loop == "python":
         return controller
-    if not isinstance(controller, RealTimeMPC):
+    check_c_loop(controller.settings.solver if not isinstance(controller, RealTimeMPC) else "rti")
+    return CRealTimeMPC(controller)
+
+
+def check_c_loop(solver: str) -> None:
+    """``ControllerNotExportable`` with the reason unless a controller of ``solver`` can run on the C loop
+    here: the real-time iteration, and a C compiler on PATH (``$CC``, default ``cc``)."""
+    if solver != "rti":
         raise ControllerNotExportable(f"--loop c runs the real-time iteration's generated C library; this "
-                                      f"controller solves with {controller.settings.solver!r}: add --solver rti")
+                                      f"controller solves with {solver!r}: add --solver rti")
     compiler = os.environ.get("CC", "cc")
     if shutil.which(compiler) is None:
         raise ControllerNotExportable(f"--loop c needs a C compiler: no {compiler!r} on PATH (install cc, gcc or "
                                       "clang, or set CC); --loop python runs the same controller without one")
-    return CRealTimeMPC(controller)
 
 
 def solver_settings(controller: RealTimeMPC) -> dict[str, Any]:
