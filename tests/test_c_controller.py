@@ -205,6 +205,36 @@ def test_quadrotor_c_loop_equals_python_loop(true_model):
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize("scene", ["spherical_pendulum", "quadrotor"])
+def test_changed_model_parameters_agree_between_the_loops(scene):
+    """The learned ball joint and quadrotor with changed gains and physical weights from the start and again
+    mid-episode: the Python and the C loop to 1e-9 (the parametrized R³ × S³ and ball-joint terms in C)."""
+    if scene == "quadrotor":
+        from fvin_mpc.control.flight import recovery_starts
+
+        env, python, c_loop = quadrotor_pair(true_model=False)
+        options, seed = recovery_starts(env.unwrapped.goal_state[:3], count=1)[0]
+        parameters = python.model.model_parameters
+        linear = parameters.defaults[parameters.slice("potential_linear")]
+        start = {"gain_scale": [0.9, 1.1, 1.0, 0.95], "potential_linear": 1.1 * linear}
+        later = {"gain_scale": [1.0, 0.9, 1.05, 1.0]}
+        duration = 2.0
+    else:
+        env, python, c_loop = pendulum_pair(scene, true_model=False)
+        options, seed = {"random": True}, 4
+        weights = python.model.model_parameters.defaults[python.model.model_parameters.slice("potential_w2")]
+        start = {"gain_scale": [0.8, 1.2, 1.0], "potential_w2": 1.1 * weights}
+        later = {"gain_scale": [1.0, 1.0, 0.9]}
+        duration = 4.0
+    for controller in (python, c_loop):
+        controller.set_parameters(**start)
+    # ChangesParameters.reset() returns to `start`, the values at its construction
+    python_run, c_run = ChangesParameters(python, 15, **later), ChangesParameters(c_loop, 15, **later)
+    assert_same_closed_loops(env, python_run, c_run, duration, "none", seed=seed, reset_options=options)
+    np.testing.assert_array_equal(c_loop.parameters, python.parameters)
+
+
+@pytest.mark.slow
 def test_export_command_writes_a_library_that_builds_and_runs(tmp_path):
     from fvin_mpc.export import main
 

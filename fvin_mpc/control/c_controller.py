@@ -59,7 +59,7 @@ CA = get_ops("casadi")
 #: The hand-written files copied next to the generated ones.
 TEMPLATE_FILES = ("fvin_controller.c", "fvin_controller.h", "main.c", "Makefile")
 #: The generated functions, in the order RealTimeMPC.loop_functions holds them.
-LOOP_FUNCTION_NAMES = ("rti_linearize_blocks", "rti_predict", "rti_feedback")
+LOOP_FUNCTION_NAMES = ("rti_linearize_blocks", "rti_predict", "rti_feedback", "rti_apply")
 #: Flags of the shared library: those of the Python loop's compiled functions
 #: (:data:`fvin_mpc.control.model_export.COMPILER_FLAGS`), so both run the same machine code.
 LIBRARY_FLAGS = ("-O2", "-fPIC", "-shared")
@@ -107,7 +107,8 @@ def solver_settings(controller: RealTimeMPC) -> dict[str, Any]:
     s = controller.settings.rti
     return {"cold_solver": s.cold_solver, "qp_solver": s.qp_solver, "dynamics": s.dynamics,
             "max_iter": s.max_iter, "cold_iter": s.cold_iter, "tol": s.tol,
-            "qp_iterations": s.qp_iterations, "model_parameters": s.model_parameters}
+            "qp_iterations": s.qp_iterations, "model_parameters": s.model_parameters,
+            "feedback": s.feedback}
 
 
 def check_exportable(controller: RealTimeMPC) -> None:
@@ -203,6 +204,7 @@ def config_header(controller: RealTimeMPC, example_state: np.ndarray) -> str:
         f"#define FVC_DISTURBANCE_REGION_RAD {s.disturbance_region_rad!r}",
         f"#define FVC_DISTURBANCE_REGION_SPEED {s.disturbance_region_speed!r}",
         f"#define FVC_NP {len(names)}", f"#define FVC_PARAMETRIC {int(rti.model_parameters)}",
+        f"#define FVC_PREPARED_FEEDBACK {int(rti.feedback == 'prepared')}",
         f"static const double fvc_parameter_defaults[{len(names)}] = {{{_literal(controller.parameters)}}};",
         f"static const char *const fvc_parameter_names[{len(names)}] = {{{', '.join(map(_c_string, names))}}};",
         f"static const int fvc_cold_order[{len(order)}] = {{{', '.join(map(str, order))}}};",

@@ -158,6 +158,10 @@ class RTIOptions:
             Newton iterations, linearized per stage) or ``"implicit"`` (the step's own equations between
             consecutive plan nodes, the learned terms evaluated once per node; pivoted bodies only;
             :mod:`fvin_mpc.control.implicit_dynamics`).
+        feedback: what a warm call computes: ``"qp"`` (the QP at the measured state, ``max_iter``
+            iterations) or ``"prepared"`` (the preparation solves the QP at the predicted state and the call
+            applies its Riccati gains to the measured one: a forward pass; ``max_iter`` 1 and the Riccati QP;
+            docs/c-controller.md).
         model_parameters: the model's run-time parameters (:mod:`fvin_mpc.core.model_parameters`: gain
             scales, physical values) are an input of the compiled functions, changed by
             :meth:`~fvin_mpc.control.rti.RealTimeMPC.set_parameters` without recompiling; ``False`` bakes
@@ -176,6 +180,7 @@ class RTIOptions:
     qp_iterations: int = 10
     dynamics: Literal["unrolled", "implicit"] = "unrolled"
     model_parameters: bool = True
+    feedback: Literal["qp", "prepared"] = "qp"
 
     def __post_init__(self) -> None:
         if self.max_iter < 1 or self.cold_iter < 1:
@@ -191,6 +196,11 @@ class RTIOptions:
             raise ValueError(f"unknown qp_solver {self.qp_solver!r}")
         if self.dynamics not in ("unrolled", "implicit"):
             raise ValueError(f"unknown dynamics {self.dynamics!r}")
+        if self.feedback not in ("qp", "prepared"):
+            raise ValueError(f"unknown feedback {self.feedback!r}; expected 'qp' or 'prepared'")
+        if self.feedback == "prepared" and (self.max_iter != 1 or self.qp_solver != "riccati"):
+            raise ValueError("feedback='prepared' applies one prepared Riccati solve: it needs max_iter=1 and "
+                             f"qp_solver='riccati', got max_iter={self.max_iter}, qp_solver={self.qp_solver!r}")
 
 
 @dataclass(frozen=True)

@@ -162,11 +162,14 @@ def unrolled_stage_function(step: ca.Function, layout: StateLayout, m: int) -> c
 
 def riccati_feedback_function(layout: StateLayout, n: int, m: int, low: np.ndarray, high: np.ndarray,
                               limits: np.ndarray, omega_valid: float, iterations: int, centering: float = 0.1,
-                              boundary: float = 0.995, mu_min: float = QP_MU_MIN) -> ca.Function:
+                              boundary: float = 0.995, mu_min: float = QP_MU_MIN) -> tuple[ca.Function, ca.Function]:
     """One feedback iteration as a single CasADi function (compiled with the linearization):
-    ``(X̄ (n_x,N+1), Ū (m,N), x0 (n_x), H (s,sN), H_N (n_δ,n_δ), g (s,N), g_N (n_δ), [A B] (n_δ,sN),
-    c (n_δ,N)) → (X (n_x,N+1), U (m,N), step, μ)``, ``s = n_δ + m``; ``n_x``, ``n_δ`` the ``layout``'s
-    state and tangent dimensions (7 and 6 for a pivoted body, 13 and 12 for a free one).
+    ``rti_feedback(X̄ (n_x,N+1), Ū (m,N), x0 (n_x), H (s,sN), H_N (n_δ,n_δ), g (s,N), g_N (n_δ),
+    [A B] (n_δ,sN), c (n_δ,N)) → (X (n_x,N+1), U (m,N), step, μ, K (m,n_δN), k (m,N))``, ``s = n_δ + m``;
+    ``n_x``, ``n_δ`` the ``layout``'s state and tangent dimensions (7 and 6 for a pivoted body, 13 and 12
+    for a free one); ``K``, ``k`` the last Riccati solve's gains and feedforwards per stage. And the
+    prepared feedback ``rti_apply(X̄, Ū, x0, K, k, [A B], c) → (X, U, step)``: the same update from a
+    forward pass of given gains from ``δ_0 = local(x̄_0, x0)`` (``RTIOptions.feedback="prepared"``).
 
     The QP ``min Σ ½[δ;Δu]ᵀH_k[δ;Δu] + g_kᵀ[δ;Δu] + ½δ_NᵀH_Nδ_N + g_Nᵀδ_N`` s.t.
     ``δ_{k+1} = A_kδ_k + B_kΔu_k + c_k``, ``δ_0 = local(x̄_0, x0)``, ``low_k ≤ ū_k + Δu_k ≤ high_k`` is
@@ -201,9 +204,6 @@ def riccati_feedback_function(layout: StateLayout, n: int, m: int, low: np.ndarr
     v = ca.mtimes(gain_k, delta) + ff_k
     forward = ca.Function("rti_forward_stage", [delta, gain_k, ff_k, abk, ck],
                           [ca.mtimes(abk, ca.vertcat(delta, v)) + ck, v]).mapaccum("rti_forward", n, 1)
-    # --- retraction of one stage
-    x_bar, step_k = ca.SX.sym("x_bar", ns), ca.SX.sym("step", nd)
-    retracted = ca.Function("rti_retract", [x_bar, step_k], [retract_state(layout, x_bar, step_k)]).map(n)
 
     def reverse(matrix: Any, width: int) -> Any:  # stage blocks of `width` columns in reverse order
         return matrix[:, [(n - 1 - k) * width + j for k in range(n) for j in range(width)]]
@@ -219,11 +219,12 @@ def riccati_feedback_function(layout: StateLayout, n: int, m: int, low: np.ndarr
     hessians_rev, jacobians_rev = reverse(hessians, size), reverse(jacobians, size)
     gradients_rev, gaps_rev = reverse(gradients, 1), reverse(gaps, 1)
 
-    def solve_lq(d: Any, r: Any) -> tuple[Any, Any]:
+    def solve_lq(d: Any, r: Any) -> tuple[Any, Any, Any, Any]:
         _, _, gains, feedforwards = backward(terminal_hessian, terminal_gradient, hessians_rev, gradients_rev,
                                              jacobians_rev, gaps_rev, reverse(d, 1), reverse(r, 1))
-        deltas, v = forward(delta0, reverse(gains, nd), reverse(feedforwards, 1), jacobians, gaps)
-        return deltas, v
+        gains, feedforwards = reverse(gains, nd), reverse(feedforwards, 1)
+        deltas, v = forward(delta0, gains, feedforwards, jacobians, gaps)
+        return deltas, v, gains, feedforwards
 
     # interior start: Δu in the box, 1 % of its width away from a bound; λ = μ₀/s
     v = ca.fmin(ca.fmax(ca.MX.zeros(m, n), lower + 0.01 * width), upper - 0.01 * width)
@@ -234,7 +235,7 @@ def riccati_feedback_function(layout: StateLayout, n: int, m: int, low: np.ndarr
         slack_low, slack_up = v - lower, upper - v
         curvature = dual_low / slack_low + dual_up / slack_up
         linear = gradients[nd:, :] - mu / slack_low + mu / slack_up - curvature * v
-        deltas, target = solve_lq(curvature, linear)
+        deltas, target, gains, feedforwards = solve_lq(curvature, linear)
         dv = target - v
         d_low = mu / slack_low - dual_low - dual_low / slack_low * dv
         d_up = mu / slack_up - dual_up + dual_up / slack_up * dv
@@ -247,7 +248,33 @@ def riccati_feedback_function(layout: StateLayout, n: int, m: int, low: np.ndarr
     # The states of the last Riccati solve (closed-loop forward pass, consistent with its controls to
     # within (1 − α)|Δu|): propagating the final controls open loop would amplify the interior-point
     # method's inexactness through the unstable upright dynamics (e^{λ·horizon} ≈ 10³–10⁴ here).
-    # --- trust region, update on S³
+    new_states, new_controls, step = _trust_region_update(layout, states, controls, x0, deltas, v, limits,
+                                                          omega_valid, stage_low, stage_high, n)
+    feedback = ca.Function("rti_feedback", [states, controls, x0, hessians, terminal_hessian, gradients,
+                                            terminal_gradient, jacobians, gaps],
+                           [new_states, new_controls, step, mu, gains, feedforwards],
+                           ["X", "U", "x0", "H", "HN", "g", "gN", "AB", "c"],
+                           ["X_new", "U_new", "step", "mu", "K", "k"])
+    # --- the prepared feedback: the last Riccati solve's gains applied to the measured δ_0 (a forward pass)
+    gains_in, feedforwards_in = ca.MX.sym("K", m, nd * n), ca.MX.sym("k", m, n)
+    deltas, v = forward(delta0, gains_in, feedforwards_in, jacobians, gaps)
+    new_states, new_controls, step = _trust_region_update(layout, states, controls, x0, deltas, v, limits,
+                                                          omega_valid, stage_low, stage_high, n)
+    apply = ca.Function("rti_apply", [states, controls, x0, gains_in, feedforwards_in, jacobians, gaps],
+                        [new_states, new_controls, step], ["X", "U", "x0", "K", "k", "AB", "c"],
+                        ["X_new", "U_new", "step"])
+    return feedback, apply
+
+
+def _trust_region_update(layout: StateLayout, states: Any, controls: Any, x0: Any, deltas: Any, v: Any,
+                         limits: np.ndarray, omega_valid: float, stage_low: np.ndarray, stage_high: np.ndarray,
+                         n: int) -> tuple[Any, Any, Any]:
+    """The QP's step applied to the plan: each stage's state step clipped to the trust region, retracted on
+    S³, ``|ω|`` within ``omega_valid``, the first state the measured one, the controls within their bounds;
+    and the step's size (largest ``|Δu|`` over the control range or ``|δ|`` over the trust region)."""
+    ns, nd = layout.state_dim, layout.tangent_dim
+    x_bar, step_k = ca.SX.sym("x_bar", ns), ca.SX.sym("step", nd)
+    retracted = ca.Function("rti_retract", [x_bar, step_k], [retract_state(layout, x_bar, step_k)]).map(n)
     bound = ca.repmat(ca.DM(limits), 1, n)
     steps = ca.fmin(ca.fmax(deltas, -bound), bound)
     moved = retracted(states[:, 1:], steps)
@@ -257,9 +284,7 @@ def riccati_feedback_function(layout: StateLayout, n: int, m: int, low: np.ndarr
     new_controls = ca.fmin(ca.fmax(controls + v, ca.DM(stage_low)), ca.DM(stage_high))
     step = ca.fmax(ca.mmax(ca.fabs(v) / ca.DM(np.minimum(stage_high - stage_low, 1e6))),
                    ca.mmax(ca.fabs(steps) / bound))
-    return ca.Function("rti_feedback", [states, controls, x0, hessians, terminal_hessian, gradients, terminal_gradient,
-                                        jacobians, gaps], [new_states, new_controls, step, mu],
-                       ["X", "U", "x0", "H", "HN", "g", "gN", "AB", "c"], ["X_new", "U_new", "step", "mu"])
+    return new_states, new_controls, step
 
 
 class RealTimeMPC(MPC):
@@ -404,7 +429,7 @@ class RealTimeMPC(MPC):
         riccati = s.rti.qp_solver == "riccati"
         if riccati:
             linearize = linearize_blocks
-            functions = [linearize, predict, riccati_feedback_function(
+            functions = [linearize, predict, *riccati_feedback_function(
                 layout, n, m, *self._control_bounds, self._step_limits, self._omega_valid, s.rti.qp_iterations)]
         else:
             functions = [linearize, predict]
@@ -420,6 +445,7 @@ class RealTimeMPC(MPC):
             functions = [BufferedFunction(function) for function in functions]
         self._linearize, self._predict_with_parameters = functions[:2]
         self._feedback = functions[2] if riccati else None
+        self._apply = functions[3] if riccati else None
         self._qp = None if riccati else self._make_qp(hessian.sparsity(), constraints.sparsity())
         self._size = size
         self._stage_size = stage_size
@@ -542,13 +568,27 @@ class RealTimeMPC(MPC):
                          x0: np.ndarray) -> tuple[Plan | None, str]:
         """:meth:`_iterate` in one compiled call (:func:`riccati_feedback_function`)."""
         h, h_n, g, g_n, ab, gaps, _ = linearization
-        states, controls, step, mu = self._feedback(plan.states.T, plan.controls.T, x0, h, h_n, g, g_n, ab, gaps)
+        states, controls, step, mu, _, _ = self._feedback(plan.states.T, plan.controls.T, x0, h, h_n, g, g_n, ab, gaps)
         states, controls = np.asarray(states, dtype=float).T, np.asarray(controls, dtype=float).T
         self.qp_iterations = self.settings.rti.qp_iterations
         self.last_step, self.qp_mu = float(step), float(mu)
         if not (np.all(np.isfinite(states)) and np.all(np.isfinite(controls))):
             return None, "qp-not-finite"
         return Plan(states, controls, None, None), "rti"
+
+    def _apply_prepared(self, x0: np.ndarray) -> tuple[Plan | None, int, str]:
+        """The prepared feedback (``rti.feedback="prepared"``): the preparation's QP gains applied to the
+        measured ``x0`` — one forward pass, no factorization in the call."""
+        assert self._plan is not None and self._linearization is not None
+        gains, feedforwards = self._gains
+        _, _, _, _, ab, gaps, _ = self._linearization
+        states, controls, step = self._apply(self._plan.states.T, self._plan.controls.T, x0, gains, feedforwards, ab,
+                                             gaps)
+        states, controls = np.asarray(states, dtype=float).T, np.asarray(controls, dtype=float).T
+        self.last_step = float(step)
+        if not (np.all(np.isfinite(states)) and np.all(np.isfinite(controls))):
+            return None, 0, "qp-not-finite"
+        return Plan(states, controls, None, None), 1, "rti"
 
     def _improve(self, plan: Plan, x0: np.ndarray, iterations: int, deadline: float,
                  linearization: tuple[Any, ...] | None = None) -> tuple[Plan | None, int, str, float]:
@@ -590,6 +630,13 @@ class RealTimeMPC(MPC):
         controls = np.vstack([plan.controls[1:], plan.controls[-1:]])
         self._plan = Plan(states, controls, None, None)
         self._linearization = self._linearize_at(self._plan)
+        if self.settings.rti.feedback == "prepared":
+            # The QP solved now, at the predicted first state; the call applies its gains to the measured one.
+            h, h_n, g, g_n, ab, gaps, _ = self._linearization
+            plan = self._plan
+            *_, mu, gains, feedforwards = self._feedback(plan.states.T, plan.controls.T, plan.states[0], h, h_n, g,
+                                                         g_n, ab, gaps)
+            self._gains, self.qp_mu = (gains, feedforwards), float(mu)
 
     def reset(self) -> None:
         """Forget the plan and the disturbance estimate (the next call is a cold start); the clock
@@ -649,8 +696,11 @@ class RealTimeMPC(MPC):
             if self._linearization is None:
                 self.prepare()
             assert self._plan is not None
-            plan, iterations, status, _ = self._improve(self._plan, x0, s.rti.max_iter, start + s.rti.budget_s,
-                                                        self._linearization)
+            if s.rti.feedback == "prepared":
+                plan, iterations, status = self._apply_prepared(x0)
+            else:
+                plan, iterations, status, _ = self._improve(self._plan, x0, s.rti.max_iter, start + s.rti.budget_s,
+                                                            self._linearization)
             fallback, success = None, plan is not None
             if plan is None:  # the shifted previous plan, clipped
                 plan, fallback = self._plan, "previous-plan"

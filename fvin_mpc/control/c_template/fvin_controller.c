@@ -30,6 +30,7 @@ struct fvc_controller {
     double ref[(N + 1) * NS], scales[N], u_s[N * M];
     double u_goal[M], d[M], limit[M];
     double p[FVC_NP];                        /* the model parameters (fvc_set_parameters) */
+    double K[M * FVC_ND * N], k[M * N];       /* the prepared QP's Riccati gains (FVC_PREPARED_FEEDBACK) */
     double pred_rates[NR], pred_inverse[M * NR]; /* the last one-step prediction (column-major inverse) */
     int have_plan, prepared, have_prediction, pending_prediction;
     double sent_x[NS], sent_u[M];            /* the last call's state and control, for the prediction */
@@ -104,10 +105,33 @@ static int iterate(fvc_controller *c, const double *X, const double *U, const do
     double step, mu;
     c->arg[0] = X; c->arg[1] = U; c->arg[2] = x0;
     for (int i = 0; i < LIN_GAPS + 1; i++) c->arg[3 + i] = c->lin[i];
-    c->res[0] = c->NX_; c->res[1] = c->NU; c->res[2] = &step; c->res[3] = &mu;
+    c->res[0] = c->NX_; c->res[1] = c->NU; c->res[2] = &step; c->res[3] = &mu; c->res[4] = 0; c->res[5] = 0;
     rti_feedback(c->arg, c->res, c->iw, c->w, 0);
     c->status.last_step = step;
     c->status.qp_mu = mu;
+    return all_finite(c->NX_, (N + 1) * NS) && all_finite(c->NU, N * M);
+}
+
+/* The prepared feedback's preparation (RealTimeMPC.prepare, feedback="prepared"): the QP at the plan's own
+ * first state, keeping its last Riccati gains for the call. */
+static void prepare_gains(fvc_controller *c) {
+    double step, mu;
+    c->arg[0] = c->X; c->arg[1] = c->U; c->arg[2] = c->X;
+    for (int i = 0; i < LIN_GAPS + 1; i++) c->arg[3 + i] = c->lin[i];
+    c->res[0] = c->NX_; c->res[1] = c->NU; c->res[2] = &step; c->res[3] = &mu; c->res[4] = c->K; c->res[5] = c->k;
+    rti_feedback(c->arg, c->res, c->iw, c->w, 0);
+    c->status.qp_mu = mu;
+}
+
+/* The prepared feedback's call (RealTimeMPC._apply_prepared): the gains applied to the measured x0, the
+ * new plan into NX_, NU; 0 if not finite. */
+static int apply_prepared(fvc_controller *c, const double *x0) {
+    double step;
+    c->arg[0] = c->X; c->arg[1] = c->U; c->arg[2] = x0; c->arg[3] = c->K; c->arg[4] = c->k;
+    c->arg[5] = c->lin[LIN_AB]; c->arg[6] = c->lin[LIN_GAPS];
+    c->res[0] = c->NX_; c->res[1] = c->NU; c->res[2] = &step;
+    rti_apply(c->arg, c->res, c->iw, c->w, 0);
+    c->status.last_step = step;
     return all_finite(c->NX_, (N + 1) * NS) && all_finite(c->NU, N * M);
 }
 
@@ -260,6 +284,8 @@ fvc_controller *fvc_create(void) {
     sz_arg = a > sz_arg ? a : sz_arg; sz_res = r > sz_res ? r : sz_res; sz_iw = i > sz_iw ? i : sz_iw; sz_w = w > sz_w ? w : sz_w;
     rti_feedback_work(&a, &r, &i, &w);
     sz_arg = a > sz_arg ? a : sz_arg; sz_res = r > sz_res ? r : sz_res; sz_iw = i > sz_iw ? i : sz_iw; sz_w = w > sz_w ? w : sz_w;
+    rti_apply_work(&a, &r, &i, &w);
+    sz_arg = a > sz_arg ? a : sz_arg; sz_res = r > sz_res ? r : sz_res; sz_iw = i > sz_iw ? i : sz_iw; sz_w = w > sz_w ? w : sz_w;
 #if FVC_FREE_GOAL_GUESS
     rti_goal_guess_work(&a, &r, &i, &w);
 #endif
@@ -312,6 +338,7 @@ void fvc_prepare(fvc_controller *c) {
     for (int i = OM; i < NS; i++) c->X[N * NS + i] = clip(c->X[N * NS + i], -FVC_OMEGA_BOUND, FVC_OMEGA_BOUND);
     memmove(c->U, c->U + M, sizeof(double) * (N - 1) * M);
     call_linearize(c, c->X, c->U);
+    if (FVC_PREPARED_FEEDBACK) prepare_gains(c);
     c->prepared = 1;
     c->status.prepares++;
 }
@@ -340,9 +367,18 @@ int fvc_feedback(fvc_controller *c, const double *x, double *u) {
         status = FVC_COLD;
     } else {
         if (!c->prepared) fvc_prepare(c);
-        memcpy(c->CX, c->X, sizeof c->X);
-        memcpy(c->CU, c->U, sizeof c->U);
-        c->status.iterations = improve(c, c->CX, c->CU, x0, FVC_MAX_ITER, 1, &failed);
+        if (FVC_PREPARED_FEEDBACK) {
+            failed = !apply_prepared(c, x0);
+            c->status.iterations = !failed;
+            if (!failed) {
+                memcpy(c->CX, c->NX_, sizeof c->NX_);
+                memcpy(c->CU, c->NU, sizeof c->NU);
+            }
+        } else {
+            memcpy(c->CX, c->X, sizeof c->X);
+            memcpy(c->CU, c->U, sizeof c->U);
+            c->status.iterations = improve(c, c->CX, c->CU, x0, FVC_MAX_ITER, 1, &failed);
+        }
         if (failed) {  /* the shifted previous plan */
             c->status.fallbacks++;
             status = FVC_FALLBACK;
