@@ -84,16 +84,21 @@ class BackgroundLoad:
             process.join()
 
 
-def controllers(scene: str, true_model: bool, seed: int) -> tuple[Any, Any, Any, dict[str, Any], int]:
+def controllers(scene: str, true_model: bool, seed: int, feedback: str = "qp") -> tuple[Any, Any, Any, dict[str, Any],
+                                                                                        int]:
     """``(env, python loop, C loop, reset options, env seed)`` of ``scene``: a random start, or the
-    quadrotor's first random recovery start."""
+    quadrotor's first random recovery start. ``feedback``: ``RTIOptions.feedback`` of both loops
+    (``"prepared"`` with one iteration per period)."""
+    rti = {} if feedback == "qp" else {"feedback": feedback, "max_iter": 1}
     if resolve_scene(scene).space.pivoted:
         env = scene_env(scene, true_model=true_model)
-        python = scene_mpc(env, scene_model(env, true_model=true_model), scene_mpc_settings(env, solver="rti"))
+        python = scene_mpc(env, scene_model(env, true_model=true_model),
+                           scene_mpc_settings(env, solver="rti").updated(rti=rti))
         options = {"random": True}
     else:
         env = QuadrotorEnv(resolve_scene(scene))
-        python = quadrotor_mpc(env, quadrotor_model(env, true_model=true_model), quadrotor_mpc_settings())
+        python = quadrotor_mpc(env, quadrotor_model(env, true_model=true_model),
+                               quadrotor_mpc_settings().updated(rti=rti))
         options, seed = recovery_starts(env.unwrapped.goal_state[:3], count=3, seed=seed)[2]
     return env, python, LeanC(CRealTimeMPC(python)), options, seed
 
@@ -114,12 +119,13 @@ def summary(episode: Any) -> dict[str, Any]:
             "control_period_us": 1e6 * episode.control_period}
 
 
-def run(scenes: Sequence[str], true_model: bool, load_workers: int, seed: int) -> list[dict[str, Any]]:
+def run(scenes: Sequence[str], true_model: bool, load_workers: int, seed: int,
+        feedback: str = "qp") -> list[dict[str, Any]]:
     from tqdm.auto import tqdm
 
     rows = []
     for scene in tqdm(scenes, desc="scenes"):
-        env, python, c_loop, options, seed = controllers(scene, true_model, seed)
+        env, python, c_loop, options, seed = controllers(scene, true_model, seed, feedback)
         duration = DURATION_S.get(scene, 8.0)
         row: dict[str, Any] = {"scene": scene, "model": python.model.name, "horizon": python.horizon}
         for condition in ("as is", "loaded"):
@@ -169,14 +175,18 @@ def build_parser() -> argparse.ArgumentParser:
                         help="busy-loop processes of the loaded runs (default: one per core)")
     parser.add_argument("--out", type=Path, default=Path("docs/bench/c_loop.json"), help="JSON results")
     parser.add_argument("--seed", type=int, default=0, help="the episodes' random starts")
+    parser.add_argument("--feedback", choices=["qp", "prepared"], default="qp",
+                        help="RTIOptions.feedback of both loops: qp (the QP at the measured state, the default) or "
+                             "prepared (the preparation's Riccati gains applied to it; one iteration per period)")
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    rows = run(args.scenes, args.true_model, args.load_workers, args.seed)
+    rows = run(args.scenes, args.true_model, args.load_workers, args.seed, args.feedback)
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps({"command": "python -m benchmarks.c_loop", "cpus": os.cpu_count(),
+    args.out.write_text(json.dumps({"command": "python -m benchmarks.c_loop", "feedback": args.feedback,
+                                    "load_average": os.getloadavg(), "cpus": os.cpu_count(),
                                     "load_workers": args.load_workers, "rows": rows}, indent=1))
     print(markdown(rows))
     return 0

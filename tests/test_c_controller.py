@@ -168,6 +168,22 @@ def test_changed_model_parameters_reach_both_loops_without_recompiling(closed_fo
         controller.set_parameters(python.model.model_parameters.defaults)
 
 
+def test_the_prepared_feedback_is_the_same_in_both_loops_and_swings_up_as_the_qp_does(closed_form_pendulum):
+    """``RTIOptions.feedback="prepared"``: the QP solved in the preparation, its gains applied in the call.
+    Python and C equal to 1e-9, and the episode's outcome that of the full QP per call."""
+    env, python, _ = closed_form_pendulum
+    prepared = scene_mpc(env, python.model, python.settings.updated(rti={"feedback": "prepared"}))
+    c_prepared = CRealTimeMPC(prepared)
+    _, c_episode = assert_same_closed_loops(env, prepared, c_prepared, 4.0, "none", seed=0)
+    assert_same_closed_loops(env, prepared, c_prepared, 2.0, 0.012, seed=3)
+    qp_episode, _ = run_episode(env, python, 4.0, seed=0)
+    assert episode_metrics(c_episode)["success"] and episode_metrics(qp_episode)["success"]
+    assert episode_metrics(c_episode)["accumulated_cost"] == pytest.approx(
+        episode_metrics(qp_episode)["accumulated_cost"], rel=0.01)
+    with pytest.raises(ValueError, match="needs max_iter=1"):
+        python.settings.updated(rti={"feedback": "prepared", "max_iter": 3})
+
+
 def test_an_ipopt_cold_start_is_refused_with_the_reason():
     env = scene_env("pendulum", true_model=True)
     model = scene_model(env, true_model=True)
@@ -232,6 +248,21 @@ def test_changed_model_parameters_agree_between_the_loops(scene):
     python_run, c_run = ChangesParameters(python, 15, **later), ChangesParameters(c_loop, 15, **later)
     assert_same_closed_loops(env, python_run, c_run, duration, "none", seed=seed, reset_options=options)
     np.testing.assert_array_equal(c_loop.parameters, python.parameters)
+
+
+@pytest.mark.slow
+def test_the_prepared_feedback_is_the_same_in_both_loops_on_the_learned_models():
+    from fvin_mpc.control.flight import quadrotor_model, quadrotor_mpc, quadrotor_mpc_settings, recovery_starts
+    from fvin_mpc.envs import QuadrotorEnv
+    from fvin_mpc.envs.scenes import resolve_scene
+
+    env, python, c_loop = pendulum_pair("pendulum", true_model=False, rti={"feedback": "prepared"})
+    assert_same_closed_loops(env, python, c_loop, 8.0, "none", seed=1, reset_options={"random": True})
+    env = QuadrotorEnv(resolve_scene("quadrotor"))
+    settings = quadrotor_mpc_settings().updated(rti={**UNBOUNDED, "feedback": "prepared"})
+    python = quadrotor_mpc(env, quadrotor_model(env), settings)
+    options, seed = recovery_starts(env.unwrapped.goal_state[:3], count=3)[2]
+    assert_same_closed_loops(env, python, CRealTimeMPC(python), 3.0, "none", seed=seed, reset_options=options)
 
 
 @pytest.mark.slow
