@@ -107,7 +107,7 @@ class EvaluationConfig:
         if self.loop not in LOOPS:
             raise ValueError(f"loop must be one of {LOOPS}, got {self.loop!r}")
         try:  # validate the overrides (names and values) now, not in a worker
-            MPCSettings(**dict(self.mpc))
+            MPCSettings().updated(**dict(self.mpc))  # rti and ipopt as mappings of their fields
         except TypeError as error:
             raise ValueError(f"unknown MPC setting in {dict(self.mpc)}: {error}") from None
 
