@@ -338,3 +338,12 @@ def test_evaluate_runs_its_mpc_on_the_c_loop_when_asked(tmp_path, capsys):
     capsys.readouterr()
     assert run_command(main, [*common, "--solver", "ipopt"]) == 2
     assert "add --solver rti" in capsys.readouterr().err
+
+
+def test_the_prepared_feedback_option_sets_one_iteration_per_period():
+    from fvin_mpc._cli import mpc_overrides
+    from fvin_mpc.swingup import build_parser
+
+    args = build_parser().parse_args(["--solver", "rti", "--rti-feedback", "prepared"])
+    assert mpc_overrides(args)["rti"] == {"feedback": "prepared", "max_iter": 1}
+    assert "rti" not in mpc_overrides(build_parser().parse_args(["--solver", "rti"]))
