@@ -2,12 +2,13 @@
 
 :func:`write_controller` writes a folder that builds with ``make`` (or ``cc -O2``): the CasADi
 functions a :class:`~fvin_mpc.control.rti.RealTimeMPC` calls every period —
-``rti_linearize_blocks``, ``rti_predict``, ``rti_feedback``, taken from its
+``rti_linearize_blocks``, ``rti_predict``, ``rti_feedback``, ``rti_apply``, taken from its
 :attr:`~fvin_mpc.control.rti.RealTimeMPC.loop_functions`, so the math has one source — generated as C
 (``fvc_model.c``), the settings the Python loop reads as constants (``fvc_config.h``), and a
 hand-written driver (``fvin_controller.c``, package data under ``c_template/``) that is the Python
 loop's orchestration: the cold multi-start, feedback, preparation (shift + linearization), fallback to
-the shifted plan, the disturbance estimate, the reference as a run-time input. A header
+the shifted plan, the disturbance estimate, the reference and the model parameters as run-time inputs
+(``fvc_set_parameters``; :meth:`CRealTimeMPC.set_parameters`). A header
 (``fvin_controller.h``), a ``Makefile`` and an example ``main.c`` come with it. Nothing of Python,
 NumPy, CasADi or torch at run time.
 

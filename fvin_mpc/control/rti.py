@@ -37,6 +37,11 @@ an unbiased model). Solved differently (Diehl's real-time iteration, as in acado
 * **preparation / feedback** — after a torque is sent, :meth:`prepare` shifts the plan by one
   step (the last stage predicted by the model) and linearizes it; the next call only fixes
   ``δ_0`` and solves the QP (feedback), then iterates again only while ``rti.budget_s`` allows.
+  With ``rti.feedback="prepared"`` the preparation also solves the QP at the predicted first state and
+  keeps its Riccati gains; the call applies them to the measured ``δ_0`` (a forward pass).
+* **model parameters** — the compiled functions take the model's run-time parameters as an input
+  (:mod:`fvin_mpc.core.model_parameters`: gain scales, physical values); :meth:`RealTimeMPC.set_parameters`
+  changes them without recompiling (``rti.model_parameters=False`` bakes them in).
 * **trust region** — each stage's state step is clipped (:data:`STEP_LIMIT_ANGLE`,
   :data:`STEP_LIMIT_OMEGA`) and planned ``|ω|`` kept inside the step's solvability limit: a full
   Gauss–Newton step from a guess with large gaps otherwise leaps to where the model means nothing.

@@ -47,7 +47,9 @@ void fvc_reset(fvc_controller *c);
 
 /* The control u (FVC_M) for the measured state x (FVC_NS). */
 int fvc_feedback(fvc_controller *c, const double *x, double *u);
-/* Shift the plan one step and linearize it for the next call; call after the control is sent. It
+/* Shift the plan one step and linearize it for the next call; call after the control is sent. Exported
+ * with the prepared feedback (FVC_PREPARED_FEEDBACK in fvc_config.h) it also solves the QP at the predicted
+ * state, and the next fvc_feedback only applies its gains to the measured one. It
  * also computes the model's one-step prediction after the control (for the disturbance estimate),
  * which fvc_feedback leaves for after the control is out. */
 void fvc_prepare(fvc_controller *c);
