@@ -16,6 +16,8 @@ imports and holds the line). Every module, one line each:
 * ``networks`` — the learned S3FVIN terms ``J``, ``U``, ``g`` (and ``D``) from weights.
 * ``networks_r3s3`` — the learned R³ × S³ terms ``M``, ``J``, ``U``, force and torque gains.
 * ``networks_so3`` — the learned SO3FVIN terms.
+* ``model_parameters`` — a model's run-time parameters (gain scales, explicit physical values) and the
+  weights or body fields they stand in for.
 * ``rigid_body`` — closed-form bodies on a fixed pivot, read off an MJCF.
 * ``quadrotor`` — the closed-form quadrotor (R³ × S³) and a geometric controller.
 * ``state`` — array checks at numeric boundaries and the pivoted state's split.

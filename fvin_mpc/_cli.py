@@ -68,6 +68,17 @@ def add_mpc_arguments(parser: argparse.ArgumentParser) -> None:
                        help="rti only: the dynamics constraint — unrolled: the exported step x⁺ = F(x, u) "
                             "linearized per stage; implicit: the step's equations between plan nodes, the "
                             "learned terms once per node (default: the scene's)")
+    group.add_argument("--rti-feedback", choices=["qp", "prepared"], default=None,
+                       help="rti only: what a period's call computes — qp: the QP at the measured state (default); "
+                            "prepared: the preparation solves it at the predicted state and the call applies its "
+                            "Riccati gains (a forward pass; one iteration per period)")
+
+
+def add_loop_argument(parser: argparse.ArgumentParser) -> None:
+    """``--loop python|c``: which loop runs the real-time MPC (:func:`fvin_mpc.control.c_controller.on_loop`)."""
+    parser.add_argument("--loop", choices=["python", "c"], default="python",
+                        help="rti only: python runs the real-time iteration in Python (default); c runs the same "
+                             "controller as its generated C library (needs a C compiler; built once, cached)")
 
 
 def parse_latency(text: str) -> Any:
@@ -100,9 +111,12 @@ def add_closed_loop_arguments(parser: argparse.ArgumentParser) -> None:
 def mpc_overrides(args: argparse.Namespace) -> dict[str, Any]:
     """The :func:`~fvin_mpc.control.scene.scene_mpc_settings` overrides the options ask for."""
     given = {field: getattr(args, option[2:].replace("-", "_")) for option, (field, _, _) in MPC_OPTIONS.items()}
-    given.update({"ipopt.hessian": args.hessian, "solver": args.solver, "rti.dynamics": args.rti_dynamics})
+    given.update({"ipopt.hessian": args.hessian, "solver": args.solver, "rti.dynamics": args.rti_dynamics,
+                  "rti.feedback": args.rti_feedback})
     if args.single_start:
         given["cold_starts"] = ("rollout+",)
+    if args.rti_feedback == "prepared":  # it applies one prepared solve: a preset's further iterations go
+        given["rti.max_iter"] = 1
     overrides: dict[str, Any] = {}
     for path, value in given.items():
         if value is None:  # the scene's value stands

@@ -16,6 +16,7 @@ import fvin_mpc.studies.evaluation as evaluation_module
 from fvin_mpc._cli import (
     add_backend_arguments,
     add_closed_loop_arguments,
+    add_loop_argument,
     add_scene_arguments,
     backend_options,
     checked_scene_and_checkpoint,
@@ -24,6 +25,7 @@ from fvin_mpc._cli import (
     positive_float,
     run_command,
 )
+from fvin_mpc.control.c_controller import check_c_loop
 from fvin_mpc.core.checkpoint import checkpoint_exists
 from fvin_mpc.envs.scenes import existing_scene
 from fvin_mpc.studies.evaluation import (
@@ -32,6 +34,7 @@ from fvin_mpc.studies.evaluation import (
     EvaluationConfig,
     evaluate,
     make_env,
+    mpc_settings,
     summary_table,
     write_report,
 )
@@ -57,6 +60,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--json", type=Path, default=None, help="also write the JSON result here")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     add_closed_loop_arguments(parser)
+    add_loop_argument(parser)
     return parser
 
 
@@ -82,10 +86,12 @@ def main(argv: Sequence[str] | None = None) -> int:
             controllers=tuple(n.strip() for n in args.controllers.split(",") if n.strip()), seed=args.seed,
             max_omega=args.max_omega, control_period=args.control_period,
             mpc=tuple((name, value) for name, value in mpc_overrides(args).items() if value is not None),
-            latency=args.latency)
+            latency=args.latency, loop=args.loop)
         backend = backend_options(args)
         _check_scene_and_checkpoint(config)
         make_env(config).close()  # fails early on a scene the env cannot simulate
+        if args.loop == "c" and any(name.startswith("mpc-") for name in config.controllers):
+            check_c_loop(mpc_settings(config).solver)  # before any worker builds one
         result = evaluate(config, workers=args.workers, progress=not args.quiet, **backend)
     except (ValueError, FileNotFoundError, TasksFailed) as error:
         return exit_status(error)

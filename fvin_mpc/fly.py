@@ -12,7 +12,8 @@ from pathlib import Path
 from typing import Sequence
 
 import fvin_mpc.studies.flight_report as study
-from fvin_mpc._cli import add_latency_argument, checked_scene_and_checkpoint, run_command
+from fvin_mpc._cli import add_latency_argument, add_loop_argument, checked_scene_and_checkpoint, run_command
+from fvin_mpc.control.c_controller import on_loop
 from fvin_mpc.control.closed_loop import write_video
 from fvin_mpc.core.errors import UsageError
 
@@ -34,6 +35,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--episodes", type=int, default=20, help="recovery starts (default: 20)")
     parser.add_argument("--seed", type=int, default=0, help="seeds the recovery starts (default: 0)")
     add_latency_argument(parser, default="measured")
+    add_loop_argument(parser)
     parser.add_argument("--json", type=Path, default=None, help="write the per-episode results as JSON")
     parser.add_argument("--plot", type=Path, default=None, help="recovery or figure-eight plot (PNG)")
     parser.add_argument("--video", type=Path, default=None,
@@ -57,19 +59,21 @@ def main(argv: Sequence[str] | None = None) -> int:
     if spec.space.pivoted:
         raise UsageError(f"scene {spec.name!r} is a body on a pivot; swing it up with python -m fvin_mpc.swingup")
     if args.report is not None:
+        if args.loop != "python":
+            raise UsageError("--report runs the studies' own controllers in Python; leave out --loop c")
         results = study.side_by_side(args.report, argv, args.episodes, args.seed, args.latency, args.checkpoint,
                                      progress=not args.quiet, scene=args.scene)
         study.print_rows([model["summary"] for model in results["models"].values()])
         print(f"report: {args.report / 'quadrotor.md'}", file=sys.stderr)
         return 0
     env = study.make_env(render=args.video is not None, scene=args.scene)
-    controller = study.make_controller(env, args.model, args.checkpoint, solver=args.solver)
+    controller = on_loop(study.make_controller(env, args.model, args.checkpoint, solver=args.solver), args.loop)
     if args.model == "closed-form":
         for left_out in env.space.closed_form(env.model, env.body_name).unmodelled:
             print(f"note: the closed form leaves out {left_out}", file=sys.stderr)
     print(f"model {controller.model.name}, horizon {controller.settings.horizon} "
           f"({controller.settings.horizon * controller.model.step_size:.2f} s), built in {controller.build_s:.1f} s, "
-          f"solver {args.solver}, latency {args.latency}", file=sys.stderr)
+          f"solver {args.solver}, {args.loop} loop, latency {args.latency}", file=sys.stderr)
     if args.task == "recovery":
         rows, episodes, frames = study.run_recovery(env, controller, args.episodes, args.seed, args.latency,
                                                     progress=not args.quiet, render_first=args.video is not None)

@@ -63,6 +63,6 @@ def test_compiled_rti_functions_agree_with_their_unbuffered_calls():
     buffered = controller._linearize
     _, _, scales, references = controller._sample_reference()
     targets = np.clip(scales[:, None] * controller._u_goal, controller.torque_low, controller.torque_high).T
-    arguments = (plan.states.T, plan.controls.T, references, controller.disturbance, targets)
+    arguments = (plan.states.T, plan.controls.T, references, controller.disturbance, targets, controller.parameters)
     for result, reference in zip(buffered(*arguments), buffered.function(*arguments)):
         np.testing.assert_allclose(result, np.asarray(reference).reshape(result.shape), rtol=0, atol=0)

@@ -15,6 +15,7 @@ The default suite builds one small case (the closed-form pendulum); the others a
 
 from __future__ import annotations
 
+import ctypes
 import os
 import shutil
 import subprocess
@@ -24,6 +25,7 @@ import pytest
 
 from fvin_mpc.control.c_controller import ControllerNotExportable, CRealTimeMPC
 from fvin_mpc.control.closed_loop import episode_metrics, run_episode
+from fvin_mpc.control.model_export import CompileCount
 from fvin_mpc.control.scene import scene_env, scene_model, scene_mpc, scene_mpc_settings
 
 COMPILER = os.environ.get("CC", "cc")
@@ -99,6 +101,89 @@ def test_the_c_loop_refuses_a_state_that_is_not_one(closed_form_pendulum):
     assert c_loop.counters()["bad_states"] == 1
 
 
+class ChangesParameters:
+    """A controller told new model parameters after its ``at``-th call, between the control and the
+    preparation — where an online adaptation would (issue 29)."""
+
+    def __init__(self, controller, at: int, **blocks):
+        self.controller, self.at, self.blocks = controller, at, blocks
+        self.defaults = controller.parameters
+
+    def reset(self):
+        self.calls = 0
+        self.controller.set_parameters(self.defaults)
+        self.controller.reset()
+
+    def __call__(self, x):
+        result = self.controller(x)
+        self.calls += 1
+        if self.calls == self.at:
+            self.controller.set_parameters(**self.blocks)
+        return result
+
+    def prepare(self):
+        self.controller.prepare()
+
+    def set_time(self, t):
+        self.controller.set_time(t)
+
+
+def test_default_model_parameters_leave_the_controls_as_they_were(closed_form_pendulum):
+    """The parameters as an input of the compiled functions (the default) against the constants baked in
+    (before they were inputs): the same controls to rounding over a whole swing-up."""
+    env, python, _ = closed_form_pendulum
+    constants = scene_mpc(env, python.model, python.settings.updated(rti={"model_parameters": False}))
+    baked, _ = run_episode(env, constants, 4.0, seed=0)
+    inputs, _ = run_episode(env, python, 4.0, seed=0)
+    np.testing.assert_allclose(inputs.u, baked.u, rtol=0.0, atol=1e-12)
+    with pytest.raises(ValueError, match="baked in"):
+        constants.set_parameters(gain_scale=[0.5])
+
+
+def test_changed_model_parameters_reach_both_loops_without_recompiling(closed_form_pendulum):
+    """New gains and physical values mid-episode: the Python and the C loop agree to 1e-9, the controls
+    differ from the unchanged model's from the change on, and nothing is compiled."""
+    env, python, c_loop = closed_form_pendulum
+    unchanged, _ = run_episode(env, python, 3.0, seed=2)
+    compilations = (CompileCount.calls, CompileCount.compiler_runs)
+    blocks = {"gain_scale": [0.7], "mass_gravity": 9.0}
+    python_episode, c_episode = assert_same_closed_loops(env, ChangesParameters(python, 10, **blocks),
+                                                         ChangesParameters(c_loop, 10, **blocks), 3.0, "none", seed=2)
+    assert (CompileCount.calls, CompileCount.compiler_runs) == compilations
+    np.testing.assert_array_equal(python_episode.u[:10], unchanged.u[:10])  # the change acts from the next call
+    assert np.max(np.abs(python_episode.u[10:] - unchanged.u[10:])) > 1e-3
+    np.testing.assert_array_equal(c_loop.parameters, python.parameters)
+    assert python.parameters[python.parameter_names.index("mass_gravity")] == 9.0
+    # the prediction is the model's with the gain scale: ∂ω⁺/∂u scales with it
+    x = np.array([1.0, 0.0, 0.0, 0.0, 0.0, 0.3, 0.0])
+    slope = python._predict(x, np.zeros(1))[1]
+    python.set_parameters(gain_scale=[0.35])
+    np.testing.assert_allclose(python._predict(x, np.zeros(1))[1], 0.5 * slope, rtol=1e-12, atol=1e-15)
+    # a non-finite value is refused by the library itself, and nothing changes
+    before = c_loop.parameters
+    refused = np.ascontiguousarray(np.where(np.arange(before.size) == 0, np.inf, before))
+    assert c_loop._lib.fvc_set_parameters(c_loop._handle, refused.ctypes.data_as(ctypes.POINTER(ctypes.c_double))) == -3
+    np.testing.assert_array_equal(c_loop.parameters, before)
+    for controller in (python, c_loop):
+        controller.set_parameters(python.model.model_parameters.defaults)
+
+
+def test_the_prepared_feedback_is_the_same_in_both_loops_and_swings_up_as_the_qp_does(closed_form_pendulum):
+    """``RTIOptions.feedback="prepared"``: the QP solved in the preparation, its gains applied in the call.
+    Python and C equal to 1e-9, and the episode's outcome that of the full QP per call."""
+    env, python, _ = closed_form_pendulum
+    prepared = scene_mpc(env, python.model, python.settings.updated(rti={"feedback": "prepared"}))
+    c_prepared = CRealTimeMPC(prepared)
+    _, c_episode = assert_same_closed_loops(env, prepared, c_prepared, 4.0, "none", seed=0)
+    assert_same_closed_loops(env, prepared, c_prepared, 2.0, 0.012, seed=3)
+    qp_episode, _ = run_episode(env, python, 4.0, seed=0)
+    assert episode_metrics(c_episode)["success"] and episode_metrics(qp_episode)["success"]
+    assert episode_metrics(c_episode)["accumulated_cost"] == pytest.approx(
+        episode_metrics(qp_episode)["accumulated_cost"], rel=0.01)
+    with pytest.raises(ValueError, match="needs max_iter=1"):
+        python.settings.updated(rti={"feedback": "prepared", "max_iter": 3})
+
+
 def test_an_ipopt_cold_start_is_refused_with_the_reason():
     env = scene_env("pendulum", true_model=True)
     model = scene_model(env, true_model=True)
@@ -133,6 +218,51 @@ def test_quadrotor_c_loop_equals_python_loop(true_model):
     starts = recovery_starts(env.unwrapped.goal_state[:3], count=3)
     for (options, seed), latency in zip(starts, ["none", 0.004, "none"]):
         assert_same_closed_loops(env, python, c_loop, 3.0, latency, seed=seed, reset_options=options)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("scene", ["spherical_pendulum", "quadrotor"])
+def test_changed_model_parameters_agree_between_the_loops(scene):
+    """The learned ball joint and quadrotor with changed gains and physical weights from the start and again
+    mid-episode: the Python and the C loop to 1e-9 (the parametrized R³ × S³ and ball-joint terms in C)."""
+    if scene == "quadrotor":
+        from fvin_mpc.control.flight import recovery_starts
+
+        env, python, c_loop = quadrotor_pair(true_model=False)
+        options, seed = recovery_starts(env.unwrapped.goal_state[:3], count=1)[0]
+        parameters = python.model.model_parameters
+        linear = parameters.defaults[parameters.slice("potential_linear")]
+        start = {"gain_scale": [0.9, 1.1, 1.0, 0.95], "potential_linear": 1.1 * linear}
+        later = {"gain_scale": [1.0, 0.9, 1.05, 1.0]}
+        duration = 2.0
+    else:
+        env, python, c_loop = pendulum_pair(scene, true_model=False)
+        options, seed = {"random": True}, 4
+        weights = python.model.model_parameters.defaults[python.model.model_parameters.slice("potential_w2")]
+        start = {"gain_scale": [0.8, 1.2, 1.0], "potential_w2": 1.1 * weights}
+        later = {"gain_scale": [1.0, 1.0, 0.9]}
+        duration = 4.0
+    for controller in (python, c_loop):
+        controller.set_parameters(**start)
+    # ChangesParameters.reset() returns to `start`, the values at its construction
+    python_run, c_run = ChangesParameters(python, 15, **later), ChangesParameters(c_loop, 15, **later)
+    assert_same_closed_loops(env, python_run, c_run, duration, "none", seed=seed, reset_options=options)
+    np.testing.assert_array_equal(c_loop.parameters, python.parameters)
+
+
+@pytest.mark.slow
+def test_the_prepared_feedback_is_the_same_in_both_loops_on_the_learned_models():
+    from fvin_mpc.control.flight import quadrotor_model, quadrotor_mpc, quadrotor_mpc_settings, recovery_starts
+    from fvin_mpc.envs import QuadrotorEnv
+    from fvin_mpc.envs.scenes import resolve_scene
+
+    env, python, c_loop = pendulum_pair("pendulum", true_model=False, rti={"feedback": "prepared"})
+    assert_same_closed_loops(env, python, c_loop, 8.0, "none", seed=1, reset_options={"random": True})
+    env = QuadrotorEnv(resolve_scene("quadrotor"))
+    settings = quadrotor_mpc_settings().updated(rti={**UNBOUNDED, "feedback": "prepared"})
+    python = quadrotor_mpc(env, quadrotor_model(env), settings)
+    options, seed = recovery_starts(env.unwrapped.goal_state[:3], count=3)[2]
+    assert_same_closed_loops(env, python, CRealTimeMPC(python), 3.0, "none", seed=seed, reset_options=options)
 
 
 @pytest.mark.slow
@@ -173,3 +303,47 @@ def test_export_options_that_need_a_controller_are_refused_without_one(capsys):
 
     assert run_command(main, ["--build"]) == 2
     assert "go with --controller DIR" in capsys.readouterr().err
+
+
+def test_swingup_runs_on_the_c_loop_when_asked(tmp_path, capsys):
+    """``--loop c``: the command's controller is the C library (whose closed loops the tests above compare
+    with Python's); with a solver that is not the real-time iteration, a one-line error."""
+    import json
+
+    from fvin_mpc.core.errors import run_command
+    from fvin_mpc.swingup import main
+
+    out = tmp_path / "c.json"
+    calls = CompileCount.calls
+    assert main(["--true-model", "--solver", "rti", "--loop", "c", "--duration", "2", "--plot", "", "--quiet",
+                 "--json", str(out)]) == 0
+    result = json.loads(out.read_text())
+    assert result["loop"] == "c" and np.isfinite(result["accumulated_cost"])
+    assert CompileCount.calls == calls + 2  # the Python loop's functions and the C library (both cached)
+    capsys.readouterr()
+    assert run_command(main, ["--true-model", "--solver", "ipopt", "--loop", "c", "--duration", "1", "--plot", "",
+                              "--quiet"]) == 2
+    error = capsys.readouterr().err.strip().splitlines()
+    assert error[-1].startswith("error: --loop c runs the real-time iteration's generated C library")
+
+
+def test_evaluate_runs_its_mpc_on_the_c_loop_when_asked(tmp_path, capsys):
+    from fvin_mpc.core.errors import run_command
+    from fvin_mpc.evaluate import main
+
+    common = ["--controllers", "mpc-true", "--episodes", "1", "--duration", "2", "--quiet", "--loop", "c",
+              "--out-dir", str(tmp_path)]
+    assert main([*common, "--solver", "rti"]) == 0
+    assert "the C loop" in (tmp_path / "evaluation.md").read_text()
+    capsys.readouterr()
+    assert run_command(main, [*common, "--solver", "ipopt"]) == 2
+    assert "add --solver rti" in capsys.readouterr().err
+
+
+def test_the_prepared_feedback_option_sets_one_iteration_per_period():
+    from fvin_mpc._cli import mpc_overrides
+    from fvin_mpc.swingup import build_parser
+
+    args = build_parser().parse_args(["--solver", "rti", "--rti-feedback", "prepared"])
+    assert mpc_overrides(args)["rti"] == {"feedback": "prepared", "max_iter": 1}
+    assert "rti" not in mpc_overrides(build_parser().parse_args(["--solver", "rti"]))

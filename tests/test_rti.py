@@ -92,7 +92,7 @@ def test_failed_qp_delivers_the_shifted_previous_plan_clipped(pendulum, qp_solve
             return {"success": False, "return_status": "forced failure"}
 
     def failing_feedback(states, controls, *_):
-        return states * np.nan, controls * np.nan, np.nan, np.nan
+        return states * np.nan, controls * np.nan, np.nan, np.nan, None, None  # (…, step, μ, gains)
 
     if qp_solver == "hpipm":
         controller._qp = FailingQP()
@@ -103,6 +103,19 @@ def test_failed_qp_delivers_the_shifted_previous_plan_clipped(pendulum, qp_solve
     assert info["status"] == ("forced failure" if qp_solver == "hpipm" else "qp-not-finite")
     np.testing.assert_array_equal(u, np.clip(previous[1], env.unwrapped.torque_low, env.unwrapped.torque_high))
     assert np.all(np.isfinite(u))
+
+
+def test_a_prepared_feedback_that_is_not_finite_delivers_the_shifted_previous_plan(pendulum):
+    env, model = pendulum
+    controller = rti(env, model, rti={"feedback": "prepared"})
+    x0, _ = env.reset(options={"qpos": np.array([2.0]), "qvel": np.array([1.0])})
+    controller(x0)
+    previous = controller._plan.controls.copy()
+    controller.prepare()
+    controller._apply = lambda states, controls, *_: (states * np.nan, controls * np.nan, np.nan)
+    u, info = controller(model(x0, previous[0])[0])
+    assert not info["success"] and info["fallback"] == "previous-plan" and info["status"] == "qp-not-finite"
+    np.testing.assert_array_equal(u, np.clip(previous[1], env.unwrapped.torque_low, env.unwrapped.torque_high))
 
 
 def test_fixed_latency_swing_up_is_deterministic(pendulum):

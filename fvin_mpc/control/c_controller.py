@@ -2,12 +2,13 @@
 
 :func:`write_controller` writes a folder that builds with ``make`` (or ``cc -O2``): the CasADi
 functions a :class:`~fvin_mpc.control.rti.RealTimeMPC` calls every period —
-``rti_linearize_blocks``, ``rti_predict``, ``rti_feedback``, taken from its
+``rti_linearize_blocks``, ``rti_predict``, ``rti_feedback``, ``rti_apply``, taken from its
 :attr:`~fvin_mpc.control.rti.RealTimeMPC.loop_functions`, so the math has one source — generated as C
 (``fvc_model.c``), the settings the Python loop reads as constants (``fvc_config.h``), and a
 hand-written driver (``fvin_controller.c``, package data under ``c_template/``) that is the Python
 loop's orchestration: the cold multi-start, feedback, preparation (shift + linearization), fallback to
-the shifted plan, the disturbance estimate, the reference as a run-time input. A header
+the shifted plan, the disturbance estimate, the reference and the model parameters as run-time inputs
+(``fvc_set_parameters``; :meth:`CRealTimeMPC.set_parameters`). A header
 (``fvin_controller.h``), a ``Makefile`` and an example ``main.c`` come with it. Nothing of Python,
 NumPy, CasADi or torch at run time.
 
@@ -47,7 +48,7 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
-from fvin_mpc.control.model_export import cache_dir
+from fvin_mpc.control.model_export import CompileCount, cache_dir
 from fvin_mpc.control.problem import ConstantReference, Reference
 from fvin_mpc.control.rti import RTI_COLD_ORDER, RealTimeMPC
 from fvin_mpc.core import s3
@@ -59,16 +60,46 @@ CA = get_ops("casadi")
 #: The hand-written files copied next to the generated ones.
 TEMPLATE_FILES = ("fvin_controller.c", "fvin_controller.h", "main.c", "Makefile")
 #: The generated functions, in the order RealTimeMPC.loop_functions holds them.
-LOOP_FUNCTION_NAMES = ("rti_linearize_blocks", "rti_predict", "rti_feedback")
+LOOP_FUNCTION_NAMES = ("rti_linearize_blocks", "rti_predict", "rti_feedback", "rti_apply")
 #: Flags of the shared library: those of the Python loop's compiled functions
 #: (:data:`fvin_mpc.control.model_export.COMPILER_FLAGS`), so both run the same machine code.
 LIBRARY_FLAGS = ("-O2", "-fPIC", "-shared")
 #: What ``fvc_feedback`` returns (fvin_controller.h).
-STATUS_NAMES = {0: "rti", 1: "cold", 2: "previous-plan", -1: "bad-state", -2: "no-memory"}
+STATUS_NAMES = {0: "rti", 1: "cold", 2: "previous-plan", -1: "bad-state", -2: "no-memory", -3: "bad-parameters",
+                -4: "not-parametric"}
 
 
 class ControllerNotExportable(FvinMpcError, ValueError):
     """The controller's settings ask for something the C loop does not have (the message says what)."""
+
+
+#: Which loop runs a real-time controller: the Python :class:`~fvin_mpc.control.rti.RealTimeMPC` or its
+#: generated C library (:class:`CRealTimeMPC`).
+LOOPS = ("python", "c")
+
+
+def on_loop(controller: Any, loop: str) -> Any:
+    """``controller`` as it is (``loop="python"``) or run by its C library (``"c"``: :class:`CRealTimeMPC`,
+    built once and cached). ``ControllerNotExportable`` with the reason when ``"c"`` cannot run it: not
+    the real-time iteration, no C compiler, or settings the C loop does not have."""
+    if loop not in LOOPS:
+        raise ValueError(f"loop must be one of {LOOPS}, got {loop!r}")
+    if loop == "python":
+        return controller
+    check_c_loop(controller.settings.solver if not isinstance(controller, RealTimeMPC) else "rti")
+    return CRealTimeMPC(controller)
+
+
+def check_c_loop(solver: str) -> None:
+    """``ControllerNotExportable`` with the reason unless a controller of ``solver`` can run on the C loop
+    here: the real-time iteration, and a C compiler on PATH (``$CC``, default ``cc``)."""
+    if solver != "rti":
+        raise ControllerNotExportable(f"--loop c runs the real-time iteration's generated C library; this "
+                                      f"controller solves with {solver!r}: add --solver rti")
+    compiler = os.environ.get("CC", "cc")
+    if shutil.which(compiler) is None:
+        raise ControllerNotExportable(f"--loop c needs a C compiler: no {compiler!r} on PATH (install cc, gcc or "
+                                      "clang, or set CC); --loop python runs the same controller without one")
 
 
 def solver_settings(controller: RealTimeMPC) -> dict[str, Any]:
@@ -77,7 +108,8 @@ def solver_settings(controller: RealTimeMPC) -> dict[str, Any]:
     s = controller.settings.rti
     return {"cold_solver": s.cold_solver, "qp_solver": s.qp_solver, "dynamics": s.dynamics,
             "max_iter": s.max_iter, "cold_iter": s.cold_iter, "tol": s.tol,
-            "qp_iterations": s.qp_iterations}
+            "qp_iterations": s.qp_iterations, "model_parameters": s.model_parameters,
+            "feedback": s.feedback}
 
 
 def check_exportable(controller: RealTimeMPC) -> None:
@@ -141,6 +173,12 @@ def dense_outputs(function: ca.Function) -> ca.Function:
                        function.name_in(), function.name_out())
 
 
+def _c_string(text: str) -> str:
+    if not all(c.isalnum() or c in "_[],." for c in text):
+        raise ValueError(f"parameter name {text!r} is not a plain name")
+    return f'"{text}"'
+
+
 def _literal(values: Any) -> str:
     return ", ".join(repr(float(v)) for v in np.ravel(values))
 
@@ -150,6 +188,7 @@ def config_header(controller: RealTimeMPC, example_state: np.ndarray) -> str:
     s, layout, m = controller.settings, controller.layout, controller.model.control_dim
     rti = SimpleNamespace(**solver_settings(controller))
     order = [RTI_COLD_ORDER.index(name) for name in sorted(s.cold_starts, key=RTI_COLD_ORDER.index)]
+    names = controller.parameter_names
     lines = [
         "/* Generated by fvin_mpc.control.c_controller for model " + repr(controller.model.name) + ". */",
         "#ifndef FVC_CONFIG_H", "#define FVC_CONFIG_H",
@@ -165,6 +204,10 @@ def config_header(controller: RealTimeMPC, example_state: np.ndarray) -> str:
         f"#define FVC_DISTURBANCE_GAIN {s.disturbance_gain!r}",
         f"#define FVC_DISTURBANCE_REGION_RAD {s.disturbance_region_rad!r}",
         f"#define FVC_DISTURBANCE_REGION_SPEED {s.disturbance_region_speed!r}",
+        f"#define FVC_NP {len(names)}", f"#define FVC_PARAMETRIC {int(rti.model_parameters)}",
+        f"#define FVC_PREPARED_FEEDBACK {int(rti.feedback == 'prepared')}",
+        f"static const double fvc_parameter_defaults[{len(names)}] = {{{_literal(controller.parameters)}}};",
+        f"static const char *const fvc_parameter_names[{len(names)}] = {{{', '.join(map(_c_string, names))}}};",
         f"static const int fvc_cold_order[{len(order)}] = {{{', '.join(map(str, order))}}};",
         f"static const double fvc_torque_low[{m}] = {{{_literal(controller.torque_low)}}};",
         f"static const double fvc_torque_high[{m}] = {{{_literal(controller.torque_high)}}};",
@@ -206,6 +249,7 @@ def build_library(directory: str | Path, flags: tuple[str, ...] = LIBRARY_FLAGS)
     """
     directory = Path(directory)
     compiler = os.environ.get("CC", "cc")
+    CompileCount.compiler_runs += 1
     if shutil.which(compiler) is None:
         raise RuntimeError(f"no C compiler {compiler!r} on PATH; install one (cc, gcc, clang) or set CC")
     library = directory / "libfvin_controller.so"
@@ -222,6 +266,7 @@ def build_library(directory: str | Path, flags: tuple[str, ...] = LIBRARY_FLAGS)
 def cached_library(controller: RealTimeMPC) -> Path:
     """The built library of ``controller``, under :func:`~fvin_mpc.control.model_export.cache_dir`
     ``/c_controller``, named by the SHA-256 of its sources: written and compiled only once."""
+    CompileCount.calls += 1
     staging = cache_dir() / "c_controller" / f"staging_{os.getpid()}"
     shutil.rmtree(staging, ignore_errors=True)
     write_controller(controller, staging)
@@ -264,6 +309,13 @@ def load_library(path: str | Path) -> ctypes.CDLL:
     lib.fvc_dims.argtypes = [ctypes.POINTER(ctypes.c_int)] * 4
     lib.fvc_cold_guess_name.restype = ctypes.c_char_p
     lib.fvc_cold_guess_name.argtypes = [ctypes.c_int]
+    lib.fvc_parameter_count.restype = ctypes.c_int
+    lib.fvc_parameter_name.restype = ctypes.c_char_p
+    lib.fvc_parameter_name.argtypes = [ctypes.c_int]
+    lib.fvc_default_parameters.argtypes = [double_p]
+    lib.fvc_get_parameters.argtypes = [pointer, double_p]
+    lib.fvc_set_parameters.argtypes = [pointer, double_p]
+    lib.fvc_set_parameters.restype = ctypes.c_int
     return lib
 
 
@@ -287,6 +339,7 @@ class CRealTimeMPC:
         self.python = controller
         self.settings, self.model, self.layout = controller.settings, controller.model, controller.layout
         self.horizon = controller.horizon
+        self.build_s, self.compile_report = controller.build_s, controller.compile_report
         self._qp_iterations = solver_settings(controller)["qp_iterations"]
         self.library = Path(library) if library is not None else cached_library(controller)
         self._lib = load_library(self.library)
@@ -303,6 +356,13 @@ class CRealTimeMPC:
         self._states, self._controls = np.zeros((n + 1, ns)), np.zeros((n, m))
         self._d = np.zeros(m)
         self._status = _Status()
+        count = self._lib.fvc_parameter_count()
+        #: the model parameters' names as the library lists them (those of the Python controller)
+        self.parameter_names = tuple(self._lib.fvc_parameter_name(i).decode() for i in range(count))
+        if self.parameter_names != controller.parameter_names:
+            raise ValueError(f"{self.library}: model parameters {self.parameter_names}, the controller has "
+                             f"{controller.parameter_names}")
+        self._p = np.zeros(count)
         self.set_reference(ConstantReference(controller.goal_state))
 
     def __del__(self) -> None:
@@ -378,6 +438,24 @@ class CRealTimeMPC:
         """``d̂`` of the C loop's estimate."""
         self._lib.fvc_get_disturbance(self._handle, _pointer(self._d))
         return self._d.copy()
+
+    @property
+    def parameters(self) -> np.ndarray:
+        """The model parameters in use in the library."""
+        self._lib.fvc_get_parameters(self._handle, _pointer(self._p))
+        return self._p.copy()
+
+    def set_parameters(self, values: Any = None, **blocks: Any) -> None:
+        """As :meth:`RealTimeMPC.set_parameters <fvin_mpc.control.rti.RealTimeMPC.set_parameters>`, in the
+        library (``fvc_set_parameters``): no recompilation."""
+        vector = np.ascontiguousarray(self.model.model_parameters.values(
+            self.parameters if values is None else values, **blocks))
+        status = self._lib.fvc_set_parameters(self._handle, _pointer(vector))
+        if status == -4:
+            raise ValueError("this controller has its model parameters baked in (rti.model_parameters=False); "
+                             "export it with rti.model_parameters=True to change them at run time")
+        if status != 0:
+            raise ValueError(f"the C controller refused the model parameters {vector} ({STATUS_NAMES[status]})")
 
     def counters(self) -> dict[str, int]:
         """Calls, cold calls, fallbacks, preparations and refused states since creation."""

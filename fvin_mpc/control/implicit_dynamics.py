@@ -107,22 +107,37 @@ class TermLayout:
         return ca.vertcat(*parts)
 
 
-def node_terms_function(terms: Any, retract: Any) -> tuple[ca.Function, TermLayout]:
+def node_terms_function(terms: Any, retract: Any, parameters: Any = None) -> tuple[ca.Function, TermLayout]:
     """``node(q̄[4]) -> (T[s], ∂T/∂δ[s×3])``: the terms at ``q̄`` and their derivatives along the chart
-    ``q = retract(q̄, δ)`` at ``δ = 0``; ``terms`` on the CasADi backend."""
+    ``q = retract(q̄, δ)`` at ``δ = 0``; ``terms`` on the CasADi backend. With ``parameters`` (an
+    :class:`~fvin_mpc.control.model_export.ExportedModel`) the terms are its :meth:`terms_at` the model
+    parameters, an input: ``node(q̄, p)``."""
     q_bar, delta = ca.SX.sym("q_bar", 4), ca.SX.sym("delta", 3)
+    inputs, names = [q_bar], ["q_bar"]
+    if parameters is not None:
+        p = ca.SX.sym("p", parameters.model_parameters.size)
+        terms = parameters.terms_at(p)
+        inputs, names = [q_bar, p], ["q_bar", "p"]
     q = retract(q_bar, delta)
     q_components = tuple(q[i] for i in range(4))
     layout = TermLayout(terms, q_components)
     flat = layout.flatten(terms, q_components)
     values, derivatives = ca.substitute([flat, ca.jacobian(flat, delta)], [delta], [ca.DM.zeros(3)])
-    return ca.Function("rti_node_terms", [q_bar], [values, derivatives], ["q_bar"], ["T", "dT"]), layout
+    return ca.Function("rti_node_terms", inputs, [values, derivatives], names, ["T", "dT"]), layout
 
 
-def implicit_stage_function(terms: Any, layout: TermLayout, step_size: float, retract: Any) -> ca.Function:
+def implicit_stage_function(terms: Any, layout: TermLayout, step_size: float, retract: Any,
+                            parameters: Any = None) -> ca.Function:
     """``stage(x̄_k, ū_k, x̄_{k+1}, d, T_k, dT_k, T_{k+1}, dT_{k+1}) -> (c[6], [A B][6×(6+m)])`` in the
-    charts of :mod:`fvin_mpc.control.rti` (``q = retract(q̄, θ)``, ``ω = ω̄ + ν``); module docstring."""
+    charts of :mod:`fvin_mpc.control.rti` (``q = retract(q̄, θ)``, ``ω = ω̄ + ν``); module docstring. With
+    ``parameters`` (as :func:`node_terms_function`) a last input ``p``: the gain scale multiplies the
+    controls and a constant inertia is the parametrized one."""
     m = terms.control_dim
+    extra_inputs, extra_names = [], []
+    if parameters is not None:
+        p = ca.SX.sym("p", parameters.model_parameters.size)
+        terms = parameters.terms_at(p)
+        extra_inputs, extra_names = [p], ["p"]
     x_bar, x_next_bar = ca.SX.sym("x_bar", 7), ca.SX.sym("x_next_bar", 7)
     u_bar, d = ca.SX.sym("u_bar", m), ca.SX.sym("d", m)
     values, values_next = ca.SX.sym("T", layout.size), ca.SX.sym("T_next", layout.size)
@@ -136,7 +151,10 @@ def implicit_stage_function(terms: Any, layout: TermLayout, step_size: float, re
 
     q, omega = node(x_bar, theta, nu)
     q_next, omega_next = node(x_next_bar, theta_next, nu_next)
-    u = tuple(u_bar[i] + du[i] + d[i] for i in range(m))
+    actuated = u_bar + du + d
+    if parameters is not None:
+        actuated = parameters.model_parameters.actuated(actuated, p)
+    u = tuple(actuated[i] for i in range(m))
     here = _ExpandedTerms(terms, layout, values, slopes, theta)
     there = _ExpandedTerms(terms, layout, values_next, slopes_next, theta_next)
     residual = ca.vertcat(*fvin.step_residual(q, omega, u, q_next, omega_next, here, step_size, CA, terms_next=there))
@@ -150,6 +168,7 @@ def implicit_stage_function(terms: Any, layout: TermLayout, step_size: float, re
     top = ca.solve(kinematic, rhs[:3, :])
     bottom = ca.solve(dynamic, rhs[3:, :] - ca.mtimes(g_end[3:, :3], top))
     solution = ca.vertcat(top, bottom)
-    return ca.Function("rti_implicit_dynamics", [x_bar, u_bar, x_next_bar, d, values, slopes, values_next, slopes_next],
+    return ca.Function("rti_implicit_dynamics",
+                       [x_bar, u_bar, x_next_bar, d, values, slopes, values_next, slopes_next, *extra_inputs],
                        [solution[:, 0], solution[:, 1:]],
-                       ["x_bar", "u_bar", "x_next_bar", "d", "T", "dT", "T_next", "dT_next"], ["c", "AB"])
+                       ["x_bar", "u_bar", "x_next_bar", "d", "T", "dT", "T_next", "dT_next", *extra_names], ["c", "AB"])

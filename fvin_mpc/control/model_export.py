@@ -31,15 +31,24 @@ import shutil
 import subprocess
 import tempfile
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 import casadi as ca
 import numpy as np
 
 from fvin_mpc.core.backend import get_ops
 from fvin_mpc.core.checkpoint import Checkpoint, load_checkpoint
+from fvin_mpc.core.model_parameters import (
+    GAIN_SCALE,
+    ModelParameters,
+    body_parameters,
+    gain_scale_block,
+    learned_parameters,
+    parametrized_body,
+)
 from fvin_mpc.core.space import R3S3, S3, ConfigurationSpace, get_space, require
 
 CA = get_ops("casadi")
@@ -89,6 +98,12 @@ class ExportedModel:
         casadi_terms: the terms ``step`` was built from, on the CasADi backend, for controllers that
             impose the step's equations themselves (:mod:`fvin_mpc.control.implicit_dynamics`);
             ``None`` for a model with no rigid-body terms (e.g. an unstructured baseline).
+        parameters: the model's run-time parameters (:mod:`fvin_mpc.core.model_parameters`); ``None``:
+            the gain scale only.
+        parametrize: ``p`` (a CasADi column of ``parameters``' size) → the CasADi terms reading ``p`` where
+            ``casadi_terms`` has constants — the same terms code; ``None``: ``casadi_terms`` (no physical
+            parameters).
+        step_options: the space's step options ``step`` was built with (R³ × S³'s ``force_rule``).
     """
 
     step: ca.Function
@@ -100,6 +115,39 @@ class ExportedModel:
     energy_function: ca.Function
     space: ConfigurationSpace = S3
     casadi_terms: Any = None
+    parameters: ModelParameters | None = None
+    parametrize: Callable[[Any], Any] | None = None
+    step_options: Mapping[str, Any] = field(default_factory=dict)
+
+    @property
+    def model_parameters(self) -> ModelParameters:
+        """The run-time parameters (at least the gain scale)."""
+        return self.parameters or ModelParameters((gain_scale_block(self.control_dim),))
+
+    def terms_at(self, p: Any) -> Any:
+        """The CasADi terms with the parameters ``p`` (a CasADi column) in place of their constants."""
+        return self.parametrize(p) if self.parametrize is not None else self.casadi_terms
+
+    @cached_property
+    def parametric_step(self) -> ca.Function:
+        """``F(x[n], u[m], p) -> (x_next[n], residual)``: :attr:`step` with the parameters as an input
+        (with :attr:`ModelParameters.defaults` it computes what :attr:`step` does)."""
+        x, u = ca.SX.sym("x", self.state_dim), ca.SX.sym("u", self.control_dim)
+        p = ca.SX.sym("p", self.model_parameters.size)
+        actuated = self.model_parameters.actuated(u, p)
+        if self.casadi_terms is None:  # no terms to read p: only the gain scale
+            x_next, residual = self.step(x, actuated)
+        else:
+            x_next, residual = self.space.step(x, actuated, self.terms_at(p), self.step_size, self.newton_iters, CA,
+                                               **self.step_options)
+        return ca.Function("fvin_step_p", [x, u, p], [x_next, residual], ["x", "u", "p"], ["x_next", "residual"])
+
+    @cached_property
+    def parametric_energy(self) -> ca.Function:
+        """``E(x[n], p) -> energy``: :attr:`energy_function` with the parameters as an input."""
+        x, p = ca.SX.sym("x", self.state_dim), ca.SX.sym("p", self.model_parameters.size)
+        energy = self.energy_function(x) if self.casadi_terms is None else self.space.energy(x, self.terms_at(p), CA)
+        return ca.Function("fvin_energy_p", [x, p], [energy], ["x", "p"], ["energy"])
 
     @property
     def state_dim(self) -> int:
@@ -136,14 +184,32 @@ class ExportedModel:
 
 
 def from_terms(space: ConfigurationSpace, casadi_terms: Any, numpy_terms: Any, step_size: float, newton_iters: int,
-               name: str, **options: Any) -> ExportedModel:
+               name: str, parameters: ModelParameters | None = None, parametrize: Callable[[Any], Any] | None = None,
+               **options: Any) -> ExportedModel:
     """An :class:`ExportedModel` of ``space``'s step on given terms (learned or closed form): the one
-    place every model a controller gets is made."""
+    place every model a controller gets is made. ``parameters``, ``parametrize``: its run-time parameters
+    and the terms built on them (:class:`ExportedModel`; default: the gain scale only)."""
     return ExportedModel(
         step=step_function(casadi_terms, step_size, newton_iters, space=space, **options), step_size=step_size,
         newton_iters=newton_iters, control_dim=casadi_terms.control_dim, numpy_terms=numpy_terms, name=name,
         energy_function=energy_function(casadi_terms, space=space), space=space, casadi_terms=casadi_terms,
+        parameters=parameters, parametrize=parametrize, step_options=dict(options),
     )
+
+
+def parametrized_weights(weights: Mapping[str, Any], parameters: ModelParameters, p: Any) -> dict[str, Any]:
+    """``weights`` with every parameter block replaced by the entries of the CasADi column ``p``, in the
+    weight's shape (a matrix as a CasADi matrix, row-major): the learned terms built on it read ``p``."""
+    replaced = dict(weights)
+    for block in parameters.blocks:
+        if block.name == GAIN_SCALE:
+            continue
+        entries = ca.vertcat(*parameters.block(p, block.name))
+        if block.default.ndim == 2:
+            rows, cols = block.default.shape
+            entries = ca.reshape(entries, cols, rows).T  # CasADi reshapes column-major; p is row-major
+        replaced[block.name] = entries
+    return replaced
 
 
 def from_checkpoint(checkpoint: Checkpoint | str | Path, newton_iters: int | None = None) -> ExportedModel:
@@ -152,10 +218,15 @@ def from_checkpoint(checkpoint: Checkpoint | str | Path, newton_iters: int | Non
     if not isinstance(checkpoint, Checkpoint):
         checkpoint = load_checkpoint(checkpoint)
     label = checkpoint.path.name if checkpoint.path is not None else "checkpoint"
-    space, config = checkpoint.space, checkpoint.config
-    return from_terms(space, space.learned_terms(checkpoint.weights, config, CA),
-                      space.learned_terms(checkpoint.weights, config, NP), config.step_size,
-                      newton_iters or config.newton_iters, label, **space.step_options(config))
+    space, config, weights = checkpoint.space, checkpoint.config, checkpoint.weights
+    parameters = learned_parameters(weights, config)
+
+    def parametrize(p: Any) -> Any:
+        return space.learned_terms(parametrized_weights(weights, parameters, p), config, CA)
+
+    return from_terms(space, space.learned_terms(weights, config, CA), space.learned_terms(weights, config, NP),
+                      config.step_size, newton_iters or config.newton_iters, label, parameters=parameters,
+                      parametrize=parametrize, **space.step_options(config))
 
 
 def from_closed_form(space: ConfigurationSpace | str, body: Any, step_size: float, newton_iters: int = 2,
@@ -163,7 +234,9 @@ def from_closed_form(space: ConfigurationSpace | str, body: Any, step_size: floa
     """Export a closed-form body of ``space`` (what :meth:`ConfigurationSpace.closed_form` reads off
     an MJCF: it has ``terms(ops)``) through the same step as a learned model."""
     space = get_space(space)
-    return from_terms(space, body.terms(CA), body.terms(NP), step_size, newton_iters, name, **options)
+    parameters = body_parameters(body)
+    return from_terms(space, body.terms(CA), body.terms(NP), step_size, newton_iters, name, parameters=parameters,
+                      parametrize=lambda p: parametrized_body(body, parameters, p).terms(CA), **options)
 
 
 def from_rigid_body(body: Any, step_size: float, newton_iters: int = 2, name: str = "true") -> ExportedModel:
@@ -223,6 +296,15 @@ class CompileReport:
 COMPILER_FLAGS: tuple[str, ...] = ("-O2", "-fPIC", "-shared")
 
 
+class CompileCount:
+    """How many times this process generated C and loaded it (:func:`compile_functions`, cached or not),
+    and how many of those ran the compiler: what a change that must not recompile (the model
+    parameters) is checked against."""
+
+    calls = 0
+    compiler_runs = 0
+
+
 def compile_functions(functions: Sequence[ca.Function], prefix: str, flags: Sequence[str] = COMPILER_FLAGS,
                       external_options: dict[str, Any] | None = None) -> tuple[dict[str, ca.Function], CompileReport]:
     """Generate C for ``functions``, compile it once into a cached shared library, load it.
@@ -247,7 +329,9 @@ def compile_functions(functions: Sequence[ca.Function], prefix: str, flags: Sequ
         library = cache_dir() / f"{prefix}_{digest}.so"
         cached = library.is_file()
         compile_s = 0.0
+        CompileCount.calls += 1
         if not cached:
+            CompileCount.compiler_runs += 1
             compiler = os.environ.get("CC", "gcc")
             if shutil.which(compiler) is None:
                 raise RuntimeError(f"no C compiler {compiler!r} on PATH; install gcc or use compile='none'")

@@ -62,6 +62,7 @@ from fvin_mpc.control.problem import (
     DisturbanceEstimate,
     Reference,
     control_bounds,
+    ordered_matvec,
     predict_function,
     residual_functions,
 )
@@ -157,6 +158,14 @@ class RTIOptions:
             Newton iterations, linearized per stage) or ``"implicit"`` (the step's own equations between
             consecutive plan nodes, the learned terms evaluated once per node; pivoted bodies only;
             :mod:`fvin_mpc.control.implicit_dynamics`).
+        feedback: what a warm call computes: ``"qp"`` (the QP at the measured state, ``max_iter``
+            iterations) or ``"prepared"`` (the preparation solves the QP at the predicted state and the call
+            applies its Riccati gains to the measured one: a forward pass; ``max_iter`` 1 and the Riccati QP;
+            docs/c-controller.md).
+        model_parameters: the model's run-time parameters (:mod:`fvin_mpc.core.model_parameters`: gain
+            scales, physical values) are an input of the compiled functions, changed by
+            :meth:`~fvin_mpc.control.rti.RealTimeMPC.set_parameters` without recompiling; ``False`` bakes
+            them in as constants (what the parameters cost: docs/c-controller.md).
     """
 
     max_iter: int = 1
@@ -170,6 +179,8 @@ class RTIOptions:
     qp_solver: Literal["riccati", "hpipm", "qrqp", "osqp"] = "riccati"
     qp_iterations: int = 10
     dynamics: Literal["unrolled", "implicit"] = "unrolled"
+    model_parameters: bool = True
+    feedback: Literal["qp", "prepared"] = "qp"
 
     def __post_init__(self) -> None:
         if self.max_iter < 1 or self.cold_iter < 1:
@@ -185,6 +196,11 @@ class RTIOptions:
             raise ValueError(f"unknown qp_solver {self.qp_solver!r}")
         if self.dynamics not in ("unrolled", "implicit"):
             raise ValueError(f"unknown dynamics {self.dynamics!r}")
+        if self.feedback not in ("qp", "prepared"):
+            raise ValueError(f"unknown feedback {self.feedback!r}; expected 'qp' or 'prepared'")
+        if self.feedback == "prepared" and (self.max_iter != 1 or self.qp_solver != "riccati"):
+            raise ValueError("feedback='prepared' applies one prepared Riccati solve: it needs max_iter=1 and "
+                             f"qp_solver='riccati', got max_iter={self.max_iter}, qp_solver={self.qp_solver!r}")
 
 
 @dataclass(frozen=True)
@@ -416,7 +432,7 @@ class MPC:
         u = np.zeros(self.model.control_dim)
         for _ in range(5):
             stepped, _, _, inverse = self._predict(x_goal, u)
-            u = u - np.asarray(inverse, dtype=float) @ np.asarray(stepped, dtype=float).ravel()[self.layout.rates]
+            u = u - ordered_matvec(inverse, np.asarray(stepped, dtype=float).ravel()[self.layout.rates])
         return u
 
     @property
@@ -691,10 +707,15 @@ class MPC:
     def _rollout_guess(self, x0: np.ndarray, torque: np.ndarray) -> Plan:
         """The model rolled out under the constant ``torque`` (clipped to the bounds), ω clipped to its bound."""
         controls = np.clip(np.tile(torque, (self.horizon, 1)), self.torque_low, self.torque_high)
-        states = self.model.rollout(x0, controls)
+        states = self._rollout(x0, controls)
         omega = self.layout.omega
         states[1:, omega] = np.clip(states[1:, omega], -self.omega_bound, self.omega_bound)
         return Plan(states, controls, None, None)
+
+    def _rollout(self, x0: np.ndarray, controls: np.ndarray) -> np.ndarray:
+        """The model's states ``(N+1, n)`` from ``x0`` under ``controls`` (the solver's model: a solver
+        with run-time model parameters rolls out with them)."""
+        return self.model.rollout(x0, controls)
 
     def _shifted(self, plan: Plan, x0: np.ndarray) -> Plan:
         """``plan`` advanced one step: drop the first stage, repeat the last."""

@@ -53,7 +53,7 @@ def orientation_error(q: Any, goal: Any, kind: str) -> Any:
 
 
 def residual_functions(layout: StateLayout, settings: Any, control_dim: int, omega_bound: float,
-                       omega_penalty: float | None, energy: tuple[ca.Function, float] | None
+                       omega_penalty: float | None, energy: tuple[ca.Function, Any] | None, parameter_size: int = 0
                        ) -> tuple[ca.Function, ca.Function]:
     """``(stage, terminal)``: ``stage(x, u, x_ref, u_s) → r`` and ``terminal(x, x_ref) → r_N`` as SX
     functions (module docstring).
@@ -66,7 +66,9 @@ def residual_functions(layout: StateLayout, settings: Any, control_dim: int, ome
         omega_penalty: weight of the squared excess of ``|ω_i|`` over the bound, appended to both
             residuals; ``None`` leaves it out (a solver that bounds ``ω`` hard).
         energy: ``(E, E(rest, 0))`` for the terminal energy deficit (a pivoted body's ``E`` on its
-            states); ``None`` leaves it out.
+            states); ``None`` leaves it out. With ``parameter_size``: ``(E(x, p), the rest state)``.
+        parameter_size: ``> 0``: the terminal residual takes the model parameters, ``terminal(x, x_ref, p)``,
+            and the energies (the rest's too) are the parametrized model's.
     """
     s, a = settings, layout.before
     qs, ws = layout.quaternion, layout.omega
@@ -89,24 +91,57 @@ def residual_functions(layout: StateLayout, settings: Any, control_dim: int, ome
                        np.sqrt(s.control_weight) * (u - u_s), *excess)
     terminal = [*tracking(s.terminal_position_weight, s.terminal_orientation_weight, s.terminal_velocity_weight,
                           s.terminal_omega_weight), *excess]
+    p = ca.SX.sym("p", parameter_size)
     if energy is not None:
         energy_function, rest_energy = energy
+        if parameter_size:
+            parametric_energy, rest_state = energy_function, ca.DM(rest_energy)
+
+            def energy_function(state: Any) -> Any:
+                return parametric_energy(state, p)
+
+            rest_energy = energy_function(rest_state)
         goal_energy = energy_function(ca.vertcat(ca.DM.zeros(a), goal, ca.DM.zeros(layout.after)))  # at rest
         terminal.append(np.sqrt(s.terminal_energy_weight) * (energy_function(x) - goal_energy)
                         / ca.fabs(goal_energy - rest_energy))
     return (ca.Function("stage_residual", [x, u, reference, u_s], [stage], ["x", "u", "x_ref", "u_s"], ["r"]),
-            ca.Function("terminal_residual", [x, reference], [ca.vertcat(*terminal)], ["x", "x_ref"], ["r"]))
+            ca.Function("terminal_residual", [x, reference, p] if parameter_size else [x, reference],
+                        [ca.vertcat(*terminal)], ["x", "x_ref", "p"][:3 if parameter_size else 2], ["r"]))
 
 
-def predict_function(model: Any, name: str = "predict") -> ca.Function:
+def predict_function(model: Any, name: str = "predict", parameters: str = "none") -> ca.Function:
     """``(x, u) → (x⁺, B, residual, B⁺)``: one step of ``model``, the derivative ``B = ∂rates⁺/∂u`` of its
     rates (``ω``, or ``v`` and ``ω``) and its least-squares inverse — for the disturbance estimate and
-    the control that holds the goal — and the step's Newton residual."""
+    the control that holds the goal — and the step's Newton residual.
+
+    ``parameters``: ``"none"`` (those inputs), ``"input"`` (a third input ``p``, the model parameters:
+    :attr:`~fvin_mpc.control.model_export.ExportedModel.parametric_step`) or ``"constant"`` (the input
+    ``p`` is there and unused: the constant step behind the same interface)."""
     layout = model.space.layout
     x, u = ca.SX.sym("x", layout.state_dim), ca.SX.sym("u", model.control_dim)
-    stepped, residual = model.step(x, u)
+    inputs = [x, u]
+    if parameters == "input":
+        p = ca.SX.sym("p", model.model_parameters.size)
+        stepped, residual = model.parametric_step(x, u, p)
+        inputs.append(p)
+    else:
+        stepped, residual = model.step(x, u)
+        if parameters == "constant":
+            inputs.append(ca.SX.sym("p", model.model_parameters.size))
     b = ca.jacobian(stepped[layout.rates], u)
-    return ca.Function(name, [x, u], [stepped, b, residual, ca.solve(ca.mtimes(b.T, b), b.T)])
+    return ca.Function(name, inputs, [stepped, b, residual, ca.solve(ca.mtimes(b.T, b), b.T)])
+
+
+def ordered_matvec(matrix: np.ndarray, vector: np.ndarray) -> np.ndarray:
+    """``matrix @ vector`` summed term by term in column order, each product and sum rounded: what the C
+    driver's loops compute (``c_template/fvin_controller.c``). NumPy's ``@`` goes to BLAS, whose fused
+    multiply–adds and blocking round differently; the real-time loops compare to 1e-9 over episodes that
+    amplify one ulp (docs/c-controller.md), so the small products they share are written this way."""
+    matrix, vector = np.asarray(matrix, dtype=float), np.asarray(vector, dtype=float)
+    result = np.zeros(matrix.shape[0])
+    for k in range(matrix.shape[1]):
+        result = result + matrix[:, k] * vector[k]
+    return result
 
 
 def control_bounds(low: np.ndarray, high: np.ndarray, horizon: int, reserve: float) -> tuple[np.ndarray, np.ndarray]:
@@ -161,7 +196,7 @@ class DisturbanceEstimate:
         if 2.0 * np.arccos(cosine) > self.region_rad or np.max(np.abs(x0[layout.omega])) > self.region_speed:
             return
         predicted, inverse = self._last
-        step = inverse @ (x0[layout.rates] - predicted)
+        step = ordered_matvec(inverse, x0[layout.rates] - predicted)
         self.value = np.clip(self.value + self.gain * step, -self.limit, self.limit)
 
 

@@ -37,6 +37,11 @@ an unbiased model). Solved differently (Diehl's real-time iteration, as in acado
 * **preparation / feedback** — after a torque is sent, :meth:`prepare` shifts the plan by one
   step (the last stage predicted by the model) and linearizes it; the next call only fixes
   ``δ_0`` and solves the QP (feedback), then iterates again only while ``rti.budget_s`` allows.
+  With ``rti.feedback="prepared"`` the preparation also solves the QP at the predicted first state and
+  keeps its Riccati gains; the call applies them to the measured ``δ_0`` (a forward pass).
+* **model parameters** — the compiled functions take the model's run-time parameters as an input
+  (:mod:`fvin_mpc.core.model_parameters`: gain scales, physical values); :meth:`RealTimeMPC.set_parameters`
+  changes them without recompiling (``rti.model_parameters=False`` bakes them in).
 * **trust region** — each stage's state step is clipped (:data:`STEP_LIMIT_ANGLE`,
   :data:`STEP_LIMIT_OMEGA`) and planned ``|ω|`` kept inside the step's solvability limit: a full
   Gauss–Newton step from a guess with large gaps otherwise leaps to where the model means nothing.
@@ -146,24 +151,30 @@ def step_limits(layout: StateLayout, omega_step: float) -> np.ndarray:
 # ----------------------------------------------------------------------------- compiled QP + update
 def unrolled_stage_function(step: ca.Function, layout: StateLayout, m: int) -> ca.Function:
     """``stage(x̄_k, ū_k, x̄_{k+1}, d) -> (c, [A B])`` of the unrolled dynamics: ``c`` the gap between
-    ``F(x̄_k, ū_k + d)`` and ``x̄_{k+1}`` in ``x̄_{k+1}``'s chart, ``[A B]`` its derivatives in ``(δ_k, Δu_k)``."""
+    ``F(x̄_k, ū_k + d)`` and ``x̄_{k+1}`` in ``x̄_{k+1}``'s chart, ``[A B]`` its derivatives in ``(δ_k, Δu_k)``.
+    A ``step`` with a third input (the model parameters ``p``,
+    :attr:`~fvin_mpc.control.model_export.ExportedModel.parametric_step`) gives ``stage(…, d, p)``."""
     x_bar, x_next_bar = ca.SX.sym("x_bar", layout.state_dim), ca.SX.sym("x_next_bar", layout.state_dim)
     u_bar, d = ca.SX.sym("u_bar", m), ca.SX.sym("d", m)
     delta, du = ca.SX.sym("delta", layout.tangent_dim), ca.SX.sym("du", m)
-    gap = local_state(layout, x_next_bar, step(retract_state(layout, x_bar, delta), u_bar + du + d)[0])
+    parameters = [ca.SX.sym("p", step.size1_in(2))] if step.n_in() == 3 else []
+    gap = local_state(layout, x_next_bar, step(retract_state(layout, x_bar, delta), u_bar + du + d, *parameters)[0])
     c, jacobian = ca.substitute([gap, ca.jacobian(gap, ca.vertcat(delta, du))], [delta, du],
                                 [ca.DM.zeros(layout.tangent_dim), ca.DM.zeros(m)])
-    return ca.Function("rti_dynamics", [x_bar, u_bar, x_next_bar, d], [c, jacobian],
-                       ["x_bar", "u_bar", "x_next_bar", "d"], ["c", "AB"])
+    return ca.Function("rti_dynamics", [x_bar, u_bar, x_next_bar, d, *parameters], [c, jacobian],
+                       ["x_bar", "u_bar", "x_next_bar", "d", "p"][:4 + len(parameters)], ["c", "AB"])
 
 
 def riccati_feedback_function(layout: StateLayout, n: int, m: int, low: np.ndarray, high: np.ndarray,
                               limits: np.ndarray, omega_valid: float, iterations: int, centering: float = 0.1,
-                              boundary: float = 0.995, mu_min: float = QP_MU_MIN) -> ca.Function:
+                              boundary: float = 0.995, mu_min: float = QP_MU_MIN) -> tuple[ca.Function, ca.Function]:
     """One feedback iteration as a single CasADi function (compiled with the linearization):
-    ``(X̄ (n_x,N+1), Ū (m,N), x0 (n_x), H (s,sN), H_N (n_δ,n_δ), g (s,N), g_N (n_δ), [A B] (n_δ,sN),
-    c (n_δ,N)) → (X (n_x,N+1), U (m,N), step, μ)``, ``s = n_δ + m``; ``n_x``, ``n_δ`` the ``layout``'s
-    state and tangent dimensions (7 and 6 for a pivoted body, 13 and 12 for a free one).
+    ``rti_feedback(X̄ (n_x,N+1), Ū (m,N), x0 (n_x), H (s,sN), H_N (n_δ,n_δ), g (s,N), g_N (n_δ),
+    [A B] (n_δ,sN), c (n_δ,N)) → (X (n_x,N+1), U (m,N), step, μ, K (m,n_δN), k (m,N))``, ``s = n_δ + m``;
+    ``n_x``, ``n_δ`` the ``layout``'s state and tangent dimensions (7 and 6 for a pivoted body, 13 and 12
+    for a free one); ``K``, ``k`` the last Riccati solve's gains and feedforwards per stage. And the
+    prepared feedback ``rti_apply(X̄, Ū, x0, K, k, [A B], c) → (X, U, step)``: the same update from a
+    forward pass of given gains from ``δ_0 = local(x̄_0, x0)`` (``RTIOptions.feedback="prepared"``).
 
     The QP ``min Σ ½[δ;Δu]ᵀH_k[δ;Δu] + g_kᵀ[δ;Δu] + ½δ_NᵀH_Nδ_N + g_Nᵀδ_N`` s.t.
     ``δ_{k+1} = A_kδ_k + B_kΔu_k + c_k``, ``δ_0 = local(x̄_0, x0)``, ``low_k ≤ ū_k + Δu_k ≤ high_k`` is
@@ -198,9 +209,6 @@ def riccati_feedback_function(layout: StateLayout, n: int, m: int, low: np.ndarr
     v = ca.mtimes(gain_k, delta) + ff_k
     forward = ca.Function("rti_forward_stage", [delta, gain_k, ff_k, abk, ck],
                           [ca.mtimes(abk, ca.vertcat(delta, v)) + ck, v]).mapaccum("rti_forward", n, 1)
-    # --- retraction of one stage
-    x_bar, step_k = ca.SX.sym("x_bar", ns), ca.SX.sym("step", nd)
-    retracted = ca.Function("rti_retract", [x_bar, step_k], [retract_state(layout, x_bar, step_k)]).map(n)
 
     def reverse(matrix: Any, width: int) -> Any:  # stage blocks of `width` columns in reverse order
         return matrix[:, [(n - 1 - k) * width + j for k in range(n) for j in range(width)]]
@@ -216,11 +224,12 @@ def riccati_feedback_function(layout: StateLayout, n: int, m: int, low: np.ndarr
     hessians_rev, jacobians_rev = reverse(hessians, size), reverse(jacobians, size)
     gradients_rev, gaps_rev = reverse(gradients, 1), reverse(gaps, 1)
 
-    def solve_lq(d: Any, r: Any) -> tuple[Any, Any]:
+    def solve_lq(d: Any, r: Any) -> tuple[Any, Any, Any, Any]:
         _, _, gains, feedforwards = backward(terminal_hessian, terminal_gradient, hessians_rev, gradients_rev,
                                              jacobians_rev, gaps_rev, reverse(d, 1), reverse(r, 1))
-        deltas, v = forward(delta0, reverse(gains, nd), reverse(feedforwards, 1), jacobians, gaps)
-        return deltas, v
+        gains, feedforwards = reverse(gains, nd), reverse(feedforwards, 1)
+        deltas, v = forward(delta0, gains, feedforwards, jacobians, gaps)
+        return deltas, v, gains, feedforwards
 
     # interior start: Δu in the box, 1 % of its width away from a bound; λ = μ₀/s
     v = ca.fmin(ca.fmax(ca.MX.zeros(m, n), lower + 0.01 * width), upper - 0.01 * width)
@@ -231,7 +240,7 @@ def riccati_feedback_function(layout: StateLayout, n: int, m: int, low: np.ndarr
         slack_low, slack_up = v - lower, upper - v
         curvature = dual_low / slack_low + dual_up / slack_up
         linear = gradients[nd:, :] - mu / slack_low + mu / slack_up - curvature * v
-        deltas, target = solve_lq(curvature, linear)
+        deltas, target, gains, feedforwards = solve_lq(curvature, linear)
         dv = target - v
         d_low = mu / slack_low - dual_low - dual_low / slack_low * dv
         d_up = mu / slack_up - dual_up + dual_up / slack_up * dv
@@ -244,7 +253,33 @@ def riccati_feedback_function(layout: StateLayout, n: int, m: int, low: np.ndarr
     # The states of the last Riccati solve (closed-loop forward pass, consistent with its controls to
     # within (1 − α)|Δu|): propagating the final controls open loop would amplify the interior-point
     # method's inexactness through the unstable upright dynamics (e^{λ·horizon} ≈ 10³–10⁴ here).
-    # --- trust region, update on S³
+    new_states, new_controls, step = _trust_region_update(layout, states, controls, x0, deltas, v, limits,
+                                                          omega_valid, stage_low, stage_high, n)
+    feedback = ca.Function("rti_feedback", [states, controls, x0, hessians, terminal_hessian, gradients,
+                                            terminal_gradient, jacobians, gaps],
+                           [new_states, new_controls, step, mu, gains, feedforwards],
+                           ["X", "U", "x0", "H", "HN", "g", "gN", "AB", "c"],
+                           ["X_new", "U_new", "step", "mu", "K", "k"])
+    # --- the prepared feedback: the last Riccati solve's gains applied to the measured δ_0 (a forward pass)
+    gains_in, feedforwards_in = ca.MX.sym("K", m, nd * n), ca.MX.sym("k", m, n)
+    deltas, v = forward(delta0, gains_in, feedforwards_in, jacobians, gaps)
+    new_states, new_controls, step = _trust_region_update(layout, states, controls, x0, deltas, v, limits,
+                                                          omega_valid, stage_low, stage_high, n)
+    apply = ca.Function("rti_apply", [states, controls, x0, gains_in, feedforwards_in, jacobians, gaps],
+                        [new_states, new_controls, step], ["X", "U", "x0", "K", "k", "AB", "c"],
+                        ["X_new", "U_new", "step"])
+    return feedback, apply
+
+
+def _trust_region_update(layout: StateLayout, states: Any, controls: Any, x0: Any, deltas: Any, v: Any,
+                         limits: np.ndarray, omega_valid: float, stage_low: np.ndarray, stage_high: np.ndarray,
+                         n: int) -> tuple[Any, Any, Any]:
+    """The QP's step applied to the plan: each stage's state step clipped to the trust region, retracted on
+    S³, ``|ω|`` within ``omega_valid``, the first state the measured one, the controls within their bounds;
+    and the step's size (largest ``|Δu|`` over the control range or ``|δ|`` over the trust region)."""
+    ns, nd = layout.state_dim, layout.tangent_dim
+    x_bar, step_k = ca.SX.sym("x_bar", ns), ca.SX.sym("step", nd)
+    retracted = ca.Function("rti_retract", [x_bar, step_k], [retract_state(layout, x_bar, step_k)]).map(n)
     bound = ca.repmat(ca.DM(limits), 1, n)
     steps = ca.fmin(ca.fmax(deltas, -bound), bound)
     moved = retracted(states[:, 1:], steps)
@@ -254,9 +289,7 @@ def riccati_feedback_function(layout: StateLayout, n: int, m: int, low: np.ndarr
     new_controls = ca.fmin(ca.fmax(controls + v, ca.DM(stage_low)), ca.DM(stage_high))
     step = ca.fmax(ca.mmax(ca.fabs(v) / ca.DM(np.minimum(stage_high - stage_low, 1e6))),
                    ca.mmax(ca.fabs(steps) / bound))
-    return ca.Function("rti_feedback", [states, controls, x0, hessians, terminal_hessian, gradients, terminal_gradient,
-                                        jacobians, gaps], [new_states, new_controls, step, mu],
-                       ["X", "U", "x0", "H", "HN", "g", "gN", "AB", "c"], ["X_new", "U_new", "step", "mu"])
+    return new_states, new_controls, step
 
 
 class RealTimeMPC(MPC):
@@ -306,6 +339,15 @@ class RealTimeMPC(MPC):
         def at_zero(expressions: list[Any]) -> list[Any]:
             return ca.substitute(expressions, [delta, du], zero)
 
+        # --- the model parameters: an input p of every function that evaluates the model (read by it
+        # with rti.model_parameters, else unused: the constants baked in behind the same interface)
+        parametric = s.rti.model_parameters
+        parameter_count = self.model.model_parameters.size
+        #: the model parameters the next preparation uses (:meth:`set_parameters`)
+        self._parameters = self.model.model_parameters.defaults
+        p_mx = ca.MX.sym("p", parameter_count)
+        p_stages = [ca.repmat(p_mx, 1, n)] if parametric else []
+
         # --- dynamics: e(δ, Δu) = F(x, u + d) in x̄_{k+1}'s chart
         implicit = s.rti.dynamics == "implicit"
         if implicit:
@@ -313,22 +355,29 @@ class RealTimeMPC(MPC):
                 raise ValueError(f"rti.dynamics='implicit' needs the step's own equations, which the "
                                  f"{self.model.space.description} space does not provide, and rigid-body terms "
                                  f"(model {self.model.name!r}); use rti.dynamics='unrolled'")
-            node_terms, term_layout = implicit_dynamics.node_terms_function(self.model.casadi_terms, retract)
+            parametrized = self.model if parametric else None
+            node_terms, term_layout = implicit_dynamics.node_terms_function(self.model.casadi_terms, retract,
+                                                                            parametrized)
             implicit_stage = implicit_dynamics.implicit_stage_function(self.model.casadi_terms, term_layout,
-                                                                       self.model.step_size, retract)
+                                                                       self.model.step_size, retract, parametrized)
         else:
-            stage_dynamics = unrolled_stage_function(self.model.step, layout, m)
+            stage_dynamics = unrolled_stage_function(self.model.parametric_step if parametric else self.model.step,
+                                                     layout, m)
 
         # --- cost: the problem's residuals (control/problem.py), the ω bound as a stiff penalty on its
         # excess (zero inside the bound): the linearized QP then has only the torque boxes and is always
         # feasible. Gauss–Newton.
         energy = None
+        rest_state = None if self.rest is None else np.concatenate([self.rest, np.zeros(3)])
         if s.terminal_energy_weight > 0:
-            energy = (self.model.energy_function, self.model.energy(np.concatenate([self.rest, np.zeros(3)])))
+            energy = ((self.model.parametric_energy, rest_state) if parametric
+                      else (self.model.energy_function, self.model.energy(rest_state)))
         stage_function, terminal_function = residual_functions(layout, s, m, self.omega_bound, s.rti.omega_penalty,
-                                                               energy)
+                                                               energy, parameter_count if parametric else 0)
         stage_residual = stage_function(x, u, reference, u_s)
-        terminal_residual = terminal_function(x, reference)
+        p_sx = ca.SX.sym("p", parameter_count)
+        terminal_parameters = [p_sx] if parametric else []
+        terminal_residual = terminal_function(x, reference, *terminal_parameters)
         regularization = s.rti.regularization
 
         def gauss_newton(residual: Any, variables: Any, size: int) -> list[Any]:
@@ -338,7 +387,8 @@ class RealTimeMPC(MPC):
 
         stage_cost = ca.Function("rti_stage_cost", [x_bar, u_bar, reference, u_s],
                                  gauss_newton(stage_residual, ca.vertcat(delta, du), stage_size))
-        terminal_cost = ca.Function("rti_terminal_cost", [x_bar, reference], gauss_newton(terminal_residual, delta, nd))
+        terminal_cost = ca.Function("rti_terminal_cost", [x_bar, reference, *terminal_parameters],
+                                    gauss_newton(terminal_residual, delta, nd))
 
         # --- the whole QP over the horizon, stage-wise, δ_0 eliminated (it is fixed by the measurement):
         # z = (Δu_0, δ_1, Δu_1, …, δ_N); the feedback adds A_0 δ_0 to the first gap and S_0 δ_0 to the
@@ -346,13 +396,17 @@ class RealTimeMPC(MPC):
         states, controls = ca.MX.sym("X", ns, n + 1), ca.MX.sym("U", m, n)
         references, d_mx, u_s_mx = ca.MX.sym("R", ns, n + 1), ca.MX.sym("d", m), ca.MX.sym("u_s", m, n)
         if implicit:  # the terms once per node, each stage reads its two nodes'
-            values, slopes = node_terms.map(n + 1)(states[qs, :])
+            node_parameters = [ca.repmat(p_mx, 1, n + 1)] if parametric else []
+            values, slopes = node_terms.map(n + 1)(states[qs, :], *node_parameters)
             gaps, jacobians = implicit_stage.map(n)(states[:, :n], controls, states[:, 1:], ca.repmat(d_mx, 1, n),
-                                                    values[:, :n], slopes[:, :3 * n], values[:, 1:], slopes[:, 3:])
+                                                    values[:, :n], slopes[:, :3 * n], values[:, 1:], slopes[:, 3:],
+                                                    *p_stages)
         else:
-            gaps, jacobians = stage_dynamics.map(n)(states[:, :n], controls, states[:, 1:], ca.repmat(d_mx, 1, n))
+            gaps, jacobians = stage_dynamics.map(n)(states[:, :n], controls, states[:, 1:], ca.repmat(d_mx, 1, n),
+                                                    *p_stages)
         hessians, gradients, costs = stage_cost.map(n)(states[:, :n], controls, references[:, :n], u_s_mx)
-        terminal_hessian, terminal_gradient, terminal_value = terminal_cost(states[:, n], references[:, n])
+        terminal_hessian, terminal_gradient, terminal_value = terminal_cost(states[:, n], references[:, n],
+                                                                            *([p_mx] if parametric else []))
         size = stage_size * n
         blocks = [hessians[:, k * stage_size:(k + 1) * stage_size] for k in range(n)]
         hessian = ca.diagcat(blocks[0][nd:, nd:], *blocks[1:], terminal_hessian)
@@ -363,15 +417,15 @@ class RealTimeMPC(MPC):
                                    -ca.MX.eye(nd), ca.MX(nd, size - column - stage_size - nd)))
         constraints = ca.vertcat(*rows)
         gradient = ca.vertcat(gradients[nd:, 0], ca.vec(gradients[:, 1:]), terminal_gradient)
-        linearize = ca.Function("rti_linearize", [states, controls, references, d_mx, u_s_mx],
+        linearize = ca.Function("rti_linearize", [states, controls, references, d_mx, u_s_mx, p_mx],
                                 [hessian, gradient, constraints, ca.vec(gaps), ca.sum2(costs) + terminal_value,
                                  jacobians[:, :nd], blocks[0][nd:, :nd]],
-                                ["X", "U", "R", "d", "u_s"], ["H", "g", "A", "gaps", "cost", "A0", "S0"])
-        linearize_blocks = ca.Function("rti_linearize_blocks", [states, controls, references, d_mx, u_s_mx],
+                                ["X", "U", "R", "d", "u_s", "p"], ["H", "g", "A", "gaps", "cost", "A0", "S0"])
+        linearize_blocks = ca.Function("rti_linearize_blocks", [states, controls, references, d_mx, u_s_mx, p_mx],
                                        [hessians, terminal_hessian, gradients, terminal_gradient, jacobians, gaps,
                                         ca.sum2(costs) + terminal_value],
-                                       ["X", "U", "R", "d", "u_s"], ["H", "HN", "g", "gN", "AB", "gaps", "cost"])
-        predict = predict_function(self.model, "rti_predict")
+                                       ["X", "U", "R", "d", "u_s", "p"], ["H", "HN", "g", "gN", "AB", "gaps", "cost"])
+        predict = predict_function(self.model, "rti_predict", "input" if parametric else "constant")
 
         self._implicit = implicit
         self._control_bounds = control_bounds(self.torque_low, self.torque_high, n, s.torque_reserve)
@@ -380,7 +434,7 @@ class RealTimeMPC(MPC):
         riccati = s.rti.qp_solver == "riccati"
         if riccati:
             linearize = linearize_blocks
-            functions = [linearize, predict, riccati_feedback_function(
+            functions = [linearize, predict, *riccati_feedback_function(
                 layout, n, m, *self._control_bounds, self._step_limits, self._omega_valid, s.rti.qp_iterations)]
         else:
             functions = [linearize, predict]
@@ -394,8 +448,9 @@ class RealTimeMPC(MPC):
             functions = [compiled[function.name()] for function in functions]
         if riccati:  # every argument of the Riccati path is dense: call through buffers, not DMs
             functions = [BufferedFunction(function) for function in functions]
-        self._linearize, self._predict = functions[:2]
+        self._linearize, self._predict_with_parameters = functions[:2]
         self._feedback = functions[2] if riccati else None
+        self._apply = functions[3] if riccati else None
         self._qp = None if riccati else self._make_qp(hessian.sparsity(), constraints.sparsity())
         self._size = size
         self._stage_size = stage_size
@@ -427,7 +482,48 @@ class RealTimeMPC(MPC):
         cached = getattr(self, "_targets_cache", None)
         if cached is None or cached[0] != key:  # u_s changes only with the time and d̂: compute once
             cached = self._targets_cache = (key, self.reference_window()[1].T)
-        return self._linearize(plan.states.T, plan.controls.T, references, self.disturbance, cached[1])
+        return self._linearize(plan.states.T, plan.controls.T, references, self.disturbance, cached[1],
+                               self._parameters)
+
+    # ------------------------------------------------------------------ model parameters
+    def _predict(self, x: Any, u: Any) -> tuple[Any, ...]:
+        """One model step with the current model parameters (``predict_function``'s outputs)."""
+        return self._predict_with_parameters(x, u, self._parameters)
+
+    def _rollout(self, x0: np.ndarray, controls: np.ndarray) -> np.ndarray:
+        if not self.settings.rti.model_parameters:
+            return super()._rollout(x0, controls)
+        states = [np.asarray(x0, dtype=float)]
+        for u in controls:
+            stepped = self.model.parametric_step(states[-1], u, self._parameters)[0]
+            states.append(np.asarray(stepped, dtype=float).ravel())
+        return np.array(states)
+
+    @property
+    def parameter_names(self) -> tuple[str, ...]:
+        """The model parameters' names (:mod:`fvin_mpc.core.model_parameters`), in the vector's order."""
+        return self.model.model_parameters.names
+
+    @property
+    def parameters(self) -> np.ndarray:
+        """The model parameters in use (a copy)."""
+        return self._parameters.copy()
+
+    def set_parameters(self, values: Any = None, **blocks: Any) -> None:
+        """New model parameters: ``values`` a whole vector (:attr:`parameter_names`' order) and/or blocks by
+        name, e.g. ``set_parameters(gain_scale=[0.8])`` (the rest as they are). No recompilation: the
+        compiled functions take them as an input. The plan prepared already keeps the values it was
+        linearized with; the next preparation (and any further iteration of the next call) uses the new
+        ones, and so do the control that holds the goal (``u_goal``) and the disturbance estimate's next
+        prediction. ``ValueError`` for a controller built with ``rti.model_parameters=False`` or values
+        of the wrong size or not finite."""
+        if not self.settings.rti.model_parameters:
+            raise ValueError("this controller has its model parameters baked in (rti.model_parameters=False); "
+                             "build it with rti.model_parameters=True to change them at run time")
+        parameters = self.model.model_parameters
+        self._parameters = parameters.values(self._parameters if values is None else values, **blocks)
+        self._u_goal = self._goal_control()
+        self._targets_cache = None
 
     # ------------------------------------------------------------------ one SQP iteration
     def _iterate(self, plan: Plan, linearization: tuple[Any, ...], x0: np.ndarray) -> tuple[Plan | None, str]:
@@ -477,13 +573,27 @@ class RealTimeMPC(MPC):
                          x0: np.ndarray) -> tuple[Plan | None, str]:
         """:meth:`_iterate` in one compiled call (:func:`riccati_feedback_function`)."""
         h, h_n, g, g_n, ab, gaps, _ = linearization
-        states, controls, step, mu = self._feedback(plan.states.T, plan.controls.T, x0, h, h_n, g, g_n, ab, gaps)
+        states, controls, step, mu, _, _ = self._feedback(plan.states.T, plan.controls.T, x0, h, h_n, g, g_n, ab, gaps)
         states, controls = np.asarray(states, dtype=float).T, np.asarray(controls, dtype=float).T
         self.qp_iterations = self.settings.rti.qp_iterations
         self.last_step, self.qp_mu = float(step), float(mu)
         if not (np.all(np.isfinite(states)) and np.all(np.isfinite(controls))):
             return None, "qp-not-finite"
         return Plan(states, controls, None, None), "rti"
+
+    def _apply_prepared(self, x0: np.ndarray) -> tuple[Plan | None, int, str]:
+        """The prepared feedback (``rti.feedback="prepared"``): the preparation's QP gains applied to the
+        measured ``x0`` — one forward pass, no factorization in the call."""
+        assert self._plan is not None and self._linearization is not None
+        gains, feedforwards = self._gains
+        _, _, _, _, ab, gaps, _ = self._linearization
+        states, controls, step = self._apply(self._plan.states.T, self._plan.controls.T, x0, gains, feedforwards, ab,
+                                             gaps)
+        states, controls = np.asarray(states, dtype=float).T, np.asarray(controls, dtype=float).T
+        self.last_step = float(step)
+        if not (np.all(np.isfinite(states)) and np.all(np.isfinite(controls))):
+            return None, 0, "qp-not-finite"
+        return Plan(states, controls, None, None), 1, "rti"
 
     def _improve(self, plan: Plan, x0: np.ndarray, iterations: int, deadline: float,
                  linearization: tuple[Any, ...] | None = None) -> tuple[Plan | None, int, str, float]:
@@ -525,6 +635,13 @@ class RealTimeMPC(MPC):
         controls = np.vstack([plan.controls[1:], plan.controls[-1:]])
         self._plan = Plan(states, controls, None, None)
         self._linearization = self._linearize_at(self._plan)
+        if self.settings.rti.feedback == "prepared":
+            # The QP solved now, at the predicted first state; the call applies its gains to the measured one.
+            h, h_n, g, g_n, ab, gaps, _ = self._linearization
+            plan = self._plan
+            *_, mu, gains, feedforwards = self._feedback(plan.states.T, plan.controls.T, plan.states[0], h, h_n, g,
+                                                         g_n, ab, gaps)
+            self._gains, self.qp_mu = (gains, feedforwards), float(mu)
 
     def reset(self) -> None:
         """Forget the plan and the disturbance estimate (the next call is a cold start); the clock
@@ -584,8 +701,11 @@ class RealTimeMPC(MPC):
             if self._linearization is None:
                 self.prepare()
             assert self._plan is not None
-            plan, iterations, status, _ = self._improve(self._plan, x0, s.rti.max_iter, start + s.rti.budget_s,
-                                                        self._linearization)
+            if s.rti.feedback == "prepared":
+                plan, iterations, status = self._apply_prepared(x0)
+            else:
+                plan, iterations, status, _ = self._improve(self._plan, x0, s.rti.max_iter, start + s.rti.budget_s,
+                                                            self._linearization)
             fallback, success = None, plan is not None
             if plan is None:  # the shifted previous plan, clipped
                 plan, fallback = self._plan, "previous-plan"

@@ -170,12 +170,15 @@ class CasadiOps:
         return tuple(vector[i] for i in range(vector.shape[0]))
 
     def linear(self, vector, weight, bias):
-        ca = self._ca
-        return ca.mtimes(ca.DM(weight), vector) + ca.DM(bias)
+        return self._ca.mtimes(self._matrix(weight), vector) + self._matrix(bias)
 
     def linear_transpose(self, vector, weight):
+        return self._ca.mtimes(self._matrix(weight).T, vector)
+
+    def _matrix(self, value):
+        # Weights are numbers, or symbols where a model parameter stands in for them (model_parameters).
         ca = self._ca
-        return ca.mtimes(ca.DM(weight).T, vector)
+        return value if isinstance(value, (ca.SX, ca.MX)) else ca.DM(value)
 
 
 _OPS: dict[str, Ops] = {}

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, ClassVar
 
 from fvin_mpc.core import s3
 from fvin_mpc.core.backend import Ops
@@ -68,6 +68,9 @@ class Quadrotor:
     rotor_moments: tuple[Vector, ...] | None = None
     unmodelled: tuple[str, ...] = ()
     constant_inertia: bool = field(default=True, init=False)
+
+    #: The fields that are model parameters of an export (fvin_mpc.core.model_parameters).
+    PARAMETERS: ClassVar[tuple[str, ...]] = ("mass", "inertia", "gravity")
 
     def __post_init__(self) -> None:
         if len(self.rotor_sites) != len(self.rotor_spins):

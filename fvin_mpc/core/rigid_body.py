@@ -8,7 +8,7 @@ components, so every backend (NumPy, torch, CasADi) evaluates it.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, ClassVar
 
 from fvin_mpc.core import s3
 from fvin_mpc.core.backend import Ops
@@ -49,6 +49,9 @@ class PivotedRigidBody:
     constant_inertia: bool = field(default=True, init=False)
     vertical: tuple[float, float, float] = (0.0, 0.0, 1.0)
     hinge_axis: tuple[float, float, float] | None = None
+
+    #: The fields that are model parameters of an export (fvin_mpc.core.model_parameters).
+    PARAMETERS: ClassVar[tuple[str, ...]] = ("inertia", "center_of_mass", "mass_gravity", "damping")
 
     @property
     def control_dim(self) -> int:
@@ -114,7 +117,7 @@ class PivotedRigidBodyTerms:
         return tuple(tuple(2.0 * entry + zero for entry in row) for row in self.body.actuator_axes)
 
     def dissipation(self, q: s3.Quat) -> s3.Mat3 | None:
-        if self.body.damping == 0.0:
+        if isinstance(self.body.damping, (int, float)) and self.body.damping == 0.0:  # a symbol: a parameter
             return None
         zero = 0.0 * q[0]
         d = 2.0 * self.body.damping

@@ -29,6 +29,8 @@ struct fvc_controller {
     double NX_[(N + 1) * NS], NU[N * M];     /* an iteration's result */
     double ref[(N + 1) * NS], scales[N], u_s[N * M];
     double u_goal[M], d[M], limit[M];
+    double p[FVC_NP];                        /* the model parameters (fvc_set_parameters) */
+    double K[M * FVC_ND * N], k[M * N];       /* the prepared QP's Riccati gains (FVC_PREPARED_FEEDBACK) */
     double pred_rates[NR], pred_inverse[M * NR]; /* the last one-step prediction (column-major inverse) */
     int have_plan, prepared, have_prediction, pending_prediction;
     double sent_x[NS], sent_u[M];            /* the last call's state and control, for the prediction */
@@ -80,14 +82,14 @@ static void call_linearize(fvc_controller *c, double *X, double *U) {
         }
     }
     targets(c);
-    c->arg[0] = X; c->arg[1] = U; c->arg[2] = c->ref; c->arg[3] = c->d; c->arg[4] = c->u_s;
+    c->arg[0] = X; c->arg[1] = U; c->arg[2] = c->ref; c->arg[3] = c->d; c->arg[4] = c->u_s; c->arg[5] = c->p;
     for (int i = 0; i < LIN_COUNT; i++) c->res[i] = c->lin[i];
     rti_linearize_blocks(c->arg, c->res, c->iw, c->w, 0);
 }
 
 static void call_predict(fvc_controller *c, const double *x, const double *u, double *next, double *b,
                          double *residual, double *inverse) {
-    c->arg[0] = x; c->arg[1] = u;
+    c->arg[0] = x; c->arg[1] = u; c->arg[2] = c->p;
     c->res[0] = next; c->res[1] = b; c->res[2] = residual; c->res[3] = inverse;
     rti_predict(c->arg, c->res, c->iw, c->w, 0);
 }
@@ -103,10 +105,33 @@ static int iterate(fvc_controller *c, const double *X, const double *U, const do
     double step, mu;
     c->arg[0] = X; c->arg[1] = U; c->arg[2] = x0;
     for (int i = 0; i < LIN_GAPS + 1; i++) c->arg[3 + i] = c->lin[i];
-    c->res[0] = c->NX_; c->res[1] = c->NU; c->res[2] = &step; c->res[3] = &mu;
+    c->res[0] = c->NX_; c->res[1] = c->NU; c->res[2] = &step; c->res[3] = &mu; c->res[4] = 0; c->res[5] = 0;
     rti_feedback(c->arg, c->res, c->iw, c->w, 0);
     c->status.last_step = step;
     c->status.qp_mu = mu;
+    return all_finite(c->NX_, (N + 1) * NS) && all_finite(c->NU, N * M);
+}
+
+/* The prepared feedback's preparation (RealTimeMPC.prepare, feedback="prepared"): the QP at the plan's own
+ * first state, keeping its last Riccati gains for the call. */
+static void prepare_gains(fvc_controller *c) {
+    double step, mu;
+    c->arg[0] = c->X; c->arg[1] = c->U; c->arg[2] = c->X;
+    for (int i = 0; i < LIN_GAPS + 1; i++) c->arg[3 + i] = c->lin[i];
+    c->res[0] = c->NX_; c->res[1] = c->NU; c->res[2] = &step; c->res[3] = &mu; c->res[4] = c->K; c->res[5] = c->k;
+    rti_feedback(c->arg, c->res, c->iw, c->w, 0);
+    c->status.qp_mu = mu;
+}
+
+/* The prepared feedback's call (RealTimeMPC._apply_prepared): the gains applied to the measured x0, the
+ * new plan into NX_, NU; 0 if not finite. */
+static int apply_prepared(fvc_controller *c, const double *x0) {
+    double step;
+    c->arg[0] = c->X; c->arg[1] = c->U; c->arg[2] = x0; c->arg[3] = c->K; c->arg[4] = c->k;
+    c->arg[5] = c->lin[LIN_AB]; c->arg[6] = c->lin[LIN_GAPS];
+    c->res[0] = c->NX_; c->res[1] = c->NU; c->res[2] = &step;
+    rti_apply(c->arg, c->res, c->iw, c->w, 0);
+    c->status.last_step = step;
     return all_finite(c->NX_, (N + 1) * NS) && all_finite(c->NU, N * M);
 }
 
@@ -231,6 +256,23 @@ static void complete_prediction(fvc_controller *c) {
     c->status.step_residual = residual;
 }
 
+/* u_goal: the control that holds the goal at rest in the model (MPC._goal_control, 5 Newton steps from 0) */
+static void goal_control(fvc_controller *c) {
+    double x_goal[NS], next[NS], b[NR * M], residual, inverse[M * NR];
+    memcpy(x_goal, fvc_goal_state, sizeof x_goal);
+    for (int k = RS; k < NS; k++) x_goal[k] = 0.0;
+    memset(c->u_goal, 0, sizeof c->u_goal);
+    for (int it = 0; it < 5; it++) {
+        call_predict(c, x_goal, c->u_goal, next, b, &residual, inverse);
+        double change[M];
+        for (int j = 0; j < M; j++) {
+            change[j] = 0.0;
+            for (int k = 0; k < NR; k++) change[j] += inverse[j + k * M] * next[RS + k];
+        }
+        for (int j = 0; j < M; j++) c->u_goal[j] -= change[j];
+    }
+}
+
 /* ------------------------------------------------------------------ API */
 fvc_controller *fvc_create(void) {
     fvc_controller *c = calloc(1, sizeof *c);
@@ -241,6 +283,8 @@ fvc_controller *fvc_create(void) {
     rti_predict_work(&a, &r, &i, &w);
     sz_arg = a > sz_arg ? a : sz_arg; sz_res = r > sz_res ? r : sz_res; sz_iw = i > sz_iw ? i : sz_iw; sz_w = w > sz_w ? w : sz_w;
     rti_feedback_work(&a, &r, &i, &w);
+    sz_arg = a > sz_arg ? a : sz_arg; sz_res = r > sz_res ? r : sz_res; sz_iw = i > sz_iw ? i : sz_iw; sz_w = w > sz_w ? w : sz_w;
+    rti_apply_work(&a, &r, &i, &w);
     sz_arg = a > sz_arg ? a : sz_arg; sz_res = r > sz_res ? r : sz_res; sz_iw = i > sz_iw ? i : sz_iw; sz_w = w > sz_w ? w : sz_w;
 #if FVC_FREE_GOAL_GUESS
     rti_goal_guess_work(&a, &r, &i, &w);
@@ -262,19 +306,8 @@ fvc_controller *fvc_create(void) {
     for (int k = 0; k <= N; k++) memcpy(c->ref + k * NS, fvc_goal_state, sizeof(double) * NS);
     for (int k = 0; k < N; k++) c->scales[k] = 1.0;
     for (int j = 0; j < M; j++) c->limit[j] = 0.5 * (fvc_torque_high[j] - fvc_torque_low[j]);
-    /* u_goal: the control that holds the goal at rest in the model (MPC._goal_control, 5 Newton steps) */
-    double x_goal[NS], next[NS], b[NR * M], residual, inverse[M * NR];
-    memcpy(x_goal, fvc_goal_state, sizeof x_goal);
-    for (int k = RS; k < NS; k++) x_goal[k] = 0.0;
-    for (int it = 0; it < 5; it++) {
-        call_predict(c, x_goal, c->u_goal, next, b, &residual, inverse);
-        double change[M];
-        for (int j = 0; j < M; j++) {
-            change[j] = 0.0;
-            for (int k = 0; k < NR; k++) change[j] += inverse[j + k * M] * next[RS + k];
-        }
-        for (int j = 0; j < M; j++) c->u_goal[j] -= change[j];
-    }
+    memcpy(c->p, fvc_parameter_defaults, sizeof c->p);
+    goal_control(c);
     fvc_reset(c);
     return c;
 }
@@ -305,6 +338,7 @@ void fvc_prepare(fvc_controller *c) {
     for (int i = OM; i < NS; i++) c->X[N * NS + i] = clip(c->X[N * NS + i], -FVC_OMEGA_BOUND, FVC_OMEGA_BOUND);
     memmove(c->U, c->U + M, sizeof(double) * (N - 1) * M);
     call_linearize(c, c->X, c->U);
+    if (FVC_PREPARED_FEEDBACK) prepare_gains(c);
     c->prepared = 1;
     c->status.prepares++;
 }
@@ -333,9 +367,18 @@ int fvc_feedback(fvc_controller *c, const double *x, double *u) {
         status = FVC_COLD;
     } else {
         if (!c->prepared) fvc_prepare(c);
-        memcpy(c->CX, c->X, sizeof c->X);
-        memcpy(c->CU, c->U, sizeof c->U);
-        c->status.iterations = improve(c, c->CX, c->CU, x0, FVC_MAX_ITER, 1, &failed);
+        if (FVC_PREPARED_FEEDBACK) {
+            failed = !apply_prepared(c, x0);
+            c->status.iterations = !failed;
+            if (!failed) {
+                memcpy(c->CX, c->NX_, sizeof c->NX_);
+                memcpy(c->CU, c->NU, sizeof c->NU);
+            }
+        } else {
+            memcpy(c->CX, c->X, sizeof c->X);
+            memcpy(c->CU, c->U, sizeof c->U);
+            c->status.iterations = improve(c, c->CX, c->CU, x0, FVC_MAX_ITER, 1, &failed);
+        }
         if (failed) {  /* the shifted previous plan */
             c->status.fallbacks++;
             status = FVC_FALLBACK;
@@ -379,3 +422,19 @@ void fvc_get_plan(const fvc_controller *c, double *states, double *controls) {
 void fvc_get_disturbance(const fvc_controller *c, double *d) { memcpy(d, c->d, sizeof c->d); }
 void fvc_set_disturbance(fvc_controller *c, const double *d) { memcpy(c->d, d, sizeof c->d); }
 void fvc_get_goal_control(const fvc_controller *c, double *u_goal) { memcpy(u_goal, c->u_goal, sizeof c->u_goal); }
+
+int fvc_parameter_count(void) { return FVC_NP; }
+const char *fvc_parameter_name(int index) { return index >= 0 && index < FVC_NP ? fvc_parameter_names[index] : NULL; }
+void fvc_default_parameters(double *p) { memcpy(p, fvc_parameter_defaults, sizeof fvc_parameter_defaults); }
+void fvc_get_parameters(const fvc_controller *c, double *p) { memcpy(p, c->p, sizeof c->p); }
+
+int fvc_set_parameters(fvc_controller *c, const double *p) {
+    if (!FVC_PARAMETRIC) return FVC_NOT_PARAMETRIC;
+    if (!all_finite(p, FVC_NP)) return FVC_BAD_PARAMETERS;
+    /* The prediction after the control already sent is the old model's (as the Python loop computes it
+     * in the call): finish it before the model changes. */
+    complete_prediction(c);
+    memcpy(c->p, p, sizeof c->p);
+    goal_control(c);
+    return 0;
+}

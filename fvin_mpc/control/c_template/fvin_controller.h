@@ -20,7 +20,9 @@ enum {
     FVC_COLD = 1,          /* cold call: the best of the multi-start guesses */
     FVC_FALLBACK = 2,      /* the QP gave no finite step: the shifted previous plan's first control, clipped */
     FVC_BAD_STATE = -1,    /* non-finite state or a quaternion further than 1e-3 from unit norm: u untouched */
-    FVC_NO_MEMORY = -2
+    FVC_NO_MEMORY = -2,
+    FVC_BAD_PARAMETERS = -3,  /* fvc_set_parameters: a non-finite value; nothing changed */
+    FVC_NOT_PARAMETRIC = -4   /* fvc_set_parameters: exported with the parameters as constants */
 };
 
 typedef struct {
@@ -45,7 +47,9 @@ void fvc_reset(fvc_controller *c);
 
 /* The control u (FVC_M) for the measured state x (FVC_NS). */
 int fvc_feedback(fvc_controller *c, const double *x, double *u);
-/* Shift the plan one step and linearize it for the next call; call after the control is sent. It
+/* Shift the plan one step and linearize it for the next call; call after the control is sent. Exported
+ * with the prepared feedback (FVC_PREPARED_FEEDBACK in fvc_config.h) it also solves the QP at the predicted
+ * state, and the next fvc_feedback only applies its gains to the measured one. It
  * also computes the model's one-step prediction after the control (for the disturbance estimate),
  * which fvc_feedback leaves for after the control is out. */
 void fvc_prepare(fvc_controller *c);
@@ -67,6 +71,18 @@ void fvc_get_plan(const fvc_controller *c, double *states, double *controls);
 void fvc_get_disturbance(const fvc_controller *c, double *d);
 void fvc_set_disturbance(fvc_controller *c, const double *d);
 void fvc_get_goal_control(const fvc_controller *c, double *u_goal);
+
+/* The model parameters: a small named vector the generated model functions take as an input (gain
+ * scale per actuator, the model's explicit physical values; fvin_mpc.core.model_parameters). Changing
+ * them needs no recompilation. fvc_set_parameters(c, p) with fvc_parameter_count() values: the plan
+ * already prepared keeps the old ones; the next preparation (and any further iteration of the next
+ * call) uses the new ones, and so do the goal control u_goal (recomputed now) and the disturbance
+ * estimate's next prediction. Returns 0, FVC_BAD_PARAMETERS or FVC_NOT_PARAMETRIC. */
+int fvc_parameter_count(void);
+const char *fvc_parameter_name(int index);  /* e.g. "gain_scale[0]"; NULL out of range */
+void fvc_default_parameters(double *p);     /* the values at export */
+void fvc_get_parameters(const fvc_controller *c, double *p);
+int fvc_set_parameters(fvc_controller *c, const double *p);
 
 #ifdef __cplusplus
 }

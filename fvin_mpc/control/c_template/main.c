@@ -36,8 +36,13 @@ int main(int argc, char **argv) {
         fprintf(stderr, "out of memory\n");
         return 1;
     }
-    double x[FVC_NS], u[FVC_M], states[(FVC_N + 1) * FVC_NS], controls[FVC_N * FVC_M];
+    double x[FVC_NS], u[FVC_M], states[(FVC_N + 1) * FVC_NS], controls[FVC_N * FVC_M], p[FVC_NP];
     for (int i = 0; i < ns; i++) x[i] = fvc_example_state[i];
+    /* the model parameters (run-time inputs; an adaptation would fvc_set_parameters new values) */
+    fvc_get_parameters(controller, p);
+    printf("%d model parameters:", fvc_parameter_count());
+    for (int i = 0; i < fvc_parameter_count() && i < 4; i++) printf(" %s=%g", fvc_parameter_name(i), p[i]);
+    printf("%s\n", fvc_parameter_count() > 4 ? " ..." : "");
     for (int k = 0; k < periods; k++) {
         double start = now_us();
         int status = fvc_feedback(controller, x, u);
