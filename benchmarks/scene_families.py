@@ -103,7 +103,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="the MPC of both models, learned and closed form (default: %(default)s)",
     )
     parser.add_argument(
-        "--out-dir", type=Path, default=Path("docs"), help="where the report goes (default: %(default)s)"
+        "--out-dir", type=Path, default=None,
+        help="where the report goes (default: docs/scene-families-FAMILY; docs/scene-families.md is the hand-written "
+        "overview)"
     )
     parser.add_argument("--cache-dir", type=Path, default=Path("build/families-cache"), help="default: %(default)s")
     parser.add_argument("--quick", action="store_true", help="the small version for the test suite (see above)")
@@ -544,6 +546,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         args.latency = "none" if args.quick else "measured"
     latency: Any = args.latency if args.latency in ("none", "measured") else float(args.latency)
     args.latency = latency
+    args.out_dir = args.out_dir or Path("docs") / f"scene-families-{args.family}"
     records = run(args)
     summary = summarize(records, args.filter_facts)
     print(json.dumps(summary, indent=2))
