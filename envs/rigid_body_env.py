@@ -572,8 +572,13 @@ class RigidBodyEnv(MujocoBodyEnv):
 
     def _before_advance(self) -> None:
         # The knock lands between periods (or partial periods), never inside a MuJoCo step.
-        if not (self._knock_pending and self._held_since is not None
-                and self._data.time - self._held_since >= IMPULSE_HOLD_S - 1e-9):
+        at = self._physics.impulse_at_s
+        if at is not None:
+            due = self._knock_pending and self._data.time >= at - 1e-9
+        else:
+            due = (self._knock_pending and self._held_since is not None
+                   and self._data.time - self._held_since >= IMPULSE_HOLD_S - 1e-9)
+        if not due:
             return
         delta = self._physics.impulse_delta_omega
         start = int(self._model.jnt_dofadr[self._joint_id])
