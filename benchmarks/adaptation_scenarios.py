@@ -16,7 +16,11 @@ checkpoint), ``--runs`` seeded runs each:
 * ``estimate`` — the disturbance estimate only (the presets' gain);
 * ``adaptation`` — :class:`fvin_mpc.control.adaptation.AdaptiveRTI` only (mass fitted from a 40-transition
   window, one Levenberg–Marquardt step per period, pushed as ``gain_scale = 1/mass``);
-* ``both`` — the two together.
+* ``both`` — the two together;
+* ``oracle`` — the disturbance estimate and the model switched to the true changed mass at the change (told
+  when and what: the closed form with the changed parameters, the issue's oracle) — the recovery a
+  controller that knew could reach, the physics' own share of it (a body twice as heavy knocked by the same
+  rate has half the motor's authority to come back with).
 
 The oracle ("unchanged"): the same seeds and the same knock on the plant whose mass does not change, under
 the ``estimate`` arm (the shipped controller). Figures per run: hold error before the change (RMS angle from
@@ -44,7 +48,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from fvin_mpc.control.adaptation import AdaptiveRTI
+from fvin_mpc.control.adaptation import AdaptiveRTI, nominal_parameters, rti_parameters
 from fvin_mpc.control.closed_loop import run_episode
 from fvin_mpc.control.model_export import CompileCount, cache_dir
 from fvin_mpc.control.scene import scene_env, scene_model, scene_mpc, scene_mpc_settings
@@ -53,7 +57,7 @@ from fvin_mpc.envs.scenes import SCENES
 from fvin_mpc.studies.report import markdown_table, write_report
 
 SCENE = "pendulum"
-ARMS = ("none", "estimate", "adaptation", "both")
+ARMS = ("none", "estimate", "adaptation", "both", "oracle")
 MODELS = ("closed-form", "learned")
 #: The recovery threshold never goes below this (rad): a hold within 0.6° is held.
 RECOVERY_FLOOR = 0.01
@@ -81,6 +85,30 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+class OracleSwitch:
+    """The wrapped real-time MPC's model switched to ``mass`` from ``change_at`` on (told by ``set_time``)."""
+
+    def __init__(self, controller: Any, change_at: float, mass: float) -> None:
+        self.controller, self.change_at = controller, change_at
+        model = controller.model
+        self._nominal = rti_parameters(model, nominal_parameters(model.control_dim))
+        self._changed = rti_parameters(model, {**nominal_parameters(model.control_dim), "mass": mass})
+
+    def reset(self) -> None:
+        self.controller.reset()
+        self.controller.set_parameters(self._nominal)
+
+    def set_time(self, time_s: float) -> None:
+        if time_s >= self.change_at - 1e-9:
+            self.controller.set_parameters(self._changed)
+
+    def __call__(self, x: Any) -> Any:
+        return self.controller(x)
+
+    def prepare(self) -> None:
+        self.controller.prepare()
+
+
 def start(seed: int) -> dict[str, Any]:
     rng = np.random.default_rng(seed)
     return {"qpos": [math.pi + rng.uniform(-0.05, 0.05)], "qvel": [rng.uniform(-0.2, 0.2)]}
@@ -100,9 +128,11 @@ def run_cell(args: argparse.Namespace, model_name: str, arm: str, changed: bool)
     true_model = model_name == "closed-form"
     env = scene_env(SCENE, true_model=true_model, physics=physics)
     model = scene_model(env, true_model=true_model)
-    overrides = {} if arm in ("estimate", "both") else {"disturbance_gain": 0.0}
+    overrides = {} if arm in ("estimate", "both", "oracle") else {"disturbance_gain": 0.0}
     rti = scene_mpc(env, model, scene_mpc_settings(env, solver="rti", **overrides))
     controller = AdaptiveRTI(rti, window=args.window) if arm in ("adaptation", "both") else rti
+    if arm == "oracle":
+        controller = OracleSwitch(rti, args.change_at, TRUE_MASS)
     runs = []
     for i in tqdm(range(args.runs), desc=f"{model_name} {arm} {'changed' if changed else 'unchanged'}", leave=False):
         compiles = CompileCount.calls
