@@ -7,7 +7,7 @@ at the same instant, the rod's rate jumps by ``--knock`` rad/s (``impulse_delta_
 sign drawn per seed). The knock is there because a uniform body held still at upright reveals no mass
 change at all: gravity's torque and the inertia double together, the torque that holds it is zero either
 way, and the only effect — the motor is half as strong relative to the body — shows only when the body
-moves. Without it the scenario measures nothing (checked: the unknocked hold is unchanged to 1e-5 rad).
+moves. Without it the scenario measures nothing (docs/adaptation.md: the unknocked hold changes by 1e-5 rad).
 
 Four arms per model (``--models``: the closed form read off the unchanged MJCF, and the shipped learned
 checkpoint), ``--runs`` seeded runs each:
