@@ -220,3 +220,34 @@ def test_the_mass_as_a_gain_scale_steps_like_the_heavier_body():
         expected = np.asarray(heavier(x, u)[0], dtype=float).ravel()
         stepped = np.asarray(model.parametric_step(x, u, vector)[0], dtype=float).ravel()
         assert np.max(np.abs(stepped - expected)) < 1e-12
+
+
+def test_the_mass_as_a_gain_scale_on_a_learned_dissipation():
+    """The same identity through a learned model's ``dissipation_cholesky`` (the shipped damped pendulum):
+    the run-time parameters from ``rti_parameters`` step like the estimator's scaled terms."""
+    from fvin_mpc.control.adaptation import AdaptiveRTI, dissipation_block, rti_parameters
+
+    env = scene_env("pendulum_damped")
+    model = scene_model(env)
+    assert dissipation_block(model) == "dissipation_cholesky"
+    estimate = {"mass": 1.7, "gain0": 1.1, "damping": 0.03}
+    p = [estimate["mass"], estimate["gain0"], estimate["damping"]]
+    heavier = from_terms(S3, ScaledTerms(model.casadi_terms, p), ScaledTerms(model.numpy_terms, p),
+                         model.step_size, model.newton_iters, "heavier")
+    vector = rti_parameters(model, estimate)
+    for x, u in ((pendulum_state(2.5, 1.0), [0.7]), (pendulum_state(-0.4, -3.0), [-1.5])):
+        expected = np.asarray(heavier(x, u)[0], dtype=float).ravel()
+        stepped = np.asarray(model.parametric_step(x, u, vector)[0], dtype=float).ravel()
+        assert np.max(np.abs(stepped - expected)) < 1e-12
+    undamped = scene_model(scene_env("pendulum"))
+    with pytest.raises(ValueError, match="damping"):
+        rti_parameters(undamped, {"mass": 1.0, "gain0": 1.0, "damping": 0.1})
+
+    class Stub:  # only what AdaptiveRTI reads before a run
+        model = undamped
+
+        def set_parameters(self, values):
+            pass
+
+    with pytest.raises(ValueError, match="damping"):
+        AdaptiveRTI(Stub(), free=("mass", "damping"))
