@@ -61,6 +61,8 @@ ARMS = ("none", "estimate", "adaptation", "both", "oracle")
 MODELS = ("closed-form", "learned")
 #: The recovery threshold never goes below this (rad): a hold within 0.6° is held.
 RECOVERY_FLOOR = 0.01
+#: Part of every cache key: raise it when what a cell computes changes (the cache cannot see code changes).
+CACHE_VERSION = 2
 #: The true mass after the change, relative to the model's body.
 TRUE_MASS = 2.0
 
@@ -118,7 +120,7 @@ def run_cell(args: argparse.Namespace, model_name: str, arm: str, changed: bool)
     """``--runs`` episodes of one (model, arm, plant); cached."""
     from tqdm.auto import tqdm
 
-    key = json.dumps([model_name, arm, changed, args.runs, args.duration, args.change_at, args.knock, args.window,
+    key = json.dumps([CACHE_VERSION, model_name, arm, changed, args.runs, args.duration, args.change_at, args.knock, args.window,
                       args.latency, args.seed])
     path = Path(args.cache_dir) / f"{hashlib.sha256(key.encode()).hexdigest()[:16]}.json"
     if path.is_file():

@@ -366,9 +366,9 @@ class AdaptiveRTI:
     step of the model and is left out. It is told nothing about when or what changes. The input-disturbance
     estimate of the wrapped controller runs as before, on the adapted model.
 
-    The control a transition records is the one commanded; with a measured latency the plant received the
-    previous one for the first part of the period (a fraction of a sub-step to a few, while holding the two
-    differ little).
+    The control a transition records is the one the plant received over the period, when the loop tells it
+    (``observe_applied``, which :func:`~fvin_mpc.control.closed_loop.run_episode` calls: with a latency the
+    previous control acts for the period's first sub-steps); else the one commanded.
 
     Args:
         controller: a real-time MPC built with run-time model parameters (``rti.model_parameters``, the
@@ -395,6 +395,7 @@ class AdaptiveRTI:
         self._previous: tuple[np.ndarray, np.ndarray, float | None] | None = None
         self._observed: tuple[np.ndarray, float | None] | None = None
         self._sent = np.zeros(model.control_dim)
+        self._applied: np.ndarray | None = None
         self._time: float | None = None
         #: per adapting period: ``(time s, estimate, update s, Update or None)``
         self.history: list[tuple[float | None, dict[str, float], float, Update | None]] = []
@@ -406,7 +407,7 @@ class AdaptiveRTI:
         self.window = TransitionWindow(self.window.capacity)
         self.estimator.reset()
         self.controller.set_parameters(rti_parameters(self.model, self.estimator.parameters))
-        self._previous = self._observed = self._time = None
+        self._previous = self._observed = self._time = self._applied = None
         self.history = []
 
     def set_time(self, time_s: float) -> None:
@@ -422,6 +423,10 @@ class AdaptiveRTI:
         self._sent = np.atleast_1d(np.asarray(u, dtype=float)).copy()
         return u, info
 
+    def observe_applied(self, u: Any) -> None:
+        """The control the plant received over the period that just ended (the closed loop's report)."""
+        self._applied = np.atleast_1d(np.asarray(u, dtype=float)).copy()
+
     @property
     def parameters(self) -> dict[str, float]:
         """The current estimate (:attr:`ParameterEstimator.parameters`)."""
@@ -435,13 +440,14 @@ class AdaptiveRTI:
             start = time.perf_counter()
             update = None
             if self._previous is not None and self._one_period_apart(self._previous[2], time_s):
-                self.window.add(self._previous[0], self._previous[1], x)
+                received = self._previous[1] if self._applied is None else self._applied
+                self.window.add(self._previous[0], received, x)
                 update = self.estimator.update(self.window)
                 if update.accepted:
                     self.controller.set_parameters(rti_parameters(self.model, update.parameters))
             self.history.append((time_s, self.estimator.parameters, time.perf_counter() - start, update))
             self._previous = (x, self._sent, time_s)
-            self._observed = None
+            self._observed = self._applied = None
         prepare = getattr(self.controller, "prepare", None)
         if prepare is not None:
             prepare()
