@@ -120,8 +120,8 @@ def run_cell(args: argparse.Namespace, model_name: str, arm: str, changed: bool)
     """``--runs`` episodes of one (model, arm, plant); cached."""
     from tqdm.auto import tqdm
 
-    key = json.dumps([CACHE_VERSION, model_name, arm, changed, args.runs, args.duration, args.change_at, args.knock, args.window,
-                      args.latency, args.seed])
+    key = json.dumps([CACHE_VERSION, model_name, arm, changed, args.runs, args.duration, args.change_at, args.knock,
+                      args.window, args.latency, args.seed])
     path = Path(args.cache_dir) / f"{hashlib.sha256(key.encode()).hexdigest()[:16]}.json"
     if path.is_file():
         return json.loads(path.read_text())["runs"]
