@@ -30,6 +30,7 @@ from .scenes import (
     SceneSpec,
     build_model,
     resolve_scene,
+    scale_mass,
 )
 
 #: The value of each effect that :class:`MujocoBodyEnv` leaves to a subclass when it is off.
@@ -83,6 +84,9 @@ class MujocoBodyEnv(gymnasium.Env):
             raise SceneError(f"{type(self).__name__} does not simulate {unsimulated}; declare them off")
         self._data = mujoco.MjData(self._model)
         model = self._model
+        # The plant as built, restored at each reset: a declared mass change alters the model in place.
+        self._built_masses = (model.body_mass.copy(), model.body_inertia.copy())
+        self._mass_change_pending = self._physics.mass_change is not None
         timestep = float(model.opt.timestep)
         # The commanded torques in flight, oldest first, one per MuJoCo timestep of actuation delay.
         self._delay_line = np.zeros((math.ceil(self._physics.actuation_delay_s / timestep - 1e-9), model.nu))
@@ -159,6 +163,7 @@ class MujocoBodyEnv(gymnasium.Env):
         u = np.clip(u, self.action_space.low, self.action_space.high)
         if substeps is not None and not 1 <= substeps <= self._frame_skip:
             raise ValueError(f"substeps must be in [1, {self._frame_skip}], got {substeps}")
+        self._change_mass_when_due()
         self._before_advance()
         for _ in range(self._frame_skip if substeps is None else substeps):
             if len(self._delay_line):
@@ -171,6 +176,18 @@ class MujocoBodyEnv(gymnasium.Env):
         # state *before* the last substep; bring them up to date.
         mujoco.mj_forward(self._model, self._data)
         return u
+
+    def _change_mass_when_due(self) -> None:
+        # Between (partial) periods, never inside a MuJoCo step: the model's constants change at once.
+        change = self._physics.mass_change
+        if self._mass_change_pending and self._data.time >= change[0] - 1e-9:
+            scale_mass(self._model, change[1])
+            self._mass_change_pending = False
+
+    @property
+    def mass_changed(self) -> bool:
+        """Whether this episode's declared mass change (``physics.mass_change``) has come."""
+        return self._physics.mass_change is not None and not self._mass_change_pending
 
     def _before_advance(self) -> None:
         """Whatever a subclass's declared effects do to the state at the start of a (partial) period."""
@@ -212,6 +229,10 @@ class MujocoBodyEnv(gymnasium.Env):
         and info. Validated before the simulation is touched, so a bad option leaves it as it was."""
         qpos = as_float_array(qpos, (self._model.nq,), "qpos")
         qvel = as_float_array(qvel, (self._model.nv,), "qvel")
+        if self.mass_changed:
+            self._model.body_mass[:], self._model.body_inertia[:] = self._built_masses
+            mujoco.mj_setConst(self._model, self._data)
+        self._mass_change_pending = self._physics.mass_change is not None
         mujoco.mj_resetData(self._model, self._data)
         self._delay_line[:] = 0.0
         self.set_state(qpos, qvel)
@@ -551,8 +572,13 @@ class RigidBodyEnv(MujocoBodyEnv):
 
     def _before_advance(self) -> None:
         # The knock lands between periods (or partial periods), never inside a MuJoCo step.
-        if not (self._knock_pending and self._held_since is not None
-                and self._data.time - self._held_since >= IMPULSE_HOLD_S - 1e-9):
+        at = self._physics.impulse_at_s
+        if at is not None:
+            due = self._knock_pending and self._data.time >= at - 1e-9
+        else:
+            due = (self._knock_pending and self._held_since is not None
+                   and self._data.time - self._held_since >= IMPULSE_HOLD_S - 1e-9)
+        if not due:
             return
         delta = self._physics.impulse_delta_omega
         start = int(self._model.jnt_dofadr[self._joint_id])

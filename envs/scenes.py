@@ -71,6 +71,13 @@ class ScenePhysics:
             :data:`IMPULSE_HOLD_TOLERANCE` of its goal for :data:`IMPULSE_HOLD_S`, its angular velocity
             jumps by this much (rad/s; a hinge: about its axis, the sign drawn from the env's
             ``np_random``; a ball: in a drawn direction) — a knock while holding. 0: never.
+        impulse_at_s: the knock comes at the first (partial) control period that starts at or after this
+            time of an episode instead (whether held or not); ``None``: after the hold above.
+        mass_change: ``(time_s, scale)``: from the first (partial) control period that starts at or after
+            ``time_s`` of an episode on, every body's mass and rotational inertia are ``scale`` times what
+            they were at reset (a bob that doubles while held, a payload picked up), and what MuJoCo derives
+            from them recomputed; ``reset`` restores them. Nothing in the observation announces it.
+            ``None``: the plant never changes.
     """
 
     gravity: bool
@@ -85,6 +92,8 @@ class ScenePhysics:
     actuation_delay_s: float = 0.0
     mass_scale: float = 1.0
     impulse_delta_omega: float = 0.0
+    impulse_at_s: float | None = None
+    mass_change: tuple[float, float] | None = None
 
     def __post_init__(self) -> None:
         for name in ("sensor_noise_std", "gyro_noise_std", "actuation_delay_s", "impulse_delta_omega"):
@@ -95,6 +104,14 @@ class ScenePhysics:
             raise ValueError(f"gyro_axes must be 'body' or 'joint', got {self.gyro_axes!r}")
         if not (math.isfinite(self.mass_scale) and self.mass_scale > 0.0):
             raise ValueError(f"mass_scale must be finite and > 0, got {self.mass_scale!r}")
+        if self.impulse_at_s is not None and not (math.isfinite(self.impulse_at_s) and self.impulse_at_s >= 0.0):
+            raise ValueError(f"impulse_at_s must be None or finite seconds >= 0, got {self.impulse_at_s!r}")
+        if self.mass_change is not None:
+            change = tuple(self.mass_change)
+            if not (len(change) == 2 and all(math.isfinite(float(v)) for v in change)
+                    and float(change[0]) >= 0.0 and float(change[1]) > 0.0):
+                raise ValueError(f"mass_change must be (time_s >= 0, scale > 0), got {self.mass_change!r}")
+            object.__setattr__(self, "mass_change", (float(change[0]), float(change[1])))
         if self.encoder_bits is not None and not (isinstance(self.encoder_bits, int) and 1 <= self.encoder_bits <= 32):
             raise ValueError(f"encoder_bits must be None or an integer in [1, 32], got {self.encoder_bits!r}")
 

@@ -177,3 +177,77 @@ def test_scaled_terms_keep_the_models_hinge():
     hinge = OnHinge(PENDULUM.terms(NP))
     assert ScaledTerms(hinge, [2.0, 1.0, 0.0]).hinge_axis == (0.0, 1.0, 0.0)
     assert ScaledTerms(PENDULUM.terms(NP), [2.0, 1.0, 0.0]).hinge_axis is None
+
+
+def test_adaptation_in_the_loop_finds_the_doubled_bob_without_recompiling():
+    """The closed-form pendulum's RTI held upright; at 2 s the bob doubles and is knocked (2 rad/s), told
+    nothing: the estimate, near 1 before, is within 5 % of 2 after, pushed to the RTI as gain_scale = 1/m,
+    and no code is generated or compiled during the episode."""
+    from fvin_mpc.control.adaptation import AdaptiveRTI, rti_parameters
+    from fvin_mpc.control.closed_loop import run_episode
+    from fvin_mpc.control.model_export import CompileCount
+    from fvin_mpc.control.scene import scene_mpc, scene_mpc_settings
+
+    physics = replace(SCENES["pendulum"].physics, mass_change=(2.0, 2.0), impulse_delta_omega=2.0, impulse_at_s=2.0)
+    env = scene_env("pendulum", true_model=True, physics=physics)
+    model = scene_model(env, true_model=True)
+    adaptive = AdaptiveRTI(scene_mpc(env, model, scene_mpc_settings(env, solver="rti")))
+    calls, runs = CompileCount.calls, CompileCount.compiler_runs
+    episode, _ = run_episode(env, adaptive, 6.0, reset_options={"qpos": [math.pi], "qvel": [0.3]}, seed=0)
+    assert (CompileCount.calls, CompileCount.compiler_runs) == (calls, runs)
+    times = np.array([entry[0] for entry in adaptive.history])
+    masses = np.array([entry[1]["mass"] for entry in adaptive.history])
+    assert np.all(np.abs(masses[times < 2.0] - 1.0) < 0.05)
+    assert masses[-1] == pytest.approx(2.0, rel=0.05)
+    assert adaptive.controller.parameters[0] == pytest.approx(1.0 / masses[-1])  # gain_scale = gain / mass
+    assert np.max(np.abs(episode.angle_from_goal[episode.time > 5.0])) < 0.05  # held again
+    assert rti_parameters(model, {"mass": 2.0, "gain0": 1.0, "damping": 0.0})[0] == 0.5
+
+
+def test_the_mass_as_a_gain_scale_steps_like_the_heavier_body():
+    """The identity ``rti_parameters`` rests on: the damped closed form, mass 2, damping +0.05 as the
+    estimator's terms and as the RTI's run-time parameters (gain_scale 1/2, damping (0.1 + 0.05)/2)."""
+    from fvin_mpc.control.adaptation import rti_parameters
+    from fvin_mpc.core.rigid_body import PENDULUM_DAMPED
+
+    model = from_rigid_body(PENDULUM_DAMPED, H)
+    estimate = {"mass": 2.0, "gain0": 0.8, "damping": 0.05}
+    p = [estimate["mass"], estimate["gain0"], estimate["damping"]]
+    heavier = from_terms(S3, ScaledTerms(PENDULUM_DAMPED.terms(CA), p), ScaledTerms(PENDULUM_DAMPED.terms(NP), p),
+                         H, 2, "heavier")
+    vector = rti_parameters(model, estimate)
+    for x, u in ((pendulum_state(2.5, 1.0), [0.7]), (pendulum_state(-0.4, -3.0), [-1.5])):
+        expected = np.asarray(heavier(x, u)[0], dtype=float).ravel()
+        stepped = np.asarray(model.parametric_step(x, u, vector)[0], dtype=float).ravel()
+        assert np.max(np.abs(stepped - expected)) < 1e-12
+
+
+def test_the_mass_as_a_gain_scale_on_a_learned_dissipation():
+    """The same identity through a learned model's ``dissipation_cholesky`` (the shipped damped pendulum):
+    the run-time parameters from ``rti_parameters`` step like the estimator's scaled terms."""
+    from fvin_mpc.control.adaptation import AdaptiveRTI, dissipation_block, rti_parameters
+
+    env = scene_env("pendulum_damped")
+    model = scene_model(env)
+    assert dissipation_block(model) == "dissipation_cholesky"
+    estimate = {"mass": 1.7, "gain0": 1.1, "damping": 0.03}
+    p = [estimate["mass"], estimate["gain0"], estimate["damping"]]
+    heavier = from_terms(S3, ScaledTerms(model.casadi_terms, p), ScaledTerms(model.numpy_terms, p),
+                         model.step_size, model.newton_iters, "heavier")
+    vector = rti_parameters(model, estimate)
+    for x, u in ((pendulum_state(2.5, 1.0), [0.7]), (pendulum_state(-0.4, -3.0), [-1.5])):
+        expected = np.asarray(heavier(x, u)[0], dtype=float).ravel()
+        stepped = np.asarray(model.parametric_step(x, u, vector)[0], dtype=float).ravel()
+        assert np.max(np.abs(stepped - expected)) < 1e-12
+    undamped = scene_model(scene_env("pendulum"))
+    with pytest.raises(ValueError, match="damping"):
+        rti_parameters(undamped, {"mass": 1.0, "gain0": 1.0, "damping": 0.1})
+
+    class Stub:  # only what AdaptiveRTI reads before a run
+        model = undamped
+
+        def set_parameters(self, values):
+            pass
+
+    with pytest.raises(ValueError, match="damping"):
+        AdaptiveRTI(Stub(), free=("mass", "damping"))

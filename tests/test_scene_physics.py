@@ -306,3 +306,26 @@ def test_training_with_dissipation_recovers_the_damping():
     d_hinge = components["dissipation_axis"]
     assert 0.5 * 0.2 < d_hinge < 1.5 * 0.2, components
     assert losses[True] < 0.6 * losses[False], losses
+
+
+def test_a_declared_mass_change_comes_at_its_time_and_reset_undoes_it():
+    """``mass_change=(0.1, 2)``: masses and inertias double from the first period at or after 0.1 s (the
+    hanging pendulum's constants — subtree mass — recomputed), not before; a reset brings the built plant
+    back; ``impulse_at_s`` knocks at its time whether held or not."""
+    physics = replace(SCENES["pendulum"].physics, mass_change=(0.1, 2.0), impulse_delta_omega=1.5, impulse_at_s=0.1)
+    env = RigidBodyEnv("pendulum", physics=physics)
+    built = env.model.body_mass.copy(), env.model.body_inertia.copy(), env.model.body_subtreemass.copy()
+    for _ in range(2):
+        env.reset(seed=0)
+        rates = []
+        for _ in range(2):  # the periods from 0 and 0.05 s
+            assert not env.mass_changed and not env.knocked
+            rates.append(env.step([0.0])[0][5])
+        assert rates == [0.0, 0.0]  # hanging at rest
+        assert np.array_equal(env.model.body_mass, built[0])
+        rate = env.step([0.0])[0][5]  # the period from 0.1 s: changed and knocked at its start
+        assert env.mass_changed and env.knocked and abs(rate) == pytest.approx(1.5, rel=0.05)
+        assert np.allclose(env.model.body_mass, 2.0 * built[0]) and np.allclose(env.model.body_inertia, 2.0 * built[1])
+        assert np.allclose(env.model.body_subtreemass, 2.0 * built[2])
+    with pytest.raises(ValueError, match="mass_change"):
+        replace(physics, mass_change=(1.0, 0.0))

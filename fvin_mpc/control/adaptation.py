@@ -40,11 +40,21 @@ held this call.
 
 The interface is a plain ``{name: value}`` dict (:attr:`ParameterEstimator.parameters`), for a real-time
 MPC that takes model parameters at run time to read at its next preparation.
+
+**In the loop** (:class:`AdaptiveRTI`): a real-time MPC wrapped so that each period, after its control is
+sent, the transition that just ended joins the window, the estimator takes at most one step, and the
+estimate goes to the MPC through ``set_parameters`` (:func:`rti_parameters`), which its next preparation
+uses without recompiling. The MPC's model parameters are not the estimator's: they have a per-actuator
+``gain_scale`` and the model's own explicit values, no ``mass``. The step being invariant under one common
+factor on ``J``, ``U``, ``g`` and ``D``, a body ``m`` times heavier with gains ``g_i`` and added damping ``d``
+steps exactly like the unchanged body with ``gain_scale_i = g_i / m`` and dissipation ``(D + 2·d·I) / m`` —
+so the mass reaches the MPC as a gain scale, and the model's inertia and potential stay as exported.
 """
 
 from __future__ import annotations
 
 import math
+import time
 from collections import deque
 from dataclasses import dataclass, replace
 from typing import Any, Mapping, Sequence
@@ -55,6 +65,7 @@ import numpy as np
 from fvin_mpc.control.model_export import ExportedModel
 from fvin_mpc.core import s3
 from fvin_mpc.core.backend import get_ops
+from fvin_mpc.core.model_parameters import GAIN_SCALE
 from fvin_mpc.core.space import S3, chart_local
 
 CA = get_ops("casadi")
@@ -214,6 +225,11 @@ class ParameterEstimator:
         if np.any(self._p < self._lower - 1e-12) or np.any(self._p > self._upper + 1e-12):
             raise ValueError(f"initial parameters {values} are outside their physical bounds")
         self.damping = float(damping)
+        self._initial = (self._p.copy(), self.damping)
+
+    def reset(self) -> None:
+        """Back to the initial estimate and damping (a new episode of a body that may differ again)."""
+        self._p, self.damping = self._initial[0].copy(), self._initial[1]
 
     def _relevant_changes(self, model: ExportedModel) -> np.ndarray:
         inertia = np.array(model.numpy_terms.inertia(_IDENTITY), dtype=float)[..., 0]
@@ -297,3 +313,153 @@ class ParameterEstimator:
         return Update(accepted=accepted, parameters=self.parameters, error_before=before,
                       error_after=after if accepted else before, candidate_error=after, damping=self.damping,
                       fitted=self.free)
+
+
+#: The blocks of a model's run-time parameters that carry its dissipation (closed form: ``D = 2·damping·I``;
+#: learned: ``D = L Lᵀ`` from the Cholesky factor): the only way an estimated ``damping`` reaches the MPC.
+DISSIPATION_BLOCKS = ("damping", "dissipation_cholesky")
+
+
+def dissipation_block(model: ExportedModel) -> str | None:
+    """The block of ``model``'s run-time parameters that carries its dissipation, ``None`` if it has none (a
+    model without damping keeps none: a term switched off stays off)."""
+    names = {block.name for block in model.model_parameters.blocks}
+    return next((name for name in DISSIPATION_BLOCKS if name in names), None)
+
+
+def rti_parameters(model: ExportedModel, estimate: Mapping[str, float]) -> np.ndarray:
+    """The run-time parameter vector of ``model`` (:mod:`fvin_mpc.core.model_parameters`) that steps exactly
+    like the estimator's ``estimate`` (``mass``, ``gain<i>``, ``damping``): ``gain_scale_i = gain_i / mass``,
+    the dissipation ``(D + 2·damping·I) / mass`` (module docstring, "In the loop"); every other block at the
+    model's own value. ``ValueError`` for a non-zero ``damping`` on a model with no dissipation block."""
+    parameters = model.model_parameters
+    mass = float(estimate["mass"])
+    gains = np.array([float(estimate[f"gain{i}"]) for i in range(model.control_dim)])
+    vector = parameters.values(**{GAIN_SCALE: gains / mass})
+    added = float(estimate.get("damping", 0.0))
+    block = dissipation_block(model)
+    if block is None:
+        if added != 0.0:
+            raise ValueError(f"model {model.name!r} has no dissipation among its run-time parameters; an "
+                             f"estimated damping ({added:g}) cannot reach the controller: fit free=('mass',)")
+        return vector
+    where = parameters.slice(block)
+    own = vector[where]
+    if block == "damping":  # the closed form's D = 2·damping·I
+        vector[where] = (own + added) / mass
+        return vector
+    dissipation = np.array(s3.symmetric_from_cholesky(tuple(own)), dtype=float)
+    lower = np.linalg.cholesky((dissipation + 2.0 * added * np.eye(3)) / mass)
+    vector[where] = [lower[0, 0], lower[1, 1], lower[2, 2], lower[1, 0], lower[2, 0], lower[2, 1]]
+    return vector
+
+
+class AdaptiveRTI:
+    """A real-time MPC (:class:`~fvin_mpc.control.rti.RealTimeMPC` or its C twin) that re-fits its model's
+    mass (and damping, where the model carries one) while it runs (module docstring, "In the loop").
+
+    The closed loop sees the wrapped controller: ``u, info = adaptive(x)``, then ``adaptive.prepare()``
+    after the control is sent — the window, one estimator update and ``set_parameters`` happen there,
+    before the controller's own preparation, in the period's spare time, not in the latency of a control.
+    ``set_time`` (which :func:`~fvin_mpc.control.closed_loop.run_episode` calls) tells it which
+    observations are one period apart: a transition across a skipped period (a deadline miss) is not one
+    step of the model and is left out. It is told nothing about when or what changes. The input-disturbance
+    estimate of the wrapped controller runs as before, on the adapted model.
+
+    The control a transition records is the one the plant received over the period, when the loop tells it
+    (``observe_applied``, which :func:`~fvin_mpc.control.closed_loop.run_episode` calls: with a latency the
+    previous control acts for the period's first sub-steps); else the one commanded.
+
+    Args:
+        controller: a real-time MPC built with run-time model parameters (``rti.model_parameters``, the
+            default).
+        window: the sliding window's length (transitions).
+        free: the estimator's free parameters; default ``("mass", "damping")`` where the model carries a
+            dissipation block, else ``("mass",)``.
+        min_effect: the estimator's excitation gate (:class:`ParameterEstimator`).
+    """
+
+    def __init__(self, controller: Any, window: int = 40, free: Sequence[str] | None = None,
+                 min_effect: float = MIN_EFFECT) -> None:
+        model = controller.model
+        if free is None:
+            free = ("mass", "damping") if dissipation_block(model) is not None else ("mass",)
+        if "damping" in free and dissipation_block(model) is None:
+            raise ValueError(f"model {model.name!r} has no dissipation among its run-time parameters; an "
+                             f"estimated damping could not reach the controller: leave 'damping' out of free")
+        self.controller = controller
+        self.model = model
+        self.estimator = ParameterEstimator(model, free=free, min_effect=min_effect)
+        self.window = TransitionWindow(window)
+        controller.set_parameters(rti_parameters(model, self.estimator.parameters))
+        self._previous: tuple[np.ndarray, np.ndarray, float | None] | None = None
+        self._observed: tuple[np.ndarray, float | None] | None = None
+        self._sent = np.zeros(model.control_dim)
+        self._applied: np.ndarray | None = None
+        self._time: float | None = None
+        #: per adapting period: ``(time s, estimate, update s, Update or None)``
+        self.history: list[tuple[float | None, dict[str, float], float, Update | None]] = []
+
+    def reset(self) -> None:
+        """A new episode: the controller reset, the window emptied, the estimate and the controller's
+        parameters back to the initial ones."""
+        self.controller.reset()
+        self.window = TransitionWindow(self.window.capacity)
+        self.estimator.reset()
+        self.controller.set_parameters(rti_parameters(self.model, self.estimator.parameters))
+        self._previous = self._observed = self._time = self._applied = None
+        self.history = []
+
+    def set_time(self, time_s: float) -> None:
+        self._time = float(time_s)
+        forward = getattr(self.controller, "set_time", None)
+        if forward is not None:
+            forward(time_s)
+
+    def __call__(self, x: Any) -> tuple[np.ndarray, dict[str, Any]]:
+        x = np.asarray(x, dtype=float)
+        u, info = self.controller(x)
+        self._observed = (x.copy(), self._time)
+        self._sent = np.atleast_1d(np.asarray(u, dtype=float)).copy()
+        return u, info
+
+    def observe_applied(self, u: Any) -> None:
+        """The control the plant received over the period that just ended (the closed loop's report)."""
+        self._applied = np.atleast_1d(np.asarray(u, dtype=float)).copy()
+
+    @property
+    def parameters(self) -> dict[str, float]:
+        """The current estimate (:attr:`ParameterEstimator.parameters`)."""
+        return self.estimator.parameters
+
+    def prepare(self) -> None:
+        """After the control is sent: the transition that just ended into the window, at most one estimator
+        update, the estimate to the controller, then the controller's own preparation."""
+        if self._observed is not None:
+            x, time_s = self._observed
+            start = time.perf_counter()
+            update = None
+            if self._previous is not None and self._one_period_apart(self._previous[2], time_s):
+                received = self._previous[1] if self._applied is None else self._applied
+                self.window.add(self._previous[0], received, x)
+                update = self.estimator.update(self.window)
+                if update.accepted:
+                    self.controller.set_parameters(rti_parameters(self.model, update.parameters))
+            self.history.append((time_s, self.estimator.parameters, time.perf_counter() - start, update))
+            self._previous = (x, self._sent, time_s)
+            self._observed = self._applied = None
+        prepare = getattr(self.controller, "prepare", None)
+        if prepare is not None:
+            prepare()
+
+    def _one_period_apart(self, before: float | None, after: float | None) -> bool:
+        if before is None or after is None:  # no clock told: consecutive calls are consecutive periods
+            return True
+        return abs(after - before - self.model.step_size) < 0.25 * self.model.step_size
+
+    def __getattr__(self, name: str) -> Any:
+        # Whatever else the closed loop or a report reads (settings, disturbance, compile_report…) is the
+        # wrapped controller's.
+        if name == "controller":
+            raise AttributeError(name)
+        return getattr(self.controller, name)

@@ -142,7 +142,9 @@ def run_episode(env: Any, controller: Controller, duration_s: float, reset_optio
         controller: see :class:`Controller`; reset before the episode. An optional ``prepare()``
             is called after each delivered torque (module docstring); an optional ``set_time(t)`` is
             told the time of each observation it takes (s since the episode's start: a controller
-            tracking a time-varying reference).
+            tracking a time-varying reference); an optional ``observe_applied(u)`` is told, after each
+            period, the torque the plant received over it (sub-step-weighted mean: with a latency, the
+            previous torque acts for the period's first sub-steps) — what an estimator of the plant needs.
         duration_s: rounded to whole control periods.
         reset_options: passed to ``env.reset`` (``{"qpos": …, "qvel": …}`` or ``{"random": True}``).
         seed: passed to ``env.reset``.
@@ -163,6 +165,7 @@ def run_episode(env: Any, controller: Controller, duration_s: float, reset_optio
     controller.reset()
     prepare = getattr(controller, "prepare", None)
     set_time = getattr(controller, "set_time", None)
+    observe_applied = getattr(controller, "observe_applied", None)
     frames = [env.render()] if render else []
     layout = base.space.layout
     observations = [observation]
@@ -227,6 +230,8 @@ def run_episode(env: Any, controller: Controller, duration_s: float, reset_optio
         else:
             segments.append((frame_skip, applied))
         observation, reward, terminated, info = _step_segments(env, segments, frame_skip)
+        if observe_applied is not None:
+            observe_applied(sum(count * np.asarray(torque, dtype=float) for count, torque in segments) / frame_skip)
         observations.append(observation)
         controls.append(applied.copy())
         rewards.append(reward)
