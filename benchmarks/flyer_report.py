@@ -10,7 +10,10 @@ training on one torch thread), then the learned-model MPC from the same starts a
 craft's figure-eight (:func:`fvin_mpc.control.flight.scaled_figure_eight`).
 
 As :mod:`benchmarks.scene_families`: each finished scene and each filter verdict is cached as JSON in
-``--cache-dir`` (a stopped run resumes), the report — per scene and for the family: starts recovered
+``--cache-dir`` (a stopped run resumes; the filter, always in waiting mode, and each member's data and
+checkpoint are shared by both latency modes, so ``--latency measured`` after a waiting run only flies;
+``--cached-only`` assembles the report from what runs over other seed ranges left there), the
+report — per scene and for the family: starts recovered
 (learned / closed form), figure-eight RMS (learned / closed form), time per controller call, deadline
 misses, collect + train + build wall time, the filter's rejection rate — goes to ``--out-dir`` as
 ``flyer-family.md`` with the command that produced it, and ``flyer-family.png``.
@@ -39,6 +42,7 @@ import numpy as np
 
 from fvin_mpc import collect, train
 from fvin_mpc._cli import run_command
+from fvin_mpc.control.flight import recovery_duration
 from fvin_mpc.core.quadrotor import from_mujoco
 from fvin_mpc.envs.flyer_family import write_flyers
 from fvin_mpc.studies.flight_report import make_controller, make_env, run_figure_eight, run_recovery
@@ -61,6 +65,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--out-dir", type=Path, default=Path("docs/flyer-family"),
                         help="report folder (default: %(default)s)")
     parser.add_argument("--seed", type=int, default=0, help="seeds the recovery starts (default: %(default)s)")
+    parser.add_argument("--cached-only", action="store_true",
+                        help="skip the draws with no cached filter verdict and the members with no cached flights "
+                             "(assemble the report of runs made in pieces, e.g. over two seed ranges at once)")
     return parser
 
 
@@ -77,9 +84,18 @@ def _figure_eight(env: Any, controller: Any, latency: str) -> dict[str, Any]:
     return {key: tracking[key] for key in keys if key in tracking}
 
 
-def filter_verdict(path: Path, starts: int, seed: int, latency: str) -> dict[str, Any]:
-    """The closed-form MPC on ``path``'s craft from ``starts`` recovery starts: in the family if it
-    recovers from all of them (the recoveries are the closed form's results in the report too)."""
+def hover_margin(scales: Any, low: np.ndarray, high: np.ndarray) -> float:
+    """The smallest share of an actuator's range left between its hover control and the nearer bound:
+    what the craft has to turn with at hover (a centre of mass far off the rotors' centre can leave a
+    rotor near full thrust however large the total thrust-to-weight)."""
+    hover = np.asarray(scales.hover_control, dtype=float)
+    return float(np.min(np.minimum(hover - low, high - hover) / (high - low)))
+
+
+def filter_verdict(path: Path, starts: int, seed: int) -> dict[str, Any]:
+    """The closed-form MPC on ``path``'s craft from ``starts`` recovery starts, in waiting mode (whether the
+    physics can be recovered by this controller, not whether it keeps real time): in the family if it
+    recovers from all of them (the recoveries are the closed form's waiting-mode results in the report)."""
     env = make_env(scene=path)
     t0 = time.perf_counter()
     try:
@@ -87,21 +103,26 @@ def filter_verdict(path: Path, starts: int, seed: int, latency: str) -> dict[str
     except ValueError as error:
         return {"ok": False, "reason": str(error)}
     controller = make_controller(env, "closed-form")
-    recovery = _recovery(env, controller, starts, seed, latency)
-    figure_eight = _figure_eight(env, controller, latency)
+    recovery = _recovery(env, controller, starts, seed, "none")
+    figure_eight = _figure_eight(env, controller, "none")
     env.close()
+    scales = env.unwrapped.scales
     return {"ok": all(r["recovered"] for r in recovery), "recovery": recovery, "figure_eight": figure_eight,
             "unmodelled": list(craft.unmodelled), "control_period_s": float(env.dt),
+            "recovery_duration_s": recovery_duration(scales), "attitude_time_s": scales.attitude_time,
+            "yaw_time_s": scales.yaw_time, "thrust_to_weight": scales.thrust_to_weight,
+            "hover_margin": hover_margin(scales, env.unwrapped.torque_low, env.unwrapped.torque_high),
             "build_s": float(controller.build_s), "wall_s": time.perf_counter() - t0}
 
 
-def run_scene(seed: int, path: Path, work: Path, verdict: dict[str, Any], starts: int, seed_starts: int,
-              latency: str) -> dict[str, Any]:
-    """Collect → train → build → fly one member; the record cached for it."""
+def _pipeline(seed: int, path: Path, work: Path) -> tuple[Path, dict[str, float]]:
+    """``collect`` → ``train`` for one member, once for both latency modes; its checkpoint and wall times."""
     import torch
 
     torch.set_num_threads(1)
-    data, stem = work / f"flyer_{seed}.npz", work / f"flyer_{seed}_model"
+    data, stem, timings = work / f"flyer_{seed}.npz", work / f"flyer_{seed}_model", work / f"flyer_{seed}_times.json"
+    if timings.exists():
+        return stem, json.loads(timings.read_text())
     quiet = io.StringIO()
     t0 = time.perf_counter()
     with contextlib.redirect_stdout(quiet):
@@ -109,6 +130,16 @@ def run_scene(seed: int, path: Path, work: Path, verdict: dict[str, Any], starts
     t1 = time.perf_counter()
     with contextlib.redirect_stdout(quiet):
         train.main(["--data", str(data), "--out", str(stem), "--quiet", "--threads", "1"])
+    times = {"collect_s": t1 - t0, "train_s": time.perf_counter() - t1, "load_average": os.getloadavg()[0]}
+    timings.write_text(json.dumps(times) + "\n")
+    return stem, times
+
+
+def run_scene(seed: int, path: Path, work: Path, verdict: dict[str, Any], starts: int, seed_starts: int,
+              latency: str) -> dict[str, Any]:
+    """Collect → train → build → fly one member; the record cached for it. In measured latency the closed
+    form flies again in that mode (the filter's flights wait for the controller)."""
+    stem, times = _pipeline(seed, path, work)
     t2 = time.perf_counter()
     env = make_env(scene=path)
     learned = make_controller(env, "learned", str(stem))
@@ -118,32 +149,41 @@ def run_scene(seed: int, path: Path, work: Path, verdict: dict[str, Any], starts
     record = {
         "seed": seed, "scene": str(path), "latency": latency,
         "facts": json.loads(path.with_suffix(".json").read_text()),
-        "collect_s": t1 - t0, "train_s": t2 - t1, "build_s": t3 - t2, "pipeline_s": t3 - t0,
+        "collect_s": times["collect_s"], "train_s": times["train_s"], "build_s": t3 - t2,
+        "pipeline_s": times["collect_s"] + times["train_s"] + t3 - t2, "train_load_average": times.get("load_average"),
         "control_period_s": float(env.dt), "horizon": learned.settings.horizon,
         "training": {k: training.get(k) for k in ("iterations", "stopped", "final_validation_loss", "wall_clock_s")},
         "learned": {"recovery": _recovery(env, learned, starts, seed_starts, latency),
                     "figure_eight": _figure_eight(env, learned, latency)},
-        "closed_form": {"recovery": verdict["recovery"], "figure_eight": verdict["figure_eight"]},
-        "unmodelled": verdict["unmodelled"],
+        "unmodelled": verdict["unmodelled"], "recovery_duration_s": verdict["recovery_duration_s"],
     }
+    if latency == "none":
+        record["closed_form"] = {"recovery": verdict["recovery"], "figure_eight": verdict["figure_eight"]}
+    else:
+        closed = make_controller(env, "closed-form")
+        record["closed_form"] = {"recovery": _recovery(env, closed, starts, seed_starts, latency),
+                                 "figure_eight": _figure_eight(env, closed, latency)}
     env.close()
     return record
 
 
 def run(args: argparse.Namespace) -> tuple[list[dict[str, Any]], dict[int, dict[str, Any]]]:
     cache = args.cache_dir / args.latency
-    scenes_dir, work = cache / "scenes", cache / "work"
+    scenes_dir, work = args.cache_dir / "scenes", args.cache_dir / "work"
     work.mkdir(parents=True, exist_ok=True)
+    cache.mkdir(parents=True, exist_ok=True)
     records, verdicts = [], {}
     for seed in range(args.seed_offset, args.seed_offset + (args.max_draws or 3 * args.scenes)):
         if len(records) >= args.scenes:
             break
         (path,) = write_flyers([seed], scenes_dir)
-        cached = cache / f"filter_{seed}.json"
+        cached = args.cache_dir / f"filter_{seed}.json"
         if cached.exists():
             verdict = json.loads(cached.read_text())
+        elif args.cached_only:
+            continue
         else:
-            verdict = filter_verdict(path, args.starts, args.seed, args.latency)
+            verdict = filter_verdict(path, args.starts, args.seed)
             cached.write_text(json.dumps(verdict, indent=1) + "\n")
         verdicts[seed] = verdict
         print(f"flyer {seed}: filter {'in' if verdict['ok'] else 'out'}", file=sys.stderr)
@@ -152,6 +192,8 @@ def run(args: argparse.Namespace) -> tuple[list[dict[str, Any]], dict[int, dict[
         done = cache / f"scene_{seed}.json"
         if done.exists():
             record = json.loads(done.read_text())
+        elif args.cached_only:
+            continue
         else:
             record = run_scene(seed, path, work, verdict, args.starts, args.seed, args.latency)
             done.write_text(json.dumps(record, indent=1) + "\n")
@@ -259,7 +301,10 @@ def write_report(records: list[dict[str, Any]], verdicts: dict[int, dict[str, An
     if rejected:
         lines += ["", "Rejected by the filter (closed-form recoveries):", ""]
         lines += [f"* {seed}: " + (v.get("reason") or f"{sum(x['recovered'] for x in v['recovery'])}/"
-                                   f"{len(v['recovery'])} starts recovered") for seed, v in rejected.items()]
+                                   f"{len(v['recovery'])} starts recovered in {v['recovery_duration_s']:g} s; "
+                                   f"T/W {v['thrust_to_weight']:.2f}, hover margin {100 * v['hover_margin']:.0f} % "
+                                   f"of a range, yaw time {1e3 * v['yaw_time_s']:.0f} ms")
+                  for seed, v in rejected.items()]
     path = args.out_dir / "flyer-family.md"
     path.write_text("\n".join(lines) + "\n")
     (args.out_dir / "flyer-family.json").write_text(json.dumps({"command": command, "summary": summary,

@@ -295,6 +295,13 @@ class CraftScales:
         angular_control: the size of the controls (RMS over the three body axes of the norm of the
             least-squares controls, no thrust change) that turn the level craft at 1 rad/s²: what
             turning costs in control units, which a controller's control weight scales with.
+        yaw_time: s, ``1/√α`` for the yaw axis alike: a rotor craft turns about its thrust axis only
+            through the rotors' drag torques, 3–10× slower than it rolls, and a recovery from a
+            tumble must wait for it.
+        linear_control: the size of the least-squares controls that raise the level craft's vertical
+            acceleration by 1 m/s², no torque: what a thrust-only actuator's weight scales with.
+        moment_actuators: ``(nu,)`` bool, the actuators that put no force on the body (pure moments,
+            as a wrench-actuated description's roll, pitch and yaw actuators).
     """
 
     mass: float
@@ -303,6 +310,9 @@ class CraftScales:
     attitude_time: float
     hover_control: np.ndarray
     angular_control: float
+    yaw_time: float = math.inf
+    linear_control: float = math.nan
+    moment_actuators: tuple[bool, ...] = ()
 
 
 #: The control period as a share of the attitude time scale: 0.3 gives the built-in craft's 20 ms
@@ -397,8 +407,9 @@ def craft_scales(model: mujoco.MjModel, physics: ScenePhysics, body: str) -> Cra
     mujoco.mju_quat2Mat(frame, np.asarray(model.body_iquat[body_id], dtype=float))
     frame = frame.reshape(3, 3)
     inertia = frame @ np.diag(model.body_inertia[body_id]) @ frame.T
-    authority = np.abs(torque[:2]) @ (0.5 * (high - low))
-    alpha = float(np.min(authority / np.diag(inertia)[:2]))
+    authority = np.abs(torque) @ (0.5 * (high - low))
+    alpha = float(np.min(authority[:2] / np.diag(inertia)[:2]))
+    yaw_alpha = float(authority[2] / inertia[2, 2])
     sites = [int(model.actuator_trnid[a, 0]) for a in range(model.nu)
              if model.actuator_trntype[a] == mujoco.mjtTrn.mjTRN_SITE and np.linalg.norm(force[:, a]) > 0.0]
     com = np.asarray(model.body_ipos[body_id], dtype=float)
@@ -409,7 +420,10 @@ def craft_scales(model: mujoco.MjModel, physics: ScenePhysics, body: str) -> Cra
     per_axis = [np.linalg.norm(allocation @ np.concatenate([[0.0], inertia[:, k]])) for k in range(3)]
     return CraftScales(mass=mass, arm=arm, thrust_to_weight=lift / weight,
                        attitude_time=1.0 / math.sqrt(alpha) if alpha > 0.0 else math.inf, hover_control=hover,
-                       angular_control=float(np.sqrt(np.mean(np.square(per_axis)))))
+                       angular_control=float(np.sqrt(np.mean(np.square(per_axis)))),
+                       yaw_time=1.0 / math.sqrt(yaw_alpha) if yaw_alpha > 0.0 else math.inf,
+                       linear_control=float(np.linalg.norm(allocation @ np.array([mass, 0.0, 0.0, 0.0]))),
+                       moment_actuators=tuple(bool(np.linalg.norm(force[:, a]) == 0.0) for a in range(model.nu)))
 
 
 def craft_control_period(model: mujoco.MjModel, physics: ScenePhysics, body: str) -> float:
