@@ -18,6 +18,7 @@ import mujoco
 import numpy as np
 from gymnasium import spaces
 
+from fvin_mpc.core.errors import SceneError
 from fvin_mpc.core.space import R3S3, ConfigurationSpace
 from fvin_mpc.core.state import as_float_array, unit_quaternion
 
@@ -391,11 +392,41 @@ def hover_control(model: mujoco.MjModel, body_id: int, attitude: Any, gravity: b
     return lsq_linear(matrix / scale, wanted / scale[:, 0], bounds=(low, high)).x
 
 
+#: The directions a free flyer's controls must move independently, in :func:`require_full_actuation`'s words.
+_DIRECTIONS = ("the collective thrust", "the torque about body x", "the torque about body y", "the torque about body z")
+
+
+def require_full_actuation(force: np.ndarray, torque: np.ndarray) -> None:
+    """Refuse a craft whose controls cannot set its collective thrust and three body torques independently
+    (the rank of ``[force_z; torque]`` per unit control below 4): no controller holds every attitude.
+    Menagerie's ``skydio_x2`` before its pull request #220 is one — its adjacent rotors share a spin, so
+    roll and yaw come from one combination of the four thrusts.
+
+    Raises:
+        SceneError: naming the directions that move together.
+    """
+    allocation = np.vstack([force[2], torque])
+    scale = np.maximum(np.abs(allocation).max(axis=1, keepdims=True), 1e-300)
+    allocation = allocation / scale
+    rank = int(np.linalg.matrix_rank(allocation, tol=1e-9))
+    if rank == 4:
+        return
+    tied = [name for k, name in enumerate(_DIRECTIONS)
+            if np.linalg.matrix_rank(np.delete(allocation, k, axis=0), tol=1e-9) == rank]
+    raise SceneError(f"the actuators set only {rank} of the 4 independent directions a free flyer needs: "
+                     f"{' and '.join(tied)} move together (out of the family fly supports)")
+
+
 def craft_scales(model: mujoco.MjModel, physics: ScenePhysics, body: str) -> CraftScales:
-    """:class:`CraftScales` of ``body`` in a model built with ``physics``."""
+    """:class:`CraftScales` of ``body`` in a model built with ``physics``.
+
+    Raises:
+        SceneError: the actuators cannot set thrust and torques independently (:func:`require_full_actuation`).
+    """
     body_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, body)
     level = np.array([1.0, 0.0, 0.0, 0.0])
     force, torque = actuator_wrenches(model, body_id, level)
+    require_full_actuation(force, torque)
     hover = hover_control(model, body_id, level, physics.gravity)
     limited = physics.actuator_limits & model.actuator_ctrllimited.astype(bool)
     low = np.where(limited, model.actuator_ctrlrange[:, 0], np.minimum(0.0, 2.0 * hover))

@@ -233,3 +233,25 @@ def test_collect_records_a_craft_by_path_without_the_closed_form(crafts, tmp_pat
                          "--quiet"]) == 0
     data = load_data(out)
     assert data.metadata["collector"] == EXCITATION and data.state.shape == (4, 6, 13)
+
+
+def test_a_craft_whose_roll_and_yaw_move_together_is_refused_with_the_reason(crafts, tmp_path):
+    """Adjacent rotors spinning alike (Menagerie's skydio_x2 before its pull request #220): roll and yaw
+    come from one combination of the thrusts; the env says so in one line instead of flying it."""
+    from fvin_mpc.core.errors import SceneError
+
+    square = """<mujoco><option timestep="0.005"/><worldbody><body name="craft" pos="0 0 1"><freejoint/>
+      <geom type="box" size="0.1 0.1 0.02" mass="1"/>
+      <site name="a" pos="-0.15 -0.15 0"/><site name="b" pos="-0.15 0.15 0"/>
+      <site name="c" pos="0.15 0.15 0"/><site name="d" pos="0.15 -0.15 0"/></body></worldbody>
+      <actuator><motor site="a" gear="0 0 1 0 0 -0.02" ctrlrange="0 10"/>
+      <motor site="b" gear="0 0 1 0 0 {b}" ctrlrange="0 10"/><motor site="c" gear="0 0 1 0 0 {c}" ctrlrange="0 10"/>
+      <motor site="d" gear="0 0 1 0 0 {d}" ctrlrange="0 10"/>
+      </actuator></mujoco>"""
+    tied = tmp_path / "tied.xml"
+    tied.write_text(square.format(b="0.02", c="0.02", d="-0.02"))
+    with pytest.raises(SceneError, match="torque about body x and the torque about body z move together"):
+        QuadrotorEnv(tied)
+    crossed = tmp_path / "crossed.xml"
+    crossed.write_text(square.format(b="0.02", c="-0.02", d="0.02"))
+    assert QuadrotorEnv(crossed).scales.thrust_to_weight > 1.0

@@ -170,7 +170,7 @@ COLUMNS = ("model", "recovered", "recover_s_median", "recover_s_max", "figure_ei
 
 def side_by_side(out_dir: Path, argv: Sequence[str], episodes: int = 20, seed: int = 0, latency: Any = "measured",
                  checkpoint: Any = None, models: Sequence[str] = MODELS, progress: bool = True,
-                 scene: Any = SCENE) -> dict[str, Any]:
+                 scene: Any = SCENE, program: str = "python -m fvin_mpc.fly") -> dict[str, Any]:
     """Both tasks with each model under the same controller; writes ``out_dir/quadrotor.{json,md}``
     and ``recovery.png``, ``figure_eight.png``; returns the data."""
 
@@ -193,7 +193,7 @@ def side_by_side(out_dir: Path, argv: Sequence[str], episodes: int = 20, seed: i
     out_dir.mkdir(parents=True, exist_ok=True)
     plot_recovery(flights, out_dir / "recovery.png")
     plot_figure_eight(flights, figure_eight(env), out_dir / "figure_eight.png")
-    command = "python -m fvin_mpc.fly " + " ".join(shlex.quote(a) for a in argv)
+    command = program + " " + " ".join(shlex.quote(a) for a in argv)
     body = "\n".join([
         f"Latency mode: `{latency}`; {episodes} recovery starts (seed {seed}), "
         f"{recovery_duration(env.unwrapped.scales):g} s each; one "
