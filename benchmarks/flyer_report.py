@@ -65,6 +65,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--out-dir", type=Path, default=Path("docs/flyer-family"),
                         help="report folder (default: %(default)s)")
     parser.add_argument("--seed", type=int, default=0, help="seeds the recovery starts (default: %(default)s)")
+    parser.add_argument("--max-trainings", type=int, default=None,
+                        help="stop at the first member whose collect + train would be the (N+1)-th this run starts "
+                             "(default: no limit); with 0 and 1 in turn, each run of a per-command time limit "
+                             "starts its training at once")
     parser.add_argument("--cached-only", action="store_true",
                         help="skip the draws with no cached filter verdict and the members with no cached flights "
                              "(assemble the report of runs made in pieces, e.g. over two seed ranges at once)")
@@ -172,7 +176,7 @@ def run(args: argparse.Namespace) -> tuple[list[dict[str, Any]], dict[int, dict[
     scenes_dir, work = args.cache_dir / "scenes", args.cache_dir / "work"
     work.mkdir(parents=True, exist_ok=True)
     cache.mkdir(parents=True, exist_ok=True)
-    records, verdicts = [], {}
+    records, verdicts, trainings = [], {}, 0
     for seed in range(args.seed_offset, args.seed_offset + (args.max_draws or 3 * args.scenes)):
         if len(records) >= args.scenes:
             break
@@ -195,6 +199,10 @@ def run(args: argparse.Namespace) -> tuple[list[dict[str, Any]], dict[int, dict[
         elif args.cached_only:
             continue
         else:
+            if not (work / f"flyer_{seed}_times.json").exists():
+                if args.max_trainings is not None and trainings >= args.max_trainings:
+                    break
+                trainings += 1
             record = run_scene(seed, path, work, verdict, args.starts, args.seed, args.latency)
             done.write_text(json.dumps(record, indent=1) + "\n")
         learned = sum(r["recovered"] for r in record["learned"]["recovery"])
