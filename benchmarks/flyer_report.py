@@ -232,9 +232,27 @@ def summarize(records: list[dict[str, Any]], verdicts: dict[int, dict[str, Any]]
         "figure_eight_ratio_worst": float(np.max(ratios)) if ratios else None,
         "pipeline_s_median": float(np.median([r["pipeline_s"] for r in records])) if records else None,
         "pipeline_s_max": float(np.max([r["pipeline_s"] for r in records])) if records else None,
+        "figure_eight_within_1_5": sum(ratio <= 1.5 for ratio in ratios),
+        "drag_scenes": sum(bool(rec["unmodelled"]) for rec in records),
+        "drag_scenes_below_closed_form": sum(bool(rec["unmodelled"]) and ratio < 1.0
+                                             for rec, ratio in zip(records, ratios)),
+        "deadline_misses_learned": _misses(records, "learned"),
+        "deadline_misses_closed": _misses(records, "closed_form"),
         "draws_filtered": len(verdicts), "draws_rejected": len(rejected),
         "rejection_rate": len(rejected) / len(verdicts) if verdicts else None,
     }
+
+
+def _misses(records: list[dict[str, Any]], model: str) -> int | None:
+    """Deadline misses of ``model`` over every flight of every scene; ``None`` in waiting mode (not measured)."""
+    counts = [row.get("deadline_misses") for rec in records
+              for row in [*rec[model]["recovery"], rec[model]["figure_eight"]]]
+    return int(sum(counts)) if counts and all(isinstance(c, (int, float)) for c in counts) else None
+
+
+def _call_ms(flights: dict[str, Any]) -> float:
+    """The median over a model's recovery flights of each flight's median controller call (ms, wall clock)."""
+    return float(np.median([row["solve_time_ms"]["median"] for row in flights["recovery"]]))
 
 
 def write_report(records: list[dict[str, Any]], verdicts: dict[int, dict[str, Any]], summary: dict[str, Any],
@@ -274,9 +292,10 @@ def write_report(records: list[dict[str, Any]], verdicts: dict[int, dict[str, An
         f"Timings are from the shared 2-core CPU machine with other jobs running (1-minute load average "
         f"{args.load_average:.1f} when the report was written): wall times are several times an idle machine's.", "",
         "Crafts are drawn by `fvin_mpc.envs.flyer_family` (its docstring gives the ranges), kept if the closed-form "
-        "MPC recovers them from every start, then `collect` (random-excitation bursts, the MJCF alone) → `train` "
-        "(defaults, one torch thread) → the learned-model RTI MPC beside the closed-form one (`fly`'s settings, the "
-        "control weight and figure-eight scaled to the craft).", "",
+        "MPC recovers them from every start (in waiting mode), then `collect` (random-excitation bursts, the MJCF "
+        "alone) → `train` (defaults, one torch thread) → the learned-model RTI MPC beside the closed-form one (`fly`'s "
+        "settings: the control weights, the recovery episode's length and the figure-eight from the craft's own "
+        "scales, docs/flyers.md).", "",
         "| scenes | starts recovered (learned / closed form) | learned on the closed form's recoveries | scenes with "
         "learned ≥ 4 of 5 | figure-eight RMS learned / closed form (median, worst) | collect + train + build s "
         "(median, max) | filter rejection |",
@@ -287,10 +306,15 @@ def write_report(records: list[dict[str, Any]], verdicts: dict[int, dict[str, An
         f"{fmt(s['pipeline_s_median'], '.0f')}, {fmt(s['pipeline_s_max'], '.0f')} | "
         f"{s['draws_rejected']}/{s['draws_filtered']} |", "",
         "![flyer family](flyer-family.png)", "",
+        f"Figure-eight within 1.5× the closed form's RMS on {s['figure_eight_within_1_5']}/{s['scenes']} scenes; "
+        f"below it on {s['drag_scenes_below_closed_form']} of the {s['drag_scenes']} scenes with drag. Deadline misses "
+        f"over all flights, learned / closed form: {fmt(s['deadline_misses_learned'], 'd')} / "
+        f"{fmt(s['deadline_misses_closed'], 'd')}"
+        + (" (not measured in waiting mode)." if s["deadline_misses_learned"] is None else "."), "",
         "| seed | mass kg | actuation | rotors | drag | com off / arm | tilt ° | T/W | dt ms | period ms | "
-        "learned recovered | closed recovered | fig-8 RMS mm learned / closed | fig-8 size m, period s | "
-        "collect / train / build s | training |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "recovery s | learned recovered | closed recovered | fig-8 RMS mm learned / closed | fig-8 size m, period s | "
+        "call ms median learned / closed | misses learned / closed | collect / train / build s | training |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in records:
         f, le, cl = r["facts"], r["learned"], r["closed_form"]
@@ -299,10 +323,12 @@ def write_report(records: list[dict[str, Any]], verdicts: dict[int, dict[str, An
             f"{'yes' if f['fluid_drag'] else 'no'} | {f['com_offset_arm_fraction']:.2f} | {f['max_tilt_deg']:.1f} | "
             f"{f['thrust_to_weight']:.2f} | "
             f"{1e3 * f['timestep_s']:.1f} | {1e3 * r['control_period_s']:.1f} | "
+            f"{r.get('recovery_duration_s', 5.0):g} | "
             f"{sum(x['recovered'] for x in le['recovery'])}/{len(le['recovery'])} | "
             f"{sum(x['recovered'] for x in cl['recovery'])}/{len(cl['recovery'])} | "
             f"{1e3 * le['figure_eight']['rms_position_m']:.1f} / {1e3 * cl['figure_eight']['rms_position_m']:.1f} | "
             f"{2 * le['figure_eight']['amplitude_m']:.2g}, {le['figure_eight']['period_s']:.1f} | "
+            f"{_call_ms(le):.1f} / {_call_ms(cl):.1f} | {fmt(_misses([r], 'learned'), 'd')} / {fmt(_misses([r], 'closed_form'), 'd')} | "
             f"{r['collect_s']:.0f} / {r['train_s']:.0f} / {r['build_s']:.0f} | "
             f"{r['training'].get('iterations')} it, val {fmt(r['training'].get('final_validation_loss'), '.1e')} |")
     rejected = {seed: v for seed, v in verdicts.items() if not v["ok"]}
