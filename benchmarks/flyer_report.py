@@ -328,7 +328,8 @@ def write_report(records: list[dict[str, Any]], verdicts: dict[int, dict[str, An
             f"{sum(x['recovered'] for x in cl['recovery'])}/{len(cl['recovery'])} | "
             f"{1e3 * le['figure_eight']['rms_position_m']:.1f} / {1e3 * cl['figure_eight']['rms_position_m']:.1f} | "
             f"{2 * le['figure_eight']['amplitude_m']:.2g}, {le['figure_eight']['period_s']:.1f} | "
-            f"{_call_ms(le):.1f} / {_call_ms(cl):.1f} | {fmt(_misses([r], 'learned'), 'd')} / {fmt(_misses([r], 'closed_form'), 'd')} | "
+            f"{_call_ms(le):.1f} / {_call_ms(cl):.1f} | "
+            f"{fmt(_misses([r], 'learned'), 'd')} / {fmt(_misses([r], 'closed_form'), 'd')} | "
             f"{r['collect_s']:.0f} / {r['train_s']:.0f} / {r['build_s']:.0f} | "
             f"{r['training'].get('iterations')} it, val {fmt(r['training'].get('final_validation_loss'), '.1e')} |")
     rejected = {seed: v for seed, v in verdicts.items() if not v["ok"]}
