@@ -65,6 +65,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--out-dir", type=Path, default=Path("docs/flyer-family"),
                         help="report folder (default: %(default)s)")
     parser.add_argument("--seed", type=int, default=0, help="seeds the recovery starts (default: %(default)s)")
+    parser.add_argument("--train-time-limit", type=float, default=None,
+                        help="train's --time-limit in s (default: train's own, none): what keeps collect + train + "
+                             "build within a per-command time limit on a loaded machine")
     parser.add_argument("--max-trainings", type=int, default=None,
                         help="stop at the first member whose collect + train would be the (N+1)-th this run starts "
                              "(default: no limit); with 0 and 1 in turn, each run of a per-command time limit "
@@ -119,7 +122,7 @@ def filter_verdict(path: Path, starts: int, seed: int) -> dict[str, Any]:
             "build_s": float(controller.build_s), "wall_s": time.perf_counter() - t0}
 
 
-def _pipeline(seed: int, path: Path, work: Path) -> tuple[Path, dict[str, float]]:
+def _pipeline(seed: int, path: Path, work: Path, time_limit: float | None = None) -> tuple[Path, dict[str, float]]:
     """``collect`` → ``train`` for one member, once for both latency modes; its checkpoint and wall times."""
     import torch
 
@@ -133,17 +136,18 @@ def _pipeline(seed: int, path: Path, work: Path) -> tuple[Path, dict[str, float]
         collect.main(["--scene", str(path), "--out", str(data), "--quiet"])
     t1 = time.perf_counter()
     with contextlib.redirect_stdout(quiet):
-        train.main(["--data", str(data), "--out", str(stem), "--quiet", "--threads", "1"])
+        train.main(["--data", str(data), "--out", str(stem), "--quiet", "--threads", "1",
+                    *([] if time_limit is None else ["--time-limit", str(time_limit)])])
     times = {"collect_s": t1 - t0, "train_s": time.perf_counter() - t1, "load_average": os.getloadavg()[0]}
     timings.write_text(json.dumps(times) + "\n")
     return stem, times
 
 
 def run_scene(seed: int, path: Path, work: Path, verdict: dict[str, Any], starts: int, seed_starts: int,
-              latency: str) -> dict[str, Any]:
+              latency: str, train_time_limit: float | None = None) -> dict[str, Any]:
     """Collect → train → build → fly one member; the record cached for it. In measured latency the closed
     form flies again in that mode (the filter's flights wait for the controller)."""
-    stem, times = _pipeline(seed, path, work)
+    stem, times = _pipeline(seed, path, work, train_time_limit)
     t2 = time.perf_counter()
     env = make_env(scene=path)
     learned = make_controller(env, "learned", str(stem))
@@ -203,7 +207,7 @@ def run(args: argparse.Namespace) -> tuple[list[dict[str, Any]], dict[int, dict[
                 if args.max_trainings is not None and trainings >= args.max_trainings:
                     break
                 trainings += 1
-            record = run_scene(seed, path, work, verdict, args.starts, args.seed, args.latency)
+            record = run_scene(seed, path, work, verdict, args.starts, args.seed, args.latency, args.train_time_limit)
             done.write_text(json.dumps(record, indent=1) + "\n")
         learned = sum(r["recovered"] for r in record["learned"]["recovery"])
         print(f"flyer {seed}: learned {learned}/{args.starts}, figure-eight RMS "
