@@ -92,9 +92,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = build_parser()
     args = parser.parse_args(argv)
-    if not existing_scene(args.scene).space.pivoted:
-        return _evaluate_free_body(args, argv)
     try:
+        if not existing_scene(args.scene).space.pivoted:
+            return _evaluate_free_body(args, argv)
         config = EvaluationConfig(
             scene=args.scene, checkpoint=args.checkpoint, episodes=args.episodes, duration_s=args.duration,
             controllers=tuple(n.strip() for n in args.controllers.split(",") if n.strip()), seed=args.seed,
