@@ -10,7 +10,10 @@ training on one torch thread), then the learned-model MPC from the same starts a
 craft's figure-eight (:func:`fvin_mpc.control.flight.scaled_figure_eight`).
 
 As :mod:`benchmarks.scene_families`: each finished scene and each filter verdict is cached as JSON in
-``--cache-dir`` (a stopped run resumes), the report — per scene and for the family: starts recovered
+``--cache-dir`` (a stopped run resumes; the filter, always in waiting mode, and each member's data and
+checkpoint are shared by both latency modes, so ``--latency measured`` after a waiting run only flies;
+``--cached-only`` assembles the report from what runs over other seed ranges left there), the
+report — per scene and for the family: starts recovered
 (learned / closed form), figure-eight RMS (learned / closed form), time per controller call, deadline
 misses, collect + train + build wall time, the filter's rejection rate — goes to ``--out-dir`` as
 ``flyer-family.md`` with the command that produced it, and ``flyer-family.png``.
@@ -39,6 +42,7 @@ import numpy as np
 
 from fvin_mpc import collect, train
 from fvin_mpc._cli import run_command
+from fvin_mpc.control.flight import recovery_duration
 from fvin_mpc.core.quadrotor import from_mujoco
 from fvin_mpc.envs.flyer_family import write_flyers
 from fvin_mpc.studies.flight_report import make_controller, make_env, run_figure_eight, run_recovery
@@ -61,6 +65,16 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--out-dir", type=Path, default=Path("docs/flyer-family"),
                         help="report folder (default: %(default)s)")
     parser.add_argument("--seed", type=int, default=0, help="seeds the recovery starts (default: %(default)s)")
+    parser.add_argument("--train-time-limit", type=float, default=None,
+                        help="train's --time-limit in s (default: train's own, none): what keeps collect + train + "
+                             "build within a per-command time limit on a loaded machine")
+    parser.add_argument("--max-trainings", type=int, default=None,
+                        help="stop at the first member whose collect + train would be the (N+1)-th this run starts "
+                             "(default: no limit); with 0 and 1 in turn, each run of a per-command time limit "
+                             "starts its training at once")
+    parser.add_argument("--cached-only", action="store_true",
+                        help="skip the draws with no cached filter verdict and the members with no cached flights "
+                             "(assemble the report of runs made in pieces, e.g. over two seed ranges at once)")
     return parser
 
 
@@ -77,9 +91,18 @@ def _figure_eight(env: Any, controller: Any, latency: str) -> dict[str, Any]:
     return {key: tracking[key] for key in keys if key in tracking}
 
 
-def filter_verdict(path: Path, starts: int, seed: int, latency: str) -> dict[str, Any]:
-    """The closed-form MPC on ``path``'s craft from ``starts`` recovery starts: in the family if it
-    recovers from all of them (the recoveries are the closed form's results in the report too)."""
+def hover_margin(scales: Any, low: np.ndarray, high: np.ndarray) -> float:
+    """The smallest share of an actuator's range left between its hover control and the nearer bound:
+    what the craft has to turn with at hover (a centre of mass far off the rotors' centre can leave a
+    rotor near full thrust however large the total thrust-to-weight)."""
+    hover = np.asarray(scales.hover_control, dtype=float)
+    return float(np.min(np.minimum(hover - low, high - hover) / (high - low)))
+
+
+def filter_verdict(path: Path, starts: int, seed: int) -> dict[str, Any]:
+    """The closed-form MPC on ``path``'s craft from ``starts`` recovery starts, in waiting mode (whether the
+    physics can be recovered by this controller, not whether it keeps real time): in the family if it
+    recovers from all of them (the recoveries are the closed form's waiting-mode results in the report)."""
     env = make_env(scene=path)
     t0 = time.perf_counter()
     try:
@@ -87,28 +110,44 @@ def filter_verdict(path: Path, starts: int, seed: int, latency: str) -> dict[str
     except ValueError as error:
         return {"ok": False, "reason": str(error)}
     controller = make_controller(env, "closed-form")
-    recovery = _recovery(env, controller, starts, seed, latency)
-    figure_eight = _figure_eight(env, controller, latency)
+    recovery = _recovery(env, controller, starts, seed, "none")
+    figure_eight = _figure_eight(env, controller, "none")
     env.close()
+    scales = env.unwrapped.scales
     return {"ok": all(r["recovered"] for r in recovery), "recovery": recovery, "figure_eight": figure_eight,
             "unmodelled": list(craft.unmodelled), "control_period_s": float(env.dt),
+            "recovery_duration_s": recovery_duration(scales), "attitude_time_s": scales.attitude_time,
+            "yaw_time_s": scales.yaw_time, "thrust_to_weight": scales.thrust_to_weight,
+            "hover_margin": hover_margin(scales, env.unwrapped.torque_low, env.unwrapped.torque_high),
             "build_s": float(controller.build_s), "wall_s": time.perf_counter() - t0}
 
 
-def run_scene(seed: int, path: Path, work: Path, verdict: dict[str, Any], starts: int, seed_starts: int,
-              latency: str) -> dict[str, Any]:
-    """Collect → train → build → fly one member; the record cached for it."""
+def _pipeline(seed: int, path: Path, work: Path, time_limit: float | None = None) -> tuple[Path, dict[str, float]]:
+    """``collect`` → ``train`` for one member, once for both latency modes; its checkpoint and wall times."""
     import torch
 
     torch.set_num_threads(1)
-    data, stem = work / f"flyer_{seed}.npz", work / f"flyer_{seed}_model"
+    data, stem, timings = work / f"flyer_{seed}.npz", work / f"flyer_{seed}_model", work / f"flyer_{seed}_times.json"
+    if timings.exists():
+        return stem, json.loads(timings.read_text())
     quiet = io.StringIO()
     t0 = time.perf_counter()
     with contextlib.redirect_stdout(quiet):
         collect.main(["--scene", str(path), "--out", str(data), "--quiet"])
     t1 = time.perf_counter()
     with contextlib.redirect_stdout(quiet):
-        train.main(["--data", str(data), "--out", str(stem), "--quiet", "--threads", "1"])
+        train.main(["--data", str(data), "--out", str(stem), "--quiet", "--threads", "1",
+                    *([] if time_limit is None else ["--time-limit", str(time_limit)])])
+    times = {"collect_s": t1 - t0, "train_s": time.perf_counter() - t1, "load_average": os.getloadavg()[0]}
+    timings.write_text(json.dumps(times) + "\n")
+    return stem, times
+
+
+def run_scene(seed: int, path: Path, work: Path, verdict: dict[str, Any], starts: int, seed_starts: int,
+              latency: str, train_time_limit: float | None = None) -> dict[str, Any]:
+    """Collect → train → build → fly one member; the record cached for it. In measured latency the closed
+    form flies again in that mode (the filter's flights wait for the controller)."""
+    stem, times = _pipeline(seed, path, work, train_time_limit)
     t2 = time.perf_counter()
     env = make_env(scene=path)
     learned = make_controller(env, "learned", str(stem))
@@ -118,32 +157,41 @@ def run_scene(seed: int, path: Path, work: Path, verdict: dict[str, Any], starts
     record = {
         "seed": seed, "scene": str(path), "latency": latency,
         "facts": json.loads(path.with_suffix(".json").read_text()),
-        "collect_s": t1 - t0, "train_s": t2 - t1, "build_s": t3 - t2, "pipeline_s": t3 - t0,
+        "collect_s": times["collect_s"], "train_s": times["train_s"], "build_s": t3 - t2,
+        "pipeline_s": times["collect_s"] + times["train_s"] + t3 - t2, "train_load_average": times.get("load_average"),
         "control_period_s": float(env.dt), "horizon": learned.settings.horizon,
         "training": {k: training.get(k) for k in ("iterations", "stopped", "final_validation_loss", "wall_clock_s")},
         "learned": {"recovery": _recovery(env, learned, starts, seed_starts, latency),
                     "figure_eight": _figure_eight(env, learned, latency)},
-        "closed_form": {"recovery": verdict["recovery"], "figure_eight": verdict["figure_eight"]},
-        "unmodelled": verdict["unmodelled"],
+        "unmodelled": verdict["unmodelled"], "recovery_duration_s": verdict["recovery_duration_s"],
     }
+    if latency == "none":
+        record["closed_form"] = {"recovery": verdict["recovery"], "figure_eight": verdict["figure_eight"]}
+    else:
+        closed = make_controller(env, "closed-form")
+        record["closed_form"] = {"recovery": _recovery(env, closed, starts, seed_starts, latency),
+                                 "figure_eight": _figure_eight(env, closed, latency)}
     env.close()
     return record
 
 
 def run(args: argparse.Namespace) -> tuple[list[dict[str, Any]], dict[int, dict[str, Any]]]:
     cache = args.cache_dir / args.latency
-    scenes_dir, work = cache / "scenes", cache / "work"
+    scenes_dir, work = args.cache_dir / "scenes", args.cache_dir / "work"
     work.mkdir(parents=True, exist_ok=True)
-    records, verdicts = [], {}
+    cache.mkdir(parents=True, exist_ok=True)
+    records, verdicts, trainings = [], {}, 0
     for seed in range(args.seed_offset, args.seed_offset + (args.max_draws or 3 * args.scenes)):
         if len(records) >= args.scenes:
             break
         (path,) = write_flyers([seed], scenes_dir)
-        cached = cache / f"filter_{seed}.json"
+        cached = args.cache_dir / f"filter_{seed}.json"
         if cached.exists():
             verdict = json.loads(cached.read_text())
+        elif args.cached_only:
+            continue
         else:
-            verdict = filter_verdict(path, args.starts, args.seed, args.latency)
+            verdict = filter_verdict(path, args.starts, args.seed)
             cached.write_text(json.dumps(verdict, indent=1) + "\n")
         verdicts[seed] = verdict
         print(f"flyer {seed}: filter {'in' if verdict['ok'] else 'out'}", file=sys.stderr)
@@ -152,8 +200,14 @@ def run(args: argparse.Namespace) -> tuple[list[dict[str, Any]], dict[int, dict[
         done = cache / f"scene_{seed}.json"
         if done.exists():
             record = json.loads(done.read_text())
+        elif args.cached_only:
+            continue
         else:
-            record = run_scene(seed, path, work, verdict, args.starts, args.seed, args.latency)
+            if not (work / f"flyer_{seed}_times.json").exists():
+                if args.max_trainings is not None and trainings >= args.max_trainings:
+                    break
+                trainings += 1
+            record = run_scene(seed, path, work, verdict, args.starts, args.seed, args.latency, args.train_time_limit)
             done.write_text(json.dumps(record, indent=1) + "\n")
         learned = sum(r["recovered"] for r in record["learned"]["recovery"])
         print(f"flyer {seed}: learned {learned}/{args.starts}, figure-eight RMS "
@@ -182,9 +236,27 @@ def summarize(records: list[dict[str, Any]], verdicts: dict[int, dict[str, Any]]
         "figure_eight_ratio_worst": float(np.max(ratios)) if ratios else None,
         "pipeline_s_median": float(np.median([r["pipeline_s"] for r in records])) if records else None,
         "pipeline_s_max": float(np.max([r["pipeline_s"] for r in records])) if records else None,
+        "figure_eight_within_1_5": sum(ratio <= 1.5 for ratio in ratios),
+        "drag_scenes": sum(bool(rec["unmodelled"]) for rec in records),
+        "drag_scenes_below_closed_form": sum(bool(rec["unmodelled"]) and ratio < 1.0
+                                             for rec, ratio in zip(records, ratios)),
+        "deadline_misses_learned": _misses(records, "learned"),
+        "deadline_misses_closed": _misses(records, "closed_form"),
         "draws_filtered": len(verdicts), "draws_rejected": len(rejected),
         "rejection_rate": len(rejected) / len(verdicts) if verdicts else None,
     }
+
+
+def _misses(records: list[dict[str, Any]], model: str) -> int | None:
+    """Deadline misses of ``model`` over every flight of every scene; ``None`` in waiting mode (not measured)."""
+    counts = [row.get("deadline_misses") for rec in records
+              for row in [*rec[model]["recovery"], rec[model]["figure_eight"]]]
+    return int(sum(counts)) if counts and all(isinstance(c, (int, float)) for c in counts) else None
+
+
+def _call_ms(flights: dict[str, Any]) -> float:
+    """The median over a model's recovery flights of each flight's median controller call (ms, wall clock)."""
+    return float(np.median([row["solve_time_ms"]["median"] for row in flights["recovery"]]))
 
 
 def write_report(records: list[dict[str, Any]], verdicts: dict[int, dict[str, Any]], summary: dict[str, Any],
@@ -224,9 +296,10 @@ def write_report(records: list[dict[str, Any]], verdicts: dict[int, dict[str, An
         f"Timings are from the shared 2-core CPU machine with other jobs running (1-minute load average "
         f"{args.load_average:.1f} when the report was written): wall times are several times an idle machine's.", "",
         "Crafts are drawn by `fvin_mpc.envs.flyer_family` (its docstring gives the ranges), kept if the closed-form "
-        "MPC recovers them from every start, then `collect` (random-excitation bursts, the MJCF alone) → `train` "
-        "(defaults, one torch thread) → the learned-model RTI MPC beside the closed-form one (`fly`'s settings, the "
-        "control weight and figure-eight scaled to the craft).", "",
+        "MPC recovers them from every start (in waiting mode), then `collect` (random-excitation bursts, the MJCF "
+        "alone) → `train` (defaults, one torch thread) → the learned-model RTI MPC beside the closed-form one (`fly`'s "
+        "settings: the control weights, the recovery episode's length and the figure-eight from the craft's own "
+        "scales, docs/flyers.md).", "",
         "| scenes | starts recovered (learned / closed form) | learned on the closed form's recoveries | scenes with "
         "learned ≥ 4 of 5 | figure-eight RMS learned / closed form (median, worst) | collect + train + build s "
         "(median, max) | filter rejection |",
@@ -237,10 +310,15 @@ def write_report(records: list[dict[str, Any]], verdicts: dict[int, dict[str, An
         f"{fmt(s['pipeline_s_median'], '.0f')}, {fmt(s['pipeline_s_max'], '.0f')} | "
         f"{s['draws_rejected']}/{s['draws_filtered']} |", "",
         "![flyer family](flyer-family.png)", "",
+        f"Figure-eight within 1.5× the closed form's RMS on {s['figure_eight_within_1_5']}/{s['scenes']} scenes; "
+        f"below it on {s['drag_scenes_below_closed_form']} of the {s['drag_scenes']} scenes with drag. Deadline misses "
+        f"over all flights, learned / closed form: {fmt(s['deadline_misses_learned'], 'd')} / "
+        f"{fmt(s['deadline_misses_closed'], 'd')}"
+        + (" (not measured in waiting mode)." if s["deadline_misses_learned"] is None else "."), "",
         "| seed | mass kg | actuation | rotors | drag | com off / arm | tilt ° | T/W | dt ms | period ms | "
-        "learned recovered | closed recovered | fig-8 RMS mm learned / closed | fig-8 size m, period s | "
-        "collect / train / build s | training |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "recovery s | learned recovered | closed recovered | fig-8 RMS mm learned / closed | fig-8 size m, period s | "
+        "call ms median learned / closed | misses learned / closed | collect / train / build s | training |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in records:
         f, le, cl = r["facts"], r["learned"], r["closed_form"]
@@ -249,17 +327,23 @@ def write_report(records: list[dict[str, Any]], verdicts: dict[int, dict[str, An
             f"{'yes' if f['fluid_drag'] else 'no'} | {f['com_offset_arm_fraction']:.2f} | {f['max_tilt_deg']:.1f} | "
             f"{f['thrust_to_weight']:.2f} | "
             f"{1e3 * f['timestep_s']:.1f} | {1e3 * r['control_period_s']:.1f} | "
+            f"{r.get('recovery_duration_s', 5.0):g} | "
             f"{sum(x['recovered'] for x in le['recovery'])}/{len(le['recovery'])} | "
             f"{sum(x['recovered'] for x in cl['recovery'])}/{len(cl['recovery'])} | "
             f"{1e3 * le['figure_eight']['rms_position_m']:.1f} / {1e3 * cl['figure_eight']['rms_position_m']:.1f} | "
             f"{2 * le['figure_eight']['amplitude_m']:.2g}, {le['figure_eight']['period_s']:.1f} | "
+            f"{_call_ms(le):.1f} / {_call_ms(cl):.1f} | "
+            f"{fmt(_misses([r], 'learned'), 'd')} / {fmt(_misses([r], 'closed_form'), 'd')} | "
             f"{r['collect_s']:.0f} / {r['train_s']:.0f} / {r['build_s']:.0f} | "
             f"{r['training'].get('iterations')} it, val {fmt(r['training'].get('final_validation_loss'), '.1e')} |")
     rejected = {seed: v for seed, v in verdicts.items() if not v["ok"]}
     if rejected:
         lines += ["", "Rejected by the filter (closed-form recoveries):", ""]
         lines += [f"* {seed}: " + (v.get("reason") or f"{sum(x['recovered'] for x in v['recovery'])}/"
-                                   f"{len(v['recovery'])} starts recovered") for seed, v in rejected.items()]
+                                   f"{len(v['recovery'])} starts recovered in {v['recovery_duration_s']:g} s; "
+                                   f"T/W {v['thrust_to_weight']:.2f}, hover margin {100 * v['hover_margin']:.0f} % "
+                                   f"of a range, yaw time {1e3 * v['yaw_time_s']:.0f} ms")
+                  for seed, v in rejected.items()]
     path = args.out_dir / "flyer-family.md"
     path.write_text("\n".join(lines) + "\n")
     (args.out_dir / "flyer-family.json").write_text(json.dumps({"command": command, "summary": summary,

@@ -18,6 +18,7 @@ import mujoco
 import numpy as np
 from gymnasium import spaces
 
+from fvin_mpc.core.errors import SceneError
 from fvin_mpc.core.space import R3S3, ConfigurationSpace
 from fvin_mpc.core.state import as_float_array, unit_quaternion
 
@@ -295,6 +296,13 @@ class CraftScales:
         angular_control: the size of the controls (RMS over the three body axes of the norm of the
             least-squares controls, no thrust change) that turn the level craft at 1 rad/s²: what
             turning costs in control units, which a controller's control weight scales with.
+        yaw_time: s, ``1/√α`` for the yaw axis alike: a rotor craft turns about its thrust axis only
+            through the rotors' drag torques, 3–10× slower than it rolls, and a recovery from a
+            tumble must wait for it.
+        linear_control: the size of the least-squares controls that raise the level craft's vertical
+            acceleration by 1 m/s², no torque: what a thrust-only actuator's weight scales with.
+        moment_actuators: ``(nu,)`` bool, the actuators that put no force on the body (pure moments,
+            as a wrench-actuated description's roll, pitch and yaw actuators).
     """
 
     mass: float
@@ -303,6 +311,9 @@ class CraftScales:
     attitude_time: float
     hover_control: np.ndarray
     angular_control: float
+    yaw_time: float = math.inf
+    linear_control: float = math.nan
+    moment_actuators: tuple[bool, ...] = ()
 
 
 #: The control period as a share of the attitude time scale: 0.3 gives the built-in craft's 20 ms
@@ -381,11 +392,41 @@ def hover_control(model: mujoco.MjModel, body_id: int, attitude: Any, gravity: b
     return lsq_linear(matrix / scale, wanted / scale[:, 0], bounds=(low, high)).x
 
 
+#: The directions a free flyer's controls must move independently, in :func:`require_full_actuation`'s words.
+_DIRECTIONS = ("the collective thrust", "the torque about body x", "the torque about body y", "the torque about body z")
+
+
+def require_full_actuation(force: np.ndarray, torque: np.ndarray) -> None:
+    """Refuse a craft whose controls cannot set its collective thrust and three body torques independently
+    (the rank of ``[force_z; torque]`` per unit control below 4): no controller holds every attitude.
+    Menagerie's ``skydio_x2`` before its pull request #220 is one — its adjacent rotors share a spin, so
+    roll and yaw come from one combination of the four thrusts.
+
+    Raises:
+        SceneError: naming the directions that move together.
+    """
+    allocation = np.vstack([force[2], torque])
+    scale = np.maximum(np.abs(allocation).max(axis=1, keepdims=True), 1e-300)
+    allocation = allocation / scale
+    rank = int(np.linalg.matrix_rank(allocation, tol=1e-9))
+    if rank == 4:
+        return
+    tied = [name for k, name in enumerate(_DIRECTIONS)
+            if np.linalg.matrix_rank(np.delete(allocation, k, axis=0), tol=1e-9) == rank]
+    raise SceneError(f"the actuators set only {rank} of the 4 independent directions a free flyer needs: "
+                     f"{' and '.join(tied)} move together (out of the family fly supports)")
+
+
 def craft_scales(model: mujoco.MjModel, physics: ScenePhysics, body: str) -> CraftScales:
-    """:class:`CraftScales` of ``body`` in a model built with ``physics``."""
+    """:class:`CraftScales` of ``body`` in a model built with ``physics``.
+
+    Raises:
+        SceneError: the actuators cannot set thrust and torques independently (:func:`require_full_actuation`).
+    """
     body_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, body)
     level = np.array([1.0, 0.0, 0.0, 0.0])
     force, torque = actuator_wrenches(model, body_id, level)
+    require_full_actuation(force, torque)
     hover = hover_control(model, body_id, level, physics.gravity)
     limited = physics.actuator_limits & model.actuator_ctrllimited.astype(bool)
     low = np.where(limited, model.actuator_ctrlrange[:, 0], np.minimum(0.0, 2.0 * hover))
@@ -397,8 +438,9 @@ def craft_scales(model: mujoco.MjModel, physics: ScenePhysics, body: str) -> Cra
     mujoco.mju_quat2Mat(frame, np.asarray(model.body_iquat[body_id], dtype=float))
     frame = frame.reshape(3, 3)
     inertia = frame @ np.diag(model.body_inertia[body_id]) @ frame.T
-    authority = np.abs(torque[:2]) @ (0.5 * (high - low))
-    alpha = float(np.min(authority / np.diag(inertia)[:2]))
+    authority = np.abs(torque) @ (0.5 * (high - low))
+    alpha = float(np.min(authority[:2] / np.diag(inertia)[:2]))
+    yaw_alpha = float(authority[2] / inertia[2, 2])
     sites = [int(model.actuator_trnid[a, 0]) for a in range(model.nu)
              if model.actuator_trntype[a] == mujoco.mjtTrn.mjTRN_SITE and np.linalg.norm(force[:, a]) > 0.0]
     com = np.asarray(model.body_ipos[body_id], dtype=float)
@@ -409,7 +451,10 @@ def craft_scales(model: mujoco.MjModel, physics: ScenePhysics, body: str) -> Cra
     per_axis = [np.linalg.norm(allocation @ np.concatenate([[0.0], inertia[:, k]])) for k in range(3)]
     return CraftScales(mass=mass, arm=arm, thrust_to_weight=lift / weight,
                        attitude_time=1.0 / math.sqrt(alpha) if alpha > 0.0 else math.inf, hover_control=hover,
-                       angular_control=float(np.sqrt(np.mean(np.square(per_axis)))))
+                       angular_control=float(np.sqrt(np.mean(np.square(per_axis)))),
+                       yaw_time=1.0 / math.sqrt(yaw_alpha) if yaw_alpha > 0.0 else math.inf,
+                       linear_control=float(np.linalg.norm(allocation @ np.array([mass, 0.0, 0.0, 0.0]))),
+                       moment_actuators=tuple(bool(np.linalg.norm(force[:, a]) == 0.0) for a in range(model.nu)))
 
 
 def craft_control_period(model: mujoco.MjModel, physics: ScenePhysics, body: str) -> float:

@@ -236,16 +236,43 @@ def get_scene(name: str) -> SceneSpec:
         return _all_scenes()[name]
     except KeyError:
         raise SceneError(
-            f"unknown scene {name!r}: expected one of {sorted(_all_scenes())} or a path to an existing MJCF (.xml) file"
+            f"unknown scene {name!r}: expected one of {sorted(_all_scenes())} or a path to an existing MJCF (.xml) "
+            "file (or, with pip install 'fvin_mpc[menagerie]', a MuJoCo Menagerie robot's name)"
         ) from None
 
 
+def menagerie_mjcf(name: str) -> Path | None:
+    """The MJCF of the MuJoCo Menagerie robot ``name`` (its default model, the robot without the
+    scene's floor: the flyers' simulator has none), fetched on first use by the optional package
+    ``mujoco-menagerie`` (``pip install 'fvin_mpc[menagerie]'``; ``MENAGERIE_ROOT`` points it at a
+    local checkout); ``None`` when the package is not installed.
+
+    Raises:
+        SceneError: the package knows no such robot, or could not fetch it (the reason in one line).
+    """
+    try:
+        import mujoco_menagerie
+    except ImportError:
+        return None
+    if name not in mujoco_menagerie.names():
+        raise SceneError(f"unknown scene {name!r}: expected one of {sorted(_all_scenes())}, a path to an existing "
+                         f"MJCF (.xml) file or a MuJoCo Menagerie robot (python -m mujoco_menagerie lists them)")
+    robot = mujoco_menagerie.get(name)
+    try:
+        return Path(robot.xml(robot.default_model))
+    except Exception as error:  # the package's download and cache errors: the reason, in one line
+        reason = str(error).splitlines()[0] if str(error) else type(error).__name__
+        raise SceneError(f"Menagerie robot {name!r} could not be fetched: {reason}") from None
+
+
 def resolve_scene(scene: str | Path | SceneSpec) -> SceneSpec:
-    """The declaration of a built-in scene name, an MJCF path, or a :class:`SceneSpec` itself.
+    """The declaration of a built-in scene name, an MJCF path, a MuJoCo Menagerie robot's name (with the
+    optional package, :func:`menagerie_mjcf`) or a :class:`SceneSpec` itself.
 
     A path to a built-in scene's MJCF gives that scene (its settings included); any other path
     gives ``SceneSpec(name=<stem>, xml_path=<path>)``, whose fields are read off the file — its
-    configuration space too: R³ × S³ when the MJCF's body hangs on a free joint, else S³.
+    configuration space too: R³ × S³ when the MJCF's body hangs on a free joint, else S³. A
+    Menagerie robot is its MJCF under the robot's name.
 
     Raises:
         ValueError: neither a built-in name nor something that looks like a path.
@@ -260,6 +287,9 @@ def resolve_scene(scene: str | Path | SceneSpec) -> SceneSpec:
             if path.exists() and path.resolve() == spec.xml_path.resolve():
                 return spec
         return SceneSpec(name=path.stem, xml_path=path, space=_space_of_mjcf(path))
+    menagerie = menagerie_mjcf(str(scene))
+    if menagerie is not None:
+        return SceneSpec(name=str(scene), xml_path=menagerie, space=_space_of_mjcf(menagerie))
     return get_scene(str(scene))
 
 

@@ -76,11 +76,29 @@ def _check_scene_and_checkpoint(config: EvaluationConfig) -> None:
         checked_scene_and_checkpoint(config.scene, true_model=True, command="evaluate")
 
 
+def _evaluate_free_body(args: argparse.Namespace, argv: list[str]) -> int:
+    """A free body's evaluation is fly's report (the study's docstring): both models where a checkpoint is."""
+    import fvin_mpc.studies.flight_report as flight
+
+    spec = existing_scene(args.scene)
+    learned = args.checkpoint is not None or checkpoint_exists(spec.default_checkpoint)
+    checked_scene_and_checkpoint(args.scene, args.checkpoint, true_model=not learned)
+    models = flight.MODELS if learned else ("closed-form",)
+    results = flight.side_by_side(args.out_dir, argv, args.episodes, args.seed, args.latency, args.checkpoint,
+                                  models=models, progress=not args.quiet, scene=args.scene,
+                                  program="python -m fvin_mpc.evaluate")
+    flight.print_rows([model["summary"] for model in results["models"].values()])
+    print(f"wrote {args.out_dir / 'quadrotor.md'}", file=sys.stderr)
+    return 0
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
+        if not existing_scene(args.scene).space.pivoted:
+            return _evaluate_free_body(args, argv)
         config = EvaluationConfig(
             scene=args.scene, checkpoint=args.checkpoint, episodes=args.episodes, duration_s=args.duration,
             controllers=tuple(n.strip() for n in args.controllers.split(",") if n.strip()), seed=args.seed,

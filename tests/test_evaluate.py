@@ -143,3 +143,18 @@ def test_evaluation_mpc_settings_follow_the_scene_and_the_overrides():
     assert default.cold_starts == COLD_STARTS  # multi-start is the evaluated MPC unless --single-start
     override = ev.mpc_settings(ev.EvaluationConfig(mpc=(("horizon", 40), ("terminal_energy_weight", 0.0))))
     assert (override.horizon, override.terminal_energy_weight) == (40, 0.0)
+
+
+@pytest.mark.slow
+def test_evaluate_judges_a_free_body_as_fly_does(tmp_path):
+    """A craft with no checkpoint: the closed form's recoveries and figure-eight, fly's report (a CasADi build)."""
+    import json as json_module
+
+    from fvin_mpc.envs.flyer_family import write_flyers
+    from fvin_mpc.evaluate import main as evaluate_main
+
+    (scene,) = write_flyers([7000], tmp_path)
+    assert evaluate_main(["--scene", str(scene), "--episodes", "1", "--quiet", "--out-dir", str(tmp_path / "out")]) == 0
+    report = json_module.loads((tmp_path / "out" / "quadrotor.json").read_text())
+    assert list(report["models"]) == ["closed-form"]
+    assert report["models"]["closed-form"]["summary"]["recovered_count"] == 1

@@ -95,3 +95,22 @@ def test_control_bounds_keep_the_first_control_whole():
     assert (lower[0, 0], upper[0, 0]) == (-1.0, 3.0)
     np.testing.assert_allclose(lower[1:, 0], -0.5)
     np.testing.assert_allclose(upper[1:, 0], 2.5)
+
+
+def test_one_control_weight_per_actuator_is_that_actuator_s_cost():
+    """``control_weight`` as a tuple weighs each control on its own (a wrench craft's thrust in N beside
+    moments in N·m); a scalar weighs them alike, as before."""
+    from fvin_mpc.control.problem import residual_functions
+
+    weights = (0.5, 2.0, 8.0, 32.0)
+    u = np.array([1.0, -2.0, 0.5, 0.25])
+    stage = {}
+    for weight in (weights, 0.5):
+        settings = quadrotor_mpc_settings(control_weight=weight)
+        function, _ = residual_functions(R3S3.layout, settings, 4, 30.0, None, None)
+        residual = np.asarray(function(HOVER, u, HOVER, np.zeros(4))).ravel()
+        stage[weight] = residual[-4:]
+    np.testing.assert_allclose(stage[weights], np.sqrt(weights) * u, rtol=1e-12)
+    np.testing.assert_allclose(stage[0.5], np.sqrt(0.5) * u, rtol=1e-12)
+    with pytest.raises(ValueError, match="control_weight"):
+        MPCSettings(control_weight=(1.0, -1.0))

@@ -138,12 +138,53 @@ def test_the_geometric_controller_allocates_any_layout(crafts):
                                    [craft.mass * craft.gravity, 0.0, 0.0, 0.0], atol=1e-6 * craft.mass * 10)
 
 
-def test_the_tuned_craft_keeps_its_control_weight():
-    from fvin_mpc.control.flight import TUNED_ANGULAR_CONTROL, TUNED_CONTROL_WEIGHT, scaled_control_weight
+def test_the_tuned_craft_keeps_its_control_weight_and_recovery_time():
+    from fvin_mpc.control.flight import (
+        TUNED_ANGULAR_CONTROL,
+        TUNED_ATTITUDE_TIME,
+        TUNED_CONTROL_WEIGHT,
+        TUNED_LINEAR_CONTROL,
+        TUNED_RECOVERY_S,
+        TUNED_YAW_TIME,
+        recovery_duration,
+        scaled_control_weight,
+    )
 
     scales = QuadrotorEnv("quadrotor").scales
     assert scales.angular_control == pytest.approx(TUNED_ANGULAR_CONTROL, rel=1e-12)
+    assert scales.linear_control == pytest.approx(TUNED_LINEAR_CONTROL, rel=1e-12)
+    assert scales.attitude_time == pytest.approx(TUNED_ATTITUDE_TIME, rel=1e-12)
+    assert scales.yaw_time == pytest.approx(TUNED_YAW_TIME, rel=1e-7)
+    assert not any(scales.moment_actuators)
     assert scaled_control_weight(scales) == pytest.approx(TUNED_CONTROL_WEIGHT, rel=1e-12)
+    assert recovery_duration(scales) == TUNED_RECOVERY_S
+
+
+def test_a_wrench_craft_weighs_its_thrust_and_moments_apart(crafts):
+    """One weight for a thrust in N and moments in N·m froze the thrust at hover (module docstring)."""
+    from fvin_mpc.control.flight import TUNED_CONTROL_WEIGHT, TUNED_LINEAR_CONTROL, scaled_control_weight
+
+    scales = QuadrotorEnv(crafts[1]).scales
+    assert scales.moment_actuators == (False, True, True, True)
+    # the thrust: the same cost per m/s² as the tuned craft's, about ``m`` newtons of thrust per m/s² (plus
+    # the moments that cancel its lever about the centre of mass off the thrust site)
+    weights = scaled_control_weight(scales)
+    assert scales.linear_control == pytest.approx(scales.mass, rel=0.01)
+    assert weights[0] == pytest.approx(TUNED_CONTROL_WEIGHT * (TUNED_LINEAR_CONTROL / scales.linear_control) ** 2,
+                                       rel=1e-12)
+    assert min(weights[1:]) > 100.0 * weights[0]
+    assert isinstance(scaled_control_weight(QuadrotorEnv(crafts[0]).scales), float)
+
+
+def test_a_slow_yawing_craft_gets_a_longer_recovery(crafts):
+    from fvin_mpc.control.flight import TUNED_RECOVERY_S, TUNED_YAW_TIME, recovery_duration
+
+    for path in crafts:
+        scales = QuadrotorEnv(path).scales
+        assert recovery_duration(scales) >= TUNED_RECOVERY_S
+        assert recovery_duration(scales) == pytest.approx(
+            max(TUNED_RECOVERY_S, TUNED_RECOVERY_S * scales.yaw_time / TUNED_YAW_TIME,
+                TUNED_RECOVERY_S * scales.attitude_time / 0.06946194659107466), abs=0.05)
 
 
 def test_the_figure_eight_scales_with_the_craft(crafts):
@@ -192,3 +233,25 @@ def test_collect_records_a_craft_by_path_without_the_closed_form(crafts, tmp_pat
                          "--quiet"]) == 0
     data = load_data(out)
     assert data.metadata["collector"] == EXCITATION and data.state.shape == (4, 6, 13)
+
+
+def test_a_craft_whose_roll_and_yaw_move_together_is_refused_with_the_reason(crafts, tmp_path):
+    """Adjacent rotors spinning alike (Menagerie's skydio_x2 before its pull request #220): roll and yaw
+    come from one combination of the thrusts; the env says so in one line instead of flying it."""
+    from fvin_mpc.core.errors import SceneError
+
+    square = """<mujoco><option timestep="0.005"/><worldbody><body name="craft" pos="0 0 1"><freejoint/>
+      <geom type="box" size="0.1 0.1 0.02" mass="1"/>
+      <site name="a" pos="-0.15 -0.15 0"/><site name="b" pos="-0.15 0.15 0"/>
+      <site name="c" pos="0.15 0.15 0"/><site name="d" pos="0.15 -0.15 0"/></body></worldbody>
+      <actuator><motor site="a" gear="0 0 1 0 0 -0.02" ctrlrange="0 10"/>
+      <motor site="b" gear="0 0 1 0 0 {b}" ctrlrange="0 10"/><motor site="c" gear="0 0 1 0 0 {c}" ctrlrange="0 10"/>
+      <motor site="d" gear="0 0 1 0 0 {d}" ctrlrange="0 10"/>
+      </actuator></mujoco>"""
+    tied = tmp_path / "tied.xml"
+    tied.write_text(square.format(b="0.02", c="0.02", d="-0.02"))
+    with pytest.raises(SceneError, match="torque about body x and the torque about body z move together"):
+        QuadrotorEnv(tied)
+    crossed = tmp_path / "crossed.xml"
+    crossed.write_text(square.format(b="0.02", c="-0.02", d="0.02"))
+    assert QuadrotorEnv(crossed).scales.thrust_to_weight > 1.0

@@ -260,3 +260,50 @@ def test_the_shipped_weak_pendulum_model_swings_it_up(tmp_path):
     summary = json.loads(out.read_text())
     assert summary["model"] == "weak_pendulum_sign-invariant"
     assert summary["swung_up"] and summary["time_to_upright_s"] < 8.0, summary
+
+
+from fvin_mpc.core.errors import SceneError  # noqa: E402
+
+
+def _fake_menagerie(monkeypatch, tmp_path, fetch_error=None):
+    """A stand-in for the optional ``mujoco-menagerie`` package (it downloads each robot on first use)."""
+    import types
+
+    xml = tmp_path / "craft.xml"
+    xml.write_text('<mujoco><worldbody><body name="craft" pos="0 0 1"><freejoint/><geom type="sphere" size="0.1"/>'
+                   '</body></worldbody></mujoco>')
+
+    class Robot:
+        default_model = "craft"
+
+        def xml(self, entry=None):
+            if fetch_error is not None:
+                raise fetch_error
+            assert entry == "craft"  # the robot's own MJCF, not its scene with a floor
+            return xml
+
+    module = types.SimpleNamespace(names=lambda: ["some_drone"], get=lambda name: Robot())
+    monkeypatch.setitem(sys.modules, "mujoco_menagerie", module)
+    return xml
+
+
+def test_a_menagerie_name_is_its_robot_s_mjcf(monkeypatch, tmp_path):
+    from fvin_mpc.core.space import R3S3
+    from fvin_mpc.envs.scenes import resolve_scene
+
+    xml = _fake_menagerie(monkeypatch, tmp_path)
+    spec = resolve_scene("some_drone")
+    assert (spec.name, spec.xml_path, spec.space) == ("some_drone", xml, R3S3)
+    with pytest.raises(SceneError, match="MuJoCo Menagerie robot"):
+        resolve_scene("no_such_drone")
+
+
+def test_a_menagerie_name_says_what_went_wrong_in_one_line(monkeypatch, tmp_path):
+    from fvin_mpc.envs.scenes import resolve_scene
+
+    _fake_menagerie(monkeypatch, tmp_path, fetch_error=OSError("no network\nsecond line"))
+    with pytest.raises(SceneError, match=r"^Menagerie robot 'some_drone' could not be fetched: no network$"):
+        resolve_scene("some_drone")
+    monkeypatch.setitem(sys.modules, "mujoco_menagerie", None)  # not installed: import fails
+    with pytest.raises(SceneError, match=r"fvin_mpc\[menagerie\]"):
+        resolve_scene("some_drone")

@@ -212,16 +212,43 @@ def scaled_figure_eight(center: Any, scales: Any, gravity: float = 9.81) -> Figu
 
 
 #: The control weight tuned on the built-in craft, and that craft's
-#: :attr:`~fvin_mpc.envs.quadrotor_env.CraftScales.angular_control` (N per rad/s², checked in the tests).
-TUNED_CONTROL_WEIGHT, TUNED_ANGULAR_CONTROL = 0.5, 0.08346872974418619
+#: :attr:`~fvin_mpc.envs.quadrotor_env.CraftScales.angular_control` (N per rad/s²) and
+#: :attr:`~fvin_mpc.envs.quadrotor_env.CraftScales.linear_control` (N per m/s²), checked in the tests.
+TUNED_CONTROL_WEIGHT, TUNED_ANGULAR_CONTROL, TUNED_LINEAR_CONTROL = 0.5, 0.08346872974418619, 0.25
 
 
-def scaled_control_weight(scales: Any) -> float:
+def scaled_control_weight(scales: Any) -> float | tuple[float, ...]:
     """The tuned control weight for a craft of ``scales``: the same cost for turning at the same angular
     acceleration, ``0.5 (c₀ / c)²`` with ``c`` the controls one rad/s² takes. Scaling by the hover thrust
     instead left a 1.7 kg hexacopter's yaw (12× the tuned craft's control per rad/s²) too dear to damp:
-    it swung ±2 rad for seconds after righting itself."""
-    return TUNED_CONTROL_WEIGHT * (TUNED_ANGULAR_CONTROL / scales.angular_control) ** 2
+    it swung ±2 rad for seconds after righting itself.
+
+    A craft with pure-moment actuators (one thrust site and body moments) gets one weight per actuator:
+    the moments that rule, the force actuators the same cost for the same vertical acceleration,
+    ``0.5 (l₀ / l)²``. One weight for both left a 0.13 kg craft's thrust (in N) at ``6900 N⁻²``, the
+    weight its moments (in N·m, 100× smaller) need: the thrust could not leave hover, and the craft
+    fell away from every start."""
+    moment_weight = TUNED_CONTROL_WEIGHT * (TUNED_ANGULAR_CONTROL / scales.angular_control) ** 2
+    if not any(scales.moment_actuators):
+        return moment_weight
+    force_weight = TUNED_CONTROL_WEIGHT * (TUNED_LINEAR_CONTROL / scales.linear_control) ** 2
+    return tuple(moment_weight if moment else force_weight for moment in scales.moment_actuators)
+
+
+#: The built-in craft's attitude (roll, pitch) and yaw time scales (s), over which its recovery task was set.
+TUNED_ATTITUDE_TIME, TUNED_YAW_TIME = 0.06946194659107466, 0.23979158
+#: The recovery episode of the built-in craft (s): about 21 of its yaw times.
+TUNED_RECOVERY_S = 5.0
+
+
+def recovery_duration(scales: Any) -> float:
+    """The recovery episode for a craft of ``scales``: :data:`TUNED_RECOVERY_S` stretched by its slowest
+    rotation time scale over the tuned craft's (roll and pitch, and yaw), never shorter, 0.1 s rounded.
+    An 8-rotor craft whose yaw turns 3× slower than the built-in's (746 ms) was still settling its yaw
+    at 0.1–0.2 rad after 5 s from every start, and recovered 2 of 3 within 10 s: 5 s is the built-in's
+    21 yaw times, not a property of the task."""
+    stretch = max(1.0, scales.attitude_time / TUNED_ATTITUDE_TIME, scales.yaw_time / TUNED_YAW_TIME)
+    return round(TUNED_RECOVERY_S * stretch, 1) if math.isfinite(stretch) else TUNED_RECOVERY_S
 
 
 def recovery_starts(hover_point: Any, count: int = 20, seed: int = 0,

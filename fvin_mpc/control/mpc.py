@@ -212,7 +212,7 @@ class MPCSettings:
         horizon: ``N`` model steps (horizon ``N·h`` seconds).
         orientation_weight: ``w_q`` on ``c(q) = sin²(angle/2)`` (``4`` ≈ angle² near the goal).
         omega_weight: ``w_ω`` on ``|ω|²``.
-        control_weight: ``w_u`` on ``|u|²``.
+        control_weight: ``w_u`` on ``|u|²``, or one weight per control (``Σ w_i u_i²``).
         terminal_orientation_weight: ``W_q`` on ``c(q_N)``.
         terminal_omega_weight: ``W_ω`` on ``|ω_N|²``.
         terminal_energy_weight: ``W_E`` on the squared normalized energy deficit ``e(x_N)²``
@@ -269,7 +269,7 @@ class MPCSettings:
     horizon: int = 30
     orientation_weight: float = 4.0
     omega_weight: float = 0.1
-    control_weight: float = 0.01
+    control_weight: float | tuple[float, ...] = 0.01
     terminal_orientation_weight: float = 40.0
     terminal_omega_weight: float = 1.0
     terminal_energy_weight: float = 0.0
@@ -298,7 +298,7 @@ class MPCSettings:
         for name in ("orientation_weight", "omega_weight", "control_weight", "terminal_orientation_weight",
                      "terminal_omega_weight", "terminal_energy_weight", "position_weight", "velocity_weight",
                      "terminal_position_weight", "terminal_velocity_weight"):
-            if not getattr(self, name) >= 0.0:
+            if not np.all(np.asarray(getattr(self, name)) >= 0.0):
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
         if not 0.0 <= self.torque_reserve < 1.0:
             raise ValueError(f"torque_reserve must be in [0, 1), got {self.torque_reserve}")

@@ -87,8 +87,9 @@ def residual_functions(layout: StateLayout, settings: Any, control_dim: int, ome
         return [*translation, np.sqrt(orientation_weight) * attitude, *rate,
                 np.sqrt(omega_weight) * (omega - reference[ws])]
 
+    control_weights = np.broadcast_to(np.asarray(s.control_weight, dtype=float), (control_dim,))
     stage = ca.vertcat(*tracking(s.position_weight, s.orientation_weight, s.velocity_weight, s.omega_weight),
-                       np.sqrt(s.control_weight) * (u - u_s), *excess)
+                       ca.DM(np.sqrt(control_weights)) * (u - u_s), *excess)
     terminal = [*tracking(s.terminal_position_weight, s.terminal_orientation_weight, s.terminal_velocity_weight,
                           s.terminal_omega_weight), *excess]
     p = ca.SX.sym("p", parameter_size)

@@ -24,6 +24,14 @@ Outputs in ``--out-dir``: ``evaluation.json``, ``evaluation.md`` (tables + comma
 (angle from upright vs angular rate). ``--workers N`` runs episodes in N processes (or, with
 ``--backend ray``, N Ray actors, docs/ray.md); each builds its controllers once (the MPC's
 compiled library comes from the on-disk cache).
+
+A **free body** (``--scene`` of one body on a free joint: the built-in ``quadrotor``, any craft's MJCF,
+a Menagerie robot) is judged as ``python -m fvin_mpc.fly --report`` judges it — its recovery starts
+and criterion (within 0.1 m of the hover point and 0.1 rad of level from some time to the end of an
+episode as long as the craft's rotation time scales ask, docs/flyers.md) and the craft's figure-eight,
+the RTI MPC on the learned model (when a checkpoint is there) beside the closed form;
+``quadrotor.{json,md}`` and plots go to ``--out-dir``. ``--duration``, ``--controllers``,
+``--max-omega`` and the MPC options are then not used.
 """
 
 from __future__ import annotations

@@ -46,6 +46,7 @@ from fvin_mpc.control.flight import (
     quadrotor_model,
     quadrotor_mpc,
     quadrotor_mpc_settings,
+    recovery_duration,
     recovery_starts,
     scaled_control_weight,
     scaled_figure_eight,
@@ -55,8 +56,6 @@ from fvin_mpc.studies.report import markdown_table, write_report
 
 #: The scene.
 SCENE = "quadrotor"
-#: Seconds per recovery episode.
-RECOVERY_DURATION_S = 5.0
 #: Figure-eight: loops flown after the ramp, and the loops left out of the RMS error (settling).
 FIGURE_EIGHT_LOOPS = 3
 FIGURE_EIGHT_SETTLE_LOOPS = 1
@@ -93,13 +92,17 @@ def run_recovery(
     episodes: int,
     seed: int,
     latency: Any,
-    duration_s: float = RECOVERY_DURATION_S,
+    duration_s: float | None = None,
     progress: bool = True,
     render_first: bool = False,
 ) -> tuple[list[dict[str, Any]], list[Any], list[np.ndarray]]:
-    """Recovery episodes from :func:`~fvin_mpc.control.flight.recovery_starts`; per-episode metrics,
-    the episodes, and the first episode's frames when ``render_first``."""
+    """Recovery episodes from :func:`~fvin_mpc.control.flight.recovery_starts`, ``duration_s`` each (default
+    the craft's, :func:`~fvin_mpc.control.flight.recovery_duration`); per-episode metrics, the episodes, and
+    the first episode's frames when ``render_first``."""
     from tqdm.auto import tqdm
+
+    if duration_s is None:
+        duration_s = recovery_duration(env.unwrapped.scales)
 
     controller.set_reference(hover_reference(env))
     rows, kept, frames = [], [], []
@@ -167,7 +170,7 @@ COLUMNS = ("model", "recovered", "recover_s_median", "recover_s_max", "figure_ei
 
 def side_by_side(out_dir: Path, argv: Sequence[str], episodes: int = 20, seed: int = 0, latency: Any = "measured",
                  checkpoint: Any = None, models: Sequence[str] = MODELS, progress: bool = True,
-                 scene: Any = SCENE) -> dict[str, Any]:
+                 scene: Any = SCENE, program: str = "python -m fvin_mpc.fly") -> dict[str, Any]:
     """Both tasks with each model under the same controller; writes ``out_dir/quadrotor.{json,md}``
     and ``recovery.png``, ``figure_eight.png``; returns the data."""
 
@@ -190,9 +193,10 @@ def side_by_side(out_dir: Path, argv: Sequence[str], episodes: int = 20, seed: i
     out_dir.mkdir(parents=True, exist_ok=True)
     plot_recovery(flights, out_dir / "recovery.png")
     plot_figure_eight(flights, figure_eight(env), out_dir / "figure_eight.png")
-    command = "python -m fvin_mpc.fly " + " ".join(shlex.quote(a) for a in argv)
+    command = program + " " + " ".join(shlex.quote(a) for a in argv)
     body = "\n".join([
-        f"Latency mode: `{latency}`; {episodes} recovery starts (seed {seed}), {RECOVERY_DURATION_S:g} s each; one "
+        f"Latency mode: `{latency}`; {episodes} recovery starts (seed {seed}), "
+        f"{recovery_duration(env.unwrapped.scales):g} s each; one "
         f"figure-eight flight ({FIGURE_EIGHT_LOOPS} loops of {loop.period:g} s, {2 * loop.amplitude:g} m wide, after a "
         f"{loop.ramp_s:g} s ramp, RMS after the first loop). "
         "Controller times are over every period of every episode of that model (wall clock, the whole call: "
