@@ -168,17 +168,18 @@ def test_closed_form_of_the_built_in_scenes_is_unchanged():
         "actuator_axes=((0.0,), (1.0,), (0.0,)), damping={}, constant_inertia=True"
     )
     expected = {
-        "pendulum": pendulum.format(0.0),
-        "pendulum_damped": pendulum.format(0.1),
+        "pendulum": pendulum.format(0.0) + ", vertical=(0.0, 0.0, 1.0), hinge_axis=(0.0, 1.0, 0.0))",
+        "pendulum_damped": pendulum.format(0.1) + ", vertical=(0.0, 0.0, 1.0), hinge_axis=(0.0, 1.0, 0.0))",
         "spherical_pendulum": "PivotedRigidBody(inertia=((0.5010000000004001, 0.0, 0.0), (0.0, 0.5170000000004001, 0.0), "
         "(0.0, 0.0, 0.017)), center_of_mass=(0.0, 0.0, -0.666666666667), mass_gravity=9.0, "
         "actuator_axes=((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)), damping=0.0, "
-        "constant_inertia=True",
+        "constant_inertia=True, vertical=(0.0, 0.0, 1.0), hinge_axis=None)",
     }
     for scene, text in expected.items():
         env = RigidBodyEnv(scene)
         body = from_mujoco(env.model, env.body_name)
-        assert repr(body) == text + ", vertical=(0.0, 0.0, 1.0))"
+        # The fields added since (vertical, then the hinge axis its step stays on) follow them.
+        assert repr(body) == text
 
 
 def test_a_child_body_with_a_joint_is_refused_by_the_closed_form():
