@@ -78,7 +78,9 @@ def test_failed_qp_delivers_the_shifted_previous_plan_clipped(craft):
     controller(x0)
     previous = controller._plan.controls.copy()
     controller.prepare()
-    controller._feedback = lambda states, controls, *_: (states * np.nan, controls * np.nan, np.nan, np.nan)
+    # The generated feedback's outputs: states, controls, step, μ, then the last Riccati gains K, k.
+    controller._feedback = lambda states, controls, *_: (states * np.nan, controls * np.nan, np.nan, np.nan,
+                                                         None, None)
     u, info = controller(model(x0, previous[0])[0])
     assert not info["success"] and info["fallback"] == "previous-plan" and info["status"] == "qp-not-finite"
     np.testing.assert_array_equal(u, np.clip(previous[1], env.torque_low, env.torque_high))
