@@ -193,6 +193,22 @@ def refuse_to_overwrite(stem: Path, force: bool) -> None:
                          "pass --out for a new name, or --force to replace it")
 
 
+def _from_scene_env(metadata: Mapping[str, Any], read: Callable[[Any], Any]) -> Any:
+    """``read(env)`` on the env of the data's scene (its metadata's ``scene`` and ``body``); ``None`` when
+    there is no scene or its MJCF cannot be opened."""
+    scene = metadata.get("scene")
+    if not scene:
+        return None
+    try:
+        env = RigidBodyEnv(scene=scene, body=metadata.get("body"))
+    except (ValueError, FileNotFoundError, OSError):
+        return None
+    try:
+        return read(env.unwrapped)
+    finally:
+        env.close()
+
+
 def scene_has_joint_damping(metadata: Mapping[str, Any]) -> bool | None:
     """Whether the data's scene declares joint damping: the collection metadata's
     ``physics.joint_damping`` when recorded, else the scene's env (``physics.joint_damping``);
@@ -200,38 +216,15 @@ def scene_has_joint_damping(metadata: Mapping[str, Any]) -> bool | None:
     physics = metadata.get("physics")
     if isinstance(physics, Mapping) and "joint_damping" in physics:
         return bool(physics["joint_damping"])
-    scene = metadata.get("scene")
-    if not scene:
-        return None
-    try:
-        env = RigidBodyEnv(scene=scene, body=metadata.get("body"))
-    except (ValueError, FileNotFoundError, OSError):
-        return None
-    try:
-        return bool(env.unwrapped.physics.joint_damping)
-    finally:
-        env.close()
+    return _from_scene_env(metadata, lambda env: bool(env.physics.joint_damping))
 
 
 def scene_hinge_axis(metadata: Mapping[str, Any]) -> tuple[float, float, float] | None:
     """The hinge axis (body frame, unit) of the data's scene: the collection metadata's ``hinge_axis``
     when recorded (``None`` there: a ball joint), else the scene's env's; ``None`` when the joint is not
     a hinge or neither can tell (no scene, or its MJCF is gone)."""
-    if "hinge_axis" in metadata:
-        axis = metadata["hinge_axis"]
-        return None if axis is None else tuple(float(v) for v in axis)  # type: ignore[return-value]
-    scene = metadata.get("scene")
-    if not scene:
-        return None
-    try:
-        env = RigidBodyEnv(scene=scene, body=metadata.get("body"))
-    except (ValueError, FileNotFoundError, OSError):
-        return None
-    try:
-        axis = env.unwrapped.joint_axis
-        return None if axis is None else tuple(float(v) for v in axis)  # type: ignore[return-value]
-    finally:
-        env.close()
+    axis = metadata["hinge_axis"] if "hinge_axis" in metadata else _from_scene_env(metadata, lambda env: env.joint_axis)
+    return None if axis is None else tuple(float(v) for v in axis)  # type: ignore[return-value]
 
 
 # ---------------------------------------------------------------------------- loss
