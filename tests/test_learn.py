@@ -40,6 +40,8 @@ def test_every_reported_transition_is_in_the_saved_data_and_no_other(tiny_run):
     assert [r["transitions"] for r in rounds] == [30, 70, 100]
     assert [r["excitation_transitions"] for r in rounds] == [30, 30, 30]
     assert [r["closed_loop_transitions"] for r in rounds] == [0, 40, 70]
+    # Round 0 starts from the initialization; later rounds keep whichever start trained to the lower loss.
+    assert rounds[0]["trained_from"] == "initial" and {r["trained_from"] for r in rounds[1:]} <= {"initial", "previous"}
     assert data.metadata["excitation_transitions"] + data.metadata["closed_loop_transitions"] == 100
     # evaluation: 2 starts × 0.3 s at the scene's control period per round, counted apart and never trained on
     per_round = 2 * round(0.3 / data.control_period)
