@@ -347,3 +347,16 @@ def test_the_prepared_feedback_option_sets_one_iteration_per_period():
     args = build_parser().parse_args(["--solver", "rti", "--rti-feedback", "prepared"])
     assert mpc_overrides(args)["rti"] == {"feedback": "prepared", "max_iter": 1}
     assert "rti" not in mpc_overrides(build_parser().parse_args(["--solver", "rti"]))
+
+
+def test_a_two_motor_ball_with_a_free_axis_c_loop_equals_python_loop(tmp_path):
+    # The free axis reaches the C loop twice: in the generated cost, and in its disturbance
+    # estimate's region (the axis's direction, the speed without the spin about it).
+    from fvin_mpc.envs.families import write_family
+
+    (scene,) = write_family("ball", [9002], tmp_path)
+    env, python, c_loop = pendulum_pair(str(scene), true_model=True)
+    assert python.settings.free_axis is not None
+    python_episode, _ = assert_same_closed_loops(env, python, c_loop, 8.0, "none", seed=2,
+                                                 reset_options={"random": True, "max_omega": 2.0})
+    assert np.any(python_episode.controller_info[-1]["disturbance"] != 0.0)  # the estimate ran near the goal

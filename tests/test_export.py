@@ -11,15 +11,17 @@ from fvin_mpc.core.networks import ModelConfig, init_weights
 from fvin_mpc.core.rigid_body import PENDULUM
 
 
-@pytest.fixture(params=[("sign-invariant", 1, False), ("fixed-inertia", 1, False), ("plain", 3, True)],
-                ids=["sign-invariant-m1", "fixed-inertia-m1", "plain-m3-damped"])
+@pytest.fixture(params=[("sign-invariant", 1, False, None), ("fixed-inertia", 1, False, None), ("plain", 3, True, None),
+                        ("sign-invariant", 2, True, (0.2, -0.1, 1.0))],
+                ids=["sign-invariant-m1", "fixed-inertia-m1", "plain-m3-damped", "vertical-m2-damped"])
 def model_pair(request, tmp_path):
     """A random-weight checkpoint as a torch model and as its CasADi export."""
     torch = pytest.importorskip("torch")
     from fvin_mpc.learning.model import S3FVIN
 
-    variant, control_dim, dissipation = request.param
-    config = ModelConfig(variant=variant, control_dim=control_dim, dissipation=dissipation, newton_iters=3)
+    variant, control_dim, dissipation, vertical = request.param
+    config = ModelConfig(variant=variant, control_dim=control_dim, dissipation=dissipation, newton_iters=3,
+                         vertical=vertical)
     weights = init_weights(config, seed=7)
     stem = save_checkpoint(tmp_path / "model", config, weights, scene="test")
     return S3FVIN(config, weights), export.from_checkpoint(stem), torch

@@ -94,3 +94,52 @@ def test_collect_then_train_with_defaults_records_the_swing_measure(tmp_path, ca
     assert summary["swing_energy_error"] == swing["swing_energy_error"] >= 0.0
     assert len(swing["model_apex_deg"]) == len(swing["plant_apex_deg"]) == 12
     assert metadata["training"]["selected"]["by"] == "measure"
+
+
+def test_the_divergence_audit_passes_resolved_swings_and_catches_energy_the_controls_did_not_put_in():
+    from fvin_mpc.learning.excitation import DIVERGENCE_TOLERANCE
+
+    data = collect_swings(DAMPED, trajectories=10, seed=4, progress=False)
+    physics = SwingPhysics(RigidBodyEnv(DAMPED))
+    audits = [physics.divergence(states, controls) for states, controls in zip(data.state, data.u)]
+    assert max(audits) < 0.1 * DIVERGENCE_TOLERANCE
+    # A hanging body whose speed grows by 20 % a period under zero torque: every joule is the integrator's.
+    grown = np.zeros((12, 7))
+    grown[:, :4] = physics.env.unwrapped.rest
+    grown[:, 4:] = np.outer(1.2 ** np.arange(12), [0.0, 0.3 * physics.scales.speed, 0.0])
+    assert physics.divergence(grown, np.zeros((11, data.u.shape[-1]))) > 1.0
+    # Full torque along the motion could have put that energy in: not a divergence.
+    assert physics.divergence(grown[:3], np.full((2, data.u.shape[-1]), 1e3)) <= 0.0
+
+
+def test_a_ball_scene_whose_first_data_diverged_is_collected_within_the_energy_band(tmp_path):
+    from fvin_mpc.envs.families import write_family
+    from fvin_mpc.learning.excitation import DIVERGENCE_TOLERANCE, MAX_ENERGY, START_SPEED_CAP, energy_spread_state
+
+    # Report member 9012: a point mass at 1:30 about its long axis on 2 motors, whose first data set
+    # spun up to 680 rad/s in MuJoCo's implicitfast steps (energy ×10⁴ in 33 periods) and reached 13
+    # energy spans at the 95th percentile.
+    (scene,) = write_family("ball", [9012], tmp_path)
+    data = collect_swings(str(scene), seed=0, progress=False)
+    env = RigidBodyEnv(str(scene))
+    physics = SwingPhysics(env)
+    assert max(physics.divergence(s, u) for s, u in zip(data.state, data.u)) <= DIVERGENCE_TOLERANCE
+    assert np.abs(data.omega).max() < 10.0 * physics.scales.speed
+    coverage = data.metadata["energy_coverage"]
+    assert coverage["p95"] <= 1.5 * MAX_ENERGY and coverage["max"] >= 1.0  # the band, and the swing-up's span
+    rng = np.random.default_rng(0)
+    speeds = [np.linalg.norm(energy_spread_state(env, physics, rng)[1]) for _ in range(50)]
+    assert max(speeds) <= START_SPEED_CAP * physics.scales.speed * (1 + 1e-12)
+
+
+def test_diverged_trajectories_are_replaced_and_a_scene_that_always_diverges_is_refused(monkeypatch):
+    from fvin_mpc.learning import excitation
+
+    audits = iter([1.0, 1.0, 0.0] + [0.0] * 100)  # the first start's trajectory diverges twice
+    monkeypatch.setattr(excitation.SwingPhysics, "divergence", lambda self, states, controls: next(audits))
+    with pytest.warns(UserWarning, match="replaced 2 of 10 trajectories"):
+        data = collect_swings(DAMPED, trajectories=10, seed=4, progress=False)
+    assert data.metadata["diverged_trajectories"] == 2 and data.num_trajectories == 10
+    monkeypatch.setattr(excitation.SwingPhysics, "divergence", lambda self, states, controls: 1.0)
+    with pytest.raises(RuntimeError, match="timestep"):
+        collect_swings(DAMPED, trajectories=10, seed=4, progress=False)

@@ -204,6 +204,8 @@ def config_header(controller: RealTimeMPC, example_state: np.ndarray) -> str:
         f"#define FVC_DISTURBANCE_GAIN {s.disturbance_gain!r}",
         f"#define FVC_DISTURBANCE_REGION_RAD {s.disturbance_region_rad!r}",
         f"#define FVC_DISTURBANCE_REGION_SPEED {s.disturbance_region_speed!r}",
+        f"#define FVC_FREE_AXIS {int(s.free_axis is not None)}",
+        f"static const double fvc_free_axis[3] = {{{_literal(s.free_axis or (0.0, 0.0, 0.0))}}};",
         f"#define FVC_NP {len(names)}", f"#define FVC_PARAMETRIC {int(rti.model_parameters)}",
         f"#define FVC_PREPARED_FEEDBACK {int(rti.feedback == 'prepared')}",
         f"static const double fvc_parameter_defaults[{len(names)}] = {{{_literal(controller.parameters)}}};",

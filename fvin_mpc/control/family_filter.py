@@ -32,6 +32,7 @@ from fvin_mpc.control.closed_loop import (
     episode_metrics,
     run_episode,
 )
+from fvin_mpc.control.scene import goal_symmetry_axis
 from fvin_mpc.core.rigid_body import from_mujoco
 from fvin_mpc.core.s3 import rotation_matrix
 from fvin_mpc.envs.families import write_family
@@ -40,11 +41,7 @@ from fvin_mpc.envs.families import write_family
 def judged_on(env: Any) -> str:
     """``"tilt"`` for a ball joint whose actuators span only two directions (nothing acts on the spin
     about the long axis upright), else ``"orientation"``."""
-    base = env.unwrapped
-    if base.joint_type != "ball":
-        return "orientation"
-    gears = np.asarray(base.model.actuator_gear[:, :3], dtype=float)
-    return "tilt" if np.linalg.matrix_rank(gears, tol=1e-9) < 3 else "orientation"
+    return "orientation" if goal_symmetry_axis(env) is None else "tilt"
 
 
 def tilt_angles(env: Any, quaternions: np.ndarray) -> np.ndarray:

@@ -260,6 +260,13 @@ class MPCSettings:
             far from it the projector's Gauss–Newton model has a false minimum at the upside-down
             orientation (its residual's Jacobian is orthogonal to the residual there: the model sees
             every turn as uphill), the rotation vector's does not — the quadrotor's recovery needs it.
+        free_axis: a body-frame unit axis about which the goal is a set, not a point (``None``: the
+            goal is one orientation): the orientation residual's and ``ω``'s components along it cost
+            nothing. A ball joint whose actuators span two directions cannot act on the spin about
+            the centre of mass's direction upright, and gravity is the same at every turn about it:
+            penalizing that turn or spin made the plan trade tilt for it, holding the body 0.3–0.8 rad
+            off upright (issue 26's ball family). Set by the scene's defaults
+            (:func:`~fvin_mpc.control.scene.goal_symmetry_axis`).
         compile: ``"cached"`` compiles the solver's functions to C once (cached on disk); ``"none"``
             evaluates them in CasADi's virtual machine. Every solver.
         ipopt: the solvers to convergence's options (also the RTI's cold solve with ``rti.cold_solver="ipopt"``).
@@ -286,6 +293,7 @@ class MPCSettings:
     terminal_position_weight: float = 0.0
     terminal_velocity_weight: float = 0.0
     orientation_residual: Literal["projector", "rotation-vector"] = "projector"
+    free_axis: tuple[float, float, float] | None = None
     compile: Literal["cached", "none"] = "cached"
     ipopt: IpoptOptions = field(default_factory=IpoptOptions)
     rti: RTIOptions = field(default_factory=RTIOptions)
@@ -309,6 +317,9 @@ class MPCSettings:
                              f"got {type(self.ipopt).__name__} and {type(self.rti).__name__}")
         if self.orientation_residual not in ("projector", "rotation-vector"):
             raise ValueError(f"unknown orientation_residual {self.orientation_residual!r}")
+        if self.free_axis is not None and (
+                np.shape(self.free_axis) != (3,) or abs(float(np.linalg.norm(self.free_axis)) - 1.0) > 1e-9):
+            raise ValueError(f"free_axis must be a unit 3-vector or None, got {self.free_axis!r}")
         if self.compile not in ("cached", "none"):
             raise ValueError(f"unknown compile mode {self.compile!r}")
         if not 0.0 <= self.disturbance_gain <= 1.0:
@@ -406,7 +417,8 @@ class MPC:
             raise ValueError(f"need torque_low < torque_high, got {self.torque_low} and {self.torque_high}")
         self.omega_bound = settings.omega_bound_fraction / model.step_size
         self.estimate = DisturbanceEstimate(self.layout, settings.disturbance_gain, settings.disturbance_region_rad,
-                                            settings.disturbance_region_speed, self.torque_low, self.torque_high)
+                                            settings.disturbance_region_speed, self.torque_low, self.torque_high,
+                                            settings.free_axis)
         self.rest = None if rest is None else unit_quaternion(rest, "rest")
         if settings.terminal_energy_weight > 0:
             if self.rest is None:

@@ -38,18 +38,35 @@ from fvin_mpc.core.space import StateLayout
 CA = get_ops("casadi")
 
 
-def orientation_error(q: Any, goal: Any, kind: str) -> Any:
+def orientation_error(q: Any, goal: Any, kind: str, free_axis: Any = None) -> Any:
     """The orientation residual of ``q`` against ``goal`` (CasADi columns of 4): ``"projector"``
     ``(I − g gᵀ) q`` or ``"rotation-vector"`` ``log(±g* ⊗ q)`` (the sign making the real part ≥ 0).
 
     Near the goal the two agree; far from it the projector's Gauss–Newton model has a false minimum
     at the upside-down orientation (its residual's Jacobian is orthogonal to the residual there), the
-    rotation vector's does not."""
-    if kind == "projector":
+    rotation vector's does not.
+
+    With ``free_axis`` (a body-frame unit ``n``, :attr:`MPCSettings.free_axis`) both are taken in
+    the goal's body frame, ``g* ⊗ q``, and lose their component along ``n``: the projector's becomes
+    ``(I − n nᵀ) vec(g* ⊗ q)`` (the same square, ``1 − (g·q)²``, less the turn about ``n``), the
+    rotation vector's ``(I − n nᵀ) log(±g* ⊗ q)``; any turn about ``n`` from the goal costs nothing."""
+    if free_axis is None and kind == "projector":
         return ca.mtimes(ca.SX.eye(4) - ca.mtimes(goal, goal.T), q)
     relative = s3.multiply(s3.conjugate(tuple(goal[i] for i in range(4))), tuple(q[i] for i in range(4)))
-    aligned = s3.scale(ca.if_else(relative[0] >= 0, 1.0, -1.0), relative)
-    return ca.vertcat(*s3.log(aligned, CA))
+    if kind == "projector":
+        error = ca.vertcat(*relative[1:])
+    else:
+        aligned = s3.scale(ca.if_else(relative[0] >= 0, 1.0, -1.0), relative)
+        error = ca.vertcat(*s3.log(aligned, CA))
+    if free_axis is None:
+        return error
+    return ca.mtimes(ca.DM(free_axis_projector(free_axis)), error)
+
+
+def free_axis_projector(free_axis: Any) -> np.ndarray:
+    """``I − n nᵀ`` for the unit ``n`` (:attr:`MPCSettings.free_axis`)."""
+    n = np.asarray(free_axis, dtype=float).reshape(3)
+    return np.eye(3) - np.outer(n, n)
 
 
 def residual_functions(layout: StateLayout, settings: Any, control_dim: int, omega_bound: float,
@@ -76,7 +93,11 @@ def residual_functions(layout: StateLayout, settings: Any, control_dim: int, ome
     x, reference = ca.SX.sym("x", layout.state_dim), ca.SX.sym("x_ref", layout.state_dim)
     u, u_s = ca.SX.sym("u", control_dim), ca.SX.sym("u_s", control_dim)
     goal, omega = reference[qs], x[ws]
-    attitude = orientation_error(x[qs], goal, s.orientation_residual)
+    attitude = orientation_error(x[qs], goal, s.orientation_residual, s.free_axis)
+    # The spin about a free axis costs nothing either (a pivoted body's ω is in its body frame).
+    spin = omega - reference[ws]
+    if s.free_axis is not None:
+        spin = ca.mtimes(ca.DM(free_axis_projector(s.free_axis)), spin)
     excess = [] if omega_penalty is None else [
         np.sqrt(omega_penalty) * (omega - ca.fmin(ca.fmax(omega, -omega_bound), omega_bound))]
 
@@ -85,7 +106,7 @@ def residual_functions(layout: StateLayout, settings: Any, control_dim: int, ome
         translation = [np.sqrt(position_weight) * (x[:a] - reference[:a])] if a else []
         rate = [np.sqrt(velocity_weight) * (x[velocity] - reference[velocity])] if a else []
         return [*translation, np.sqrt(orientation_weight) * attitude, *rate,
-                np.sqrt(omega_weight) * (omega - reference[ws])]
+                np.sqrt(omega_weight) * spin]
 
     control_weights = np.broadcast_to(np.asarray(s.control_weight, dtype=float), (control_dim,))
     stage = ca.vertcat(*tracking(s.position_weight, s.orientation_weight, s.velocity_weight, s.omega_weight),
@@ -163,15 +184,19 @@ class DisturbanceEstimate:
     After each step the prediction ``F(x_prev, u_prev + d̂)`` is compared with the measured rates
     (``ω``, or ``v`` and ``ω``): ``d̂ ← d̂ + α B⁺(rates − rates_pred)`` (``B = ∂rates⁺/∂u``, least
     squares), only within ``region_rad`` of the reference attitude and below ``region_speed``, and
-    ``|d̂|`` at most half the torque range (Pannocchia & Rawlings 2003; Maeder & Morari 2009). During a
+    ``|d̂|`` at most half the torque range (Pannocchia & Rawlings 2003; Maeder & Morari 2009). With a
+    ``free_axis`` (:attr:`~fvin_mpc.control.mpc.MPCSettings.free_axis`) "within" measures the angle
+    between that axis's directions at the state and at the goal and the speed without the spin about
+    it, as the cost does: a body held upright while turning about the axis is at its goal. During a
     swing-up the torque changes fast, and the delay between measurement and actuation (which the
     one-step prediction does not know) reads as a large, sign-changing "disturbance"; near the goal and
     slow the estimate is what it should be (docs/realtime.md).
     """
 
     def __init__(self, layout: StateLayout, gain: float, region_rad: float, region_speed: float,
-                 low: np.ndarray, high: np.ndarray) -> None:
+                 low: np.ndarray, high: np.ndarray, free_axis: Any = None) -> None:
         self.layout, self.gain = layout, gain
+        self.free_axis = None if free_axis is None else np.asarray(free_axis, dtype=float)
         self.region_rad, self.region_speed = region_rad, region_speed
         self.limit = 0.5 * (high - low)
         self.reset()
@@ -193,8 +218,15 @@ class DisturbanceEstimate:
         if self.gain == 0.0 or self._last is None:
             return
         layout = self.layout
-        cosine = min(abs(float(np.dot(x0[layout.quaternion], goal))), 1.0)
-        if 2.0 * np.arccos(cosine) > self.region_rad or np.max(np.abs(x0[layout.omega])) > self.region_speed:
+        q, omega = x0[layout.quaternion], x0[layout.omega]
+        if self.free_axis is None:
+            angle = 2.0 * np.arccos(min(abs(float(np.dot(q, goal))), 1.0))
+        else:
+            here = np.array(s3.rotation_matrix(tuple(q)), dtype=float) @ self.free_axis
+            there = np.array(s3.rotation_matrix(tuple(goal)), dtype=float) @ self.free_axis
+            angle = np.arctan2(np.linalg.norm(np.cross(here, there)), float(here @ there))
+            omega = free_axis_projector(self.free_axis) @ omega
+        if angle > self.region_rad or np.max(np.abs(omega)) > self.region_speed:
             return
         predicted, inverse = self._last
         step = ordered_matvec(inverse, x0[layout.rates] - predicted)

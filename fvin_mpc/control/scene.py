@@ -103,6 +103,26 @@ def scene_scales(env: Any) -> SceneScales:
                        step_size=float(base.dt), control=float(bounds.max()))
 
 
+def goal_symmetry_axis(env: Any) -> tuple[float, float, float] | None:
+    """The body-frame axis about which a scene's goal is a set (:attr:`MPCSettings.free_axis`), or ``None``.
+
+    A ball joint whose actuators' gears span only two directions cannot act on the spin about the
+    centre of mass's direction upright (that spin is left to gravity's symmetry, the same at every
+    turn about the vertical): its goal is "centre of mass straight up", any turn about it. Every
+    other pivoted body (a hinge, a ball with three independent actuators) and free bodies: ``None``.
+    """
+    base = env.unwrapped
+    if getattr(base, "joint_type", None) != "ball":
+        return None
+    gears = np.asarray(base.model.actuator_gear[:, :3], dtype=float)
+    if np.linalg.matrix_rank(gears, tol=1e-9) >= 3:
+        return None
+    center = np.asarray(from_mujoco(base.model, base.body_name).center_of_mass, dtype=float)
+    if np.linalg.norm(center) < 1e-12:
+        return None  # balanced on the pivot: no gravity, no symmetry axis to speak of
+    return tuple(float(c) for c in center / np.linalg.norm(center))
+
+
 def default_mpc_settings(scales: SceneScales) -> MPCSettings:
     """:class:`MPCSettings` whose costs mean on ``scales`` what the defaults mean on the pendulum.
 
@@ -140,7 +160,7 @@ def scene_mpc_settings(env: Any, **overrides: Any) -> MPCSettings:
     unknown = set(overrides) - SETTING_NAMES
     if unknown:
         raise ValueError(f"unknown MPC settings {sorted(unknown)}; expected some of {sorted(SETTING_NAMES)}")
-    settings = default_mpc_settings(scene_scales(env))
+    settings = replace(default_mpc_settings(scene_scales(env)), free_axis=goal_symmetry_axis(env))
     preset = preset_for(env.unwrapped.scene_spec)
     given = {k: v for k, v in overrides.items() if v is not None}
     solver = given.get("solver", preset.settings.get("solver", settings.solver))

@@ -109,6 +109,14 @@ class ModelConfig(ModelFields):
             turns about any axis (a ball joint). A hinged model steps on the hinge only
             (:func:`fvin_mpc.core.fvin.hinge_step`): the terms across it, which hinge data cannot
             identify, never enter its predictions.
+        vertical: world "up" (unit, against gravity), or ``None``. Given, the networks see the
+            body-frame vertical ``R(q)ᵀ·vertical`` instead of ``q``: a body on a ball joint in uniform
+            gravity, with body-fixed actuators and damping and no joint spring, moves the same however
+            the world is turned about the vertical, so its terms depend on ``q`` only through that
+            direction. Without it a network of ``q`` fitted a different potential at every turn about
+            the vertical, and a body held upright while spinning about its long axis met a model error
+            that turned with it (issue 26's two-motor balls, held 0.05–0.1 rad off upright). The input
+            is even in ``q`` already: no ``±q`` average.
         control_scale: per control, the size of a full control (the data's largest ``|u|``), or
             ``None`` (1). The gain network learns the force of a *full* control, ``g(q) = ĝ(q) / scale``:
             an actuator whose control range is ±0.05 with a gear of 35 would otherwise need the
@@ -120,10 +128,13 @@ class ModelConfig(ModelFields):
     inertia_epsilon: float = 1e-3
     hinge_axis: tuple[float, float, float] | None = None
     control_scale: tuple[float, ...] | None = None
+    vertical: tuple[float, float, float] | None = None
 
     def __post_init__(self) -> None:
         if self.hinge_axis is not None:
             object.__setattr__(self, "hinge_axis", unit_axis(self.hinge_axis, "hinge_axis"))
+        if self.vertical is not None:
+            object.__setattr__(self, "vertical", unit_axis(self.vertical, "vertical"))
         if self.control_scale is not None:
             scale = np.asarray(self.control_scale, dtype=float)
             if scale.shape != (self.control_dim,) or not np.all(np.isfinite(scale)) or not np.all(scale > 0.0):
@@ -155,7 +166,8 @@ def weight_shapes(config: ModelConfig) -> dict[str, tuple[int, ...]]:
     shapes: dict[str, tuple[int, ...]] = {}
 
     def mlp(name: str, outputs: int) -> None:
-        add_mlp_shapes(shapes, name, 4, outputs, config.hidden_width, config.hidden_layers)
+        inputs = 4 if config.vertical is None else 3
+        add_mlp_shapes(shapes, name, inputs, outputs, config.hidden_width, config.hidden_layers)
 
     mlp("potential", 1)
     if config.constant_inertia:
@@ -232,6 +244,28 @@ def scalar_mlp_value_and_gradient(
     return value, upstream
 
 
+def body_vertical(q: s3.Quat, vertical: Any) -> tuple[Any, Any, Any]:
+    """``R(q)ᵀ v``: the world direction ``v`` in the body frame,
+    ``(w² − |u|²) v + 2 (u·v) u − 2w (u × v)`` for ``q = (w, u)`` (quadratic in ``q``, even in its sign)."""
+    w, u = q[0], q[1:]
+    v = tuple(float(c) for c in vertical)
+    along, turned = s3.dot(u, v), s3.cross(u, v)
+    square = w * w - s3.dot(u, u)
+    return tuple(square * v[i] + 2.0 * along * u[i] - 2.0 * w * turned[i] for i in range(3))  # type: ignore[return-value]
+
+
+def body_vertical_gradient(q: s3.Quat, vertical: Any, g: Any) -> s3.Quat:
+    """``∇_q (gᵀ R(q)ᵀ v)`` for a fixed ``g`` (3): the chain rule from a function of the body-frame
+    vertical (:func:`body_vertical`) back to ``q``. With ``s = gᵀRᵀv = (w² − |u|²)(g·v) + 2(u·v)(u·g)
+    − 2w u·(v × g)``: ``∂s/∂w = 2w(g·v) − 2u·(v × g)``, ``∂s/∂u = −2(g·v)u + 2(u·g)v + 2(u·v)g − 2w(v × g)``."""
+    w, u = q[0], q[1:]
+    v = tuple(float(c) for c in vertical)
+    gv, ug, uv = s3.dot(g, v), s3.dot(u, g), s3.dot(u, v)
+    vxg = s3.cross(v, g)
+    return (2.0 * w * gv - 2.0 * s3.dot(u, vxg),
+            *(-2.0 * gv * u[i] + 2.0 * ug * v[i] + 2.0 * uv * g[i] - 2.0 * w * vxg[i] for i in range(3)))  # type: ignore[return-value]
+
+
 class LearnedTerms:
     """:class:`~fvin_mpc.core.fvin.RigidBodyTerms` of a learned model on one backend."""
 
@@ -244,11 +278,21 @@ class LearnedTerms:
         self.hinge_axis = config.hinge_axis
 
     # -- helpers --------------------------------------------------------------
+    @property
+    def _averaged(self) -> bool:
+        """Whether the networks are averaged over ``±q`` (the sign-invariant variant on ``q`` itself)."""
+        return self.config.sign_invariant and self.config.vertical is None
+
+    def _input(self, q: s3.Quat) -> Any:
+        """What the networks see: ``q``, or the body-frame vertical (:attr:`ModelConfig.vertical`)."""
+        vertical = self.config.vertical
+        return self.ops.stack(q if vertical is None else body_vertical(q, vertical))
+
     def _vector_net(self, name: str, q: s3.Quat) -> tuple[Any, ...]:
         """Outputs of MLP ``name``, averaged over ``±q`` for the sign-invariant variant."""
         ops, layers = self.ops, self.config.hidden_layers
-        out = ops.unstack(mlp(self.weights, name, layers, ops.stack(q), ops))
-        if not self.config.sign_invariant:
+        out = ops.unstack(mlp(self.weights, name, layers, self._input(q), ops))
+        if not self._averaged:
             return out
         mirrored = ops.unstack(mlp(self.weights, name, layers, ops.stack(s3.negate(q)), ops))
         return tuple(0.5 * (a + b) for a, b in zip(out, mirrored))
@@ -264,8 +308,9 @@ class LearnedTerms:
         if self.config.constant_inertia:
             return s3.symmetric_from_cholesky(self._cholesky_constant("inertia_cholesky", q), eps)
         ops, layers = self.ops, self.config.hidden_layers
-        inertia = s3.symmetric_from_cholesky(ops.unstack(mlp(self.weights, "inertia", layers, ops.stack(q), ops)), eps)
-        if not self.config.sign_invariant:
+        lower = ops.unstack(mlp(self.weights, "inertia", layers, self._input(q), ops))
+        inertia = s3.symmetric_from_cholesky(lower, eps)
+        if not self._averaged:
             return inertia
         mirrored_l = ops.unstack(mlp(self.weights, "inertia", layers, ops.stack(s3.negate(q)), ops))
         mirrored = s3.symmetric_from_cholesky(mirrored_l, eps)
@@ -273,8 +318,10 @@ class LearnedTerms:
 
     def _potential_and_gradient(self, q: s3.Quat) -> tuple[Any, s3.Quat]:
         ops, layers = self.ops, self.config.hidden_layers
-        value, grad = scalar_mlp_value_and_gradient(self.weights, "potential", layers, ops.stack(q), ops)
+        value, grad = scalar_mlp_value_and_gradient(self.weights, "potential", layers, self._input(q), ops)
         value, grad = ops.unstack(value)[0], ops.unstack(grad)
+        if self.config.vertical is not None:
+            return value, body_vertical_gradient(q, self.config.vertical, grad)
         if self.config.sign_invariant:
             # Û(q) = ½(U(q) + U(−q))  ⇒  ∇Û(q) = ½(∇U(q) − ∇U(−q)).
             value_m, grad_m = scalar_mlp_value_and_gradient(

@@ -31,6 +31,7 @@ trajectories as give about :data:`TRANSITIONS` transitions.
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass
 from typing import Any
 
@@ -53,6 +54,14 @@ MIN_STEPS, MAX_STEPS = 20, 200
 MIN_WINDOW, MAX_WINDOW = 8, 32
 #: Highest energy above hanging of an energy-spread start, in units of the energy span.
 MAX_ENERGY = 1.4
+#: Fastest energy-spread start on a ball joint, in units of ``ω_s`` (the uniform starts' bound).
+START_SPEED_CAP = 1.5
+#: Energy a trajectory may gain beyond the most its actuators can put in, in units of the energy
+#: span, before it counts as the simulator's divergence (legitimate trajectories of both report
+#: families stay below 0.06: the integrators' own error; diverged ones reach 1–8,000).
+DIVERGENCE_TOLERANCE = 0.25
+#: Trajectories in a row a start may diverge on before collection gives up on the scene.
+MAX_DIVERGED_IN_A_ROW = 10
 #: Segment kinds of the switching policy and their probabilities.
 SEGMENTS = {"pump": 0.5, "brake": 0.15, "level": 0.2, "coast": 0.15}
 #: Name of the method in ``metadata["collector"]``.
@@ -127,6 +136,39 @@ class SwingPhysics:
     def inertia(self, q: Any) -> np.ndarray:
         return np.array(self.terms.inertia(tuple(float(c) for c in q)), dtype=float)
 
+    def energy(self, state: np.ndarray) -> float:
+        """Energy above hanging of a ``(7,)`` state ``(q, ω)`` (J)."""
+        q, omega = state[:4], state[4:]
+        return self.potential(q) - self.rest_energy + 0.5 * float(omega @ self.inertia(q) @ omega)
+
+    def divergence(self, states: np.ndarray, controls: np.ndarray) -> float:
+        """How far a trajectory's energy outgrew what its actuators can put in, in units of the energy span.
+
+        Over a control period actuator ``i`` does at most ``T·|u_i|·max|d_i·ω|`` of work (``d_i``
+        its direction, ω at either end of the period: within a well-resolved step the speed along
+        ``d_i`` lies between them up to the integrator's error), and damping only takes energy
+        away. A trajectory whose energy rises above the start's plus that cumulative bound was not
+        moved by its controls but by the integrator: MuJoCo's semi-implicit steps diverge on a body
+        whose inertia about one axis is tiny next to the others once it spins fast (issue 26: ball
+        scenes at 1:30 whose data reached 680 rad/s, and whose models trained on them never fitted).
+        """
+        states = np.asarray(states, dtype=float)
+        energy = np.array([self.energy(state) for state in states])
+        along = np.abs(states[:, 4:] @ self.directions.T)
+        work = self.scales.step_size * np.sum(np.abs(controls) * np.maximum(along[:-1], along[1:]), axis=1)
+        bound = energy[0] + np.concatenate([[0.0], np.cumsum(work)])
+        return float(np.max(energy - bound) / self.scales.energy_span)
+
+    def within_band(self, state: np.ndarray, u: np.ndarray, stalled: np.ndarray | None = None) -> np.ndarray:
+        """``u``, or braking (:meth:`pump` against the motion) once the state's energy is above
+        ``MAX_ENERGY·ΔE``: all a swing-up passes through. Random levels and pumping kept on a strong
+        motor tumble the body at many times the span (issue 26: a two-motor ball at 13 spans at the
+        95th percentile, 44 % of its states past the speed the model's step resolves, validation loss
+        0.6 where its members reach 1e-3)."""
+        if self.energy(state) <= MAX_ENERGY * self.scales.energy_span:
+            return u
+        return self.pump(state[4:], -1.0, stalled)
+
     def pump(self, omega: np.ndarray, sign: float = 1.0, stalled: np.ndarray | None = None) -> np.ndarray:
         """Every actuator at the bound that pushes along the motion (``sign = −1``: against it);
         where the body barely moves along an actuator's direction, ``stalled`` (±1 per actuator)
@@ -177,10 +219,19 @@ def energy_spread_state(env: Any, physics: SwingPhysics, rng: np.random.Generato
     if axis is not None:
         speed = math.sqrt(2.0 * kinetic / float(axis @ physics.inertia(observation[:4]) @ axis))
         return qpos, np.array([speed if rng.uniform() < 0.5 else -speed])
-    direction = rng.normal(size=3)
-    direction /= np.linalg.norm(direction)
-    speed = math.sqrt(2.0 * kinetic / float(direction @ physics.inertia(observation[:4]) @ direction))
-    return qpos, direction * speed
+    # On a ball joint the kinetic energy goes in a random direction, redrawn while it would spin the
+    # body faster than START_SPEED_CAP·ω_s: all of it about an axis of small inertia (a long body's
+    # own axis, down to 1:50) is a spin no swing-up passes through, at speeds the simulator's
+    # integration does not resolve. After 20 draws the last direction at the cap (less energy).
+    inertia = physics.inertia(observation[:4])
+    cap = START_SPEED_CAP * physics.scales.speed
+    for _ in range(20):
+        direction = rng.normal(size=3)
+        direction /= np.linalg.norm(direction)
+        speed = math.sqrt(2.0 * kinetic / float(direction @ inertia @ direction))
+        if speed <= cap:
+            break
+    return qpos, direction * min(speed, cap)
 
 
 def switching_controls(env: Any, physics: SwingPhysics, rng: np.random.Generator, steps: int,
@@ -208,10 +259,32 @@ def switching_controls(env: Any, physics: SwingPhysics, rng: np.random.Generator
             u = level
         else:
             u = np.zeros_like(physics.low)
+        u = physics.within_band(states[-1], u, stalled)
         observation, *_ = env.step(u)
         states.append(observation)
         controls.append(u)
     return np.array(states), np.array(controls), counts
+
+
+def _excite(env: Any, physics: SwingPhysics, rng: np.random.Generator, kind: str,
+            steps: int) -> tuple[np.ndarray, np.ndarray, dict[str, int]]:
+    """One trajectory from a start of ``kind`` (:data:`SHARES`): its states, controls, steps per segment kind."""
+    scales = physics.scales
+    if kind == "energy":
+        qpos, qvel = energy_spread_state(env, physics, rng)
+    elif kind == "near_goal":
+        qpos, qvel = near_goal_joint_state(env, rng, 0.6, 0.5 * scales.speed)
+    else:
+        qpos, qvel = random_joint_state(env, rng, 1.5 * scales.speed)
+    observation, _ = env.reset(seed=int(rng.integers(2**31)), options={"qpos": qpos, "qvel": qvel})
+    if kind != "uniform":
+        return switching_controls(env, physics, rng, steps, observation)
+    controls = control_sequence(rng, physics.low, physics.high, steps, "piecewise", scales.dwell_steps)
+    states = [observation]
+    for k in range(steps):
+        controls[k] = physics.within_band(states[-1], controls[k])
+        states.append(env.step(controls[k])[0])
+    return np.array(states), controls, {}
 
 
 def collect_swings(scene: str = "pendulum", trajectories: int | None = None, steps: int | None = None,
@@ -219,6 +292,11 @@ def collect_swings(scene: str = "pendulum", trajectories: int | None = None, ste
                    progress: bool = True) -> Trajectories:
     """Seeded trajectories that excite what a swing-up needs (module docstring), sized from the
     scene's :class:`SwingScales` unless ``trajectories``/``steps`` are given.
+
+    A trajectory on which the simulator diverged (:meth:`SwingPhysics.divergence` above
+    :data:`DIVERGENCE_TOLERANCE`) is replaced by a fresh one from a new start of the same kind and
+    counted (``diverged_trajectories``, with a warning); :data:`MAX_DIVERGED_IN_A_ROW` in a row
+    raise: the scene's timestep does not resolve its motion.
 
     Metadata: the scales, the number of trajectories per kind of start, the share of saturated
     controls and the energy reached (``energy_coverage``: the highest and the 5th–95th percentile
@@ -237,25 +315,27 @@ def collect_swings(scene: str = "pendulum", trajectories: int | None = None, ste
     controls = np.empty((trajectories, steps, physics.low.size))
     starts = dict.fromkeys(SHARES, 0)
     segments = dict.fromkeys(SEGMENTS, 0)
+    diverged = 0
     for i in tqdm(range(trajectories), desc=f"collect {env.scene_spec.name} (swings)", disable=not progress):
         kind = "energy" if i < cut[0] else "near_goal" if i < cut[1] else "uniform"
         starts[kind] += 1
-        if kind == "energy":
-            qpos, qvel = energy_spread_state(env, physics, rng)
-        elif kind == "near_goal":
-            qpos, qvel = near_goal_joint_state(env, rng, 0.6, 0.5 * scales.speed)
+        for _ in range(MAX_DIVERGED_IN_A_ROW):
+            states[i], controls[i], counts = _excite(env, physics, rng, kind, steps)
+            if physics.divergence(states[i], controls[i]) <= DIVERGENCE_TOLERANCE:
+                break
+            diverged += 1
         else:
-            qpos, qvel = random_joint_state(env, rng, 1.5 * scales.speed)
-        observation, _ = env.reset(seed=int(rng.integers(2**31)), options={"qpos": qpos, "qvel": qvel})
-        if kind == "uniform":
-            controls[i] = control_sequence(rng, physics.low, physics.high, steps, "piecewise", scales.dwell_steps)
-            states[i, 0] = observation
-            for k in range(steps):
-                states[i, k + 1] = env.step(controls[i, k])[0]
-        else:
-            states[i], controls[i], counts = switching_controls(env, physics, rng, steps, observation)
-            for name, count in counts.items():
-                segments[name] += count
+            model = env.unwrapped.model
+            raise RuntimeError(
+                f"{scene}: MuJoCo's integration diverged on {MAX_DIVERGED_IN_A_ROW} trajectories in a row from "
+                f"'{kind}' starts (the energy outgrew what the actuators can put in by more than "
+                f"{DIVERGENCE_TOLERANCE} energy spans); its timestep {model.opt.timestep:g} s does not resolve "
+                "the body's motion: a smaller <option timestep> or the implicit integrator would")
+        for name, count in counts.items():
+            segments[name] += count
+    if diverged:
+        warnings.warn(f"{scene}: replaced {diverged} of {trajectories} trajectories on which MuJoCo's integration "
+                      "diverged (energy beyond the actuators' work)", stacklevel=2)
     energies = np.array([[physics.potential(s[:4]) - physics.rest_energy
                           + 0.5 * s[4:] @ physics.inertia(s[:4]) @ s[4:] for s in trajectory]
                          for trajectory in states]) / scales.energy_span
@@ -266,7 +346,7 @@ def collect_swings(scene: str = "pendulum", trajectories: int | None = None, ste
         "collector": SWING_EXCITATION, "hinge_axis": hinge_axis_record(env),
         "scales": {"energy_span": scales.energy_span, "speed": scales.speed, "natural_period": scales.natural_period,
                    "dwell_steps": scales.dwell_steps},
-        "starts": starts, "segment_steps": segments,
+        "starts": starts, "segment_steps": segments, "diverged_trajectories": diverged,
         "saturated_share": float(saturated.mean()),
         "energy_coverage": {"max": float(energies.max()), "p5": float(np.percentile(energies, 5)),
                             "p95": float(np.percentile(energies, 95))},

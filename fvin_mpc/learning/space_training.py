@@ -26,7 +26,7 @@ from fvin_mpc.core.networks_r3s3 import LearnedCombinedTerms, R3S3Config, physic
 from fvin_mpc.core.quadrotor import from_mujoco
 from fvin_mpc.core.space import R3S3, ConfigurationSpace, space_for_variant, space_of_config
 from fvin_mpc.envs import QuadrotorEnv
-from fvin_mpc.learning.training import scene_has_joint_damping, scene_hinge_axis, train
+from fvin_mpc.learning.training import scene_has_joint_damping, scene_hinge_axis, scene_vertical, train
 
 #: Position and velocity scales of the free body's loss (1/m, s/m): 1 mm of position error weighs as 0.03 rad/s.
 POSITION_SCALE, VELOCITY_SCALE = 30.0, 10.0
@@ -106,7 +106,8 @@ def default_model_config(data: Trajectories, space: ConfigurationSpace | None = 
     """The model ``python -m fvin_mpc.train`` builds for ``data`` unless told otherwise, ``given`` fields on
     top: ``space`` (default: the data's, with its first variant) and its first variant, the data's control
     size and step, dissipation on where the data's scene declares joint damping, the scene's hinge
-    axis on a hinge, and the data's control scale (each where the space's config has that field).
+    axis on a hinge, its vertical on a ball joint (:func:`~fvin_mpc.learning.training.scene_vertical`),
+    and the data's control scale (each where the space's config has that field).
     ``ValueError`` from the config on a bad field."""
     space = space or space_for_variant(data.space, data.space.variants[0])
     chosen = {"variant": space.variants[0], "control_dim": int(data.u.shape[2]), "step_size": data.control_period,
@@ -116,6 +117,8 @@ def default_model_config(data: Trajectories, space: ConfigurationSpace | None = 
         chosen["dissipation"] = bool(scene_has_joint_damping(data.metadata))
     if "hinge_axis" in config_fields and "hinge_axis" not in given:
         chosen["hinge_axis"] = scene_hinge_axis(data.metadata)
+    if "vertical" in config_fields and "vertical" not in given:
+        chosen["vertical"] = scene_vertical(data.metadata)
     if "control_scale" in config_fields and "control_scale" not in given:
         chosen["control_scale"] = data_control_scale(data)
     return space.config_type(**chosen)

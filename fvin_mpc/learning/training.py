@@ -227,6 +227,23 @@ def scene_hinge_axis(metadata: Mapping[str, Any]) -> tuple[float, float, float] 
     return None if axis is None else tuple(float(v) for v in axis)  # type: ignore[return-value]
 
 
+def scene_vertical(metadata: Mapping[str, Any]) -> tuple[float, float, float] | None:
+    """World "up" (unit, against gravity) when the data's scene moves the same however the world is
+    turned about it (:attr:`~fvin_mpc.core.networks.ModelConfig.vertical`): a ball joint under
+    gravity with no joint spring and no wind. ``None`` otherwise, or when the scene cannot be opened."""
+
+    def read(env: Any) -> tuple[float, float, float] | None:
+        model = env.model
+        joint = int(model.body_jntadr[model.body(env.body_name).id])
+        gravity = np.asarray(model.opt.gravity, dtype=float)
+        if (env.joint_type != "ball" or not np.linalg.norm(gravity) > 0.0 or model.jnt_stiffness[joint] != 0.0
+                or np.any(np.asarray(model.opt.wind) != 0.0)):
+            return None
+        return tuple(float(c) for c in -gravity / np.linalg.norm(gravity))  # type: ignore[return-value]
+
+    return _from_scene_env(metadata, read)
+
+
 # ---------------------------------------------------------------------------- loss
 def rollout_loss(model: Any, q: Any, omega: Any, u: Any, omega_weight: float, step: Any = None) -> Any:
     """Mean multi-step loss of ``model`` on windows ``q (W, T+1, 4)``, ``ω (W, T+1, 3)``, ``u (W, T, m)``.

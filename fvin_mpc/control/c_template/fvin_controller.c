@@ -228,13 +228,39 @@ static int cold_start(fvc_controller *c, const double *x0) {
 }
 
 /* ------------------------------------------------------------------ disturbance estimate (DisturbanceEstimate) */
+/* R(q) v for q = (w, x, y, z): v + 2w (u × v) + 2 u × (u × v), u the imaginary part. */
+static void rotate(const double *q, const double *v, double *out) {
+    const double *u = q + 1;
+    double t[3] = {2.0 * (u[1] * v[2] - u[2] * v[1]), 2.0 * (u[2] * v[0] - u[0] * v[2]), 2.0 * (u[0] * v[1] - u[1] * v[0])};
+    out[0] = v[0] + q[0] * t[0] + (u[1] * t[2] - u[2] * t[1]);
+    out[1] = v[1] + q[0] * t[1] + (u[2] * t[0] - u[0] * t[2]);
+    out[2] = v[2] + q[0] * t[2] + (u[0] * t[1] - u[1] * t[0]);
+}
+
 static void update_estimate(fvc_controller *c, const double *x0) {
     if (FVC_DISTURBANCE_GAIN == 0.0 || !c->have_prediction) return;
-    double cosine = 0.0, speed = 0.0;
-    for (int i = 0; i < 4; i++) cosine += x0[QS + i] * c->ref[QS + i];
-    cosine = fabs(cosine) < 1.0 ? fabs(cosine) : 1.0;
-    for (int i = OM; i < NS; i++) speed = fabs(x0[i]) > speed ? fabs(x0[i]) : speed;
-    if (2.0 * acos(cosine) > FVC_DISTURBANCE_REGION_RAD || speed > FVC_DISTURBANCE_REGION_SPEED) return;
+    double angle, speed = 0.0;
+    if (FVC_FREE_AXIS) { /* the axis's directions at the state and the goal; the speed without the spin about it */
+        double here[3], there[3], along = 0.0;
+        rotate(x0 + QS, fvc_free_axis, here);
+        rotate(c->ref + QS, fvc_free_axis, there);
+        double cross[3] = {here[1] * there[2] - here[2] * there[1], here[2] * there[0] - here[0] * there[2],
+                           here[0] * there[1] - here[1] * there[0]};
+        angle = atan2(sqrt(cross[0] * cross[0] + cross[1] * cross[1] + cross[2] * cross[2]),
+                      here[0] * there[0] + here[1] * there[1] + here[2] * there[2]);
+        for (int i = 0; i < 3; i++) along += fvc_free_axis[i] * x0[OM + i];
+        for (int i = 0; i < 3; i++) {
+            double w = x0[OM + i] - along * fvc_free_axis[i];
+            speed = fabs(w) > speed ? fabs(w) : speed;
+        }
+    } else {
+        double cosine = 0.0;
+        for (int i = 0; i < 4; i++) cosine += x0[QS + i] * c->ref[QS + i];
+        cosine = fabs(cosine) < 1.0 ? fabs(cosine) : 1.0;
+        angle = 2.0 * acos(cosine);
+        for (int i = OM; i < NS; i++) speed = fabs(x0[i]) > speed ? fabs(x0[i]) : speed;
+    }
+    if (angle > FVC_DISTURBANCE_REGION_RAD || speed > FVC_DISTURBANCE_REGION_SPEED) return;
     for (int j = 0; j < M; j++) {
         double step = 0.0;
         for (int i = 0; i < NR; i++) step += c->pred_inverse[j + i * M] * (x0[RS + i] - c->pred_rates[i]);
