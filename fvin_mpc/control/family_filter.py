@@ -34,7 +34,7 @@ from fvin_mpc.control.closed_loop import (
 )
 from fvin_mpc.control.scene import goal_symmetry_axis
 from fvin_mpc.core.rigid_body import from_mujoco
-from fvin_mpc.core.s3 import rotation_matrix
+from fvin_mpc.core.s3 import axis_angle
 from fvin_mpc.envs.families import write_family
 
 
@@ -49,13 +49,8 @@ def tilt_angles(env: Any, quaternions: np.ndarray) -> np.ndarray:
 
     base = env.unwrapped
     c = np.asarray(from_mujoco(base.model, base.body_name).center_of_mass, dtype=float)
-    c = c / np.linalg.norm(c)
-    target = np.array(rotation_matrix(tuple(base.goal)), dtype=float) @ c
-    angles = []
-    for q in quaternions:
-        direction = np.array(rotation_matrix(tuple(q)), dtype=float) @ c
-        angles.append(math.atan2(float(np.linalg.norm(np.cross(direction, target))), float(direction @ target)))
-    return np.array(angles)
+    axis = tuple(c / np.linalg.norm(c))
+    return np.array([axis_angle(tuple(q), tuple(base.goal), axis) for q in quaternions])
 
 
 def judged_angles(env: Any, episode: Episode, how: str | None = None) -> np.ndarray:

@@ -222,9 +222,7 @@ class DisturbanceEstimate:
         if self.free_axis is None:
             angle = 2.0 * np.arccos(min(abs(float(np.dot(q, goal))), 1.0))
         else:
-            here = np.array(s3.rotation_matrix(tuple(q)), dtype=float) @ self.free_axis
-            there = np.array(s3.rotation_matrix(tuple(goal)), dtype=float) @ self.free_axis
-            angle = np.arctan2(np.linalg.norm(np.cross(here, there)), float(here @ there))
+            angle = s3.axis_angle(tuple(q), tuple(goal), tuple(self.free_axis))
             omega = free_axis_projector(self.free_axis) @ omega
         if angle > self.region_rad or np.max(np.abs(omega)) > self.region_speed:
             return

@@ -16,6 +16,7 @@ that neither branch produces NaN in values or (reverse-mode) derivatives at ``v 
 
 from __future__ import annotations
 
+import math
 from typing import Any, Sequence
 
 from fvin_mpc.core.backend import Ops
@@ -205,6 +206,14 @@ def rotation_matrix(q: Quat) -> Mat3:
         (2 * (x * y + w * z), w * w - x * x + y * y - z * z, 2 * (y * z - w * x)),
         (2 * (x * z - w * y), 2 * (y * z + w * x), w * w - x * x - y * y + z * z),
     )
+
+
+def axis_angle(q: Quat, p: Quat, axis: Vec3) -> float:
+    """Angle (rad, in ``[0, π]``) between the world directions of the body-fixed ``axis`` at
+    orientations ``q`` and ``p`` (floats): a pivoted body's tilt from upright when ``axis`` is its centre
+    of mass's direction and ``p`` the goal, whatever the turn about the vertical."""
+    here, there = matvec(rotation_matrix(q), axis), matvec(rotation_matrix(p), axis)
+    return math.atan2(math.sqrt(sum(c * c for c in cross(here, there))), float(dot(here, there)))
 
 
 def G_apply(q: Quat, x: Vec3) -> Vec3:

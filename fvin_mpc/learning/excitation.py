@@ -336,9 +336,7 @@ def collect_swings(scene: str = "pendulum", trajectories: int | None = None, ste
     if diverged:
         warnings.warn(f"{scene}: replaced {diverged} of {trajectories} trajectories on which MuJoCo's integration "
                       "diverged (energy beyond the actuators' work)", stacklevel=2)
-    energies = np.array([[physics.potential(s[:4]) - physics.rest_energy
-                          + 0.5 * s[4:] @ physics.inertia(s[:4]) @ s[4:] for s in trajectory]
-                         for trajectory in states]) / scales.energy_span
+    energies = np.array([[physics.energy(s) for s in trajectory] for trajectory in states]) / scales.energy_span
     saturated = (controls <= physics.low + 1e-12) | (controls >= physics.high - 1e-12)
     metadata = {
         "scene": str(scene), "body": env.unwrapped.body_name, "control_period": float(env.unwrapped.dt),
