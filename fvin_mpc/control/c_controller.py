@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import ctypes
 import hashlib
+import math
 import os
 import shutil
 import subprocess
@@ -109,7 +110,7 @@ def solver_settings(controller: RealTimeMPC) -> dict[str, Any]:
     return {"cold_solver": s.cold_solver, "qp_solver": s.qp_solver, "dynamics": s.dynamics,
             "max_iter": s.max_iter, "cold_iter": s.cold_iter, "tol": s.tol,
             "qp_iterations": s.qp_iterations, "model_parameters": s.model_parameters,
-            "feedback": s.feedback}
+            "feedback": s.feedback, "restart_speed": s.restart_speed}
 
 
 def check_exportable(controller: RealTimeMPC) -> None:
@@ -205,6 +206,8 @@ def config_header(controller: RealTimeMPC, example_state: np.ndarray) -> str:
         f"#define FVC_DISTURBANCE_REGION_RAD {s.disturbance_region_rad!r}",
         f"#define FVC_DISTURBANCE_REGION_SPEED {s.disturbance_region_speed!r}",
         f"#define FVC_FREE_AXIS {int(s.free_axis is not None)}",
+        f"#define FVC_RESTART_SPEED {rti.restart_speed!r}" if math.isfinite(rti.restart_speed)
+        else "#define FVC_RESTART_SPEED INFINITY",
         f"static const double fvc_free_axis[3] = {{{_literal(s.free_axis or (0.0, 0.0, 0.0))}}};",
         f"#define FVC_NP {len(names)}", f"#define FVC_PARAMETRIC {int(rti.model_parameters)}",
         f"#define FVC_PREPARED_FEEDBACK {int(rti.feedback == 'prepared')}",

@@ -48,6 +48,7 @@ returns the previous plan shifted by one step, else zero, clipped to the bounds;
 
 from __future__ import annotations
 
+import math
 import re
 import time
 from dataclasses import dataclass, field, replace
@@ -166,6 +167,13 @@ class RTIOptions:
             scales, physical values) are an input of the compiled functions, changed by
             :meth:`~fvin_mpc.control.rti.RealTimeMPC.set_parameters` without recompiling; ``False`` bakes
             them in as constants (what the parameters cost: docs/c-controller.md).
+        restart_speed: a warm call whose measured ``ω`` differs from the plan's prediction of it by more
+            than this (rad/s, in any component) starts cold instead — the multi-start guesses within
+            ``cold_budget_s`` — and says so (``info["restarted"]``); ``inf`` never. A plan made before a
+            knock kept the warm start after the body fell: on the damped pendulum the learned MPC then
+            stayed at the bottom with its torque chattering in half the knocked episodes
+            (docs/robustness.md). The scenes' defaults set it from their speed scale
+            (:data:`~fvin_mpc.control.scene.RESTART_SPEED_FRACTION`).
     """
 
     max_iter: int = 1
@@ -181,8 +189,11 @@ class RTIOptions:
     dynamics: Literal["unrolled", "implicit"] = "unrolled"
     model_parameters: bool = True
     feedback: Literal["qp", "prepared"] = "qp"
+    restart_speed: float = math.inf
 
     def __post_init__(self) -> None:
+        if not self.restart_speed > 0.0:
+            raise ValueError(f"restart_speed must be > 0 (inf: never restart), got {self.restart_speed}")
         if self.max_iter < 1 or self.cold_iter < 1:
             raise ValueError(f"max_iter and cold_iter must be >= 1, got {self.max_iter}, {self.cold_iter}")
         if not (self.budget_s >= 0.0 and self.cold_budget_s >= 0.0 and self.regularization >= 0.0

@@ -8,7 +8,7 @@ its name is a built-in's: a preset was measured on the built-in body, not on a u
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import Any, Mapping
 
 from fvin_mpc.control.mpc import IpoptOptions, RTIOptions
@@ -38,9 +38,14 @@ class Preset:
 
     def fields_for(self, solver: str) -> dict[str, Any]:
         """What this preset sets when ``solver`` solves (for :meth:`MPCSettings.updated`): the IPOPT options
-        always (the RTI's cold solve may be IPOPT's), the RTI's only when it solves."""
-        rti = self.rti if solver == "rti" else None
-        options = {name: value for name, value in (("ipopt", self.ipopt), ("rti", rti)) if value is not None}
+        always (the RTI's cold solve may be IPOPT's), the RTI's only when it solves — as the fields it
+        changes from :class:`RTIOptions`' defaults, so that what the scene's scales set (its
+        ``restart_speed``) stays."""
+        options: dict[str, Any] = {} if self.ipopt is None else {"ipopt": self.ipopt}
+        if solver == "rti" and self.rti is not None:
+            default = RTIOptions()
+            options["rti"] = {f.name: getattr(self.rti, f.name) for f in fields(RTIOptions)
+                              if getattr(self.rti, f.name) != getattr(default, f.name)}
         return {**self.settings, **self.per_solver.get(solver, {}), **options}
 
 

@@ -69,6 +69,7 @@ an unbiased model). Solved differently (Diehl's real-time iteration, as in acado
 
 from __future__ import annotations
 
+import math
 import re
 import time
 from dataclasses import replace
@@ -659,6 +660,9 @@ class RealTimeMPC(MPC):
         s = self.settings
         extra: dict[str, Any] = {}
         self._update_estimate(x0)
+        if self._leaves_plan(x0):
+            self._plan, self._linearization = None, None
+            extra["restarted"] = True
         if self._plan is None and self._cold_mpc is not None:  # cold: IPOPT to convergence, once
             self._cold_mpc.reset()
             _, cold_info = self._cold_mpc(x0)
@@ -717,6 +721,17 @@ class RealTimeMPC(MPC):
                 "states": plan.states, "controls": plan.controls, "disturbance": self.disturbance.copy(),
                 "qp_iterations": getattr(self, "qp_iterations", -1), **extra}
         return u, info
+
+    def _leaves_plan(self, x0: np.ndarray) -> bool:
+        """Whether the measured ``ω`` is more than ``rti.restart_speed`` from the prepared plan's first
+        state (the model's prediction of now) in some component: the plan is stale, start cold."""
+        limit = self.settings.rti.restart_speed
+        if self._plan is None or not math.isfinite(limit):
+            return False
+        if self._linearization is None:
+            self.prepare()
+        omega = self.layout.omega
+        return bool(np.max(np.abs(x0[omega] - self._plan.states[0][omega])) > limit)
 
     def _score(self, plan: Plan) -> float:
         """A cold guess's merit: model cost plus a heavy penalty on its dynamics gaps."""

@@ -74,6 +74,11 @@ REFERENCE_SCALES = SceneScales(energy_span=10.0, speed=math.sqrt(60.0), torque=2
 #: The terminal energy-deficit weight a scene gets unless it declares otherwise (docs/evaluation.md:
 #: with it a 1.5 s horizon swings the pendulum up from every start).
 DEFAULT_TERMINAL_ENERGY_WEIGHT = 1000.0
+#: A scene's real-time iteration restarts cold when the measured ω leaves the plan's prediction by more
+#: than this fraction of the speed scale ``ω_s`` (``RTIOptions.restart_speed``): far above a model's
+#: error over one period (the learned damped pendulum's nominal episodes: 2 restarts in 50), below a
+#: knock (2 rad/s = 0.26 ω_s there: 50 of 50 knocked episodes recover, 25 without).
+RESTART_SPEED_FRACTION = 0.13
 #: The longest default horizon (steps), whatever the control period a caller forces: the horizon
 #: follows the scene's natural period, but past this the terminal energy-deficit term does the
 #: look-ahead (a scene at its own period, ``envs.rigid_body_env.scale_control_period``, gets about
@@ -145,6 +150,7 @@ def default_mpc_settings(scales: SceneScales) -> MPCSettings:
         terminal_omega_weight=tidy(base.terminal_omega_weight * speed),
         terminal_energy_weight=DEFAULT_TERMINAL_ENERGY_WEIGHT,
         cold_starts=COLD_STARTS,
+        rti=replace(base.rti, restart_speed=tidy(RESTART_SPEED_FRACTION * scales.speed)),
     )
 
 

@@ -386,6 +386,12 @@ int fvc_feedback(fvc_controller *c, const double *x, double *u) {
     c->status.calls++;
     c->status.cold_guess = -1;
     update_estimate(c, x0);
+    if (c->have_plan && !isinf(FVC_RESTART_SPEED)) {  /* RealTimeMPC._leaves_plan: a stale plan starts cold */
+        if (!c->prepared) fvc_prepare(c);
+        for (int i = OM; i < NS; i++)
+            if (fabs(x0[i] - c->X[i]) > FVC_RESTART_SPEED) c->have_plan = 0;
+        if (!c->have_plan) c->prepared = 0;
+    }
     int status, failed = 0;
     if (!c->have_plan) {
         c->status.iterations = cold_start(c, x0);
