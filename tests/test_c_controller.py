@@ -360,3 +360,22 @@ def test_a_two_motor_ball_with_a_free_axis_c_loop_equals_python_loop(tmp_path):
     python_episode, _ = assert_same_closed_loops(env, python, c_loop, 8.0, "none", seed=2,
                                                  reset_options={"random": True, "max_omega": 2.0})
     assert np.any(python_episode.controller_info[-1]["disturbance"] != 0.0)  # the estimate ran near the goal
+
+
+def test_a_knock_restarts_both_loops_alike_and_the_damped_pendulum_swings_back_up():
+    # The scene's default restart_speed (0.13 ω_s ≈ 1.0 rad/s) against a 2 rad/s knock once held for 1 s.
+    from dataclasses import replace
+
+    from fvin_mpc.envs import RigidBodyEnv
+    from fvin_mpc.envs.scenes import resolve_scene
+
+    _, python, c_loop = pendulum_pair("pendulum_damped", true_model=True)
+    assert 0.5 < python.settings.rti.restart_speed < 2.0
+    spec = resolve_scene("pendulum_damped")
+    knocked = RigidBodyEnv(scene=spec, physics=replace(spec.physics, impulse_delta_omega=2.0))
+    python_episode, c_episode = assert_same_closed_loops(knocked, python, c_loop, 10.0, "none", seed=3,
+                                                         reset_options={"random": True})
+    restarts = [k for k, info in enumerate(python_episode.controller_info) if info.get("restarted")]
+    assert restarts, "the knock did not restart the plan"
+    assert restarts == [k for k, info in enumerate(c_episode.controller_info) if info.get("restarted")]
+    assert all(python_episode.controller_info[k].get("cold_start") for k in restarts)  # each a cold call

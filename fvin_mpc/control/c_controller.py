@@ -346,6 +346,7 @@ class CRealTimeMPC:
         self.horizon = controller.horizon
         self.build_s, self.compile_report = controller.build_s, controller.compile_report
         self._qp_iterations = solver_settings(controller)["qp_iterations"]
+        self._had_plan = False
         self.library = Path(library) if library is not None else cached_library(controller)
         self._lib = load_library(self.library)
         dims = [ctypes.c_int() for _ in range(4)]
@@ -398,6 +399,7 @@ class CRealTimeMPC:
     def reset(self) -> None:
         """Forget the plan and the disturbance estimate; the clock restarts at 0."""
         self._lib.fvc_reset(self._handle)
+        self._had_plan = False
         if not self._reference.constant:
             self._push_reference(new_reference=False)
 
@@ -433,7 +435,10 @@ class CRealTimeMPC:
                 "iterations": int(self._status.iterations), "solve_time_s": solve_time, "cost": float("nan"),
                 "step_residual": float(self._status.step_residual), "states": self._states.copy(),
                 "controls": self._controls.copy(), "disturbance": self._d.copy(),
-                "qp_iterations": self._qp_iterations, "loop": "c"}
+                "qp_iterations": self._qp_iterations, "loop": "c",
+                # the C loop starts cold only without a plan: after reset(), or a restart (RTIOptions.restart_speed)
+                "restarted": status == "cold" and self._had_plan}
+        self._had_plan = True
         if status == "cold":
             info["cold_start"] = self._lib.fvc_cold_guess_name(self._status.cold_guess).decode()
         return u, info

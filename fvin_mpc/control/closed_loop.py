@@ -49,6 +49,7 @@ RECORDED_INFO = (
     "step_residual",
     "fallback",
     "cold_start",
+    "restarted",
     "disturbance",
     "qp_iterations",
 )

@@ -660,9 +660,9 @@ class RealTimeMPC(MPC):
         s = self.settings
         extra: dict[str, Any] = {}
         self._update_estimate(x0)
-        if self._leaves_plan(x0):
+        restarted = self._leaves_plan(x0)
+        if restarted:
             self._plan, self._linearization = None, None
-            extra["restarted"] = True
         if self._plan is None and self._cold_mpc is not None:  # cold: IPOPT to convergence, once
             self._cold_mpc.reset()
             _, cold_info = self._cold_mpc(x0)
@@ -719,7 +719,7 @@ class RealTimeMPC(MPC):
         info = {"status": status, "success": success, "fallback": fallback, "iterations": iterations,
                 "solve_time_s": time.perf_counter() - start, "cost": float("nan"), "step_residual": residual,
                 "states": plan.states, "controls": plan.controls, "disturbance": self.disturbance.copy(),
-                "qp_iterations": getattr(self, "qp_iterations", -1), **extra}
+                "qp_iterations": getattr(self, "qp_iterations", -1), "restarted": restarted, **extra}
         return u, info
 
     def _leaves_plan(self, x0: np.ndarray) -> bool:
