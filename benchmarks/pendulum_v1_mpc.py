@@ -118,8 +118,7 @@ def rti_dynamics(config: BenchmarkConfig) -> str:
     """The RTI's dynamics constraint: the config's, else the ``pendulum`` scene's RTI setting."""
     if config.rti_dynamics is not None:
         return config.rti_dynamics
-    preset = PRESETS["pendulum"].fields_for("rti").get("rti", RTIOptions())
-    return preset.dynamics
+    return (PRESETS["pendulum"].rti or RTIOptions()).dynamics
 
 
 def build_mpc(config: BenchmarkConfig) -> Any:

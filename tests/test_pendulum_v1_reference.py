@@ -106,7 +106,7 @@ def test_rti_benchmark_takes_the_pendulum_scenes_dynamics_unless_told():
     (``rti.dynamics``) by default, and an explicit choice wins; either way the label says which."""
     from fvin_mpc.control.presets import PRESETS
 
-    scene_choice = PRESETS["pendulum"].fields_for("rti")["rti"].dynamics
+    scene_choice = PRESETS["pendulum"].fields_for("rti")["rti"]["dynamics"]
     default = v1.BenchmarkConfig(episodes=1, reference=False, solver="rti")
     assert v1.rti_dynamics(default) == scene_choice
     assert v1.build_mpc(default).settings.rti.dynamics == scene_choice

@@ -11,11 +11,12 @@ import numpy as np
 import pytest
 from helpers import assert_same_rotation, hinge_quaternion
 
-from fvin_mpc.control.mpc import COLD_STARTS, MPCSettings
+from fvin_mpc.control.mpc import COLD_STARTS, MPCSettings, RTIOptions
 from fvin_mpc.control.scene import (
     DEFAULT_TERMINAL_ENERGY_WEIGHT,
     MAX_DEFAULT_HORIZON,
     REFERENCE_SCALES,
+    RESTART_SPEED_FRACTION,
     default_mpc_settings,
     scene_env,
     scene_mpc_settings,
@@ -105,8 +106,10 @@ def test_the_reference_scales_give_the_tuned_numbers():
     """On the pendulum's scales the derived settings are MPCSettings' own numbers, plus the
     terminal energy cost and the multi-start the evaluation reports."""
     derived = default_mpc_settings(REFERENCE_SCALES)
-    assert derived == replace(MPCSettings(), terminal_energy_weight=DEFAULT_TERMINAL_ENERGY_WEIGHT,
-                              cold_starts=COLD_STARTS)
+    # and the real-time iteration's restart, which has no tuned number of its own: a fraction of ω_s
+    assert derived.rti.restart_speed == pytest.approx(RESTART_SPEED_FRACTION * REFERENCE_SCALES.speed, rel=1e-9)
+    assert replace(derived, rti=RTIOptions()) == replace(
+        MPCSettings(), terminal_energy_weight=DEFAULT_TERMINAL_ENERGY_WEIGHT, cold_starts=COLD_STARTS)
     scales = scene_scales(RigidBodyEnv("pendulum"))
     assert (scales.energy_span, scales.speed**2, scales.torque, scales.step_size) == pytest.approx(
         (10.0, 60.0, 2.0, 0.05)
