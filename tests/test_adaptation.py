@@ -102,23 +102,23 @@ def test_an_update_that_worsens_the_window_is_rejected():
     assert estimator.consider(window, {"mass": 1.5}).accepted  # towards the truth: kept
 
 
-def test_parameters_stay_physical():
-    # A motor wired backwards: the best unconstrained gain is −1, the estimate stops at the bound.
-    backwards = scaled_model(1.0, gain=-1.0)
+def _fitted_to(plant, free: str, seed: int) -> tuple[ParameterEstimator, TransitionWindow]:
+    """An estimator of ``free`` alone after 10 updates on 30 transitions of ``plant`` from a swing."""
     window = TransitionWindow(30)
-    fill(window, lambda x, u: backwards(x, u)[0], pendulum_state(1.0, 0.0), 30, np.random.default_rng(3))
-    estimator = ParameterEstimator(from_rigid_body(PENDULUM, H), free=("gain0",))
+    fill(window, lambda x, u: plant(x, u)[0], pendulum_state(1.0, 0.0), 30, np.random.default_rng(seed))
+    estimator = ParameterEstimator(from_rigid_body(PENDULUM, H), free=(free,))
     for _ in range(10):
         estimator.update(window)
+    return estimator, window
+
+
+def test_parameters_stay_physical():
+    # A motor wired backwards: the best unconstrained gain is −1, the estimate stops at the bound.
+    estimator, _ = _fitted_to(scaled_model(1.0, gain=-1.0), "gain0", seed=3)
     assert estimator.parameters["gain0"] == pytest.approx(MINIMUM_SCALE)
     assert estimator.parameters["mass"] == 1.0
     # A plant that gains energy (negative damping): the model's added damping stops at 0 (it has none of its own).
-    pumping = scaled_model(1.0, damping=-0.05)
-    window = TransitionWindow(30)
-    fill(window, lambda x, u: pumping(x, u)[0], pendulum_state(1.0, 0.0), 30, np.random.default_rng(4))
-    estimator = ParameterEstimator(from_rigid_body(PENDULUM, H), free=("damping",))
-    for _ in range(10):
-        estimator.update(window)
+    estimator, window = _fitted_to(scaled_model(1.0, damping=-0.05), "damping", seed=4)
     assert estimator.parameters["damping"] == pytest.approx(0.0, abs=1e-12)
     assert not estimator.consider(window, {"damping": -0.05}).accepted  # outside the bounds, however well it fits
     with pytest.raises(ValueError, match="bounds"):
