@@ -114,3 +114,54 @@ def test_one_control_weight_per_actuator_is_that_actuator_s_cost():
     np.testing.assert_allclose(stage[0.5], np.sqrt(0.5) * u, rtol=1e-12)
     with pytest.raises(ValueError, match="control_weight"):
         MPCSettings(control_weight=(1.0, -1.0))
+
+
+@pytest.mark.parametrize("shape, rank", [((6, 4), 4), ((6, 8), 6), ((6, 8), 4), ((6, 6), 4), ((3, 1), 1)])
+def test_the_least_squares_inverse_is_the_damped_pseudo_inverse_whatever_the_shape(shape, rank):
+    """``B⁺`` is the damped pseudo-inverse for tall, wide and rank-deficient ``B`` (more rotors than rates;
+    rotors that all push along one axis), where ``(BᵀB)⁻¹Bᵀ`` was singular."""
+    import casadi as ca
+
+    from fvin_mpc.control.problem import LEAST_SQUARES_RIDGE, least_squares_inverse
+
+    rng = np.random.default_rng(rank + shape[1])
+    b = rng.normal(size=(shape[0], rank)) @ rng.normal(size=(rank, shape[1]))
+    symbol = ca.SX.sym("b", *shape)
+    inverse = np.asarray(ca.Function("inverse", [symbol], [least_squares_inverse(symbol)])(b))
+    # the damped pseudo-inverse from the SVD: σ / (σ² + λ) on each singular direction
+    u, sigma, vt = np.linalg.svd(b, full_matrices=False)
+    damped = vt.T @ np.diag(sigma / (sigma**2 + LEAST_SQUARES_RIDGE * np.sum(b**2))) @ u.T
+    np.testing.assert_allclose(inverse, damped, atol=1e-5 * np.abs(damped).max())  # an unpivoted solve at cond 1e6
+    # …which is the pseudo-inverse where B is well conditioned, and solves B u = r on B's range
+    if sigma[rank - 1] > 0.1 * np.linalg.norm(b):
+        np.testing.assert_allclose(inverse, np.linalg.pinv(b, rcond=1e-10), atol=1e-3 * np.abs(damped).max())
+    np.testing.assert_allclose(b @ inverse @ b, b, atol=1e-3 * np.linalg.norm(b))
+
+
+def test_the_goal_control_of_crafts_with_six_and_eight_rotors_holds_them(tmp_path):
+    """The control that holds the goal (five Newton steps with ``B⁺``) of family crafts with eight tilted
+    rotors and six untilted ones: finite, within the thrust bounds, and it holds the craft at rest in the
+    model; where the closed form's level hover is unique up to the null space, the same forces. Before,
+    ``(BᵀB)⁻¹Bᵀ`` gave goal thrusts of 1e11–1e14 N on every such draw."""
+    from fvin_mpc.control.flight import quadrotor_mpc
+    from fvin_mpc.core.quadrotor import from_mujoco
+    from fvin_mpc.envs import QuadrotorEnv
+    from fvin_mpc.envs.flyer_family import flyer_scene, write_flyers
+
+    facts = {seed: flyer_scene(seed)[1] for seed in range(7000, 7014)}
+    eight = next(s for s, f in facts.items() if f["rotors"] == 8 and f["actuation"] == "rotors")
+    six = next(s for s, f in facts.items() if f["rotors"] == 6 and f["max_tilt_deg"] == 0.0)
+    for path in write_flyers([eight, six], tmp_path):
+        env = QuadrotorEnv(path)
+        craft = from_mujoco(env.model, env.body_name)
+        model = from_closed_form(R3S3, craft, env.dt, 2, name="true")
+        controller = quadrotor_mpc(env, model, quadrotor_mpc_settings(compile="none"))
+        u_goal = controller._u_goal
+        assert np.all(np.isfinite(u_goal))
+        assert np.all(u_goal >= env.torque_low - 1e-9) and np.all(u_goal <= env.torque_high + 1e-9)
+        stepped = np.asarray(model.step(env.goal_state, u_goal)[0]).ravel()
+        # at rest after one step: to 1e-6 m/s, the lateral force the damped inverse leaves to the attitude
+        np.testing.assert_allclose(stepped[7:], 0.0, atol=1e-6)
+        wrench = np.vstack([np.array(craft.force_map), np.array(craft.torque_map)])
+        weight = craft.mass * craft.gravity
+        np.testing.assert_allclose(wrench @ u_goal, wrench @ np.array(craft.hover_controls), atol=1e-6 * weight)

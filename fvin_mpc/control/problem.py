@@ -151,7 +151,32 @@ def predict_function(model: Any, name: str = "predict", parameters: str = "none"
         if parameters == "constant":
             inputs.append(ca.SX.sym("p", model.model_parameters.size))
     b = ca.jacobian(stepped[layout.rates], u)
-    return ca.Function(name, inputs, [stepped, b, residual, ca.solve(ca.mtimes(b.T, b), b.T)])
+    return ca.Function(name, inputs, [stepped, b, residual, least_squares_inverse(b)])
+
+
+#: The ridge of :func:`least_squares_inverse`, relative to ``‖B‖_F²``. CasADi's symbolic solve does not
+#: pivot: with ``1e-10`` an exactly rank-deficient ``B`` came back with entries wrong by 150× their size
+#: (``1e-8``: 2 %). With ``1e-6`` a direction ``σ`` is inverted by ``σ / (σ² + λ)``: within 1 % of ``1/σ``
+#: down to ``σ = 0.01 ‖B‖_F``, half of it at ``0.001 ‖B‖_F``, and damped below — the lateral force of
+#: rotors tilted 0.5° (7013 of the flyer family: ``σ`` 2.4e-4 ``‖B‖_F``) counts as unactuated, not as a
+#: newton of differential thrust for a millimetre per second of lateral drift.
+LEAST_SQUARES_RIDGE = 1e-6
+
+
+def least_squares_inverse(b: Any) -> Any:
+    """``B⁺``, the damped least-squares, minimum-norm inverse of ``B`` ``(rates, m)``:
+    ``(BᵀB + λI)⁻¹Bᵀ = Bᵀ(BBᵀ + λI)⁻¹`` (the smaller of the two systems), ``λ`` =
+    :data:`LEAST_SQUARES_RIDGE` ``‖B‖_F²``.
+
+    ``(BᵀB)⁻¹Bᵀ`` alone is singular for a craft with more actuators than rates (eight rotors: ``BᵀB`` is 8 × 8
+    of rank 6) and for one whose actuators span fewer than its rates (six rotors that all push along the
+    body z axis: no lateral force, rank 4); CasADi's solve then returned controls of 1e11–1e14 for the goal
+    control of every such member of the free-flyer family."""
+    rows, columns = b.shape
+    ridge = LEAST_SQUARES_RIDGE * ca.sumsqr(b)
+    if columns <= rows:
+        return ca.solve(ca.mtimes(b.T, b) + ridge * ca.DM.eye(columns), b.T)
+    return ca.solve(ca.mtimes(b, b.T) + ridge * ca.DM.eye(rows), b).T
 
 
 def ordered_matvec(matrix: np.ndarray, vector: np.ndarray) -> np.ndarray:
