@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import Any, Sequence
 
 from fvin_mpc.envs.families import write_family
+from fvin_mpc.envs.flyer_family import write_flyers
 from fvin_mpc.studies.learning_loop import LoopSettings, run_loop, write_loop_report
 from fvin_mpc.studies.report import markdown_table, write_report
 
@@ -33,7 +34,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m benchmarks.loop_efficiency", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--scene", action="append", default=[], help="MJCF path or built-in name (repeatable)")
-    parser.add_argument("--family", choices=("hinge", "ball"), default=None, help="add members of this family")
+    parser.add_argument("--family", choices=("hinge", "ball", "flyer"), default=None,
+                        help="add members of this family (flyer: envs/flyer_family.py's crafts)")
     parser.add_argument("--seeds", type=int, nargs="*", default=[], help="the family members' seeds")
     parser.add_argument("--seed", type=int, default=0, help="the loop's seed (default: %(default)s)")
     parser.add_argument("--cache-dir", type=Path, default=Path("build/learning-loop"), help="default: %(default)s")
@@ -46,7 +48,9 @@ def scenes(args: argparse.Namespace) -> list[tuple[str, str]]:
     """``(name, scene)`` pairs: the given scenes, then the family members written into the cache."""
     chosen = [(Path(scene).stem, scene) for scene in args.scene]
     if args.family is not None:
-        for path in write_family(args.family, args.seeds, args.cache_dir / "scenes"):
+        write = (lambda seeds, folder: write_flyers(seeds, folder)) if args.family == "flyer" else \
+            (lambda seeds, folder: write_family(args.family, seeds, folder))
+        for path in write(args.seeds, args.cache_dir / "scenes"):
             chosen.append((path.stem, str(path)))
     return chosen
 

@@ -8,6 +8,10 @@ with the learned MPC on fixed evaluation starts (never trained on) beside the cl
 up from, or when the transition budget is spent; else run the learned MPC with exploration noise on
 the plant from fresh starts, add those transitions and retrain from the previous weights.
 
+A free body (``--scene`` a craft on a free joint) runs ``fly``'s task: the first batch is ``collect``'s
+random-excitation bursts from the MJCF alone, the evaluation is recovery to hover from ``fly``'s starts
+beside the closed form, and exploration flies the learned MPC with noise from random tumbling starts.
+
 Every plant transition gathered for training counts (excitation and exploration); evaluation
 episodes are reported separately and never trained on. Closed loops run in waiting mode (the
 simulator waits for the controller: model-quality figures, not real time).
@@ -29,7 +33,14 @@ from typing import Sequence
 
 from fvin_mpc._cli import add_mpc_arguments, mpc_overrides, run_command
 from fvin_mpc.envs.scenes import existing_scene
-from fvin_mpc.studies.learning_loop import EXCITATIONS, LoopSettings, run_loop, write_loop_report
+from fvin_mpc.studies.learning_loop import (
+    EXCITATIONS,
+    FREE_BODY_DEFAULTS,
+    FREE_BODY_EXCITATION,
+    LoopSettings,
+    run_loop,
+    write_loop_report,
+)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -37,13 +48,17 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m fvin_mpc.learn", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--scene", default="pendulum", help="built-in scene name or MJCF path (default: %(default)s)")
-    parser.add_argument("--budget", type=int, default=defaults.budget,
-                        help="most training transitions from the plant (default: %(default)s)")
-    parser.add_argument("--excitation", choices=EXCITATIONS, default=defaults.excitation,
-                        help="collector of the first batch: swings (collect's default) or random torques "
-                             "(default: %(default)s)")
-    parser.add_argument("--excitation-trajectories", type=int, default=defaults.excitation_trajectories,
-                        help="trajectories of the first batch (default: %(default)s)")
+    free = FREE_BODY_DEFAULTS
+    parser.add_argument("--budget", type=int, default=None,
+                        help=f"most training transitions from the plant (default: pivoted bodies 2000, free bodies "
+                             f"{free['budget']})")
+    parser.add_argument("--excitation", choices=(*EXCITATIONS, FREE_BODY_EXCITATION), default=None,
+                        help="collector of the first batch: a pivoted body's swings (collect's default) or random "
+                             "torques; a free body's bursts (random-excitation bursts from the MJCF alone, "
+                             "collect's default) (default: swings, or bursts)")
+    parser.add_argument("--excitation-trajectories", type=int, default=None,
+                        help=f"trajectories of the first batch (default: pivoted bodies 15, free bodies "
+                             f"{free['excitation_trajectories']})")
     parser.add_argument("--segment-steps", type=int, default=defaults.segment_steps,
                         help="control periods per stored trajectory (default: %(default)s)")
     parser.add_argument("--explore-episodes", type=int, default=defaults.explore_episodes,
@@ -54,9 +69,11 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--exploration-noise", type=float, default=defaults.exploration_noise,
                         help="exploration noise as a share of the torque bound (default: %(default)s)")
     parser.add_argument("--evaluation-starts", type=int, default=defaults.evaluation_starts,
-                        help="fixed evaluation starts: hanging at rest, then random (default: %(default)s)")
+                        help="fixed evaluation starts: hanging at rest, then random; a free body: fly's recovery "
+                             "starts (default: %(default)s)")
     parser.add_argument("--evaluation-duration", type=float, default=None,
-                        help="seconds per evaluation episode (default: the swing-up command's for the scene)")
+                        help="seconds per evaluation episode (default: the swing-up command's for the scene; a free "
+                             "body: fly's recovery episode for the craft)")
     parser.add_argument("--max-rounds", type=int, default=defaults.max_rounds,
                         help="most rounds after the first (default: %(default)s)")
     parser.add_argument("--train-iterations", type=int, default=None,

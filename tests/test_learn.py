@@ -78,12 +78,52 @@ def test_the_final_checkpoint_is_an_ordinary_one_the_swingup_command_loads(tiny_
     assert (out / "learn.png").stat().st_size > 0
 
 
-def test_a_free_body_is_refused_in_one_line(capsys):
-    from fvin_mpc import learn
-    from fvin_mpc.core.errors import run_command
+@pytest.fixture(scope="module")
+def tiny_flight(tmp_path_factory):
+    """The loop on the built-in quadrotor with a tiny budget (uncompiled, short horizon): the free body's
+    task, collector and counting."""
+    from fvin_mpc.studies.learning_loop import run_loop
 
-    assert run_command(learn.main, ["--scene", "quadrotor", "--quiet"]) == 2
-    assert capsys.readouterr().err.count("\n") == 1
+    out = tmp_path_factory.mktemp("learn_flight")
+    settings = LoopSettings(budget=60, excitation_trajectories=3, segment_steps=10, explore_episodes=1,
+                            explore_segments=3, evaluation_starts=2, evaluation_duration_s=0.2, max_rounds=1,
+                            train_iterations=1, seed=5, mpc={"horizon": 5, "compile": "none"})
+    return out, run_loop("quadrotor", settings, out, progress=False)
+
+
+def test_a_free_body_runs_flys_recovery_task_and_counts_its_bursts(tiny_flight):
+    from fvin_mpc.control.flight import quadrotor_model
+    from fvin_mpc.core.data import load_data
+    from fvin_mpc.learning.free_body_excitation import EXCITATION
+    from fvin_mpc.studies.flight_report import make_env
+
+    out, result = tiny_flight
+    data = load_data(out / "data.npz")
+    assert result["task"] == "recovery" and result["success_key"] == "recovered"
+    assert data.metadata["collector"] == EXCITATION  # the MJCF's bursts, no closed-form pilot
+    assert [r["transitions"] for r in result["rounds"]] == [30, 60] == [30, data.num_transitions]
+    assert [r["closed_loop_transitions"] for r in result["rounds"]] == [0, 30]
+    assert data.state.shape[-1] == 13
+    # fly's starts, never trained on: upside down at rest first
+    starts = np.array([e["initial_state"] for e in result["closed_form"]["episodes"]])
+    np.testing.assert_allclose(starts[0, 3:7], [0.0, 1.0, 0.0, 0.0], atol=1e-12)
+    assert np.linalg.norm(data.state.reshape(-1, 13)[:, None, :] - starts[None], axis=-1).min() > 1e-3
+    assert all("recovered" in e for e in result["rounds"][-1]["learned"])
+    env = make_env()  # the final checkpoint is an ordinary one fly loads
+    assert quadrotor_model(env, str(out / "final")).step_size == env.unwrapped.dt
+
+
+def test_a_free_body_takes_its_own_defaults_and_refuses_a_pivoted_collector():
+    from fvin_mpc.studies.learning_loop import FREE_BODY_DEFAULTS
+
+    filled = LoopSettings().for_scene(pivoted=False)
+    assert (filled.budget, filled.excitation, filled.excitation_trajectories) == (
+        FREE_BODY_DEFAULTS["budget"], "bursts", FREE_BODY_DEFAULTS["excitation_trajectories"])
+    assert LoopSettings().for_scene(pivoted=True).excitation == "swings"
+    with pytest.raises(ValueError, match="free body's excitation"):
+        LoopSettings(excitation="swings").for_scene(pivoted=False)
+    with pytest.raises(ValueError, match="pivoted body's excitation"):
+        LoopSettings(excitation="bursts").for_scene(pivoted=True)
 
 
 def test_settings_refuse_an_excitation_batch_over_the_budget_and_a_cost_tolerance_below_one():
