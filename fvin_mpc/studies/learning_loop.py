@@ -85,6 +85,8 @@ EXCITATIONS = ("swings", "random")
 LOOP_MPC: dict[str, Any] = {"solver": LOOP_SOLVER, "rti": {"cold_budget_s": math.inf}}
 
 
+#: A pivoted body's defaults for the :class:`LoopSettings` fields its kind decides.
+PIVOTED_DEFAULTS: dict[str, Any] = {"budget": 2000, "excitation": "swings", "excitation_trajectories": 15}
 #: A free body's round-0 collector: ``collect``'s default for a craft (random-excitation bursts).
 FREE_BODY_EXCITATION = "bursts"
 #: What a free body's loop changes of :class:`LoopSettings`' defaults where they are not given: a craft has
@@ -98,8 +100,8 @@ FREE_BODY_DEFAULTS: dict[str, Any] = {"budget": 8000, "excitation": FREE_BODY_EX
 @dataclass(frozen=True)
 class LoopSettings:
     """How the loop spends its transitions. ``None`` for ``budget``, ``excitation`` and
-    ``excitation_trajectories``: the scene's kind decides (a pivoted body 2,000, ``"swings"``, 15;
-    a free body :data:`FREE_BODY_DEFAULTS`).
+    ``excitation_trajectories``: the scene's kind decides (:data:`PIVOTED_DEFAULTS`,
+    :data:`FREE_BODY_DEFAULTS`).
 
     Attributes:
         budget: most training transitions gathered from the plant (excitation + exploration).
@@ -172,8 +174,7 @@ class LoopSettings:
 
     def for_scene(self, pivoted: bool) -> LoopSettings:
         """These settings with the scene kind's defaults where none were given, checked."""
-        defaults = {"budget": 2000, "excitation": "swings", "excitation_trajectories": 15} if pivoted \
-            else FREE_BODY_DEFAULTS
+        defaults = PIVOTED_DEFAULTS if pivoted else FREE_BODY_DEFAULTS
         filled = replace(self, **{k: v for k, v in defaults.items() if getattr(self, k) is None})
         wanted = EXCITATIONS if pivoted else (FREE_BODY_EXCITATION,)
         if filled.excitation not in wanted:
