@@ -21,6 +21,7 @@ import argparse
 import json
 import shlex
 import sys
+from functools import partial
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -48,8 +49,7 @@ def scenes(args: argparse.Namespace) -> list[tuple[str, str]]:
     """``(name, scene)`` pairs: the given scenes, then the family members written into the cache."""
     chosen = [(Path(scene).stem, scene) for scene in args.scene]
     if args.family is not None:
-        write = (lambda seeds, folder: write_flyers(seeds, folder)) if args.family == "flyer" else \
-            (lambda seeds, folder: write_family(args.family, seeds, folder))
+        write = write_flyers if args.family == "flyer" else partial(write_family, args.family)
         for path in write(args.seeds, args.cache_dir / "scenes"):
             chosen.append((path.stem, str(path)))
     return chosen

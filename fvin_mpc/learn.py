@@ -37,6 +37,7 @@ from fvin_mpc.studies.learning_loop import (
     EXCITATIONS,
     FREE_BODY_DEFAULTS,
     FREE_BODY_EXCITATION,
+    PIVOTED_DEFAULTS,
     LoopSettings,
     run_loop,
     write_loop_report,
@@ -48,17 +49,17 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m fvin_mpc.learn", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--scene", default="pendulum", help="built-in scene name or MJCF path (default: %(default)s)")
-    free = FREE_BODY_DEFAULTS
+    pivoted, free = PIVOTED_DEFAULTS, FREE_BODY_DEFAULTS
     parser.add_argument("--budget", type=int, default=None,
-                        help=f"most training transitions from the plant (default: pivoted bodies 2000, free bodies "
-                             f"{free['budget']})")
+                        help=f"most training transitions from the plant (default: pivoted bodies {pivoted['budget']}, "
+                             f"free bodies {free['budget']})")
     parser.add_argument("--excitation", choices=(*EXCITATIONS, FREE_BODY_EXCITATION), default=None,
                         help="collector of the first batch: a pivoted body's swings (collect's default) or random "
                              "torques; a free body's bursts (random-excitation bursts from the MJCF alone, "
-                             "collect's default) (default: swings, or bursts)")
+                             f"collect's default) (default: {pivoted['excitation']}, or {free['excitation']})")
     parser.add_argument("--excitation-trajectories", type=int, default=None,
-                        help=f"trajectories of the first batch (default: pivoted bodies 15, free bodies "
-                             f"{free['excitation_trajectories']})")
+                        help=f"trajectories of the first batch (default: pivoted bodies "
+                             f"{pivoted['excitation_trajectories']}, free bodies {free['excitation_trajectories']})")
     parser.add_argument("--segment-steps", type=int, default=defaults.segment_steps,
                         help="control periods per stored trajectory (default: %(default)s)")
     parser.add_argument("--explore-episodes", type=int, default=defaults.explore_episodes,
