@@ -49,7 +49,7 @@ import numpy as np
 
 from fvin_mpc.control.closed_loop import run_episode
 from fvin_mpc.control.family_filter import run_judged, swingup_duration
-from fvin_mpc.control.flight import flight_metrics, hover_reference, recovery_duration, recovery_starts
+from fvin_mpc.control.flight import hover_reference, recovery_duration, recovery_starts
 from fvin_mpc.control.scene import scene_env, scene_model, scene_mpc, scene_mpc_settings
 from fvin_mpc.core.checkpoint import save_checkpoint
 from fvin_mpc.core.data import Trajectories, save_data
@@ -62,7 +62,7 @@ from fvin_mpc.learning.free_body_excitation import collect_excitation
 from fvin_mpc.learning.space_training import default_model_config, train_model, training_for
 from fvin_mpc.learning.swing_measure import swing_apex_error, swing_probe, torch_model_step
 from fvin_mpc.learning.training import TrainSettings, package_versions
-from fvin_mpc.studies.flight_report import make_controller, make_env
+from fvin_mpc.studies.flight_report import make_controller, make_env, run_recovery
 from fvin_mpc.studies.report import write_report
 
 #: Seeds of the evaluation starts: far from the collector's (``seed``) and the exploration's, so
@@ -354,22 +354,21 @@ class FlightTask:
         return self.settings.evaluation_duration_s or recovery_duration(env.unwrapped.scales)
 
     def evaluation_starts(self, env: Any) -> list[tuple[Any, int]]:
-        return recovery_starts(env.unwrapped.hover_point, self.settings.evaluation_starts,
-                               EVALUATION_SEED_BASE + 1000 * self.settings.seed)
+        return recovery_starts(env.unwrapped.hover_point, self.settings.evaluation_starts, self._evaluation_seed)
+
+    @property
+    def _evaluation_seed(self) -> int:
+        return EVALUATION_SEED_BASE + 1000 * self.settings.seed
 
     def episodes(self, env: Any, controller: Any, starts: list[tuple[Any, int]]) -> list[dict[str, Any]]:
-        results = []
-        for index, (options, seed) in enumerate(starts):
-            episode, _ = run_episode(env, controller, self.duration(env), options, seed=seed, latency="none")
-            metrics = flight_metrics(episode, hover_reference(env))
-            results.append({"start": index, "recovered": bool(metrics["recovered"]),
-                            "cost": float(-episode.reward.sum()), "time_to_recover_s": metrics["time_to_recover_s"],
-                            "final_position_m": metrics["final_position_m"],
-                            "final_angle_rad": metrics["final_angle_rad"], "periods": int(episode.u.shape[0]),
-                            "solve_ms_median": metrics["solve_time_ms"]["median"],
-                            "controller_failures": metrics["controller_failures"],
-                            "initial_state": episode.states[0].tolist()})
-        return results
+        """``fly``'s recovery episodes (:func:`~fvin_mpc.studies.flight_report.run_recovery`) from the starts of
+        :meth:`evaluation_starts` — which it draws again from their count and seed — with the env's cost."""
+        rows, episodes, _ = run_recovery(env, controller, len(starts), self._evaluation_seed, "none",
+                                         self.duration(env), progress=False)
+        kept = ("recovered", "time_to_recover_s", "final_position_m", "final_angle_rad", "controller_failures")
+        return [{"start": row["index"], **{key: row[key] for key in kept}, "cost": float(-episode.reward.sum()),
+                 "periods": int(episode.u.shape[0]), "solve_ms_median": row["solve_time_ms"]["median"],
+                 "initial_state": episode.states[0].tolist()} for row, episode in zip(rows, episodes)]
 
     def exploration_starts(self, env: Any, seeds: list[int]) -> list[Any]:
         """The env's random starts (attitude uniform on S³, tumbling at up to :attr:`max_omega`) as explicit
