@@ -56,20 +56,41 @@ def scenes(args: argparse.Namespace) -> list[tuple[str, str]]:
 
 
 def row(name: str, result: dict[str, Any]) -> dict[str, Any]:
-    last, closed = result["rounds"][-1], result["closed_form"]
+    """One scene's line. ``transitions to success``: the first round that succeeds wherever the closed form does;
+    ``to stop``: the round that also met the cost tolerance (a record from before the tolerance was a default
+    stopped at success). The learned figures are the final checkpoint's round."""
+    closed = result["closed_form"]
+    kept = result["rounds"][result.get("final_round", -1)]
+    first = next((r["transitions"] for r in result["rounds"] if r["success"]), None)
+    tolerance = result["settings"].get("cost_tolerance")
     return {
         "scene": name,
         "closed form up": f"{closed['closed_up']}/{closed['starts']}",
         "outcome": result["outcome"],
-        "transitions to success": result["transitions_to_success"] or "—",
+        "transitions to success": first or "—",
+        "cost tolerance": tolerance or "—",
+        "transitions to stop": result.get("transitions_to_stop", result["transitions_to_success"]) or "—",
+        "stopped by": stop_reason(result),
         "training transitions": result["training_transitions"],
         "rounds": len(result["rounds"]),
-        "learned up (last round)": f"{last['learned_up']}/{last['starts']}",
-        "cost learned / closed form (sum)": last["cost_learned"] / last["cost_closed"],
-        "median cost ratio per start": last["cost_ratio_median"] if last["cost_ratio_median"] is not None else "—",
+        "final round": kept["round"],
+        "learned up (final)": f"{kept['learned_up']}/{kept['starts']}",
+        "cost learned / closed form (sum)": kept["cost_learned"] / kept["cost_closed"],
+        "median cost ratio per start": kept["cost_ratio_median"] if kept["cost_ratio_median"] is not None else "—",
         "evaluation steps (not trained on)": result["evaluation_transitions"],
         "wall s": result["wall_s"],
     }
+
+
+def stop_reason(result: dict[str, Any]) -> str:
+    """Why the loop ended: the cost within the tolerance, the cost no longer falling, or success alone (a
+    record from before the cost rules), else its outcome."""
+    last = result["rounds"][-1]
+    if result["outcome"] != "success":
+        return result["outcome"]
+    if "within_cost" not in last:
+        return "success"
+    return "cost within tolerance" if last["within_cost"] else "cost plateau"
 
 
 def plot(results: dict[str, dict[str, Any]], path: Path) -> None:

@@ -5,7 +5,9 @@ swing excitation; ``--excitation random`` for random torques), trains the
 scene's default model (``python -m fvin_mpc.train``'s defaults), then repeats: run the scene's task
 with the learned MPC on fixed evaluation starts (never trained on) beside the closed-form MPC
 (computed once); stop once the learned controller swings up from every start the closed form swings
-up from, or when the transition budget is spent; else run the learned MPC with exploration noise on
+up from at no more than ``--cost-tolerance`` (1.05) times its summed cost (or, once it does, when a round
+no longer lowers that cost by ``--min-cost-gain``, 2 %), or when the transition budget is spent; else run
+the learned MPC with exploration noise on
 the plant from fresh starts, add those transitions and retrain from the previous weights.
 
 A free body (``--scene`` a craft on a free joint) runs ``fly``'s task: the first batch is ``collect``'s
@@ -17,7 +19,8 @@ episodes are reported separately and never trained on. Closed loops run in waiti
 simulator waits for the controller: model-quality figures, not real time).
 
 Writes to ``--out-dir`` (default ``learn/<scene>``): ``data.npz`` (exactly the transitions counted),
-``round_<k>`` checkpoints, ``final`` (an ordinary checkpoint: ``python -m fvin_mpc.swingup --scene X.xml
+``round_<k>`` checkpoints, ``final`` (the best round's — successful, then the most starts up, then the
+lowest cost — as an ordinary checkpoint: ``python -m fvin_mpc.swingup --scene X.xml
 --checkpoint learn/X/final``), ``learn.json``, ``learn.md`` (a table per round) and ``learn.png``
 (success and cost against transitions). See fvin_mpc/studies/learning_loop.py and docs/learning-loop.md.
 """
@@ -79,9 +82,12 @@ def build_parser() -> argparse.ArgumentParser:
                         help="most rounds after the first (default: %(default)s)")
     parser.add_argument("--train-iterations", type=int, default=None,
                         help="most training iterations per round (default: the training command's)")
-    parser.add_argument("--cost-tolerance", type=float, default=None,
-                        help="stop only once the learned cost summed over the starts is at most this times the "
-                             "closed form's, e.g. 1.05 (default: success alone stops)")
+    parser.add_argument("--cost-tolerance", type=_tolerance, default=defaults.cost_tolerance,
+                        help="stop only once the learned cost summed over the starts is also at most this times "
+                             "the closed form's; 'none': success alone stops (default: %(default)s)")
+    parser.add_argument("--min-cost-gain", type=float, default=defaults.min_cost_gain,
+                        help="once successful, also stop when a round lowers the summed cost by less than this "
+                             "share of the best successful round's (default: %(default)s)")
     parser.add_argument("--time-limit", type=float, default=None,
                         help="seconds: end (before exploring) when another round as long as the last would "
                              "end past this (default: none)")
@@ -90,6 +96,15 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--quiet", action="store_true", help="no progress display")
     add_mpc_arguments(parser)
     return parser
+
+
+def _tolerance(text: str) -> float | None:
+    if text.strip().lower() == "none":
+        return None
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"a number >= 1 or 'none', got {text!r}") from None
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -102,7 +117,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         exploration_noise=args.exploration_noise, evaluation_starts=args.evaluation_starts,
         evaluation_duration_s=args.evaluation_duration, max_rounds=args.max_rounds,
         train_iterations=args.train_iterations, seed=args.seed, time_limit_s=args.time_limit,
-        cost_tolerance=args.cost_tolerance,
+        cost_tolerance=args.cost_tolerance, min_cost_gain=args.min_cost_gain,
         mpc={k: v for k, v in mpc_overrides(args).items() if v is not None},
     )
     out_dir = args.out_dir or Path("learn") / spec.name
@@ -111,7 +126,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     command = "python -m fvin_mpc.learn " + " ".join(shlex.quote(a) for a in (argv if argv is not None
                                                                                else sys.argv[1:]))
     write_loop_report(result, out_dir, command)
-    print(json.dumps({key: result[key] for key in ("scene", "outcome", "transitions_to_success", "training_transitions",
+    print(json.dumps({key: result[key] for key in ("scene", "outcome", "transitions_to_success", "transitions_to_stop",
+                                                   "training_transitions", "final_round",
                                                    "evaluation_transitions", "final_checkpoint", "wall_s")}, indent=2))
     return 0
 
