@@ -46,11 +46,11 @@ import shlex
 import sys
 from dataclasses import replace
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from fvin_mpc.control.adaptation import AdaptiveRTI, nominal_parameters, rti_parameters
+from fvin_mpc.control.adaptation import AdaptiveRTI, nominal_estimate, rti_parameters
 from fvin_mpc.control.closed_loop import run_episode
 from fvin_mpc.control.model_export import CompileCount, cache_dir
 from fvin_mpc.control.scene import scene_env, scene_model, scene_mpc, scene_mpc_settings
@@ -90,13 +90,14 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 class OracleSwitch:
-    """The wrapped real-time MPC's model switched to ``mass`` from ``change_at`` on (told by ``set_time``)."""
+    """The wrapped real-time MPC's model switched to the true ``changed`` estimate (e.g. ``{"mass": 2}``; the
+    rest nominal) from ``change_at`` on (told by ``set_time``)."""
 
-    def __init__(self, controller: Any, change_at: float, mass: float) -> None:
+    def __init__(self, controller: Any, change_at: float, changed: dict[str, float]) -> None:
         self.controller, self.change_at = controller, change_at
         model = controller.model
-        self._nominal = rti_parameters(model, nominal_parameters(model.control_dim))
-        self._changed = rti_parameters(model, {**nominal_parameters(model.control_dim), "mass": mass})
+        self._nominal = rti_parameters(model, nominal_estimate(model))
+        self._changed = rti_parameters(model, {**nominal_estimate(model), **changed})
 
     def reset(self) -> None:
         self.controller.reset()
@@ -105,12 +106,18 @@ class OracleSwitch:
     def set_time(self, time_s: float) -> None:
         if time_s >= self.change_at - 1e-9:
             self.controller.set_parameters(self._changed)
+        self.controller.set_time(time_s)  # the reference's clock, and a skipped period's forgotten prediction
 
     def __call__(self, x: Any) -> Any:
         return self.controller(x)
 
     def prepare(self) -> None:
         self.controller.prepare()
+
+    def __getattr__(self, name: str) -> Any:
+        if name == "controller":
+            raise AttributeError(name)
+        return getattr(self.controller, name)
 
 
 def start(seed: int) -> dict[str, Any]:
@@ -136,7 +143,7 @@ def run_cell(args: argparse.Namespace, model_name: str, arm: str, changed: bool)
     rti = scene_mpc(env, model, scene_mpc_settings(env, solver="rti", **overrides))
     controller = AdaptiveRTI(rti, window=args.window) if arm in ("adaptation", "both") else rti
     if arm == "oracle":
-        controller = OracleSwitch(rti, args.change_at, TRUE_MASS)
+        controller = OracleSwitch(rti, args.change_at, {"mass": TRUE_MASS})
     runs = []
     for i in tqdm(range(args.runs), desc=f"{model_name} {arm} {'changed' if changed else 'unchanged'}", leave=False):
         compiles = CompileCount.calls
@@ -224,7 +231,11 @@ def summarize(args: argparse.Namespace, model_name: str, arm: str, runs: list[di
     return row
 
 
-def run(args: argparse.Namespace) -> list[dict[str, Any]]:
+def run_arms(args: argparse.Namespace, run_cell: Callable[..., list[dict[str, Any]]],
+             summarize: Callable[..., dict[str, Any]]) -> list[dict[str, Any]]:
+    """Per model: the unchanged plant under the ``estimate`` arm (every arm's reference), then each arm on the
+    changed plant, one summary row each (``run_cell(args, model, arm, changed)``, ``summarize(args, model, arm,
+    runs, unchanged)``)."""
     rows = []
     for model_name in args.models:
         unchanged = run_cell(args, model_name, "estimate", changed=False)
@@ -233,6 +244,10 @@ def run(args: argparse.Namespace) -> list[dict[str, Any]]:
             rows.append(summarize(args, model_name, arm, run_cell(args, model_name, arm, changed=True), unchanged))
             print(f"{model_name} {arm}: {rows[-1]}", file=sys.stderr)
     return rows
+
+
+def run(args: argparse.Namespace) -> list[dict[str, Any]]:
+    return run_arms(args, run_cell, summarize)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -137,11 +137,10 @@ class QuadrotorEnv(MujocoBodyEnv):
         spec, model = self.scene_spec, self._model
         self._body_name = _craft_body_name(spec, model)
         self._body_id, self._joint_id = _free_body(model, self._body_name)
-        # The state's x is the centre of mass, where Newton–Euler separates translation from rotation
-        # (the body origin of a description is wherever its author put it).
-        self._com = np.asarray(model.body_ipos[self._body_id], dtype=float).copy()
 
         self._goal = unit_quaternion(spec.goal if spec.goal is not None else (1.0, 0.0, 0.0, 0.0), "goal")
+        # self._com: the state's x is the centre of mass, where Newton–Euler separates translation from
+        # rotation (the body origin of a description is wherever its author put it).
         qpos0 = np.asarray(model.qpos0, dtype=float)
         self._hover_point = (qpos0[:3] + _rotate(self._goal, self._com) if hover_point is None
                              else as_float_array(hover_point, (3,), "hover_point"))
@@ -157,6 +156,11 @@ class QuadrotorEnv(MujocoBodyEnv):
     def hover_point(self) -> np.ndarray:
         """Goal position (m), world frame."""
         return self._hover_point.copy()
+
+    @property
+    def _com(self) -> np.ndarray:
+        """The centre of mass in the body frame, as the plant has it now (a declared payload moves it)."""
+        return np.asarray(self._model.body_ipos[self._body_id], dtype=float).copy()
 
     @property
     def scales(self) -> CraftScales:

@@ -85,8 +85,14 @@ class MujocoBodyEnv(gymnasium.Env):
         self._data = mujoco.MjData(self._model)
         model = self._model
         # The plant as built, restored at each reset: a declared mass change alters the model in place.
-        self._built_masses = (model.body_mass.copy(), model.body_inertia.copy())
+        self._built_masses = (model.body_mass.copy(), model.body_inertia.copy(), model.body_ipos.copy(),
+                              model.body_sameframe.copy(), model.body_simple.copy())
         self._mass_change_pending = self._physics.mass_change is not None
+        self._built_gears = model.actuator_gear.copy()
+        self._actuator_change_pending = self._physics.actuator_change is not None
+        if self._physics.actuator_change is not None and not self._physics.actuator_change[1] < model.nu:
+            raise SceneError(f"actuator_change names actuator {self._physics.actuator_change[1]}; the scene has "
+                             f"{model.nu}")
         timestep = float(model.opt.timestep)
         # The commanded torques in flight, oldest first, one per MuJoCo timestep of actuation delay.
         self._delay_line = np.zeros((math.ceil(self._physics.actuation_delay_s / timestep - 1e-9), model.nu))
@@ -181,8 +187,17 @@ class MujocoBodyEnv(gymnasium.Env):
         # Between (partial) periods, never inside a MuJoCo step: the model's constants change at once.
         change = self._physics.mass_change
         if self._mass_change_pending and self._data.time >= change[0] - 1e-9:
-            scale_mass(self._model, change[1])
+            if len(change) == 3:
+                self._model.body_ipos[1:] += np.asarray(change[2])
+                # MuJoCo's shortcuts for a body whose inertial frame is its own frame no longer hold.
+                self._model.body_sameframe[1:] = 0
+                self._model.body_simple[1:] = 0
+            scale_mass(self._model, change[1])  # recomputes what MuJoCo derives, the shifted centres too
             self._mass_change_pending = False
+        actuator = self._physics.actuator_change
+        if self._actuator_change_pending and self._data.time >= actuator[0] - 1e-9:
+            self._model.actuator_gear[actuator[1]] *= actuator[2]
+            self._actuator_change_pending = False
 
     @property
     def mass_changed(self) -> bool:
@@ -230,9 +245,12 @@ class MujocoBodyEnv(gymnasium.Env):
         qpos = as_float_array(qpos, (self._model.nq,), "qpos")
         qvel = as_float_array(qvel, (self._model.nv,), "qvel")
         if self.mass_changed:
-            self._model.body_mass[:], self._model.body_inertia[:] = self._built_masses
+            (self._model.body_mass[:], self._model.body_inertia[:], self._model.body_ipos[:],
+             self._model.body_sameframe[:], self._model.body_simple[:]) = self._built_masses
             mujoco.mj_setConst(self._model, self._data)
         self._mass_change_pending = self._physics.mass_change is not None
+        self._model.actuator_gear[:] = self._built_gears
+        self._actuator_change_pending = self._physics.actuator_change is not None
         mujoco.mj_resetData(self._model, self._data)
         self._delay_line[:] = 0.0
         self.set_state(qpos, qvel)

@@ -26,6 +26,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Any
 
 import mujoco
 import numpy as np
@@ -76,8 +77,13 @@ class ScenePhysics:
         mass_change: ``(time_s, scale)``: from the first (partial) control period that starts at or after
             ``time_s`` of an episode on, every body's mass and rotational inertia are ``scale`` times what
             they were at reset (a bob that doubles while held, a payload picked up), and what MuJoCo derives
-            from them recomputed; ``reset`` restores them. Nothing in the observation announces it.
-            ``None``: the plant never changes.
+            from them recomputed; ``reset`` restores them. ``(time_s, scale, shift)``: every body's centre of
+            mass also moves by ``shift`` (m, in its own frame) — a payload hung off-centre. Nothing in the
+            observation announces it. ``None``: the plant never changes.
+        actuator_change: ``(time_s, index, scale)``: from the first (partial) control period that starts at or
+            after ``time_s`` on, actuator ``index`` delivers ``scale`` times what it is commanded (its gear
+            scaled: a worn rotor's thrust and its yaw reaction alike); ``reset`` restores it; unannounced.
+            ``None``: the actuators never change.
     """
 
     gravity: bool
@@ -93,7 +99,8 @@ class ScenePhysics:
     mass_scale: float = 1.0
     impulse_delta_omega: float = 0.0
     impulse_at_s: float | None = None
-    mass_change: tuple[float, float] | None = None
+    mass_change: tuple[Any, ...] | None = None
+    actuator_change: tuple[float, int, float] | None = None
 
     def __post_init__(self) -> None:
         for name in ("sensor_noise_std", "gyro_noise_std", "actuation_delay_s", "impulse_delta_omega"):
@@ -108,10 +115,21 @@ class ScenePhysics:
             raise ValueError(f"impulse_at_s must be None or finite seconds >= 0, got {self.impulse_at_s!r}")
         if self.mass_change is not None:
             change = tuple(self.mass_change)
-            if not (len(change) == 2 and all(math.isfinite(float(v)) for v in change)
+            shift = np.asarray(change[2], dtype=float) if len(change) == 3 else np.zeros(3)
+            if not (len(change) in (2, 3) and shift.shape == (3,) and np.all(np.isfinite(shift))
+                    and all(math.isfinite(float(v)) for v in change[:2])
                     and float(change[0]) >= 0.0 and float(change[1]) > 0.0):
-                raise ValueError(f"mass_change must be (time_s >= 0, scale > 0), got {self.mass_change!r}")
-            object.__setattr__(self, "mass_change", (float(change[0]), float(change[1])))
+                raise ValueError(f"mass_change must be (time_s >= 0, scale > 0) or (time_s, scale, centre-of-mass "
+                                 f"shift (3,) m), got {self.mass_change!r}")
+            normal = (float(change[0]), float(change[1]))
+            object.__setattr__(self, "mass_change", normal + ((tuple(map(float, shift)),) if len(change) == 3 else ()))
+        if self.actuator_change is not None:
+            at, index, scale = self.actuator_change
+            if not (math.isfinite(float(at)) and float(at) >= 0.0 and int(index) == index and int(index) >= 0
+                    and math.isfinite(float(scale)) and float(scale) >= 0.0):
+                raise ValueError(f"actuator_change must be (time_s >= 0, actuator index >= 0, scale >= 0), "
+                                 f"got {self.actuator_change!r}")
+            object.__setattr__(self, "actuator_change", (float(at), int(index), float(scale)))
         if self.encoder_bits is not None and not (isinstance(self.encoder_bits, int) and 1 <= self.encoder_bits <= 32):
             raise ValueError(f"encoder_bits must be None or an integer in [1, 32], got {self.encoder_bits!r}")
 

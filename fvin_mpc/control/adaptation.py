@@ -2,7 +2,7 @@
 
 When the body changes in operation (a heavier bob, a weaker motor), an input-disturbance estimate
 absorbs a constant offset but not a changed mass, whose effect depends on the state. Here a small
-named parameter set of a pivoted (S³) model is re-fitted from a sliding window of measured
+named parameter set of a pivoted (S³) or free (R³ × S³) model is re-fitted from a sliding window of measured
 transitions ``(x_k, u_k, x_{k+1})`` by damped Gauss–Newton (Levenberg–Marquardt), one bounded
 iteration per call, so that it can run in a control period's spare time. The estimator is told
 nothing about when or what changed: it sees only the window, whose length sets how fast old
@@ -38,6 +38,15 @@ steps, tests/test_adaptation.py). So a parameter is fitted only while a *relevan
 move the window's predictions by at least ``min_effect`` (rad/s, RMS over the window); otherwise it is
 held this call.
 
+**A free body** (R³ × S³: a craft): the parameters are ``mass`` — the mass matrix and the whole potential
+together (a payload: gravity's pull grows with it) —, ``inertia`` and ``gain<i>``, and they act through the
+model's run-time parameters (:func:`free_body_vector`: a learned model's Cholesky factors take the square root,
+its potential's uniform field and output layer the mass; a closed form's ``mass`` and ``inertia`` directly),
+so the estimator differentiates the very step the real-time MPC plans with. The residual adds the position
+over the step (m/s) to the pivoted one's. The default fits the mass alone, the gains pinned for the free
+scale (:func:`default_free`). A hovering craft shows its mass — thrust against weight — so the excitation
+gate rarely holds it.
+
 The interface is a plain ``{name: value}`` dict (:attr:`ParameterEstimator.parameters`), for a real-time
 MPC that takes model parameters at run time to read at its next preparation.
 
@@ -62,11 +71,12 @@ from typing import Any, Mapping, Sequence
 import casadi as ca
 import numpy as np
 
-from fvin_mpc.control.model_export import ExportedModel
+from fvin_mpc.control.model_export import ExportedModel, compile_functions
+from fvin_mpc.control.rti import local_state
 from fvin_mpc.core import s3
 from fvin_mpc.core.backend import get_ops
 from fvin_mpc.core.model_parameters import GAIN_SCALE
-from fvin_mpc.core.space import S3, chart_local
+from fvin_mpc.core.space import R3S3, S3, chart_local
 
 CA = get_ops("casadi")
 #: The smallest value ``mass`` and a gain may take: a tenth of the model's (the largest: ten times).
@@ -78,6 +88,11 @@ RELEVANT_CHANGE = {"mass": 0.1, "gain": 0.1, "damping_rate": 0.1}
 #: (2.0e-3 rad/s, checked in tests/test_adaptation.py) — a parameter that moves the predictions by less than
 #: the model's own error cannot be told from it.
 MIN_EFFECT = 2e-3
+#: ``min_effect``'s default on a free body (m/s and rad/s together: the RMS over the window of the 12-entry
+#: residual's norm): the learned quadrotor's own one-step error in hover on MuJoCo, 5.5e-4
+#: (tests/test_adaptation_free_body.py checks it). A hovering craft shows its mass (thrust against weight): a
+#: tenth more moves its predictions by 2.2e-2, forty times that.
+FREE_BODY_MIN_EFFECT = 5e-4
 
 
 def parameter_names(control_dim: int) -> tuple[str, ...]:
@@ -88,6 +103,75 @@ def parameter_names(control_dim: int) -> tuple[str, ...]:
 def nominal_parameters(control_dim: int) -> dict[str, float]:
     """The values that leave a model as it is."""
     return {name: (0.0 if name == "damping" else 1.0) for name in parameter_names(control_dim)}
+
+
+#: A free body's (R³ × S³) estimator parameters, per kind of run-time parameter block: which estimate scales
+#: the block and with which power (a Cholesky factor takes the square root). ``mass`` scales the mass matrix
+#: and the whole potential together (gravity's pull grows with the mass: a payload), ``inertia`` the
+#: rotational inertia; a learned model's potential network enters through its output layer (``potential_w…``,
+#: linear in ``U``). ``ε`` of a Cholesky parametrization (1e-6 of the mass, 1e-8 of the inertia) does not scale.
+FREE_BODY_SCALING = {"mass": ("mass", 1.0), "mass_cholesky": ("mass", 0.5), "potential_linear": ("mass", 1.0),
+                     "potential_w": ("mass", 1.0), "inertia": ("inertia", 1.0), "inertia_cholesky": ("inertia", 0.5)}
+
+
+def free_body_parameter_names(control_dim: int) -> tuple[str, ...]:
+    """Every estimator parameter of a free body with ``control_dim`` actuators, in vector order."""
+    return ("mass", "inertia", *(f"gain{i}" for i in range(control_dim)))
+
+
+def nominal_estimate(model: ExportedModel) -> dict[str, float]:
+    """The estimate that leaves ``model`` as it is, pivoted (:func:`nominal_parameters`) or free (every scale 1)."""
+    if model.space.pivoted:
+        return nominal_parameters(model.control_dim)
+    return dict.fromkeys(free_body_parameter_names(model.control_dim), 1.0)
+
+
+def _free_body_scaling(block_name: str) -> tuple[str, float] | None:
+    if block_name.startswith("potential_w"):
+        return FREE_BODY_SCALING["potential_w"]
+    return FREE_BODY_SCALING.get(block_name)
+
+
+def free_body_vector(model: ExportedModel, estimate: Sequence[Any]) -> list[Any]:
+    """The run-time parameter vector (entries: numbers or CasADi symbols, as ``estimate``'s) of a free body's
+    ``model`` that steps like the body with the estimator's ``estimate`` (:func:`free_body_parameter_names`'
+    order): each block of :data:`FREE_BODY_SCALING` at its own value times the scale, the gain scale times
+    the gains, every other block (gravity, a drag's dissipation) at the model's value."""
+    names = free_body_parameter_names(model.control_dim)
+    value = dict(zip(names, estimate))
+    entries: list[Any] = []
+    for block in model.model_parameters.blocks:
+        own = np.ravel(block.default)
+        if block.name == GAIN_SCALE:
+            entries += [own[i] * value[f"gain{i}"] for i in range(own.size)]
+            continue
+        scaling = _free_body_scaling(block.name)
+        if scaling is None:
+            factor = 1.0
+        else:
+            factor = value[scaling[0]] if scaling[1] == 1.0 else value[scaling[0]] ** scaling[1]
+        entries += [float(entry) * factor for entry in own]
+    return entries
+
+
+def free_body_residual(model: ExportedModel) -> ca.Function:
+    """``r(x[13], u[m], x_next[13], θ) -> (r[12], ∂r/∂θ)`` of a free body, ``θ`` in
+    :func:`free_body_parameter_names`' order: the measured next state against the one the model with ``θ``
+    predicts (through its run-time parameters, :func:`free_body_vector`) from the measured ``x``, ``u``, in the
+    predicted state's chart — position and rotation over the step divided by ``h`` (m/s and rad/s, like the
+    rates), then ``v`` and ``ω``."""
+    model.require(R3S3, by="the free-body parameter estimator")
+    layout, h = model.space.layout, model.step_size
+    n, m = model.state_dim, model.control_dim
+    x, x_next, u = ca.SX.sym("x", n), ca.SX.sym("x_next", n), ca.SX.sym("u", m)
+    theta = ca.SX.sym("theta", len(free_body_parameter_names(m)))
+    p = ca.vertcat(*free_body_vector(model, [theta[i] for i in range(theta.shape[0])]))
+    predicted = model.parametric_step(x, u, p)[0]
+    delta = local_state(layout, predicted, x_next)
+    a = layout.before
+    r = ca.vertcat(delta[:a] / h, 2.0 * delta[a:a + 3] / h, delta[a + 3:])
+    return ca.Function("free_body_residual", [x, u, x_next, theta], [r, ca.jacobian(r, theta)],
+                       ["x", "u", "x_next", "p"], ["r", "dr_dp"])
 
 
 class ScaledTerms:
@@ -144,6 +228,15 @@ def prediction_residual(model: ExportedModel) -> ca.Function:
                        ["x", "u", "x_next", "p"], ["r", "dr_dp"])
 
 
+def default_free(model: ExportedModel) -> tuple[str, ...]:
+    """The parameters fitted unless told otherwise: the body's, the actuators pinned (the free scale) —
+    ``("mass", "damping")`` on a pivoted body, ``("mass",)`` on a free one. A free body's ``inertia`` is
+    opt-in: a payload whose centre of mass sits off the craft's couples translation and rotation, which a
+    model of the centre of mass cannot express, and a fitted inertia soaks that up (the quadrotor with a
+    payload 2 cm below it: inertia 4.1 for a true 1.5, tracking 3× worse than with the mass alone)."""
+    return ("mass", "damping") if model.space.pivoted else ("mass",)
+
+
 #: The identity orientation as a one-sample NumPy quaternion, where a model's constant terms are read.
 _IDENTITY = (np.ones(1), np.zeros(1), np.zeros(1), np.zeros(1))
 
@@ -197,30 +290,63 @@ class ParameterEstimator:
     """Levenberg–Marquardt on the one-step prediction error of a sliding window.
 
     Args:
-        model: a pivoted (S³) model with rigid-body terms, learned or closed form.
-        free: the parameters to fit (default ``("mass", "damping")``: the gains pinned, see the module
+        model: a pivoted (S³) model with rigid-body terms, or a free body (R³ × S³) whose run-time parameters
+            carry its mass and inertia (module docstring, "A free body"); learned or closed form.
+        free: the parameters to fit (default :func:`default_free`: the gains pinned, see the module
             docstring on the free scale); the others keep their values in ``initial``.
-        initial: starting values (default: :func:`nominal_parameters`).
+        initial: starting values (default: :func:`nominal_parameters`; a free body: every scale 1).
         damping: the Levenberg–Marquardt damping λ to start with (relative to ``diag(JᵀJ)``).
         min_effect: a parameter is fitted only while a relevant change of it moves the window's predictions
-            by at least this (rad/s, RMS; module docstring, "Excitation"); 0 fits whatever the window.
+            by at least this (RMS over the window; module docstring, "Excitation"); 0 fits whatever the
+            window; default :data:`MIN_EFFECT` (rad/s), a free body :data:`FREE_BODY_MIN_EFFECT`.
+        compiled_window: compile the residual over a window of this many transitions to C once, here (a
+            cached library; a shorter window is padded and cut): the learned quadrotor's step over 40
+            transitions took 21 ms as a CasADi SX function, more than its 20 ms period. ``None``: uncompiled.
     """
 
-    def __init__(self, model: ExportedModel, free: Sequence[str] = ("mass", "damping"),
+    def __init__(self, model: ExportedModel, free: Sequence[str] | None = None,
                  initial: Mapping[str, float] | None = None, damping: float = 1e-3,
-                 min_effect: float = MIN_EFFECT) -> None:
-        self.names = parameter_names(model.control_dim)
+                 min_effect: float | None = None, compiled_window: int | None = None) -> None:
+        pivoted = model.space.pivoted
+        free = default_free(model) if free is None else tuple(free)
+        self.names = parameter_names(model.control_dim) if pivoted else free_body_parameter_names(model.control_dim)
         unknown = [name for name in (*free, *(initial or {})) if name not in self.names]
         if unknown or not free:
             raise ValueError(f"unknown or no free parameters {unknown or list(free)}; expected some of {self.names}")
+        if not pivoted:
+            carried = {scaling[0] for block in model.model_parameters.blocks
+                       if (scaling := _free_body_scaling(block.name)) is not None}
+            missing = [name for name in free if name in ("mass", "inertia") and name not in carried]
+            if missing:
+                raise ValueError(f"model {model.name!r} has no run-time parameter block that carries its "
+                                 f"{' or '.join(missing)}; leave {missing} out of free")
         self.free = tuple(free)
         self._free_index = np.array([self.names.index(name) for name in self.free])
-        self._residual = prediction_residual(model)
+        full = prediction_residual(model) if pivoted else free_body_residual(model)
+        # The Jacobian with respect to the free parameters only: a free body's step differentiated for its one
+        # free mass costs a third of the one for all six parameters (the learned quadrotor, 40 transitions).
+        inputs = full.sx_in()  # an SX call inlines the graph
+        r = full(*inputs)[0]
+        self._residual = ca.Function(f"{full.name()}_free", inputs,
+                                     [r, ca.jacobian(r, ca.vertcat(*[inputs[3][i] for i in self._free_index]))])
+        self._residual_size = self._residual.size1_out(0)
         self._mapped: dict[int, ca.Function] = {}
-        self._lower, self._relevant = self._lower_bounds(model), self._relevant_changes(model)
-        self._upper = np.where(np.arange(len(self.names)) == len(self.names) - 1, np.inf, 1.0 / MINIMUM_SCALE)
-        self.min_effect = float(min_effect)
-        values = {**nominal_parameters(model.control_dim), **(initial or {})}
+        self._compiled: tuple[int, ca.Function, ca.Function] | None = None
+        if compiled_window is not None:
+            values = ca.Function(f"{full.name()}_value", inputs, [r])  # a candidate is judged by r alone
+            mapped = [function.map(compiled_window) for function in (self._residual, values)]
+            loaded, _ = compile_functions(mapped, f"adaptation_{'pivoted' if pivoted else 'free'}")
+            self._compiled = (compiled_window, *(loaded[function.name()] for function in mapped))
+        if pivoted:
+            self._lower, self._relevant = self._lower_bounds(model), self._relevant_changes(model)
+            self._upper = np.where(np.arange(len(self.names)) == len(self.names) - 1, np.inf, 1.0 / MINIMUM_SCALE)
+        else:
+            self._lower = np.full(len(self.names), MINIMUM_SCALE)
+            self._upper = np.full(len(self.names), 1.0 / MINIMUM_SCALE)
+            self._relevant = np.array([RELEVANT_CHANGE["mass"], RELEVANT_CHANGE["mass"],
+                                       *[RELEVANT_CHANGE["gain"]] * model.control_dim])
+        self.min_effect = float((MIN_EFFECT if pivoted else FREE_BODY_MIN_EFFECT) if min_effect is None else min_effect)
+        values = {**nominal_estimate(model), **(initial or {})}
         self._p = np.array([float(values[name]) for name in self.names])
         if np.any(self._p < self._lower - 1e-12) or np.any(self._p > self._upper + 1e-12):
             raise ValueError(f"initial parameters {values} are outside their physical bounds")
@@ -253,14 +379,26 @@ class ParameterEstimator:
                   jacobian: bool) -> tuple[np.ndarray, np.ndarray | None]:
         x, u, x_next = window.arrays()
         n = x.shape[1]
-        if n not in self._mapped:
-            self._mapped[n] = self._residual.map(n)
-        r, dr = self._mapped[n](x, u, x_next, p)
+        if self._compiled is not None and n <= self._compiled[0]:
+            # the compiled map takes a whole window: pad with copies of the last transition, cut after
+            pad = self._compiled[0] - n
+            columns = [np.concatenate([a, np.repeat(a[:, -1:], pad, axis=1)], axis=1) for a in (x, u, x_next)]
+            if not jacobian:
+                r = np.asarray(self._compiled[2](*columns, p))[:, :n]
+                return np.asarray(r, dtype=float).T.reshape(-1), None
+            r, dr = self._compiled[1](*columns, p)
+            r, dr = np.asarray(r)[:, :n], np.asarray(dr)[:, :n * self._free_index.size]
+        else:
+            if n not in self._mapped:
+                self._mapped[n] = self._residual.map(n)
+            r, dr = self._mapped[n](x, u, x_next, p)
         r = np.asarray(r, dtype=float).T.reshape(-1)  # transition after transition
         if not jacobian:
             return r, None
-        blocks = np.asarray(dr, dtype=float).reshape(6, n, p.size)  # the map stacks the (6, P) blocks side by side
-        return r, blocks.transpose(1, 0, 2).reshape(6 * n, p.size)[:, self._free_index]
+        size, free = self._residual_size, self._free_index.size
+        # the map stacks the (size, free) blocks side by side
+        blocks = np.asarray(dr, dtype=float).reshape(size, n, free)
+        return r, blocks.transpose(1, 0, 2).reshape(size * n, free)
 
     def prediction_error(self, window: TransitionWindow, parameters: Mapping[str, float] | None = None) -> float:
         """The window's mean squared one-step prediction error at ``parameters`` (default: the estimate)."""
@@ -331,7 +469,11 @@ def rti_parameters(model: ExportedModel, estimate: Mapping[str, float]) -> np.nd
     """The run-time parameter vector of ``model`` (:mod:`fvin_mpc.core.model_parameters`) that steps exactly
     like the estimator's ``estimate`` (``mass``, ``gain<i>``, ``damping``): ``gain_scale_i = gain_i / mass``,
     the dissipation ``(D + 2·damping·I) / mass`` (module docstring, "In the loop"); every other block at the
-    model's own value. ``ValueError`` for a non-zero ``damping`` on a model with no dissipation block."""
+    model's own value. ``ValueError`` for a non-zero ``damping`` on a model with no dissipation block. A free
+    body's estimate (``mass``, ``inertia``, ``gain<i>``) maps block by block (:func:`free_body_vector`)."""
+    if not model.space.pivoted:
+        names = free_body_parameter_names(model.control_dim)
+        return model.model_parameters.check(free_body_vector(model, [float(estimate[name]) for name in names]))
     parameters = model.model_parameters
     mass = float(estimate["mass"])
     gains = np.array([float(estimate[f"gain{i}"]) for i in range(model.control_dim)])
@@ -374,22 +516,25 @@ class AdaptiveRTI:
         controller: a real-time MPC built with run-time model parameters (``rti.model_parameters``, the
             default).
         window: the sliding window's length (transitions).
-        free: the estimator's free parameters; default ``("mass", "damping")`` where the model carries a
-            dissipation block, else ``("mass",)``.
-        min_effect: the estimator's excitation gate (:class:`ParameterEstimator`).
+        free: the estimator's free parameters; default on a pivoted body ``("mass", "damping")`` where the
+            model carries a dissipation block, else ``("mass",)``; on a free body ``("mass",)``.
+        min_effect: the estimator's excitation gate (:class:`ParameterEstimator`; ``None``: its default).
     """
 
     def __init__(self, controller: Any, window: int = 40, free: Sequence[str] | None = None,
-                 min_effect: float = MIN_EFFECT) -> None:
+                 min_effect: float | None = None) -> None:
         model = controller.model
-        if free is None:
+        if free is None and model.space.pivoted:
             free = ("mass", "damping") if dissipation_block(model) is not None else ("mass",)
-        if "damping" in free and dissipation_block(model) is None:
+        if model.space.pivoted and "damping" in free and dissipation_block(model) is None:
             raise ValueError(f"model {model.name!r} has no dissipation among its run-time parameters; an "
                              f"estimated damping could not reach the controller: leave 'damping' out of free")
         self.controller = controller
         self.model = model
-        self.estimator = ParameterEstimator(model, free=free, min_effect=min_effect)
+        # The estimator's residual is compiled where the controller's functions are (``settings.compile``).
+        settings = getattr(controller, "settings", None)
+        compiled = window if getattr(settings, "compile", "none") != "none" else None
+        self.estimator = ParameterEstimator(model, free=free, min_effect=min_effect, compiled_window=compiled)
         self.window = TransitionWindow(window)
         controller.set_parameters(rti_parameters(model, self.estimator.parameters))
         self._previous: tuple[np.ndarray, np.ndarray, float | None] | None = None
