@@ -60,7 +60,6 @@ from fvin_mpc.control.flight import hover_reference
 from fvin_mpc.control.model_export import CompileCount, cache_dir
 from fvin_mpc.core.errors import run_command
 from fvin_mpc.envs.quadrotor_env import QuadrotorEnv
-from fvin_mpc.envs.scenes import resolve_scene
 from fvin_mpc.studies.flight_report import figure_eight, make_controller
 from fvin_mpc.studies.report import markdown_table, write_report
 
@@ -136,6 +135,14 @@ def effective_mass(estimate: dict[str, float]) -> float:
     return float(estimate["mass"] / np.mean(gains))
 
 
+def scene_physics(scene: str) -> Any:
+    """The effects ``scene`` declares (an MJCF path's as the env reads them off the file)."""
+    env = QuadrotorEnv(scene)
+    physics = env.unwrapped.physics
+    env.close()
+    return physics
+
+
 def run_cell(args: argparse.Namespace, model_name: str, arm: str, changed: bool) -> list[dict[str, Any]]:
     """``--runs`` flights of one (model, arm, plant); cached."""
     from tqdm.auto import tqdm
@@ -152,7 +159,7 @@ def run_cell(args: argparse.Namespace, model_name: str, arm: str, changed: bool)
     for i in tqdm(range(args.runs), desc=f"{model_name} {arm} {'changed' if changed else 'unchanged'}", leave=False):
         seed = args.seed + i
         at = change_time(args, seed)
-        physics = resolve_scene(args.scene).physics
+        physics = scene_physics(args.scene)
         if changed and args.change == "payload":
             physics = replace(physics, mass_change=(at, args.mass_scale, tuple(args.shift)))
         elif changed:
