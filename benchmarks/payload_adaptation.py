@@ -155,15 +155,15 @@ def run_cell(args: argparse.Namespace, model_name: str, arm: str, changed: bool)
     path = Path(args.cache_dir) / f"{hashlib.sha256(key.encode()).hexdigest()[:16]}.json"
     if path.is_file():
         return json.loads(path.read_text())["runs"]
-    runs = []
+    runs, declared = [], scene_physics(args.scene)
     for i in tqdm(range(args.runs), desc=f"{model_name} {arm} {'changed' if changed else 'unchanged'}", leave=False):
         seed = args.seed + i
         at = change_time(args, seed)
-        physics = scene_physics(args.scene)
+        physics = declared
         if changed and args.change == "payload":
-            physics = replace(physics, mass_change=(at, args.mass_scale, tuple(args.shift)))
+            physics = replace(declared, mass_change=(at, args.mass_scale, tuple(args.shift)))
         elif changed:
-            physics = replace(physics, actuator_change=(at, args.rotor, args.rotor_scale))
+            physics = replace(declared, actuator_change=(at, args.rotor, args.rotor_scale))
         env = QuadrotorEnv(args.scene, physics=physics)
         overrides = {} if arm in ("estimate", "both", "oracle") else {"disturbance_gain": 0.0}
         rti = make_controller(env, model_name, args.checkpoint, **overrides)
