@@ -56,18 +56,18 @@ def scenes(args: argparse.Namespace) -> list[tuple[str, str]]:
 
 
 def row(name: str, result: dict[str, Any]) -> dict[str, Any]:
-    """One scene's line. ``transitions to success``: the first round that succeeds wherever the closed form does;
+    """One scene's line. ``transitions to success``: the first round that succeeds wherever the closed form does
+    (a record from before the cost stop ended at that round);
     ``to stop``: the round that also met the cost tolerance (a record from before the tolerance was a default
     stopped at success). The learned figures are the final checkpoint's round."""
     closed = result["closed_form"]
     kept = result["rounds"][result.get("final_round", -1)]
-    first = next((r["transitions"] for r in result["rounds"] if r["success"]), None)
     tolerance = result["settings"].get("cost_tolerance")
     return {
         "scene": name,
         "closed form up": f"{closed['closed_up']}/{closed['starts']}",
         "outcome": result["outcome"],
-        "transitions to success": first or "—",
+        "transitions to success": result["transitions_to_success"] or "—",
         "cost tolerance": tolerance or "—",
         "transitions to stop": result.get("transitions_to_stop", result["transitions_to_success"]) or "—",
         "stopped by": stop_reason(result),
