@@ -455,12 +455,41 @@ def build_model(xml_path: str | Path, physics: ScenePhysics | None = None) -> tu
     model = load_model(xml_path)
     if physics is None:
         physics = infer_physics(model)
+    if physics.mass_change is not None and len(physics.mass_change) == 3:
+        model = compiled_for_moving_centres(xml_path, model)
     apply_physics(model, physics)
     if physics.mass_scale != 1.0:
         scale_mass(model, physics.mass_scale)
     model.opt.enableflags |= int(mujoco.mjtEnableBit.mjENBL_ENERGY)
     return model, physics
 
+
+
+def compiled_for_moving_centres(xml_path: str | Path, built: mujoco.MjModel) -> mujoco.MjModel:
+    """``xml_path`` compiled so that a centre of mass moved in place later (``ScenePhysics.mass_change``'s shift)
+    is simulated, with ``built``'s values.
+
+    MuJoCo's compiler marks a body whose inertial frame is its own frame "simple" and gives its degrees of freedom
+    a diagonal mass matrix (``dof_simplenum`` and the sparsity built for it), which ``mj_setConst`` does not
+    rebuild. A free craft whose centre moved 2 cm in place then turned about its frame's origin with the
+    parallel-axis inertia and never accelerated sideways: an 8 % error in its angular acceleration and none of
+    the coupling of translation and rotation (tests/test_scene_physics.py). So the scene is compiled once with
+    every body's inertial frame off its origin (explicit inertials), then ``built``'s values are put back in
+    place: the general mass matrix simulates the centre wherever it is later moved."""
+    spec = mujoco.MjSpec.from_file(str(xml_path))
+    bodies = list(spec.bodies)
+    if len(bodies) != built.nbody:
+        raise SceneError(f"{str(xml_path)!r}: its spec has {len(bodies)} bodies, the compiled model {built.nbody}")
+    for index, body in enumerate(bodies[1:], start=1):
+        body.explicitinertial = True
+        body.mass = float(built.body_mass[index])
+        body.inertia = built.body_inertia[index].copy()
+        body.iquat = built.body_iquat[index].copy()
+        body.ipos = built.body_ipos[index] + np.array([0.0, 0.0, 1e-3])  # any offset: not "simple"
+    model = spec.compile()
+    model.body_ipos[:] = built.body_ipos
+    mujoco.mj_setConst(model, mujoco.MjData(model))
+    return model
 
 
 def scale_mass(model: mujoco.MjModel, scale: float) -> None:

@@ -329,3 +329,32 @@ def test_a_declared_mass_change_comes_at_its_time_and_reset_undoes_it():
         assert np.allclose(env.model.body_subtreemass, 2.0 * built[2])
     with pytest.raises(ValueError, match="mass_change"):
         replace(physics, mass_change=(1.0, 0.0))
+
+
+@pytest.mark.parametrize("shift", [(0.0, 0.0, -0.02), (0.02, 0.0, 0.0)])
+def test_a_moved_centre_of_mass_turns_the_craft_about_its_new_centre(shift):
+    """A payload that moves the centre (``mass_change`` with a shift) is simulated as the craft compiled with
+    that centre: one rotor's thrust turns it by ``J⁻¹ (r × F + yaw)`` about the new centre, and the frame's
+    origin accelerates sideways with it (MuJoCo's compiler had made the centred body "simple": changed in place
+    it kept a diagonal mass matrix and turned 8 % too slowly about its frame's origin, never sideways)."""
+    from fvin_mpc.envs.quadrotor_env import QuadrotorEnv
+    from fvin_mpc.envs.scenes import resolve_scene
+
+    physics = replace(resolve_scene("quadrotor").physics, mass_change=(0.0, 1.5, shift))
+    env = QuadrotorEnv("quadrotor", physics=physics)
+    env.reset(seed=0, options={"hover": True})
+    env.step(env.unwrapped.hover_thrust)  # the change comes with the first period
+    model = env.unwrapped._model
+    assert np.allclose(model.body_ipos[1], shift) and model.body_mass[1] == pytest.approx(0.75)
+    data = mujoco.MjData(model)
+    data.ctrl[:] = [1.0, 0.0, 0.0, 0.0]
+    mujoco.mj_forward(model, data)  # level, at rest, at the origin
+    site = data.site_xpos[model.actuator_trnid[0, 0]]
+    yaw = model.actuator_gear[0, 5]
+    torque = np.cross(site - data.xipos[1], [0.0, 0.0, 1.0]) + [0.0, 0.0, yaw]
+    expected = torque / model.body_inertia[1]  # diagonal inertia, the body's axes
+    np.testing.assert_allclose(data.qacc[3:6], expected, rtol=1e-9)
+    # Newton at the centre: the origin's acceleration is the centre's, F/m, plus α × (origin − centre).
+    centre = np.array([0.0, 0.0, 1.0 / 0.75]) + model.opt.gravity
+    np.testing.assert_allclose(data.qacc[:3], centre + np.cross(expected, -np.asarray(shift)), rtol=1e-9, atol=1e-12)
+    env.close()
