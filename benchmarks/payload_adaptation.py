@@ -53,7 +53,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from benchmarks.adaptation_scenarios import OracleSwitch, mass_at, recovery_time, rms, run_arms
+from benchmarks.adaptation_scenarios import OracleSwitch, cost_key, mass_at, recovery_time, rms, run_arms
 from fvin_mpc.control.adaptation import AdaptiveRTI
 from fvin_mpc.control.closed_loop import run_episode
 from fvin_mpc.control.flight import hover_reference
@@ -101,6 +101,9 @@ def build_parser() -> argparse.ArgumentParser:
                              "gain0 gain1 gain2 gain3)")
     parser.add_argument("--window", type=int, default=40, help="the adaptation's window (default: %(default)s)")
     parser.add_argument("--latency", default="measured", choices=("measured", "none"), help="default: %(default)s")
+    parser.add_argument("--control-cost", default="effect", choices=("effect", "command"),
+                        help="MPCSettings.control_cost: what the control weight charges once the model's parameters "
+                             "move (default: %(default)s)")
     parser.add_argument("--seed", type=int, default=0, help="run i uses seed SEED + i (default: %(default)s)")
     parser.add_argument("--cache-dir", default=str(cache_dir() / "payload-adaptation"), help="default: %(default)s")
     parser.add_argument("--out-dir", default="docs/adaptation/payload", help="default: %(default)s")
@@ -113,9 +116,9 @@ def change_time(args: argparse.Namespace, seed: int) -> float:
 
 
 def true_change(args: argparse.Namespace) -> dict[str, float]:
-    """The oracle's estimate after the change: the payload's mass and inertia, or the worn rotor's gain."""
+    """The oracle's estimate after the change: the payload's mass (its inertia with it), or the worn rotor's gain."""
     if args.change == "payload":
-        return {"mass": args.mass_scale, "inertia": args.mass_scale}
+        return {"mass": args.mass_scale}  # every mass and inertia: the estimate's mass scales both
     return {f"gain{args.rotor}": args.rotor_scale}
 
 
@@ -151,7 +154,12 @@ def run_cell(args: argparse.Namespace, model_name: str, arm: str, changed: bool)
                       args.mass_scale, list(args.shift), args.window, args.latency, args.seed]
                      + ([] if (args.change, args.task, args.free) == ("payload", "figure-eight", None) else
                         [args.change, args.rotor, args.rotor_scale, args.task, args.free])
-                     + ([] if (args.scene, args.checkpoint) == (SCENE, None) else [args.scene, args.checkpoint]))
+                     + ([] if (args.scene, args.checkpoint) == (SCENE, None) else [args.scene, args.checkpoint])
+                     + cost_key(args, arm)
+                     # the estimate's mass scales the inertia too since these cells (before: mass and potential)
+                     + (["mass scales inertia"] if arm in ("adaptation", "both") else [])
+                     # a moved centre is simulated with the general mass matrix since (envs.scenes.build_model)
+                     + (["moving centre compiled"] if any(args.shift) else []))
     path = Path(args.cache_dir) / f"{hashlib.sha256(key.encode()).hexdigest()[:16]}.json"
     if path.is_file():
         return json.loads(path.read_text())["runs"]
@@ -166,7 +174,7 @@ def run_cell(args: argparse.Namespace, model_name: str, arm: str, changed: bool)
             physics = replace(declared, actuator_change=(at, args.rotor, args.rotor_scale))
         env = QuadrotorEnv(args.scene, physics=physics)
         overrides = {} if arm in ("estimate", "both", "oracle") else {"disturbance_gain": 0.0}
-        rti = make_controller(env, model_name, args.checkpoint, **overrides)
+        rti = make_controller(env, model_name, args.checkpoint, control_cost=args.control_cost, **overrides)
         controller: Any = rti
         if arm in ("adaptation", "both"):
             controller = AdaptiveRTI(rti, window=args.window, free=args.free)
@@ -263,7 +271,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     body = "\n".join([
         f"The `{args.scene}` craft flies {task}; at {args.change_at:g}–{args.change_at + 1:g} s (seeded) {what}; "
         f"{args.runs} seeded runs per arm, {args.after:g} s flown after the change; {mode}. Adaptation's free "
-        f"parameters: {', '.join(args.free) if args.free else 'the default (the mass)'}. "
+        f"parameters: {', '.join(args.free) if args.free else 'the default (the mass)'}; the MPC's control cost: "
+        f"{args.control_cost} (`MPCSettings.control_cost`). "
         f"\"unchanged\": the same seeds on the plant that stays (`estimate` arm). RMS position errors against "
         f"{task}: the 2 s before the change, the 2 s after it, and from 2 s after it to the end (its ratio "
         f"to the unchanged run's over the same window: the issue's target is 1.2×). Recovery: from the change until "

@@ -48,11 +48,12 @@ def estimate(mass: float = 1.0, inertia: float = 1.0, gains=(1.0, 1.0, 1.0, 1.0)
 
 def test_the_closed_forms_vector_steps_like_the_heavier_craft(env):
     """``mass`` 1.5 and ``inertia`` 1.3 through the run-time parameters step exactly like the closed form built
-    with 0.75 kg and 1.3 J, gravity unchanged; the rotors' gains go to the gain scale."""
+    with 0.75 kg and 1.5 · 1.3 J (the mass scales the inertia too: uniformly denser), gravity unchanged; the rotors'
+    gains go to the gain scale."""
     model = quadrotor_model(env, true_model=True)
     craft = env.unwrapped.space.closed_form(env.unwrapped.model, env.unwrapped.body_name)
     heavier = dataclasses.replace(craft, mass=1.5 * craft.mass,
-                                  inertia=tuple(tuple(1.3 * v for v in row) for row in craft.inertia))
+                                  inertia=tuple(tuple(1.5 * 1.3 * v for v in row) for row in craft.inertia))
     oracle = from_closed_form(R3S3, heavier, model.step_size, model.newton_iters)
     vector = rti_parameters(model, estimate(1.5, 1.3))
     assert vector[model.model_parameters.slice("gravity")] == pytest.approx([craft.gravity])
@@ -72,8 +73,8 @@ def test_the_closed_forms_vector_steps_like_the_heavier_craft(env):
 
 def test_the_learned_crafts_blocks_scale_its_mass_matrix_potential_and_inertia(env):
     """The learned model's Cholesky factors take the square root: ``M`` and ``J`` scale by the estimate up to
-    their parametrizations' ``ε``; the potential's uniform field and its network's output layer scale with the
-    mass; the step at the nominal estimate is the exported step."""
+    their parametrizations' ``ε`` (``J`` by mass × inertia); the potential's uniform field and its network's output
+    layer scale with the mass; the step at the nominal estimate is the exported step."""
     model = quadrotor_model(env)
     parameters = model.model_parameters
     own = parameters.defaults
@@ -82,7 +83,7 @@ def test_the_learned_crafts_blocks_scale_its_mass_matrix_potential_and_inertia(e
     def block(values, name):
         return values[parameters.slice(name)]
 
-    for name, scale in (("mass_cholesky", 1.5), ("inertia_cholesky", 1.3)):
+    for name, scale in (("mass_cholesky", 1.5), ("inertia_cholesky", 1.5 * 1.3)):
         before = np.array(s3.symmetric_from_cholesky(tuple(block(own, name))), dtype=float)
         after = np.array(s3.symmetric_from_cholesky(tuple(block(vector, name))), dtype=float)
         assert np.allclose(after, scale * before, rtol=1e-12)
@@ -209,3 +210,45 @@ def test_a_worn_rotor_delivers_its_share_from_its_time_and_reset_restores_it():
         QuadrotorEnv("quadrotor", physics=dataclasses.replace(physics, actuator_change=(0.1, 7, 0.7)))
     with pytest.raises(ValueError, match="actuator_change"):
         dataclasses.replace(physics, actuator_change=(0.1, 0, -1.0))
+
+
+def test_the_effect_cost_charges_a_heavier_craft_what_it_charges_the_unchanged_one(env):
+    """``control_cost="effect"`` (the default): the closed-form craft of mass 1.5 (its inertia with it) steps on
+    ``1.5 u`` exactly as the unchanged craft on ``u`` (the step is homogeneous), and its stage residual on ``1.5 u``
+    and the 1.5× goal thrust equals the unchanged craft's — the two control problems are one, in scaled controls, so
+    the heavier craft plans the same motion. Charged in newtons (``"command"``) it pays ``1.5²`` for it. With the
+    exported model's own parameters both costs are the same residual."""
+    from fvin_mpc.control.flight import quadrotor_mpc_settings
+    from fvin_mpc.control.problem import residual_functions
+
+    model = quadrotor_model(env, true_model=True)
+    parameters = model.model_parameters
+    nominal, heavier = parameters.defaults, rti_parameters(model, estimate(1.5))
+    np.testing.assert_allclose(np.ravel(parameters.control_effect(heavier)), np.full(4, 1 / 1.5), rtol=1e-14)
+    worn = rti_parameters(model, estimate(1.5, gains=(0.7, 1.0, 1.0, 1.0)))
+    np.testing.assert_allclose(np.ravel(parameters.control_effect(worn)), np.array([0.7, 1, 1, 1]) / 1.5, rtol=1e-14)
+    learned = quadrotor_model(env)
+    effect = learned.model_parameters.control_effect(rti_parameters(learned, estimate(1.5)))
+    np.testing.assert_allclose(np.ravel(effect), np.full(4, 1 / 1.5), rtol=1e-12)
+
+    rng = np.random.default_rng(3)
+    x = env.unwrapped.goal_state + np.concatenate([rng.normal(0, 0.1, 3), np.zeros(4), rng.normal(0, 1.0, 6)])
+    reference = env.unwrapped.goal_state
+    u, u_goal = rng.uniform(0.5, 2.0, 4), np.full(4, 1.2)
+    stepped = np.asarray(model.parametric_step(x, 1.5 * u, heavier)[0], dtype=float).ravel()
+    unchanged = np.asarray(model.parametric_step(x, u, nominal)[0], dtype=float).ravel()
+    assert np.max(np.abs(stepped - unchanged)) < 1e-12
+
+    def stage(control_cost: str, controls, goal, p) -> np.ndarray:
+        settings = quadrotor_mpc_settings(control_cost=control_cost)
+        function, _ = residual_functions(R3S3.layout, settings, 4, 30.0, None, None, parameters.size,
+                                         parameters.control_effect)
+        return np.asarray(function(x, controls, reference, goal, p), dtype=float).ravel()
+
+    np.testing.assert_allclose(stage("effect", 1.5 * u, 1.5 * u_goal, heavier), stage("effect", u, u_goal, nominal),
+                               rtol=1e-13, atol=1e-15)
+    np.testing.assert_allclose(stage("command", 1.5 * u, 1.5 * u_goal, heavier)[-4:],
+                               1.5 * stage("command", u, u_goal, nominal)[-4:], rtol=1e-13)
+    np.testing.assert_array_equal(stage("effect", u, u_goal, nominal), stage("command", u, u_goal, nominal))
+    with pytest.raises(ValueError, match="control_cost"):
+        quadrotor_mpc_settings(control_cost="newtons")

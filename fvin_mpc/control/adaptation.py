@@ -38,10 +38,12 @@ steps, tests/test_adaptation.py). So a parameter is fitted only while a *relevan
 move the window's predictions by at least ``min_effect`` (rad/s, RMS over the window); otherwise it is
 held this call.
 
-**A free body** (R³ × S³: a craft): the parameters are ``mass`` — the mass matrix and the whole potential
-together (a payload: gravity's pull grows with it) —, ``inertia`` and ``gain<i>``, and they act through the
-model's run-time parameters (:func:`free_body_vector`: a learned model's Cholesky factors take the square root,
-its potential's uniform field and output layer the mass; a closed form's ``mass`` and ``inertia`` directly),
+**A free body** (R³ × S³: a craft): the parameters are ``mass`` — the mass matrix, the whole potential
+(a payload: gravity's pull grows with it) and the rotational inertia together, the body made uniformly denser
+as a pivoted body's ``mass`` —, ``inertia`` (the rotational inertia relative to that) and ``gain<i>``, and they
+act through the model's run-time parameters (:func:`free_body_vector`: a learned model's Cholesky factors take
+the square root, its potential's uniform field and output layer the mass; a closed form's ``mass`` and
+``inertia`` directly),
 so the estimator differentiates the very step the real-time MPC plans with. The residual adds the position
 over the step (m/s) to the pivoted one's. The default fits the mass alone, the gains pinned for the free
 scale (:func:`default_free`). A hovering craft shows its mass — thrust against weight — so the excitation
@@ -105,13 +107,18 @@ def nominal_parameters(control_dim: int) -> dict[str, float]:
     return {name: (0.0 if name == "damping" else 1.0) for name in parameter_names(control_dim)}
 
 
-#: A free body's (R³ × S³) estimator parameters, per kind of run-time parameter block: which estimate scales
-#: the block and with which power (a Cholesky factor takes the square root). ``mass`` scales the mass matrix
-#: and the whole potential together (gravity's pull grows with the mass: a payload), ``inertia`` the
-#: rotational inertia; a learned model's potential network enters through its output layer (``potential_w…``,
-#: linear in ``U``). ``ε`` of a Cholesky parametrization (1e-6 of the mass, 1e-8 of the inertia) does not scale.
-FREE_BODY_SCALING = {"mass": ("mass", 1.0), "mass_cholesky": ("mass", 0.5), "potential_linear": ("mass", 1.0),
-                     "potential_w": ("mass", 1.0), "inertia": ("inertia", 1.0), "inertia_cholesky": ("inertia", 0.5)}
+#: A free body's (R³ × S³) estimator parameters, per kind of run-time parameter block: which estimates scale
+#: the block and with which powers (a Cholesky factor takes the square root). ``mass`` scales the mass matrix,
+#: the whole potential (gravity's pull grows with the mass: a payload) and the rotational inertia together —
+#: the body made uniformly denser, as a pivoted body's ``mass`` — and ``inertia`` the rotational inertia on top
+#: of it (``J · mass · inertia``): a fitted mass alone then keeps the model's inertia per kilogram, and the step
+#: of ``mass`` ``b`` is the unchanged body's on ``u / b``. A learned model's potential network enters through
+#: its output layer (``potential_w…``, linear in ``U``). ``ε`` of a Cholesky parametrization (1e-6 of the mass,
+#: 1e-8 of the inertia) does not scale.
+FREE_BODY_SCALING: dict[str, tuple[tuple[str, float], ...]] = {
+    "mass": (("mass", 1.0),), "mass_cholesky": (("mass", 0.5),), "potential_linear": (("mass", 1.0),),
+    "potential_w": (("mass", 1.0),), "inertia": (("mass", 1.0), ("inertia", 1.0)),
+    "inertia_cholesky": (("mass", 0.5), ("inertia", 0.5))}
 
 
 def free_body_parameter_names(control_dim: int) -> tuple[str, ...]:
@@ -126,16 +133,16 @@ def nominal_estimate(model: ExportedModel) -> dict[str, float]:
     return dict.fromkeys(free_body_parameter_names(model.control_dim), 1.0)
 
 
-def _free_body_scaling(block_name: str) -> tuple[str, float] | None:
+def _free_body_scaling(block_name: str) -> tuple[tuple[str, float], ...]:
     if block_name.startswith("potential_w"):
         return FREE_BODY_SCALING["potential_w"]
-    return FREE_BODY_SCALING.get(block_name)
+    return FREE_BODY_SCALING.get(block_name, ())
 
 
 def free_body_vector(model: ExportedModel, estimate: Sequence[Any]) -> list[Any]:
     """The run-time parameter vector (entries: numbers or CasADi symbols, as ``estimate``'s) of a free body's
     ``model`` that steps like the body with the estimator's ``estimate`` (:func:`free_body_parameter_names`'
-    order): each block of :data:`FREE_BODY_SCALING` at its own value times the scale, the gain scale times
+    order): each block of :data:`FREE_BODY_SCALING` at its own value times its scales, the gain scale times
     the gains, every other block (gravity, a drag's dissipation) at the model's value."""
     names = free_body_parameter_names(model.control_dim)
     value = dict(zip(names, estimate))
@@ -145,11 +152,9 @@ def free_body_vector(model: ExportedModel, estimate: Sequence[Any]) -> list[Any]
         if block.name == GAIN_SCALE:
             entries += [own[i] * value[f"gain{i}"] for i in range(own.size)]
             continue
-        scaling = _free_body_scaling(block.name)
-        if scaling is None:
-            factor = 1.0
-        else:
-            factor = value[scaling[0]] if scaling[1] == 1.0 else value[scaling[0]] ** scaling[1]
+        factor: Any = 1.0
+        for name, power in _free_body_scaling(block.name):
+            factor = factor * (value[name] if power == 1.0 else value[name] ** power)
         entries += [float(entry) * factor for entry in own]
     return entries
 
@@ -315,8 +320,7 @@ class ParameterEstimator:
         if unknown or not free:
             raise ValueError(f"unknown or no free parameters {unknown or list(free)}; expected some of {self.names}")
         if not pivoted:
-            carried = {scaling[0] for block in model.model_parameters.blocks
-                       if (scaling := _free_body_scaling(block.name)) is not None}
+            carried = {name for block in model.model_parameters.blocks for name, _ in _free_body_scaling(block.name)}
             missing = [name for name in free if name in ("mass", "inertia") and name not in carried]
             if missing:
                 raise ValueError(f"model {model.name!r} has no run-time parameter block that carries its "

@@ -224,6 +224,12 @@ class MPCSettings:
         orientation_weight: ``w_q`` on ``c(q) = sin²(angle/2)`` (``4`` ≈ angle² near the goal).
         omega_weight: ``w_ω`` on ``|ω|²``.
         control_weight: ``w_u`` on ``|u|²``, or one weight per control (``Σ w_i u_i²``).
+        control_cost: what the control weight charges when the model's parameters are run-time inputs
+            (:mod:`fvin_mpc.control.problem`): ``"effect"`` (default) the control's effect, ``effect ⊙ (u −
+            u_s)`` with the parameters' gain scale over the mass ratio — an adapted heavier body plans the
+            same motion as before; ``"command"`` the command in the actuator's units, whatever the
+            parameters say. Equal with the exported model's own parameters. The RTI only (IPOPT has no
+            run-time parameters).
         terminal_orientation_weight: ``W_q`` on ``c(q_N)``.
         terminal_omega_weight: ``W_ω`` on ``|ω_N|²``.
         terminal_energy_weight: ``W_E`` on the squared normalized energy deficit ``e(x_N)²``
@@ -288,6 +294,7 @@ class MPCSettings:
     orientation_weight: float = 4.0
     omega_weight: float = 0.1
     control_weight: float | tuple[float, ...] = 0.01
+    control_cost: Literal["effect", "command"] = "effect"
     terminal_orientation_weight: float = 40.0
     terminal_omega_weight: float = 1.0
     terminal_energy_weight: float = 0.0
@@ -326,6 +333,8 @@ class MPCSettings:
         if not isinstance(self.ipopt, IpoptOptions) or not isinstance(self.rti, RTIOptions):
             raise ValueError("ipopt must be an IpoptOptions and rti an RTIOptions, "
                              f"got {type(self.ipopt).__name__} and {type(self.rti).__name__}")
+        if self.control_cost not in ("effect", "command"):
+            raise ValueError(f"unknown control_cost {self.control_cost!r}: 'effect' or 'command'")
         if self.orientation_residual not in ("projector", "rotation-vector"):
             raise ValueError(f"unknown orientation_residual {self.orientation_residual!r}")
         if self.free_axis is not None and (

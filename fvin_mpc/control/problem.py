@@ -10,7 +10,12 @@ term is a sum of squares ``|r|²`` of a residual ``r``, so both use the Gauss–
   ``|·|² = sin²(angle/2)``, or half the rotation vector of the sign-aligned relative rotation,
   ``|·|² = (angle/2)²``; both the same for ``±q`` and ``±g``), ``ω`` against the reference's, and
   ``u − u_s``: the control is measured from the torque that holds the reference in the model
-  corrected by the disturbance estimate (``u_s = u_goal − d̂``, :class:`DisturbanceEstimate`);
+  corrected by the disturbance estimate (``u_s = u_goal − d̂``, :class:`DisturbanceEstimate`) and, with
+  the model's parameters as run-time inputs, charged by its effect (``control_cost="effect"``, the
+  default): ``effect ⊙ (u − u_s)``, each control's acceleration per unit against the exported model's
+  (gain scale over mass ratio). A craft 1.5× as heavy then plans the unchanged craft's motion on 1.5× the
+  thrust at the same cost — charged in newtons it pays 1.5² for the same motion and lags
+  (docs/adaptation.md measures both);
 * **terminal** ``r_N(x, x_ref)`` — the same tracking terms with the terminal weights and, on a pivoted
   body, the normalized energy deficit ``(E(x) − E(g, 0)) / |E(g, 0) − E(rest, 0)|`` (the model's own
   energy: the learned scale cancels);
@@ -26,7 +31,7 @@ The dynamics ``x_{k+1} = F(x_k, u_k + d̂)`` carry the same input-disturbance es
 
 from __future__ import annotations
 
-from typing import Any, Protocol
+from typing import Any, Callable, Protocol
 
 import casadi as ca
 import numpy as np
@@ -70,8 +75,8 @@ def free_axis_projector(free_axis: Any) -> np.ndarray:
 
 
 def residual_functions(layout: StateLayout, settings: Any, control_dim: int, omega_bound: float,
-                       omega_penalty: float | None, energy: tuple[ca.Function, Any] | None, parameter_size: int = 0
-                       ) -> tuple[ca.Function, ca.Function]:
+                       omega_penalty: float | None, energy: tuple[ca.Function, Any] | None, parameter_size: int = 0,
+                       control_effect: Callable[[Any], Any] | None = None) -> tuple[ca.Function, ca.Function]:
     """``(stage, terminal)``: ``stage(x, u, x_ref, u_s) → r`` and ``terminal(x, x_ref) → r_N`` as SX
     functions (module docstring).
 
@@ -84,8 +89,12 @@ def residual_functions(layout: StateLayout, settings: Any, control_dim: int, ome
             residuals; ``None`` leaves it out (a solver that bounds ``ω`` hard).
         energy: ``(E, E(rest, 0))`` for the terminal energy deficit (a pivoted body's ``E`` on its
             states); ``None`` leaves it out. With ``parameter_size``: ``(E(x, p), the rest state)``.
-        parameter_size: ``> 0``: the terminal residual takes the model parameters, ``terminal(x, x_ref, p)``,
-            and the energies (the rest's too) are the parametrized model's.
+        parameter_size: ``> 0``: both residuals take the model parameters, ``stage(x, u, x_ref, u_s, p)`` and
+            ``terminal(x, x_ref, p)``; the energies (the rest's too) are the parametrized model's.
+        control_effect: with ``parameter_size`` and ``settings.control_cost == "effect"``, ``p ↦`` each
+            control's effect relative to the exported model's
+            (:meth:`~fvin_mpc.core.model_parameters.ModelParameters.control_effect`): the control residual
+            becomes ``√w_u ⊙ effect ⊙ (u − u_s)``.
     """
     s, a = settings, layout.before
     qs, ws = layout.quaternion, layout.omega
@@ -108,12 +117,15 @@ def residual_functions(layout: StateLayout, settings: Any, control_dim: int, ome
         return [*translation, np.sqrt(orientation_weight) * attitude, *rate,
                 np.sqrt(omega_weight) * spin]
 
+    p = ca.SX.sym("p", parameter_size)
     control_weights = np.broadcast_to(np.asarray(s.control_weight, dtype=float), (control_dim,))
+    control_residual = ca.DM(np.sqrt(control_weights)) * (u - u_s)
+    if parameter_size and control_effect is not None and getattr(s, "control_cost", "command") == "effect":
+        control_residual = control_residual * control_effect(p)
     stage = ca.vertcat(*tracking(s.position_weight, s.orientation_weight, s.velocity_weight, s.omega_weight),
-                       ca.DM(np.sqrt(control_weights)) * (u - u_s), *excess)
+                       control_residual, *excess)
     terminal = [*tracking(s.terminal_position_weight, s.terminal_orientation_weight, s.terminal_velocity_weight,
                           s.terminal_omega_weight), *excess]
-    p = ca.SX.sym("p", parameter_size)
     if energy is not None:
         energy_function, rest_energy = energy
         if parameter_size:
@@ -126,7 +138,9 @@ def residual_functions(layout: StateLayout, settings: Any, control_dim: int, ome
         goal_energy = energy_function(ca.vertcat(ca.DM.zeros(a), goal, ca.DM.zeros(layout.after)))  # at rest
         terminal.append(np.sqrt(s.terminal_energy_weight) * (energy_function(x) - goal_energy)
                         / ca.fabs(goal_energy - rest_energy))
-    return (ca.Function("stage_residual", [x, u, reference, u_s], [stage], ["x", "u", "x_ref", "u_s"], ["r"]),
+    stage_inputs = [x, u, reference, u_s, p] if parameter_size else [x, u, reference, u_s]
+    return (ca.Function("stage_residual", stage_inputs, [stage], ["x", "u", "x_ref", "u_s", "p"][:len(stage_inputs)],
+                        ["r"]),
             ca.Function("terminal_residual", [x, reference, p] if parameter_size else [x, reference],
                         [ca.vertcat(*terminal)], ["x", "x_ref", "p"][:3 if parameter_size else 2], ["r"]))
 

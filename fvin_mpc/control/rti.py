@@ -378,11 +378,12 @@ class RealTimeMPC(MPC):
         if s.terminal_energy_weight > 0:
             energy = ((self.model.parametric_energy, rest_state) if parametric
                       else (self.model.energy_function, self.model.energy(rest_state)))
-        stage_function, terminal_function = residual_functions(layout, s, m, self.omega_bound, s.rti.omega_penalty,
-                                                               energy, parameter_count if parametric else 0)
-        stage_residual = stage_function(x, u, reference, u_s)
+        stage_function, terminal_function = residual_functions(
+            layout, s, m, self.omega_bound, s.rti.omega_penalty, energy, parameter_count if parametric else 0,
+            self.model.model_parameters.control_effect)
         p_sx = ca.SX.sym("p", parameter_count)
         terminal_parameters = [p_sx] if parametric else []
+        stage_residual = stage_function(x, u, reference, u_s, *terminal_parameters)
         terminal_residual = terminal_function(x, reference, *terminal_parameters)
         regularization = s.rti.regularization
 
@@ -391,7 +392,7 @@ class RealTimeMPC(MPC):
             hessian = 2.0 * ca.mtimes(jacobian.T, jacobian) + regularization * ca.SX.eye(size)
             return at_zero([ca.densify(hessian), 2.0 * ca.mtimes(jacobian.T, residual), ca.sumsqr(residual)])
 
-        stage_cost = ca.Function("rti_stage_cost", [x_bar, u_bar, reference, u_s],
+        stage_cost = ca.Function("rti_stage_cost", [x_bar, u_bar, reference, u_s, *terminal_parameters],
                                  gauss_newton(stage_residual, ca.vertcat(delta, du), stage_size))
         terminal_cost = ca.Function("rti_terminal_cost", [x_bar, reference, *terminal_parameters],
                                     gauss_newton(terminal_residual, delta, nd))
@@ -410,7 +411,7 @@ class RealTimeMPC(MPC):
         else:
             gaps, jacobians = stage_dynamics.map(n)(states[:, :n], controls, states[:, 1:], ca.repmat(d_mx, 1, n),
                                                     *p_stages)
-        hessians, gradients, costs = stage_cost.map(n)(states[:, :n], controls, references[:, :n], u_s_mx)
+        hessians, gradients, costs = stage_cost.map(n)(states[:, :n], controls, references[:, :n], u_s_mx, *p_stages)
         terminal_hessian, terminal_gradient, terminal_value = terminal_cost(states[:, n], references[:, n],
                                                                             *([p_mx] if parametric else []))
         size = stage_size * n

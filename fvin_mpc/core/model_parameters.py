@@ -126,6 +126,26 @@ class ModelParameters:
         where = self.slice(GAIN_SCALE)
         return u * p[where.start:where.stop]
 
+    def mass_ratio(self, p: Any) -> Any:
+        """The free body's mass in ``p`` relative to the model's own: a closed form's ``mass`` over its default,
+        a learned model's ``‖L_M‖²`` over its default's (``tr M`` less the constant ``ε_M``: exact for the
+        uniform scale an estimated mass applies); ``1`` for a model with neither (a pivoted body, whose mass
+        reaches its parameters as a gain scale)."""
+        for name, power in (("mass", 1), ("mass_cholesky", 2)):
+            if any(block.name == name for block in self.blocks):
+                default = np.ravel(next(block.default for block in self.blocks if block.name == name))
+                entries = self.block(p, name)
+                own = float(np.sum(np.abs(default) ** power))
+                return sum(entry ** power for entry in entries) / own
+        return 1.0
+
+    def control_effect(self, p: Any) -> Any:
+        """Each control's effect relative to the exported model's: ``s / mass ratio`` (CasADi column or NumPy
+        vector) — the acceleration a unit of control ``j`` gives, against what it gave before. A body ``b``
+        times as heavy has effect ``1/b``; a rotor at 70 % has ``0.7``."""
+        where = self.slice(GAIN_SCALE)
+        return p[where.start:where.stop] / self.mass_ratio(p)
+
 
 def gain_scale_block(control_dim: int) -> ParameterBlock:
     return ParameterBlock(GAIN_SCALE, np.ones(control_dim))
