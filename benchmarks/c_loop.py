@@ -84,12 +84,15 @@ class BackgroundLoad:
             process.join()
 
 
-def controllers(scene: str, true_model: bool, seed: int, feedback: str = "qp") -> tuple[Any, Any, Any, dict[str, Any],
-                                                                                        int]:
+def controllers(scene: str, true_model: bool, seed: int, feedback: str = "qp", cold_iter: int | None = None
+                ) -> tuple[Any, Any, Any, dict[str, Any], int]:
     """``(env, python loop, C loop, reset options, env seed)`` of ``scene``: a random start, or the
     quadrotor's first random recovery start. ``feedback``: ``RTIOptions.feedback`` of both loops
-    (``"prepared"`` with one iteration per period)."""
-    rti = {} if feedback == "qp" else {"feedback": feedback, "max_iter": 1}
+    (``"prepared"`` with one iteration per period); ``cold_iter``: both loops' ``RTIOptions.cold_iter``
+    (``None``: the scene's)."""
+    rti: dict[str, Any] = {} if feedback == "qp" else {"feedback": feedback, "max_iter": 1}
+    if cold_iter is not None:
+        rti["cold_iter"] = cold_iter
     if resolve_scene(scene).space.pivoted:
         env = scene_env(scene, true_model=true_model)
         python = scene_mpc(env, scene_model(env, true_model=true_model),
@@ -120,12 +123,12 @@ def summary(episode: Any) -> dict[str, Any]:
 
 
 def run(scenes: Sequence[str], true_model: bool, load_workers: int, seed: int,
-        feedback: str = "qp") -> list[dict[str, Any]]:
+        feedback: str = "qp", cold_iter: int | None = None) -> list[dict[str, Any]]:
     from tqdm.auto import tqdm
 
     rows = []
     for scene in tqdm(scenes, desc="scenes"):
-        env, python, c_loop, options, seed = controllers(scene, true_model, seed, feedback)
+        env, python, c_loop, options, seed = controllers(scene, true_model, seed, feedback, cold_iter)
         duration = DURATION_S.get(scene, 8.0)
         row: dict[str, Any] = {"scene": scene, "model": python.model.name, "horizon": python.horizon}
         for condition in ("as is", "loaded"):
@@ -178,14 +181,20 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--feedback", choices=["qp", "prepared"], default="qp",
                         help="RTIOptions.feedback of both loops: qp (the QP at the measured state, the default) or "
                              "prepared (the preparation's Riccati gains applied to it; one iteration per period)")
+    parser.add_argument("--cold-iter", type=int, default=None,
+                        help="RTIOptions.cold_iter of both loops: the iterations per first guess of the cold call, "
+                             "a count (default: the scene's; the quadrotor's is 10, which the C loop runs in full)")
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    rows = run(args.scenes, args.true_model, args.load_workers, args.seed, args.feedback)
+    if args.cold_iter is not None and args.cold_iter < 1:
+        raise ValueError(f"--cold-iter must be >= 1, got {args.cold_iter}")
+    rows = run(args.scenes, args.true_model, args.load_workers, args.seed, args.feedback, args.cold_iter)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps({"command": "python -m benchmarks.c_loop", "feedback": args.feedback,
+                                    "cold_iter": args.cold_iter,
                                     "load_average": os.getloadavg(), "cpus": os.cpu_count(),
                                     "load_workers": args.load_workers, "rows": rows}, indent=1))
     print(markdown(rows))

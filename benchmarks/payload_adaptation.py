@@ -156,8 +156,9 @@ def run_cell(args: argparse.Namespace, model_name: str, arm: str, changed: bool)
                         [args.change, args.rotor, args.rotor_scale, args.task, args.free])
                      + ([] if (args.scene, args.checkpoint) == (SCENE, None) else [args.scene, args.checkpoint])
                      + cost_key(args, arm)
-                     # the estimate's mass scales the inertia too since these cells (before: mass and potential)
-                     + (["mass scales inertia"] if arm in ("adaptation", "both") else [])
+                     # the estimate's mass scales the inertia too since these cells (before: mass and potential),
+                     # and the mass alone is fitted on the translation's rows (adaptation.TRANSLATION_ROWS)
+                     + (["mass scales inertia", "mass on translation"] if arm in ("adaptation", "both") else [])
                      # a moved centre is simulated with the general mass matrix since (envs.scenes.build_model)
                      + (["moving centre compiled"] if any(args.shift) else []))
     path = Path(args.cache_dir) / f"{hashlib.sha256(key.encode()).hexdigest()[:16]}.json"
