@@ -1,4 +1,5 @@
-"""Why a heavier craft told its mass still tracks worse: ``python -m benchmarks.heavier_craft_weights``.
+"""A heavier craft told its mass, its control charged in newtons or by its effect:
+``python -m benchmarks.heavier_craft_weights``.
 
 The figure-eight of the built-in ``quadrotor`` flown by ``fly``'s real-time MPC, waiting mode (the simulator waits
 for the controller: this is about the optimal-control problem, not timing), on four plants and models:
