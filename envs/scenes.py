@@ -477,6 +477,8 @@ def compiled_for_moving_centres(xml_path: str | Path, built: mujoco.MjModel) -> 
     every body's inertial frame off its origin (explicit inertials), then ``built``'s values are put back in
     place: the general mass matrix simulates the centre wherever it is later moved."""
     spec = mujoco.MjSpec.from_file(str(xml_path))
+    # the built values as they are: a file that computes inertias from its geoms would override them
+    spec.compiler.inertiafromgeom = mujoco.mjtInertiaFromGeom.mjINERTIAFROMGEOM_FALSE
     bodies = list(spec.bodies)
     if len(bodies) != built.nbody:
         raise SceneError(f"{str(xml_path)!r}: its spec has {len(bodies)} bodies, the compiled model {built.nbody}")
@@ -487,6 +489,8 @@ def compiled_for_moving_centres(xml_path: str | Path, built: mujoco.MjModel) -> 
         body.iquat = built.body_iquat[index].copy()
         body.ipos = built.body_ipos[index] + np.array([0.0, 0.0, 1e-3])  # any offset: not "simple"
     model = spec.compile()
+    if not (np.allclose(model.body_mass, built.body_mass) and np.allclose(model.body_inertia, built.body_inertia)):
+        raise SceneError(f"{str(xml_path)!r}: recompiled for a moving centre of mass, its masses or inertias changed")
     model.body_ipos[:] = built.body_ipos
     mujoco.mj_setConst(model, mujoco.MjData(model))
     return model
