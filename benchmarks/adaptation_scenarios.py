@@ -81,15 +81,20 @@ def build_parser() -> argparse.ArgumentParser:
                         help="rate jump at the change, rad/s (default: %(default)s)")
     parser.add_argument("--tail", type=float, default=1.0, help="the after-change hold error's window, s, at the "
                         "episode's end (default: %(default)s)")
+    add_loop_options(parser)
+    parser.add_argument("--cache-dir", default=str(cache_dir() / "adaptation-scenarios"), help="default: %(default)s")
+    parser.add_argument("--out-dir", default="docs/adaptation", help="default: %(default)s")
+    return parser
+
+
+def add_loop_options(parser: argparse.ArgumentParser) -> None:
+    """The options of an adapting closed loop that this benchmark and the payload benchmark share."""
     parser.add_argument("--window", type=int, default=40, help="the adaptation's window (default: %(default)s)")
     parser.add_argument("--latency", default="measured", choices=("measured", "none"), help="default: %(default)s")
     parser.add_argument("--control-cost", default="effect", choices=("effect", "command"),
                         help="MPCSettings.control_cost: what the control weight charges once the model's parameters "
                              "move (default: %(default)s)")
     parser.add_argument("--seed", type=int, default=0, help="run i uses seed SEED + i (default: %(default)s)")
-    parser.add_argument("--cache-dir", default=str(cache_dir() / "adaptation-scenarios"), help="default: %(default)s")
-    parser.add_argument("--out-dir", default="docs/adaptation", help="default: %(default)s")
-    return parser
 
 
 #: The arms whose model parameters move during a flight: only there does ``--control-cost`` change the controller

@@ -53,7 +53,15 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from benchmarks.adaptation_scenarios import OracleSwitch, cost_key, mass_at, recovery_time, rms, run_arms
+from benchmarks.adaptation_scenarios import (
+    OracleSwitch,
+    add_loop_options,
+    cost_key,
+    mass_at,
+    recovery_time,
+    rms,
+    run_arms,
+)
 from fvin_mpc.control.adaptation import AdaptiveRTI
 from fvin_mpc.control.closed_loop import run_episode
 from fvin_mpc.control.flight import hover_reference
@@ -99,12 +107,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--free", nargs="+", default=None,
                         help="the adaptation's free parameters (default: the estimator's, the mass; e.g. "
                              "gain0 gain1 gain2 gain3)")
-    parser.add_argument("--window", type=int, default=40, help="the adaptation's window (default: %(default)s)")
-    parser.add_argument("--latency", default="measured", choices=("measured", "none"), help="default: %(default)s")
-    parser.add_argument("--control-cost", default="effect", choices=("effect", "command"),
-                        help="MPCSettings.control_cost: what the control weight charges once the model's parameters "
-                             "move (default: %(default)s)")
-    parser.add_argument("--seed", type=int, default=0, help="run i uses seed SEED + i (default: %(default)s)")
+    add_loop_options(parser)
     parser.add_argument("--cache-dir", default=str(cache_dir() / "payload-adaptation"), help="default: %(default)s")
     parser.add_argument("--out-dir", default="docs/adaptation/payload", help="default: %(default)s")
     return parser
