@@ -382,9 +382,9 @@ class RealTimeMPC(MPC):
             layout, s, m, self.omega_bound, s.rti.omega_penalty, energy, parameter_count if parametric else 0,
             self.model.model_parameters.control_effect)
         p_sx = ca.SX.sym("p", parameter_count)
-        terminal_parameters = [p_sx] if parametric else []
-        stage_residual = stage_function(x, u, reference, u_s, *terminal_parameters)
-        terminal_residual = terminal_function(x, reference, *terminal_parameters)
+        cost_parameters = [p_sx] if parametric else []
+        stage_residual = stage_function(x, u, reference, u_s, *cost_parameters)
+        terminal_residual = terminal_function(x, reference, *cost_parameters)
         regularization = s.rti.regularization
 
         def gauss_newton(residual: Any, variables: Any, size: int) -> list[Any]:
@@ -392,9 +392,9 @@ class RealTimeMPC(MPC):
             hessian = 2.0 * ca.mtimes(jacobian.T, jacobian) + regularization * ca.SX.eye(size)
             return at_zero([ca.densify(hessian), 2.0 * ca.mtimes(jacobian.T, residual), ca.sumsqr(residual)])
 
-        stage_cost = ca.Function("rti_stage_cost", [x_bar, u_bar, reference, u_s, *terminal_parameters],
+        stage_cost = ca.Function("rti_stage_cost", [x_bar, u_bar, reference, u_s, *cost_parameters],
                                  gauss_newton(stage_residual, ca.vertcat(delta, du), stage_size))
-        terminal_cost = ca.Function("rti_terminal_cost", [x_bar, reference, *terminal_parameters],
+        terminal_cost = ca.Function("rti_terminal_cost", [x_bar, reference, *cost_parameters],
                                     gauss_newton(terminal_residual, delta, nd))
 
         # --- the whole QP over the horizon, stage-wise, δ_0 eliminated (it is fixed by the measurement):
