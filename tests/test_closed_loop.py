@@ -118,6 +118,35 @@ def test_prepare_is_called_after_each_delivered_torque():
     assert controller.prepared == controller.calls == 10
 
 
+def test_the_garbage_collector_stays_out_of_the_controllers_time():
+    """No automatic collection inside the call or the preparation (a full one took longer than a period);
+    on again between them, and as it was after the episode, with nothing left frozen."""
+    import gc
+
+    class Watching(ConstantController):
+        seen: list[bool] = []
+
+        def __call__(self, x):
+            self.seen.append(gc.isenabled())
+            return super().__call__(x)
+
+        def prepare(self) -> None:
+            self.seen.append(gc.isenabled())
+
+    class Stepping(RigidBodyEnv):
+        enabled: list[bool] = []
+
+        def step(self, *args, **kwargs):
+            self.enabled.append(gc.isenabled())
+            return super().step(*args, **kwargs)
+
+    controller = Watching(0.0)
+    run_episode(Stepping("pendulum"), controller, 0.5, START, latency="measured")
+    assert controller.seen == [False] * 20
+    assert Stepping.enabled and all(Stepping.enabled)
+    assert gc.isenabled() and gc.get_freeze_count() == 0
+
+
 @pytest.mark.parametrize("latency", ["soon", -0.01, float("nan")])
 def test_invalid_latency_raises(latency):
     with pytest.raises(ValueError):

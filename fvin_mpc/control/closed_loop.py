@@ -19,14 +19,23 @@ iteration's preparation phase) has it called right after its torque is delivered
 the period's busy time but not to the latency of that torque. If the controller is still busy at the
 next control instant (feedback + preparation ``> h``: a *deadline miss*), that observation is skipped
 and the controller samples at the first control instant at which it is free.
+
+Python's cyclic garbage collector is kept out of the controller's time, as a real-time loop in Python
+must keep it: automatic collection is off from the observation until the preparation returns and runs,
+if due, while the plant steps (the period's spare time); the objects that exist when the episode
+starts are frozen (``gc.freeze``), so those collections scan only what the episode made. A full
+collection of a benchmark's heap took 16–49 ms, longer than the quadrotor's 20 ms period: inside a
+controller call it was a deadline miss about once in 10,000 periods (docs/adaptation.md).
 """
 
 from __future__ import annotations
 
+import gc
 import math
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import Any, Literal, Protocol, Union
+from typing import Any, Iterator, Literal, Protocol, Union
 
 import numpy as np
 
@@ -133,6 +142,32 @@ class Episode:
     states: np.ndarray | None = None
 
 
+@contextmanager
+def _without_collection() -> Iterator[None]:
+    """No automatic cyclic garbage collection inside (module docstring); one that came due runs at the
+    first allocation after."""
+    enabled = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if enabled:
+            gc.enable()
+
+
+@contextmanager
+def _setup_frozen() -> Iterator[None]:
+    """The objects that exist now out of the collector's scans until the end (module docstring); a caller's
+    own freeze is left as it was."""
+    ours = gc.get_freeze_count() == 0
+    gc.freeze()
+    try:
+        yield
+    finally:
+        if ours:
+            gc.unfreeze()
+
+
 def run_episode(env: Any, controller: Controller, duration_s: float, reset_options: dict[str, Any] | None = None,
                 seed: int | None = None, render: bool = False, progress: bool = False,
                 description: str = "closed loop", latency: Latency = "none") -> tuple[Episode, list[np.ndarray]]:
@@ -178,72 +213,74 @@ def run_episode(env: Any, controller: Controller, duration_s: float, reset_optio
     free_at = 0  # global sub-step from which the controller can take an observation
     misses = skipped = 0
     bar = tqdm(range(periods), desc=description, disable=not progress, leave=False)
-    for k in bar:
-        first = k * frame_skip
-        if first >= free_at:
-            if set_time is not None:
-                set_time(times[-1] - times[0])
-            cpu_start = time.thread_time()
-            start = time.perf_counter()
-            u, controller_info = controller(observation)
-            feedback = time.perf_counter() - start
-            preparation = 0.0
-            if prepare is not None:
-                start = time.perf_counter()
-                prepare()
-                preparation = time.perf_counter() - start
-            cpu.append(time.thread_time() - cpu_start)
-            feedbacks.append(feedback)
-            u = np.asarray(u, dtype=float)
-            if latency == "none":
-                delay, busy_time = 0.0, 0.0
-            elif fixed_delay is None:  # measured
-                delay, busy_time = feedback, feedback + preparation
+    with _setup_frozen():
+        for k in bar:
+            first = k * frame_skip
+            if first >= free_at:
+                if set_time is not None:
+                    set_time(times[-1] - times[0])
+                with _without_collection():  # a collection due runs while the plant steps
+                    cpu_start = time.thread_time()
+                    start = time.perf_counter()
+                    u, controller_info = controller(observation)
+                    feedback = time.perf_counter() - start
+                    preparation = 0.0
+                    if prepare is not None:
+                        start = time.perf_counter()
+                        prepare()
+                        preparation = time.perf_counter() - start
+                    cpu.append(time.thread_time() - cpu_start)
+                feedbacks.append(feedback)
+                u = np.asarray(u, dtype=float)
+                if latency == "none":
+                    delay, busy_time = 0.0, 0.0
+                elif fixed_delay is None:  # measured
+                    delay, busy_time = feedback, feedback + preparation
+                else:
+                    delay = busy_time = fixed_delay
+                if busy_time > base.dt:
+                    misses += 1
+                pending = (first + _substeps(delay, substep), u)
+                free_at = first + _substeps(busy_time, substep)
+                wall.append(feedback + preparation)
+                compute.append(delay)
+                busy.append(feedback + preparation if fixed_delay is None else busy_time)
+                success.append(bool(controller_info.get("success", True)))
+                fallback.append(controller_info.get("fallback"))
+                recorded.append({key: controller_info[key] for key in RECORDED_INFO if key in controller_info})
+            else:  # still busy with an earlier observation: this one is lost
+                skipped += 1
+                wall.append(np.nan)
+                compute.append(np.nan)
+                busy.append(np.nan)
+                cpu.append(np.nan)
+                feedbacks.append(np.nan)
+                success.append(True)
+                fallback.append(None)
+                recorded.append({"skipped": True})
+            segments: list[tuple[int, np.ndarray]] = []
+            if pending is not None and pending[0] < first + frame_skip:
+                held = max(pending[0] - first, 0)
+                if held > 0:
+                    segments.append((held, applied))
+                applied, pending = pending[1], None
+                segments.append((frame_skip - held, applied))
             else:
-                delay = busy_time = fixed_delay
-            if busy_time > base.dt:
-                misses += 1
-            pending = (first + _substeps(delay, substep), u)
-            free_at = first + _substeps(busy_time, substep)
-            wall.append(feedback + preparation)
-            compute.append(delay)
-            busy.append(feedback + preparation if fixed_delay is None else busy_time)
-            success.append(bool(controller_info.get("success", True)))
-            fallback.append(controller_info.get("fallback"))
-            recorded.append({key: controller_info[key] for key in RECORDED_INFO if key in controller_info})
-        else:  # still busy with an earlier observation: this one is lost
-            skipped += 1
-            wall.append(np.nan)
-            compute.append(np.nan)
-            busy.append(np.nan)
-            cpu.append(np.nan)
-            feedbacks.append(np.nan)
-            success.append(True)
-            fallback.append(None)
-            recorded.append({"skipped": True})
-        segments: list[tuple[int, np.ndarray]] = []
-        if pending is not None and pending[0] < first + frame_skip:
-            held = max(pending[0] - first, 0)
-            if held > 0:
-                segments.append((held, applied))
-            applied, pending = pending[1], None
-            segments.append((frame_skip - held, applied))
-        else:
-            segments.append((frame_skip, applied))
-        observation, reward, terminated, info = _step_segments(env, segments, frame_skip)
-        if observe_applied is not None:
-            observe_applied(sum(count * np.asarray(torque, dtype=float) for count, torque in segments) / frame_skip)
-        observations.append(observation)
-        controls.append(applied.copy())
-        rewards.append(reward)
-        angle.append(info["angle_from_goal"])
-        energy.append(info["energy"])
-        times.append(info["time"])
-        if render:
-            frames.append(env.render())
-        bar.set_postfix(angle=f"{angle[-1]:.2f}", ms=f"{1e3 * wall[-1]:.1f}")
-        if terminated:
-            break
+                segments.append((frame_skip, applied))
+            observation, reward, terminated, info = _step_segments(env, segments, frame_skip)
+            if observe_applied is not None:
+                observe_applied(sum(count * np.asarray(torque, dtype=float) for count, torque in segments) / frame_skip)
+            observations.append(observation)
+            controls.append(applied.copy())
+            rewards.append(reward)
+            angle.append(info["angle_from_goal"])
+            energy.append(info["energy"])
+            times.append(info["time"])
+            if render:
+                frames.append(env.render())
+            bar.set_postfix(angle=f"{angle[-1]:.2f}", ms=f"{1e3 * wall[-1]:.1f}")
+            if terminated:
+                break
     states = np.array(observations)
     episode = Episode(
         time=np.asarray(times) - times[0],
