@@ -34,7 +34,10 @@ its figure-eight scaled to it. ``--change rotor``: instead, rotor ``--rotor`` de
 its command from the change on (``ScenePhysics.actuator_change``); the oracle is told that rotor's gain.
 ``--task hover`` holds the hover point instead of flying the figure-eight. ``--free gain0 gain1 gain2 gain3``
 fits the rotors' gains instead of the mass (the free scale then pins the mass: a uniform payload is all four
-rotors weaker alike). The mass figure is the estimate's mass over the rotors' mean gain in every case.
+rotors weaker alike). ``--low-rank 1 --free lowrank`` (learned model only) fits rank-1 corrections of the
+networks' output layers instead (the rotors' force and torque networks: 24 numbers on the built-in craft;
+``fvin_mpc.core.model_parameters.low_rank_blocks``), a black-box set beside the physical ones. The mass figure is
+the estimate's mass over the rotors' mean gain in every case.
 
 Each finished (model, arm, plant) is cached under ``--cache-dir``; ``--out-dir`` gets
 ``payload-adaptation.{md,json}``.
@@ -106,7 +109,10 @@ def build_parser() -> argparse.ArgumentParser:
                         help="default: %(default)s")
     parser.add_argument("--free", nargs="+", default=None,
                         help="the adaptation's free parameters (default: the estimator's, the mass; e.g. "
-                             "gain0 gain1 gain2 gain3)")
+                             "gain0 gain1 gain2 gain3, or lowrank with --low-rank)")
+    parser.add_argument("--low-rank", type=int, default=0,
+                        help="the learned model's output-layer corrections of this rank among its run-time "
+                             "parameters (default: %(default)s, none)")
     add_loop_options(parser)
     parser.add_argument("--cache-dir", default=str(cache_dir() / "payload-adaptation"), help="default: %(default)s")
     parser.add_argument("--out-dir", default="docs/adaptation/payload", help="default: %(default)s")
@@ -159,6 +165,7 @@ def run_cell(args: argparse.Namespace, model_name: str, arm: str, changed: bool)
                         [args.change, args.rotor, args.rotor_scale, args.task, args.free])
                      + ([] if (args.scene, args.checkpoint) == (SCENE, None) else [args.scene, args.checkpoint])
                      + cost_key(args, arm)
+                     + ([f"low rank {args.low_rank}"] if args.low_rank else [])
                      # the estimate's mass scales the inertia too since these cells (before: mass and potential),
                      # and the mass alone is fitted on the translation's rows (adaptation.TRANSLATION_ROWS)
                      + (["mass scales inertia", "mass on translation"] if arm in ("adaptation", "both") else [])
@@ -178,7 +185,8 @@ def run_cell(args: argparse.Namespace, model_name: str, arm: str, changed: bool)
             physics = replace(declared, actuator_change=(at, args.rotor, args.rotor_scale))
         env = QuadrotorEnv(args.scene, physics=physics)
         overrides = {} if arm in ("estimate", "both", "oracle") else {"disturbance_gain": 0.0}
-        rti = make_controller(env, model_name, args.checkpoint, control_cost=args.control_cost, **overrides)
+        rti = make_controller(env, model_name, args.checkpoint, low_rank=args.low_rank,
+                              control_cost=args.control_cost, **overrides)
         controller: Any = rti
         if arm in ("adaptation", "both"):
             controller = AdaptiveRTI(rti, window=args.window, free=args.free)
@@ -254,6 +262,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     if args.runs < 1 or args.after <= 2.0 or not args.mass_scale > 0.0:
         raise ValueError("need --runs >= 1, --after > 2 s and --mass-scale > 0")
+    if args.low_rank and args.models != ["learned"]:
+        raise ValueError("--low-rank corrects the learned model's networks: add --models learned")
     rows = run_arms(args, run_cell, summarize)
     command = "python -m benchmarks.payload_adaptation " + " ".join(
         shlex.quote(a) for a in (argv if argv is not None else sys.argv[1:]))

@@ -23,6 +23,7 @@ from fvin_mpc.control.closed_loop import run_episode
 from fvin_mpc.control.flight import quadrotor_model
 from fvin_mpc.control.model_export import CompileCount, from_closed_form
 from fvin_mpc.core import s3
+from fvin_mpc.core.checkpoint import load_checkpoint
 from fvin_mpc.core.space import R3S3
 from fvin_mpc.envs.quadrotor_env import QuadrotorEnv
 from fvin_mpc.envs.scenes import resolve_scene
@@ -272,3 +273,38 @@ def test_a_worn_rotor_is_not_read_as_mass_by_the_mass_alone():
     assert np.linalg.norm(episode.states[-1, :3] - plant.unwrapped.hover_point) < 0.05
     assert ParameterEstimator(controller.model, free=("mass", "inertia")).rows == tuple(range(12))
     plant.close()
+
+
+def test_the_low_rank_corrections_are_fitted_where_the_mass_cannot_reach(env):
+    """The learned craft exported with rank-1 output-layer corrections: the nominal estimate maps to the exported
+    parameters, ``free=("lowrank",)`` names all 24 entries, unbounded; on transitions of the model with a known
+    correction (the rotors' force layer's strongest direction 20 % weaker) the fit lowers the window's error by
+    more than a hundredfold, every kept step lowering it."""
+    from fvin_mpc.control.adaptation import expand_free, low_rank_names
+
+    model = quadrotor_model(env, low_rank=1)
+    names = low_rank_names(model)
+    assert len(names) == 24 and names[0] == "lowrank_force_w2[0,0]"
+    assert rti_parameters(model, nominal_estimate(model)) == pytest.approx(model.model_parameters.defaults)
+    assert expand_free(model, ("mass", "lowrank_gain_w2")) == ("mass", *names[12:])
+    force_layer = load_checkpoint(resolve_scene("quadrotor").default_checkpoint).weights["force_w2"]
+    strongest = np.linalg.svd(force_layer)[0][:, 0]
+    truth_estimate = {**nominal_estimate(model), **{f"lowrank_force_w2[{i},0]": -0.2 * strongest[i] for i in range(12)}}
+    truth = rti_parameters(model, truth_estimate)
+    rng = np.random.default_rng(2)
+    window, x = TransitionWindow(40), env.unwrapped.goal_state.copy()
+    for _ in range(40):
+        u = env.unwrapped.hover_thrust + rng.uniform(-0.3, 0.3, 4)
+        x_next = np.asarray(model.parametric_step(x, u, truth)[0], dtype=float).ravel()
+        window.add(x, u, x_next)
+        x = x_next
+    estimator = ParameterEstimator(model, free=("lowrank",))
+    before = estimator.prediction_error(window)
+    for _ in range(10):
+        update = estimator.update(window)
+        if update.accepted:
+            assert update.error_after < update.error_before
+    assert estimator.prediction_error(window) < before / 100.0
+    with pytest.raises(ValueError, match="no low-rank corrections"):
+        ParameterEstimator(quadrotor_model(env), free=("lowrank",))
+

@@ -133,3 +133,39 @@ def test_wrong_parameter_values_are_refused_with_the_reason(models):
         parameters.values(mass_gravity=np.nan)
     with pytest.raises(ValueError, match=f"need {parameters.size} finite values"):
         parameters.values(np.ones(3))
+
+
+def test_a_low_rank_output_layer_correction_steps_as_the_checkpoint_with_it():
+    """``low_rank=2`` adds a zero ``out × 2`` block per network output layer but the potential's (a parameter
+    whole already): at zero the step is the exported one; with ``C`` it is the checkpoint whose layer is
+    ``W + C Σ_2 V_2ᵀ`` (the layer's own two strongest directions); ``C = α U_2`` scales those directions by
+    ``1 + α``. A negative rank is refused."""
+    from fvin_mpc.core.model_parameters import learned_parameters, low_rank_basis
+
+    checkpoint = load_checkpoint("quadrotor_fixed-inertia")
+    model = export.from_checkpoint(checkpoint, low_rank=2)
+    blocks = {b.name: b.default for b in model.model_parameters.blocks}
+    assert {name: value.shape for name, value in blocks.items() if name.startswith("lowrank_")} == {
+        "lowrank_force_w2": (12, 2), "lowrank_gain_w2": (12, 2)}
+    assert not any(np.any(value) for name, value in blocks.items() if name.startswith("lowrank_"))
+    rng = np.random.default_rng(6)
+    correction = {name: rng.normal(0.0, 0.3, (12, 2)) for name in ("lowrank_force_w2", "lowrank_gain_w2")}
+    weights = dict(checkpoint.weights)
+    for name, c in correction.items():
+        layer = name.removeprefix("lowrank_")
+        weights[layer] = np.asarray(weights[layer]) + c @ low_rank_basis(weights[layer], 2)
+    rebuilt = export.from_checkpoint(dataclasses.replace(checkpoint, weights=weights))
+    p = model.model_parameters.values(**correction)
+    for x in random_states(model, 6, seed=7):
+        u = np.full(4, 1.2)
+        np.testing.assert_allclose(step(model.parametric_step, x, u, model.model_parameters.defaults),
+                                   step(model.step, x, u), rtol=0.0, atol=1e-13)
+        changed = step(model.parametric_step, x, u, p)
+        np.testing.assert_allclose(changed, step(rebuilt.step, x, u), rtol=0.0, atol=1e-12)
+        assert np.max(np.abs(changed - step(model.step, x, u))) > 1e-4
+    layer = np.asarray(checkpoint.weights["gain_w2"])
+    left, singular, right = np.linalg.svd(layer)
+    scaled = layer + (0.5 * left[:, :2]) @ low_rank_basis(layer, 2)
+    np.testing.assert_allclose(np.linalg.svd(scaled, compute_uv=False)[:2], 1.5 * singular[:2], rtol=1e-12)
+    with pytest.raises(ValueError, match="rank is >= 0"):
+        learned_parameters(checkpoint.weights, checkpoint.config, low_rank=-1)

@@ -49,6 +49,12 @@ over the step (m/s) to the pivoted one's. The default fits the mass alone, the g
 scale (:func:`default_free`), on the translation's rows of the residual (:data:`TRANSLATION_ROWS`). A
 hovering craft shows its mass — thrust against weight — so the excitation gate rarely holds it.
 
+**Low-rank corrections of the networks** (a learned free body exported with ``low_rank`` ``r``,
+:func:`~fvin_mpc.core.model_parameters.low_rank_blocks`): the entries of ``C`` in ``W → W + C Σ_r V_rᵀ`` of each
+output layer but the potential's, additive (zero: the model as trained), unbounded, fitted on every residual row —
+``free=("lowrank",)`` or a block's name. A black-box set beside the physical ones: it knows no mass, so the control
+cost's effect (``MPCSettings.control_cost``) does not follow it.
+
 The interface is a plain ``{name: value}`` dict (:attr:`ParameterEstimator.parameters`), for a real-time
 MPC that takes model parameters at run time to read at its next preparation.
 
@@ -77,15 +83,18 @@ from fvin_mpc.control.model_export import ExportedModel, compile_functions
 from fvin_mpc.control.rti import local_state
 from fvin_mpc.core import s3
 from fvin_mpc.core.backend import get_ops
-from fvin_mpc.core.model_parameters import GAIN_SCALE
+from fvin_mpc.core.model_parameters import GAIN_SCALE, LOW_RANK_PREFIX
 from fvin_mpc.core.space import R3S3, S3, chart_local
 
 CA = get_ops("casadi")
 #: The smallest value ``mass`` and a gain may take: a tenth of the model's (the largest: ten times).
 MINIMUM_SCALE = 0.1
 #: The change of each kind of parameter that matters: 10 % of a mass or a gain; for ``damping``, the
-#: damping that changes the decay rate ``d/J`` by 0.1 s⁻¹ (times the model's inertia, in its units).
-RELEVANT_CHANGE = {"mass": 0.1, "gain": 0.1, "damping_rate": 0.1}
+#: damping that changes the decay rate ``d/J`` by 0.1 s⁻¹ (times the model's inertia, in its units); for an
+#: entry of a low-rank output-layer correction, a tenth of a unit direction's entry (``0.1/√out``: the
+#: correction ``C = α U_r`` scales the layer's strongest directions by ``1 + α``, and ``U_r``'s columns have
+#: unit norm).
+RELEVANT_CHANGE = {"mass": 0.1, "gain": 0.1, "damping_rate": 0.1, "low_rank": 0.1}
 #: ``min_effect``'s default (rad/s): the learned pendulum's own one-step RMS prediction error near upright
 #: (2.0e-3 rad/s, checked in tests/test_adaptation.py) — a parameter that moves the predictions by less than
 #: the model's own error cannot be told from it.
@@ -129,16 +138,28 @@ FREE_BODY_SCALING: dict[str, tuple[tuple[str, float], ...]] = {
 TRANSLATION_ROWS = (0, 1, 2, 6, 7, 8)
 
 
-def free_body_parameter_names(control_dim: int) -> tuple[str, ...]:
-    """Every estimator parameter of a free body with ``control_dim`` actuators, in vector order."""
-    return ("mass", "inertia", *(f"gain{i}" for i in range(control_dim)))
+def free_body_parameter_names(model: ExportedModel) -> tuple[str, ...]:
+    """Every estimator parameter of a free body, in vector order: ``mass``, ``inertia``, ``gain<i>``, then the
+    entries of the low-rank output-layer corrections a learned model exported with ``low_rank`` carries
+    (:func:`low_rank_names`)."""
+    return ("mass", "inertia", *(f"gain{i}" for i in range(model.control_dim)), *low_rank_names(model))
+
+
+def low_rank_names(model: ExportedModel) -> tuple[str, ...]:
+    """The flat names of ``model``'s low-rank output-layer corrections
+    (:func:`~fvin_mpc.core.model_parameters.low_rank_blocks`: ``lowrank_gain_w2[0,0]``, …), additive, zero
+    when nothing changed; ``()`` for a model exported without them."""
+    return tuple(name for block in model.model_parameters.blocks if block.name.startswith(LOW_RANK_PREFIX)
+                 for name in block.flat_names)
 
 
 def nominal_estimate(model: ExportedModel) -> dict[str, float]:
-    """The estimate that leaves ``model`` as it is, pivoted (:func:`nominal_parameters`) or free (every scale 1)."""
+    """The estimate that leaves ``model`` as it is, pivoted (:func:`nominal_parameters`) or free (every scale 1,
+    every low-rank correction 0)."""
     if model.space.pivoted:
         return nominal_parameters(model.control_dim)
-    return dict.fromkeys(free_body_parameter_names(model.control_dim), 1.0)
+    additive = set(low_rank_names(model))
+    return {name: 0.0 if name in additive else 1.0 for name in free_body_parameter_names(model)}
 
 
 def _free_body_scaling(block_name: str) -> tuple[tuple[str, float], ...]:
@@ -151,14 +172,18 @@ def free_body_vector(model: ExportedModel, estimate: Sequence[Any]) -> list[Any]
     """The run-time parameter vector (entries: numbers or CasADi symbols, as ``estimate``'s) of a free body's
     ``model`` that steps like the body with the estimator's ``estimate`` (:func:`free_body_parameter_names`'
     order): each block of :data:`FREE_BODY_SCALING` at its own value times its scales, the gain scale times
-    the gains, every other block (gravity, a drag's dissipation) at the model's value."""
-    names = free_body_parameter_names(model.control_dim)
+    the gains, a low-rank correction as estimated, every other block (gravity, a drag's dissipation) at the
+    model's value."""
+    names = free_body_parameter_names(model)
     value = dict(zip(names, estimate))
     entries: list[Any] = []
     for block in model.model_parameters.blocks:
         own = np.ravel(block.default)
         if block.name == GAIN_SCALE:
             entries += [own[i] * value[f"gain{i}"] for i in range(own.size)]
+            continue
+        if block.name.startswith(LOW_RANK_PREFIX):
+            entries += [value[name] for name in block.flat_names]
             continue
         factor: Any = 1.0
         for name, power in _free_body_scaling(block.name):
@@ -177,7 +202,7 @@ def free_body_residual(model: ExportedModel) -> ca.Function:
     layout, h = model.space.layout, model.step_size
     n, m = model.state_dim, model.control_dim
     x, x_next, u = ca.SX.sym("x", n), ca.SX.sym("x_next", n), ca.SX.sym("u", m)
-    theta = ca.SX.sym("theta", len(free_body_parameter_names(m)))
+    theta = ca.SX.sym("theta", len(free_body_parameter_names(model)))
     p = ca.vertcat(*free_body_vector(model, [theta[i] for i in range(theta.shape[0])]))
     predicted = model.parametric_step(x, u, p)[0]
     delta = local_state(layout, predicted, x_next)
@@ -239,6 +264,20 @@ def prediction_residual(model: ExportedModel) -> ca.Function:
     r = ca.vertcat(*[2.0 * c / model.step_size for c in rotation], x_next[4:7] - predicted[4:7])
     return ca.Function("prediction_residual", [x, u, x_next, p], [r, ca.jacobian(r, p)],
                        ["x", "u", "x_next", "p"], ["r", "dr_dp"])
+
+
+def expand_free(model: ExportedModel, free: Sequence[str]) -> tuple[str, ...]:
+    """``free`` with each low-rank block's name (``lowrank_gain_w2``) or ``"lowrank"`` (all of them) replaced by
+    its entries' flat names; the other names as given."""
+    blocks = {block.name: block.flat_names for block in model.model_parameters.blocks
+              if block.name.startswith(LOW_RANK_PREFIX)}
+    expanded: list[str] = []
+    for name in free:
+        if name == "lowrank" and not blocks:
+            raise ValueError(f"model {model.name!r} carries no low-rank corrections; export it with low_rank > 0")
+        expanded += [entry for block in blocks for entry in blocks[block]] if name == "lowrank" else (
+            list(blocks[name]) if name in blocks else [name])
+    return tuple(expanded)
 
 
 def default_free(model: ExportedModel) -> tuple[str, ...]:
@@ -321,8 +360,8 @@ class ParameterEstimator:
                  initial: Mapping[str, float] | None = None, damping: float = 1e-3,
                  min_effect: float | None = None, compiled_window: int | None = None) -> None:
         pivoted = model.space.pivoted
-        free = default_free(model) if free is None else tuple(free)
-        self.names = parameter_names(model.control_dim) if pivoted else free_body_parameter_names(model.control_dim)
+        self.names = parameter_names(model.control_dim) if pivoted else free_body_parameter_names(model)
+        free = default_free(model) if free is None else expand_free(model, free)
         unknown = [name for name in (*free, *(initial or {})) if name not in self.names]
         if unknown or not free:
             raise ValueError(f"unknown or no free parameters {unknown or list(free)}; expected some of {self.names}")
@@ -356,10 +395,14 @@ class ParameterEstimator:
             self._lower, self._relevant = self._lower_bounds(model), self._relevant_changes(model)
             self._upper = np.where(np.arange(len(self.names)) == len(self.names) - 1, np.inf, 1.0 / MINIMUM_SCALE)
         else:
-            self._lower = np.full(len(self.names), MINIMUM_SCALE)
-            self._upper = np.full(len(self.names), 1.0 / MINIMUM_SCALE)
+            scales, additive = 2 + model.control_dim, len(self.names) - 2 - model.control_dim  # mass, inertia, gains
+            self._lower = np.concatenate([np.full(scales, MINIMUM_SCALE), np.full(additive, -np.inf)])
+            self._upper = np.concatenate([np.full(scales, 1.0 / MINIMUM_SCALE), np.full(additive, np.inf)])
+            low_rank = [RELEVANT_CHANGE["low_rank"] / math.sqrt(block.default.shape[0])
+                        for block in model.model_parameters.blocks if block.name.startswith(LOW_RANK_PREFIX)
+                        for _ in range(block.size)]
             self._relevant = np.array([RELEVANT_CHANGE["mass"], RELEVANT_CHANGE["mass"],
-                                       *[RELEVANT_CHANGE["gain"]] * model.control_dim])
+                                       *[RELEVANT_CHANGE["gain"]] * model.control_dim, *low_rank])
         self.min_effect = float((MIN_EFFECT if pivoted else FREE_BODY_MIN_EFFECT) if min_effect is None else min_effect)
         values = {**nominal_estimate(model), **(initial or {})}
         self._p = np.array([float(values[name]) for name in self.names])
@@ -487,7 +530,7 @@ def rti_parameters(model: ExportedModel, estimate: Mapping[str, float]) -> np.nd
     model's own value. ``ValueError`` for a non-zero ``damping`` on a model with no dissipation block. A free
     body's estimate (``mass``, ``inertia``, ``gain<i>``) maps block by block (:func:`free_body_vector`)."""
     if not model.space.pivoted:
-        names = free_body_parameter_names(model.control_dim)
+        names = free_body_parameter_names(model)
         return model.model_parameters.check(free_body_vector(model, [float(estimate[name]) for name in names]))
     parameters = model.model_parameters
     mass = float(estimate["mass"])

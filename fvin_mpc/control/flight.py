@@ -71,24 +71,28 @@ def quadrotor_mpc_settings(**overrides: Any) -> MPCSettings:
 
 
 def quadrotor_model(
-    env: Any, checkpoint: Any = None, true_model: bool = False, newton_iters: int | None = None
+    env: Any, checkpoint: Any = None, true_model: bool = False, newton_iters: int | None = None, low_rank: int = 0
 ) -> ExportedModel:
     """The planning model on the quadrotor ``env``: a learned R³ × S³ ``checkpoint`` (object, shipped
     name or path; default the scene's), or with ``true_model`` the closed form read off the MJCF
-    (:func:`fvin_mpc.core.quadrotor.from_mujoco`) at the env's control period.
+    (:func:`fvin_mpc.core.quadrotor.from_mujoco`) at the env's control period. ``low_rank``: a learned
+    model's rank-``r`` output-layer corrections among its run-time parameters
+    (:func:`~fvin_mpc.control.model_export.from_checkpoint`).
 
     Raises:
         ValueError: the model's step differs from the env's control period, or it is not a free body.
     """
 
     base = env.unwrapped
+    if true_model and low_rank:
+        raise ValueError("low_rank corrects a learned model's networks; the closed form has none")
     if true_model:
         craft = base.space.closed_form(base.model, base.body_name)
         model = export.from_closed_form(
             base.space, craft, base.dt, newton_iters or 2, name=f"true_{base.scene_spec.name}"
         )
     else:
-        model = export.from_checkpoint(checkpoint or base.scene_spec.default_checkpoint, newton_iters)
+        model = export.from_checkpoint(checkpoint or base.scene_spec.default_checkpoint, newton_iters, low_rank)
     model.require(base.space, by=f"scene {base.scene_spec.name!r}")
     if abs(model.step_size - base.dt) > 1e-9:
         raise ValueError(f"the model's step {model.step_size} s differs from the env's control period {base.dt} s")

@@ -43,10 +43,12 @@ from fvin_mpc.core.backend import get_ops
 from fvin_mpc.core.checkpoint import Checkpoint, load_checkpoint
 from fvin_mpc.core.model_parameters import (
     GAIN_SCALE,
+    LOW_RANK_PREFIX,
     ModelParameters,
     body_parameters,
     gain_scale_block,
     learned_parameters,
+    low_rank_basis,
     parametrized_body,
 )
 from fvin_mpc.core.space import R3S3, S3, ConfigurationSpace, get_space, require
@@ -208,18 +210,26 @@ def parametrized_weights(weights: Mapping[str, Any], parameters: ModelParameters
         if block.default.ndim == 2:
             rows, cols = block.default.shape
             entries = ca.reshape(entries, cols, rows).T  # CasADi reshapes column-major; p is row-major
+        if block.name.startswith(LOW_RANK_PREFIX):  # W + C Σ_r V_rᵀ (model_parameters.low_rank_blocks)
+            layer = block.name[len(LOW_RANK_PREFIX):]
+            basis = low_rank_basis(weights[layer], block.default.shape[1])
+            replaced[layer] = ca.DM(np.asarray(weights[layer], dtype=float)) + ca.mtimes(entries, ca.DM(basis))
+            continue
         replaced[block.name] = entries
     return replaced
 
 
-def from_checkpoint(checkpoint: Checkpoint | str | Path, newton_iters: int | None = None) -> ExportedModel:
+def from_checkpoint(checkpoint: Checkpoint | str | Path, newton_iters: int | None = None,
+                    low_rank: int = 0) -> ExportedModel:
     """Export a checkpoint (object, shipped name or path) of any registered configuration space
-    with ``K = newton_iters`` (default: the checkpoint's)."""
+    with ``K = newton_iters`` (default: the checkpoint's); ``low_rank`` ``r > 0`` adds rank-``r``
+    corrections of the networks' output layers to the run-time parameters
+    (:func:`~fvin_mpc.core.model_parameters.low_rank_blocks`)."""
     if not isinstance(checkpoint, Checkpoint):
         checkpoint = load_checkpoint(checkpoint)
     label = checkpoint.path.name if checkpoint.path is not None else "checkpoint"
     space, config, weights = checkpoint.space, checkpoint.config, checkpoint.weights
-    parameters = learned_parameters(weights, config)
+    parameters = learned_parameters(weights, config, low_rank)
 
     def parametrize(p: Any) -> Any:
         return space.learned_terms(parametrized_weights(weights, parameters, p), config, CA)

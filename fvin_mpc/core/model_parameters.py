@@ -13,6 +13,12 @@ otherwise; an exported function that takes ``p`` builds the **same** terms code 
   ``D = L_D L_Dᵀ``, a constant inertia's or mass's Cholesky factor, the uniform field of a free body's
   potential) and the output layer of the potential network ``potential_w{L}`` (the scale of each hidden
   feature's energy: linear in ``U``).
+* a learned model exported with ``low_rank=r`` (opt-in): a rank-``r`` correction of each other network's
+  output layer (:func:`low_rank_blocks`) — ``W → W + C Σ_r V_rᵀ`` with ``W = U Σ Vᵀ`` the layer's own
+  singular value decomposition and the block ``C`` (``out × r``, default zeros) the run-time input: linear in
+  ``C``, and ``C = α U_r`` scales the layer's ``r`` strongest directions by ``1 + α``. What a black-box
+  adaptation of a network fits (issue 29's "low-rank subset of the networks' last layers"), beside the
+  physical blocks.
 * a closed-form body: the fields its class names in ``PARAMETERS`` (pivoted body: ``inertia``,
   ``center_of_mass``, ``mass_gravity``, ``damping``; quadrotor: ``mass``, ``inertia``, ``gravity``). A
   scalar that is zero (no damping) stays a constant: it switches a term off, and a symbol would put the
@@ -35,6 +41,8 @@ import numpy as np
 GAIN_SCALE = "gain_scale"
 #: The weights of a learned model that are parameters when it has them (explicit physical quantities).
 LEARNED_PARAMETER_WEIGHTS = ("dissipation_cholesky", "inertia_cholesky", "mass_cholesky", "potential_linear")
+#: The name of a low-rank correction's block is this prefix and its layer's weight name (``lowrank_gain_w2``).
+LOW_RANK_PREFIX = "lowrank_"
 
 
 @dataclass(frozen=True)
@@ -151,15 +159,40 @@ def gain_scale_block(control_dim: int) -> ParameterBlock:
     return ParameterBlock(GAIN_SCALE, np.ones(control_dim))
 
 
-def learned_parameters(weights: Mapping[str, Any], config: Any) -> ModelParameters:
+def learned_parameters(weights: Mapping[str, Any], config: Any, low_rank: int = 0) -> ModelParameters:
     """The parameters of a learned model (module docstring): the gain scale, the weights of
-    :data:`LEARNED_PARAMETER_WEIGHTS` it has, and the potential network's output layer."""
+    :data:`LEARNED_PARAMETER_WEIGHTS` it has, the potential network's output layer, and with ``low_rank`` ``r``
+    the rank-``r`` corrections of the other networks' output layers (:func:`low_rank_blocks`)."""
     names = [name for name in LEARNED_PARAMETER_WEIGHTS if name in weights]
     output = f"potential_w{config.hidden_layers}"
     if output in weights:
         names.append(output)
     return ModelParameters((gain_scale_block(config.control_dim),
-                            *(ParameterBlock(name, np.array(weights[name], dtype=float)) for name in names)))
+                            *(ParameterBlock(name, np.array(weights[name], dtype=float)) for name in names),
+                            *low_rank_blocks(weights, config.hidden_layers, low_rank)))
+
+
+def low_rank_blocks(weights: Mapping[str, Any], hidden_layers: int, rank: int) -> tuple[ParameterBlock, ...]:
+    """Zero blocks ``lowrank_{net}_w{L}`` (``out × min(rank, out, width)``) for every network's output layer
+    ``{net}_w{L}`` but the potential's (a parameter whole already); ``()`` for ``rank`` 0."""
+    if rank < 0:
+        raise ValueError(f"a low-rank correction's rank is >= 0, got {rank}")
+    layers = sorted(name for name in weights
+                    if name.endswith(f"_w{hidden_layers}") and not name.startswith("potential_"))
+    if rank == 0:
+        return ()
+    if not layers:
+        raise ValueError("low_rank: this model has no network output layer to correct")
+    shapes = {name: np.shape(weights[name]) for name in layers}
+    return tuple(ParameterBlock(LOW_RANK_PREFIX + name, np.zeros((shapes[name][0], min(rank, *shapes[name]))))
+                 for name in layers)
+
+
+def low_rank_basis(layer: Any, rank: int) -> np.ndarray:
+    """``Σ_r V_rᵀ`` (``rank × width``) of the output layer ``layer = U Σ Vᵀ``: its ``rank`` strongest input
+    directions, each times its singular value — the right factor of :func:`low_rank_blocks`' corrections."""
+    _, singular, right = np.linalg.svd(np.asarray(layer, dtype=float), full_matrices=False)
+    return singular[:rank, None] * right[:rank]
 
 
 def body_parameters(body: Any) -> ModelParameters:

@@ -67,13 +67,13 @@ def make_env(render: bool = False, scene: Any = SCENE) -> Any:
     return QuadrotorEnv(scene, render_mode="rgb_array" if render else None)
 
 
-def make_controller(env: Any, model_kind: str, checkpoint: Any = None, **overrides: Any) -> Any:
+def make_controller(env: Any, model_kind: str, checkpoint: Any = None, low_rank: int = 0, **overrides: Any) -> Any:
     """The MPC planning with ``model_kind`` (``"learned"`` or ``"closed-form"``) on ``env`` (the RTI unless
-    ``overrides`` name another ``solver``)."""
+    ``overrides`` name another ``solver``); ``low_rank`` as :func:`~fvin_mpc.control.flight.quadrotor_model`'s."""
 
     if model_kind not in MODELS:
         raise ValueError(f"model must be one of {MODELS}, got {model_kind!r}")
-    model = quadrotor_model(env, checkpoint, true_model=model_kind == "closed-form")
+    model = quadrotor_model(env, checkpoint, true_model=model_kind == "closed-form", low_rank=low_rank)
     base = env.unwrapped
     overrides.setdefault("control_weight", scaled_control_weight(base.scales))
     return quadrotor_mpc(env, model, quadrotor_mpc_settings(**overrides))
