@@ -69,7 +69,7 @@ from fvin_mpc.control.adaptation import AdaptiveRTI
 from fvin_mpc.control.closed_loop import run_episode
 from fvin_mpc.control.flight import hover_reference
 from fvin_mpc.control.model_export import CompileCount, cache_dir
-from fvin_mpc.core.errors import run_command
+from fvin_mpc.core.errors import UsageError, run_command
 from fvin_mpc.envs.quadrotor_env import QuadrotorEnv
 from fvin_mpc.studies.flight_report import figure_eight, make_controller
 from fvin_mpc.studies.report import markdown_table, write_report
@@ -261,9 +261,9 @@ def summarize(args: argparse.Namespace, model_name: str, arm: str, runs: list[di
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     if args.runs < 1 or args.after <= 2.0 or not args.mass_scale > 0.0:
-        raise ValueError("need --runs >= 1, --after > 2 s and --mass-scale > 0")
+        raise UsageError("need --runs >= 1, --after > 2 s and --mass-scale > 0")
     if args.low_rank and args.models != ["learned"]:
-        raise ValueError("--low-rank corrects the learned model's networks: add --models learned")
+        raise UsageError("--low-rank corrects the learned model's networks: add --models learned")
     rows = run_arms(args, run_cell, summarize)
     command = "python -m benchmarks.payload_adaptation " + " ".join(
         shlex.quote(a) for a in (argv if argv is not None else sys.argv[1:]))

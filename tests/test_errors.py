@@ -163,6 +163,16 @@ def test_other_bad_counts_are_one_line_errors(command, argv, message, capsys):
 
 
 
+@pytest.mark.parametrize("module, argv, message", [
+    ("benchmarks.adaptation_heldout", ["--windows", "0"], "must be >= 1"),
+    ("benchmarks.payload_adaptation", ["--low-rank", "1"], "add --models learned"),
+])
+def test_the_adaptation_benchmarks_refuse_what_they_cannot_run(module, argv, message, capsys):
+    import importlib
+
+    assert message in refused(importlib.import_module(module).main, argv, capsys)
+
+
 @pytest.mark.parametrize("scene, collector, allowed", [
     ("pendulum", "bursts", "swings, random"),
     ("quadrotor", "swings", "bursts, stabilized-flight"),
