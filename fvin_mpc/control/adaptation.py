@@ -273,10 +273,12 @@ def expand_free(model: ExportedModel, free: Sequence[str]) -> tuple[str, ...]:
               if block.name.startswith(LOW_RANK_PREFIX)}
     expanded: list[str] = []
     for name in free:
-        if name == "lowrank" and not blocks:
+        if name != "lowrank":
+            expanded += blocks.get(name, (name,))
+        elif blocks:
+            expanded += [entry for entries in blocks.values() for entry in entries]
+        else:
             raise ValueError(f"model {model.name!r} carries no low-rank corrections; export it with low_rank > 0")
-        expanded += [entry for block in blocks for entry in blocks[block]] if name == "lowrank" else (
-            list(blocks[name]) if name in blocks else [name])
     return tuple(expanded)
 
 
