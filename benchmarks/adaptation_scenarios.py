@@ -64,7 +64,8 @@ MODELS = ("closed-form", "learned")
 #: The recovery threshold never goes below this (rad): a hold within 0.6° is held.
 RECOVERY_FLOOR = 0.01
 #: Part of every cache key: raise it when what a cell computes changes (the cache cannot see code changes).
-CACHE_VERSION = 2
+#: 3: the disturbance estimate's default gain 0.1 (was 0.5).
+CACHE_VERSION = 3
 #: The true mass after the change, relative to the model's body.
 TRUE_MASS = 2.0
 

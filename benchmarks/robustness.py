@@ -81,6 +81,11 @@ FALLEN_RAD = 1.5
 TARGET_POINTS = 5.0
 
 
+#: Part of every cell's cache path: raise it when what a cell computes changes (the cache cannot see code changes).
+#: 2: the disturbance estimate's default gain 0.1 (was 0.5).
+CACHE_VERSION = 2
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m benchmarks.robustness", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -184,7 +189,7 @@ def run(args: argparse.Namespace) -> dict[tuple[str, str, str], dict[str, Any]]:
     """Every (scene, condition, controller) cell, from the cache where it is there."""
     cells: dict[tuple[str, str, str], dict[str, Any]] = {}
     for scene in args.scenes:
-        cache = args.cache_dir / f"{scene}-default" / f"{args.solver}-{args.latency}" / (
+        cache = args.cache_dir / f"{scene}-default-v{CACHE_VERSION}" / f"{args.solver}-{args.latency}" / (
             f"seed{args.seed}-starts{args.starts}-T{args.duration:g}")
         cache.mkdir(parents=True, exist_ok=True)
         for name in args.controllers:
