@@ -183,7 +183,7 @@ def build_parser() -> argparse.ArgumentParser:
                              "prepared (the preparation's Riccati gains applied to it; one iteration per period)")
     parser.add_argument("--cold-iter", type=int, default=None,
                         help="RTIOptions.cold_iter of both loops: the iterations per first guess of the cold call, "
-                             "a count (default: the scene's; the quadrotor's is 10, which the C loop runs in full)")
+                             "a count (default: the scene's; the quadrotor's is 2, which the C loop runs in full)")
     return parser
 
 

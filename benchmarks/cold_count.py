@@ -1,7 +1,8 @@
 """What the cold start's iteration count buys a craft: ``python -m benchmarks.cold_count``.
 
 The C loop bounds its cold call by counts (``RTIOptions.cold_iter`` iterations per first guess), not by the
-wall clock; on a quadrotor the scene's 10 take longer than a 20 ms period (docs/c-controller.md). This flies
+wall clock; on a quadrotor 10 took longer than a 20 ms period, which is why its default is now 2
+(docs/c-controller.md). This flies
 ``fly``'s recovery starts and its figure-eight in **waiting mode** (the simulator waits for the controller: the
 count's effect on the plan, not on timing; the wall-clock budgets lifted, as the C loop has none) with each
 ``--cold-iters`` value, both models, on the built-in craft or any flyer (``--scenes``, with ``--checkpoints``

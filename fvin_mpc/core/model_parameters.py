@@ -177,10 +177,10 @@ def low_rank_blocks(weights: Mapping[str, Any], hidden_layers: int, rank: int) -
     ``{net}_w{L}`` but the potential's (a parameter whole already); ``()`` for ``rank`` 0."""
     if rank < 0:
         raise ValueError(f"a low-rank correction's rank is >= 0, got {rank}")
-    layers = sorted(name for name in weights
-                    if name.endswith(f"_w{hidden_layers}") and not name.startswith("potential_"))
     if rank == 0:
         return ()
+    layers = sorted(name for name in weights
+                    if name.endswith(f"_w{hidden_layers}") and not name.startswith("potential_"))
     if not layers:
         raise ValueError("low_rank: this model has no network output layer to correct")
     shapes = {name: np.shape(weights[name]) for name in layers}
