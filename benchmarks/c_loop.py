@@ -13,6 +13,16 @@ goal.
 The C loop is called as one ``ctypes`` call per phase (no ``info`` dict); the Python loop as the
 studies call it. The Python loop runs with the scene's own wall-clock budgets; the C loop is bounded
 by iteration counts, so a cold first call may take longer in C than Python's cold budget allows.
+
+Paired periods (``paired`` in the JSON; the speed-up figures of the report). On this shared machine a
+core's speed moves by up to 2× from one second to the next, and episodes run one after the other see
+different machines. So the observations of one waiting-mode episode are replayed to both loops, period
+by period, in alternating order (the two are equal to 1e-9, so they stay on the same plan), and each
+period also times the generated functions alone on the Python loop's prepared plan — the linearization,
+the QP and the two one-step predictions, the bare compiled calls on filled buffers: what both loops run. Reported:
+medians of each and the median of the per-period ratios Python / C and Python / generated. The C loop
+saves only what is around the generated code, so the second ratio bounds the speed-up any driver of this
+generated code can reach.
 """
 
 from __future__ import annotations
@@ -106,6 +116,57 @@ def controllers(scene: str, true_model: bool, seed: int, feedback: str = "qp", c
     return env, python, LeanC(CRealTimeMPC(python)), options, seed
 
 
+def generated_period(python: Any) -> float:
+    """Seconds the compiled functions of one warm period take by themselves on ``python``'s prepared plan:
+    ``rti_linearize_blocks``, ``rti_feedback`` (the QP's interior-point iterations) and ``rti_predict`` twice
+    (the shifted plan's last node and the disturbance estimate's prediction) — the ``"qp"`` feedback with
+    one iteration. Each is called once to fill its buffers, then timed as the bare compiled call (no Python
+    conversions)."""
+    plan, linearization = python._plan, python._linearization
+    python._linearize_at(plan)
+    python._feedback(plan.states.T, plan.controls.T, plan.states[0], *linearization[:6])
+    python._predict(plan.states[-1], plan.controls[-1])
+    calls = (python._linearize._evaluate, python._feedback._evaluate, python._predict_with_parameters._evaluate,
+             python._predict_with_parameters._evaluate)
+    start = time.perf_counter()
+    for call in calls:
+        call()
+    return time.perf_counter() - start
+
+
+def paired(env: Any, python: Any, c_loop: Any, duration: float, options: dict[str, Any], seed: int
+           ) -> dict[str, Any]:
+    """The observations of one waiting-mode episode replayed to both loops period by period (module
+    docstring): medians of the warm periods (feedback + preparation) of each loop and of the generated code
+    alone, µs, the medians of the per-period ratios, and the largest difference of the two loops' controls
+    (0 to rounding unless the Python loop's wall-clock budgets bound its cold call)."""
+    if python.settings.rti.max_iter != 1 or python.settings.rti.feedback != "qp":
+        raise ValueError("the paired periods time the 'qp' feedback with one iteration per period")
+    episode, _ = run_episode(env, python, duration, options, seed, latency="none")
+    loops = {"python": python, "c": c_loop}
+    for loop in loops.values():
+        loop.reset()
+    periods: dict[str, list[float]] = {"python": [], "c": [], "generated": []}
+    difference = 0.0
+    for index, (t, x) in enumerate(zip(episode.time[:-1], episode.states[:-1])):
+        order = ("python", "c") if index % 2 == 0 else ("c", "python")
+        controls = {}
+        for name in order:
+            loop = loops[name]
+            loop.set_time(float(t))
+            start = time.perf_counter()
+            controls[name] = loop(x)[0]
+            loop.prepare()
+            periods[name].append(time.perf_counter() - start)
+        difference = max(difference, float(np.max(np.abs(controls["python"] - controls["c"]))))
+        periods["generated"].append(generated_period(python) if python._plan is not None else float("nan"))
+    warm = {name: 1e6 * np.asarray(values[1:]) for name, values in periods.items()}  # the first is cold
+    return {"periods": len(warm["c"]), "control_difference_max": difference,
+            **{f"{name}_us_median": float(np.nanmedian(values)) for name, values in warm.items()},
+            "speed-up": float(np.nanmedian(warm["python"] / warm["c"])),
+            "speed-up bound": float(np.nanmedian(warm["python"] / warm["generated"]))}
+
+
 def summary(episode: Any) -> dict[str, Any]:
     feedback, busy = 1e6 * episode.feedback_s, 1e6 * episode.busy_s
     cpu = 1e6 * episode.cpu_s
@@ -145,6 +206,8 @@ def run(scenes: Sequence[str], true_model: bool, load_workers: int, seed: int,
             row[f"feedback speed-up {condition}"] = python_row["feedback_us_median"] / c_row["feedback_us_median"]
             row[f"period CPU speed-up {condition}"] = (python_row["period_cpu_us_median"]
                                                        / c_row["period_cpu_us_median"])
+        single = python.settings.rti.max_iter == 1 and python.settings.rti.feedback == "qp"
+        row["paired"] = paired(env, python, c_loop, duration, options, seed) if single else None
         rows.append(row)
     return rows
 
@@ -166,6 +229,17 @@ def markdown(rows: list[dict[str, Any]]) -> str:
                              f"| {r['period_cpu_us_median']:.0f} "
                              f"| {r['deadline_misses']} of {r['periods']} ({int(r['cold_miss'])}) | {r['success']} "
                              f"| {speed} |")
+    lines += ["", "Paired periods (the same observations to both loops, alternating; waiting mode):", "",
+              "| scene | periods | Python µs | C µs | generated code alone µs | speed-up Python / C "
+              "| bound: Python / generated | largest control difference |", "|---|---|---|---|---|---|---|---|"]
+    for row in rows:
+        p = row["paired"]
+        if p is None:
+            lines.append(f"| {row['scene']} | — (several iterations or the prepared feedback a period) | | | | | | |")
+            continue
+        lines.append(f"| {row['scene']} | {p['periods']} | {p['python_us_median']:.0f} | {p['c_us_median']:.0f} "
+                     f"| {p['generated_us_median']:.0f} | {p['speed-up']:.2f}× | {p['speed-up bound']:.2f}× "
+                     f"| {p['control_difference_max']:.1e} |")
     return "\n".join(lines)
 
 

@@ -86,13 +86,14 @@ def build_parser() -> argparse.ArgumentParser:
 def _recovery(env: Any, controller: Any, starts: int, seed: int, latency: str) -> list[dict[str, Any]]:
     rows, _, _ = run_recovery(env, controller, starts, seed, latency, progress=False)
     keys = ("recovered", "time_to_recover_s", "final_position_m", "final_angle_rad", "solve_time_ms",
-            "deadline_misses", "controller_failures")
+            "deadline_misses", "first_period_missed", "controller_failures")
     return [{key: row[key] for key in keys if key in row} for row in rows]
 
 
 def _figure_eight(env: Any, controller: Any, latency: str) -> dict[str, Any]:
     tracking, _, _ = run_figure_eight(env, controller, latency, progress=False)
-    keys = ("rms_position_m", "max_position_m", "deadline_misses", "controller_failures", "amplitude_m", "period_s")
+    keys = ("rms_position_m", "max_position_m", "deadline_misses", "first_period_missed", "controller_failures",
+            "amplitude_m", "period_s")
     return {key: tracking[key] for key in keys if key in tracking}
 
 
@@ -260,6 +261,8 @@ def summarize(records: list[dict[str, Any]], verdicts: dict[int, dict[str, Any]]
                                              for rec, ratio in zip(records, ratios)),
         "deadline_misses_learned": _misses(records, "learned"),
         "deadline_misses_closed": _misses(records, "closed_form"),
+        "first_period_misses_learned": _first_period_misses(records, "learned"),
+        "first_period_misses_closed": _first_period_misses(records, "closed_form"),
         "draws_filtered": len(verdicts), "draws_rejected": len(rejected),
         "rejection_rate": len(rejected) / len(verdicts) if verdicts else None,
     }
@@ -270,6 +273,20 @@ def _misses(records: list[dict[str, Any]], model: str) -> int | None:
     counts = [row.get("deadline_misses") for rec in records
               for row in [*rec[model]["recovery"], rec[model]["figure_eight"]]]
     return int(sum(counts)) if counts and all(isinstance(c, (int, float)) for c in counts) else None
+
+
+def _first_period_misses(records: list[dict[str, Any]], model: str) -> int | None:
+    """How many of ``model``'s deadline misses were a flight's cold first period (a robot runs the cold start
+    before its clock starts); ``None`` in waiting mode or for flights cached before this was recorded."""
+    flags = [row.get("first_period_missed") for rec in records
+             for row in [*rec[model]["recovery"], rec[model]["figure_eight"]]]
+    return int(sum(flags)) if flags and all(isinstance(f, bool) for f in flags) else None
+
+
+def _misses_text(records: list[dict[str, Any]], model: str) -> str:
+    """Deadline misses with, in brackets, how many were cold first periods (where recorded)."""
+    misses, first = _misses(records, model), _first_period_misses(records, model)
+    return "—" if misses is None else f"{misses}" + ("" if first is None else f" ({first})")
 
 
 def _call_ms(flights: dict[str, Any]) -> float:
@@ -333,9 +350,11 @@ def write_report(records: list[dict[str, Any]], verdicts: dict[int, dict[str, An
         "![flyer family](flyer-family.png)", "",
         f"Figure-eight within 1.5× the closed form's RMS on {s['figure_eight_within_1_5']}/{s['scenes']} scenes; "
         f"below it on {s['drag_scenes_below_closed_form']} of the {s['drag_scenes']} scenes with drag. Deadline misses "
-        f"over all flights, learned / closed form: {fmt(s['deadline_misses_learned'], 'd')} / "
-        f"{fmt(s['deadline_misses_closed'], 'd')}"
-        + (" (not measured in waiting mode)." if s["deadline_misses_learned"] is None else "."), "",
+        f"over all flights, learned / closed form: {_misses_text(records, 'learned')} / "
+        f"{_misses_text(records, 'closed_form')}"
+        + (" (not measured in waiting mode)." if s["deadline_misses_learned"] is None
+           else " (in brackets: of them the flights' cold first periods, which a robot runs before its clock starts)."
+           if s["first_period_misses_learned"] is not None else "."), "",
         "| seed | mass kg | actuation | rotors | drag | com off / arm | tilt ° | T/W | dt ms | period ms | "
         "recovery s | learned recovered | closed recovered | fig-8 RMS mm learned / closed | fig-8 size m, period s | "
         "call ms median learned / closed | misses learned / closed | collect / train / build s | training |",
@@ -354,7 +373,7 @@ def write_report(records: list[dict[str, Any]], verdicts: dict[int, dict[str, An
             f"{1e3 * le['figure_eight']['rms_position_m']:.1f} / {1e3 * cl['figure_eight']['rms_position_m']:.1f} | "
             f"{2 * le['figure_eight']['amplitude_m']:.2g}, {le['figure_eight']['period_s']:.1f} | "
             f"{_call_ms(le):.1f} / {_call_ms(cl):.1f} | "
-            f"{fmt(_misses([r], 'learned'), 'd')} / {fmt(_misses([r], 'closed_form'), 'd')} | "
+            f"{_misses_text([r], 'learned')} / {_misses_text([r], 'closed_form')} | "
             f"{r['collect_s']:.0f} / {r['train_s']:.0f} / {r['build_s']:.0f} | "
             f"{r['training'].get('iterations')} it, val {fmt(r['training'].get('final_validation_loss'), '.1e')} |")
     rejected = {seed: v for seed, v in verdicts.items() if not v["ok"]}

@@ -276,3 +276,24 @@ def test_spherical_heldout_data_is_speed_bounded(tmp_path):
     assert np.abs(data.omega).max() <= BOUNDED_HELDOUT["spherical_pendulum"]["max_speed"]
     again = heldout_data("spherical_pendulum", seed=1, trajectories=3, steps=5, path=path)  # loaded, not redrawn
     np.testing.assert_array_equal(again.q, data.q)
+
+
+def test_flyer_report_tells_the_cold_first_periods_apart():
+    """The family report counts deadline misses per model and, where the flights recorded it, how many were
+    the cold first period; flights cached before that was recorded give no bracket rather than a 0."""
+    from benchmarks.flyer_report import _first_period_misses, _misses_text
+
+    def record(rows):
+        flights = {"recovery": rows[:-1], "figure_eight": rows[-1]}
+        return {"learned": flights, "closed_form": flights}
+
+    recorded = record([{"deadline_misses": 2, "first_period_missed": True},
+                       {"deadline_misses": 0, "first_period_missed": False},
+                       {"deadline_misses": 1, "first_period_missed": False}])
+    assert _first_period_misses([recorded], "learned") == 1
+    assert _misses_text([recorded], "learned") == "3 (1)"
+    older = record([{"deadline_misses": 2}, {"deadline_misses": 0}])
+    assert _first_period_misses([older], "learned") is None
+    assert _misses_text([recorded, older], "learned") == "5"
+    waiting = record([{"deadline_misses": "not measured", "first_period_missed": "not measured"}] * 2)
+    assert _misses_text([waiting], "learned") == "—"

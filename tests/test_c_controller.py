@@ -379,3 +379,15 @@ def test_a_knock_restarts_both_loops_alike_and_the_damped_pendulum_swings_back_u
     assert restarts, "the knock did not restart the plan"
     assert restarts == [k for k, info in enumerate(c_episode.controller_info) if info.get("restarted")]
     assert all(python_episode.controller_info[k].get("cold_start") for k in restarts)  # each a cold call
+
+
+def test_the_paired_timing_replays_the_same_plan_to_both_loops(closed_form_pendulum):
+    """``benchmarks.c_loop``'s paired periods feed one episode's observations to both loops alternately; its
+    speed-up figures mean something only if the loops stay on the same plan there (no timing asserted)."""
+    from benchmarks.c_loop import LeanC, paired
+
+    env, python, c_loop = closed_form_pendulum
+    result = paired(env, python, LeanC(c_loop), 1.0, {"random": True}, 2)
+    assert result["periods"] == 19 and result["control_difference_max"] <= 1e-9
+    for key in ("python_us_median", "c_us_median", "generated_us_median", "speed-up", "speed-up bound"):
+        assert np.isfinite(result[key]) and result[key] > 0.0

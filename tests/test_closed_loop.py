@@ -82,6 +82,7 @@ def test_deadline_misses_are_counted_and_observations_skipped():
     assert episode.skipped == periods // 2
     metrics = episode_metrics(episode)
     assert metrics["deadline_misses"] == periods // 2 and metrics["latency"] == 0.07
+    assert metrics["first_period_missed"] is True  # the first call is one of them
     assert np.isfinite(metrics["solve_time_ms"]["median"])
 
 
@@ -95,7 +96,9 @@ def test_waiting_mode_summaries_do_not_claim_zero_deadline_misses():
     waiting, _ = run_episode(env, LinearController(), 0.5, START, latency="none")
     delayed, _ = run_episode(env, LinearController(), 0.5, START, latency=0.01)
     assert episode_metrics(waiting)["deadline_misses"] == NOT_MEASURED == "not measured"
+    assert episode_metrics(waiting)["first_period_missed"] == NOT_MEASURED
     assert episode_metrics(delayed)["deadline_misses"] == 0
+    assert episode_metrics(delayed)["first_period_missed"] is False
 
     def record(episode):
         return {"metrics": episode_metrics(episode), "controller_time_s": episode.controller_time_s,

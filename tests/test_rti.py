@@ -175,3 +175,35 @@ def test_a_spent_cold_budget_still_scores_every_first_guess(pendulum):
     assert set(info["cold_costs"]) == set(controller.settings.cold_starts)
     assert info["cold_start"] == min(info["cold_costs"], key=info["cold_costs"].get)
     assert info["cold_start"] != "goal"
+
+
+@pytest.mark.parametrize("nd, m", [(6, 1), (6, 3), (12, 4), (12, 8)])
+def test_riccati_stage_matches_the_matrix_formulas(nd, m):
+    """The entry-wise Riccati stage (symmetric reads, one UᵀDU factorization) against the textbook
+    matrix recursion in NumPy: gains, feedforwards and the cost-to-go, and ``P⁻`` symmetric."""
+    from fvin_mpc.control.rti import riccati_stage_function
+
+    rng = np.random.default_rng(nd * 10 + m)
+    size = nd + m
+    root = rng.standard_normal((nd, nd))
+    P = root @ root.T
+    jacobian = rng.standard_normal((size + 2, size))
+    H = 2.0 * jacobian.T @ jacobian + 1e-6 * np.eye(size)
+    p, g, c = rng.standard_normal(nd), rng.standard_normal(size), rng.standard_normal(nd)
+    AB, d, r = rng.standard_normal((nd, size)), rng.random(m), rng.standard_normal(m)
+    A, B = AB[:, :nd], AB[:, nd:]
+    gram = H[nd:, nd:] + np.diag(d) + B.T @ P @ B
+    cross = H[nd:, :nd] + B.T @ P @ A
+    r_tilde = r + B.T @ (P @ c + p)
+    K, k = -np.linalg.solve(gram, cross), -np.linalg.solve(gram, r_tilde)
+    P_prev = H[:nd, :nd] + A.T @ P @ A + cross.T @ K
+    p_prev = g[:nd] + A.T @ (P @ c + p) + cross.T @ k
+    # the lower triangle of P must not be read: spoil it
+    P_upper = np.triu(P) + np.tril(np.full((nd, nd), np.nan), -1)
+    out = [np.asarray(o, dtype=float) for o in riccati_stage_function(nd, m)(P_upper, p, H, g, AB, c, d, r)]
+    scale = max(1.0, np.abs(P_prev).max())
+    np.testing.assert_allclose(out[0], P_prev, atol=1e-12 * scale)
+    np.testing.assert_array_equal(out[0], out[0].T)
+    np.testing.assert_allclose(out[1].ravel(), p_prev, atol=1e-12 * scale)
+    np.testing.assert_allclose(out[2], K, atol=1e-12 * max(1.0, np.abs(K).max()))
+    np.testing.assert_allclose(out[3].ravel(), k, atol=1e-12 * max(1.0, np.abs(k).max()))

@@ -363,7 +363,8 @@ def episode_metrics(episode: Episode, upright_tolerance: float = UPRIGHT_TOLERAN
     (``hold_error_rad``) within ``hold_tolerance``. ``solve_time_ms`` is the whole controller call
     per sampled period (feedback plus any ``prepare()``); ``latency`` the mode the episode ran in,
     ``deadline_misses`` the periods whose compute exceeded the control period (:data:`NOT_MEASURED`
-    in waiting mode).
+    in waiting mode), ``first_period_missed`` whether the first of them was one: the cold start,
+    which a robot runs before its clock starts (:data:`NOT_MEASURED` in waiting mode).
     """
     reached = time_to_upright(episode, upright_tolerance)
     hold_mask = episode.time >= episode.time[-1] - hold_window_s
@@ -380,6 +381,7 @@ def episode_metrics(episode: Episode, upright_tolerance: float = UPRIGHT_TOLERAN
         "cpu_time_ms_median": float(np.nanmedian(1e3 * episode.cpu_s)) if episode.cpu_s is not None else None,
         "latency": episode.latency,
         "deadline_misses": NOT_MEASURED if episode.latency == "none" else int(episode.deadline_misses),
+        "first_period_missed": NOT_MEASURED if episode.latency == "none" else first_period_missed(episode),
         "skipped_observations": int(episode.skipped),
         "controller_failures": int((~episode.controller_success).sum()),
         "max_abs_torque": float(np.abs(episode.u).max()),
@@ -387,6 +389,12 @@ def episode_metrics(episode: Episode, upright_tolerance: float = UPRIGHT_TOLERAN
         "control_period_s": episode.control_period,
         "duration_s": float(episode.time[-1]),
     }
+
+
+def first_period_missed(episode: Episode) -> bool:
+    """Whether the episode's first period — the cold call after ``reset()`` — ran past the control period."""
+    busy = episode.busy_s
+    return bool(busy is not None and busy.size > 0 and busy[0] > episode.control_period)
 
 
 def plot_episode(episode: Episode, path: Any, title: str = "", torque_bound: float | None = None) -> None:

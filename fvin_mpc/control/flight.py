@@ -310,7 +310,7 @@ def flight_metrics(episode: Any, reference: Any, settle_s: float = 0.0,
         "final_position_m": float(position_error[-1]), "final_angle_rad": float(angle[-1]),
         "max_speed_mps": float(np.linalg.norm(states[:, 7:10], axis=1).max()),
         **{key: controller[key] for key in ("solve_time_ms", "cpu_time_ms_median", "latency", "deadline_misses",
-                                             "skipped_observations", "controller_failures", "control_period_s",
-                                             "duration_s")},
+                                             "first_period_missed", "skipped_observations", "controller_failures",
+                                             "control_period_s", "duration_s")},
     }
 

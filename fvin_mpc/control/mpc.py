@@ -378,6 +378,14 @@ class Plan:
     lam_x: np.ndarray | None
 
 
+def _ordered_dot(a: Any, b: Any) -> float:
+    """``Σ a_i b_i`` summed in order from 0.0, each product and sum rounded, as the C driver's loops do."""
+    total = 0.0
+    for x, y in zip(a, b):
+        total += float(x) * float(y)
+    return total
+
+
 class MPC:
     """Receding-horizon controller over an :class:`~fvin_mpc.control.model_export.ExportedModel`.
 
@@ -727,16 +735,21 @@ class MPC:
             states[0] = x0
             return Plan(states, targets.copy(), None, None)
         if start == "goal":
+            # Sums in order and libm's sin and acos (math, not NumPy's own SIMD versions): the C driver's
+            # goal_guess computes the same, and a cold start from it converged to controls 2e-13 apart
+            # that the ball joint's swing-up amplified past 1e-9 (tests/test_c_controller.py).
             n = self.horizon
-            q0 = x0[:4]
-            goal = self.goal * (1.0 if float(np.dot(q0, self.goal)) >= 0 else -1.0)
-            angle = float(np.arccos(np.clip(np.dot(q0, goal), -1.0, 1.0)))
-            weights = np.clip(np.arange(n + 1) / max(1, n // 3), 0.0, 1.0)
-            if angle < 1e-9:
-                quaternions = np.tile(q0, (n + 1, 1))
-            else:  # slerp
-                quaternions = (np.sin((1 - weights) * angle)[:, None] * q0
-                               + np.sin(weights * angle)[:, None] * goal) / np.sin(angle)
+            q0 = [float(value) for value in x0[:4]]
+            sign = 1.0 if _ordered_dot(q0, self.goal) >= 0 else -1.0
+            goal = [sign * float(value) for value in self.goal]
+            angle = math.acos(min(max(_ordered_dot(q0, goal), -1.0), 1.0))
+            third = max(1, n // 3)
+            quaternions = np.empty((n + 1, 4))
+            for k in range(n + 1):
+                weight = min(max(k / third, 0.0), 1.0)
+                quaternions[k] = q0 if angle < 1e-9 else [  # slerp
+                    (math.sin((1 - weight) * angle) * a + math.sin(weight * angle) * b) / math.sin(angle)
+                    for a, b in zip(q0, goal)]
             states = np.concatenate([quaternions, np.zeros((n + 1, 3))], axis=1)
             states[0] = x0
             return Plan(states, np.zeros((n, self.model.control_dim)), None, None)
