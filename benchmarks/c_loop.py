@@ -134,6 +134,14 @@ def generated_period(python: Any) -> float:
     return time.perf_counter() - start
 
 
+def generated_instructions(python: Any) -> dict[str, int]:
+    """CasADi instructions of the functions a warm period calls (each expanded to scalar operations): a
+    count, deterministic where the machine's timings are not."""
+    names = {"rti_linearize_blocks": "linearize", "rti_feedback": "qp", "rti_predict": "predict"}
+    return {names[f.name()]: int((f.expand() if f.is_a("MXFunction") else f).n_instructions())
+            for f in python.loop_functions if f.name() in names}
+
+
 def paired(env: Any, python: Any, c_loop: Any, duration: float, options: dict[str, Any], seed: int
            ) -> dict[str, Any]:
     """The observations of one waiting-mode episode replayed to both loops period by period (module
@@ -208,6 +216,7 @@ def run(scenes: Sequence[str], true_model: bool, load_workers: int, seed: int,
                                                        / c_row["period_cpu_us_median"])
         single = python.settings.rti.max_iter == 1 and python.settings.rti.feedback == "qp"
         row["paired"] = paired(env, python, c_loop, duration, options, seed) if single else None
+        row["instructions"] = generated_instructions(python)
         rows.append(row)
     return rows
 
@@ -240,6 +249,9 @@ def markdown(rows: list[dict[str, Any]]) -> str:
         lines.append(f"| {row['scene']} | {p['periods']} | {p['python_us_median']:.0f} | {p['c_us_median']:.0f} "
                      f"| {p['generated_us_median']:.0f} | {p['speed-up']:.2f}× | {p['speed-up bound']:.2f}× "
                      f"| {p['control_difference_max']:.1e} |")
+    lines += ["", "| scene | CasADi instructions: linearize / QP / predict |", "|---|---|"]
+    lines += [f"| {row['scene']} | {row['instructions']['linearize']:,} / {row['instructions']['qp']:,} / "
+              f"{row['instructions']['predict']:,} |" for row in rows]
     return "\n".join(lines)
 
 

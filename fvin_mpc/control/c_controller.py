@@ -359,6 +359,8 @@ class CRealTimeMPC:
         if not self._handle.value:
             raise MemoryError("fvc_create: out of memory")
         self._x, self._u = np.zeros(ns), np.zeros(m)
+        # made once: a ctypes pointer costs microseconds to make, and the feedback call is timed
+        self._x_pointer, self._u_pointer = _pointer(self._x), _pointer(self._u)
         self._states, self._controls = np.zeros((n + 1, ns)), np.zeros((n, m))
         self._d = np.zeros(m)
         self._status = _Status()
@@ -412,7 +414,7 @@ class CRealTimeMPC:
     def feedback(self, x: Any) -> np.ndarray:
         """The control for the measured state ``x`` alone: one C call, no ``info`` (for timing loops)."""
         self._x[:] = x
-        status = self._lib.fvc_feedback(self._handle, _pointer(self._x), _pointer(self._u))
+        status = self._lib.fvc_feedback(self._handle, self._x_pointer, self._u_pointer)
         if status < 0:
             raise ValueError(f"the C controller refused the state {self._x} ({STATUS_NAMES[status]})")
         return self._u.copy()
