@@ -17,9 +17,11 @@ by iteration counts, so a cold first call may take longer in C than Python's col
 Paired periods (``paired`` in the JSON; the speed-up figures of the report). On this shared machine a
 core's speed moves by up to 2× from one second to the next, and episodes run one after the other see
 different machines. So the observations of one waiting-mode episode are replayed to both loops, period
-by period, in alternating order (the two are equal to 1e-9, so they stay on the same plan), and each
-period also times the generated functions alone on the Python loop's prepared plan — the linearization,
-the QP and the two one-step predictions, the bare compiled calls on filled buffers: what both loops run. Reported:
+by period, in alternating order (the Python loop's wall-clock budgets lifted: both run the iterations
+their counts allow, are equal to 1e-9 and stay on the same plan), and each warm period also times the
+generated functions alone on the Python loop's prepared plan — the linearization and the QP once per
+iteration the period ran, the two one-step predictions, the bare compiled calls on filled buffers: what
+both loops run. Cold calls (the first, and restarts) are left out. Reported:
 medians of each and the median of the per-period ratios Python / C and Python / generated. The C loop
 saves only what is around the generated code, so the second ratio bounds the speed-up any driver of this
 generated code can reach.
@@ -29,6 +31,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import multiprocessing
 import os
 import time
@@ -116,18 +119,18 @@ def controllers(scene: str, true_model: bool, seed: int, feedback: str = "qp", c
     return env, python, LeanC(CRealTimeMPC(python)), options, seed
 
 
-def generated_period(python: Any) -> float:
+def generated_period(python: Any, iterations: int) -> float:
     """Seconds the compiled functions of one warm period take by themselves on ``python``'s prepared plan:
-    ``rti_linearize_blocks``, ``rti_feedback`` (the QP's interior-point iterations) and ``rti_predict`` twice
-    (the shifted plan's last node and the disturbance estimate's prediction) — the ``"qp"`` feedback with
-    one iteration. Each is called once to fill its buffers, then timed as the bare compiled call (no Python
-    conversions)."""
+    ``rti_linearize_blocks`` and ``rti_feedback`` (the QP's interior-point iterations) once per Gauss–Newton
+    iteration the period ran (the first linearization is the preparation's), ``rti_predict`` twice (the
+    shifted plan's last node and the disturbance estimate's prediction) — the ``"qp"`` feedback. Each is
+    called once to fill its buffers, then timed as the bare compiled call (no Python conversions)."""
     plan, linearization = python._plan, python._linearization
     python._linearize_at(plan)
     python._feedback(plan.states.T, plan.controls.T, plan.states[0], *linearization[:6])
     python._predict(plan.states[-1], plan.controls[-1])
-    calls = (python._linearize._evaluate, python._feedback._evaluate, python._predict_with_parameters._evaluate,
-             python._predict_with_parameters._evaluate)
+    calls = ((python._linearize._evaluate, python._feedback._evaluate) * iterations
+             + (python._predict_with_parameters._evaluate,) * 2)
     start = time.perf_counter()
     for call in calls:
         call()
@@ -145,31 +148,43 @@ def generated_instructions(python: Any) -> dict[str, int]:
 def paired(env: Any, python: Any, c_loop: Any, duration: float, options: dict[str, Any], seed: int
            ) -> dict[str, Any]:
     """The observations of one waiting-mode episode replayed to both loops period by period (module
-    docstring): medians of the warm periods (feedback + preparation) of each loop and of the generated code
-    alone, µs, the medians of the per-period ratios, and the largest difference of the two loops' controls
-    (0 to rounding unless the Python loop's wall-clock budgets bound its cold call)."""
-    if python.settings.rti.max_iter != 1 or python.settings.rti.feedback != "qp":
-        raise ValueError("the paired periods time the 'qp' feedback with one iteration per period")
+    docstring), the Python loop's wall-clock budgets lifted so that both run the same iterations: medians of
+    the warm periods (feedback + preparation) of each loop and of the generated code alone, µs, the medians
+    of the per-period ratios, and the largest difference of the two loops' controls. Cold calls (the first,
+    and restarts) are left out."""
+    if python.settings.rti.feedback != "qp":
+        raise ValueError("the paired periods time the 'qp' feedback")
     episode, _ = run_episode(env, python, duration, options, seed, latency="none")
-    loops = {"python": python, "c": c_loop}
-    for loop in loops.values():
-        loop.reset()
-    periods: dict[str, list[float]] = {"python": [], "c": [], "generated": []}
-    difference = 0.0
-    for index, (t, x) in enumerate(zip(episode.time[:-1], episode.states[:-1])):
-        order = ("python", "c") if index % 2 == 0 else ("c", "python")
-        controls = {}
-        for name in order:
-            loop = loops[name]
-            loop.set_time(float(t))
-            start = time.perf_counter()
-            controls[name] = loop(x)[0]
-            loop.prepare()
-            periods[name].append(time.perf_counter() - start)
-        difference = max(difference, float(np.max(np.abs(controls["python"] - controls["c"]))))
-        periods["generated"].append(generated_period(python) if python._plan is not None else float("nan"))
-    warm = {name: 1e6 * np.asarray(values[1:]) for name, values in periods.items()}  # the first is cold
-    return {"periods": len(warm["c"]), "control_difference_max": difference,
+    scene_settings = python.settings
+    python.settings = scene_settings.updated(rti={"budget_s": math.inf, "cold_budget_s": math.inf})
+    try:
+        loops = {"python": python, "c": c_loop}
+        for loop in loops.values():
+            loop.reset()
+        periods: dict[str, list[float]] = {"python": [], "c": [], "generated": []}
+        difference = 0.0
+        for index, (t, observed) in enumerate(zip(episode.time[:-1], episode.states[:-1])):
+            x = python.layout.check(observed)  # what the Python loop normalizes; LeanC passes states as they are
+            order = ("python", "c") if index % 2 == 0 else ("c", "python")
+            controls, info = {}, {}
+            for name in order:
+                loop = loops[name]
+                loop.set_time(float(t))
+                start = time.perf_counter()
+                controls[name], reply = loop(x)
+                loop.prepare()
+                periods[name].append(time.perf_counter() - start)
+                if name == "python":
+                    info = reply
+            difference = max(difference, float(np.max(np.abs(controls["python"] - controls["c"]))))
+            cold = "cold_start" in info or python._linearization is None
+            periods["generated"].append(float("nan") if cold else generated_period(python, info["iterations"]))
+            if cold:
+                periods["python"][-1] = periods["c"][-1] = float("nan")
+    finally:
+        python.settings = scene_settings
+    warm = {name: 1e6 * np.asarray(values) for name, values in periods.items()}
+    return {"periods": int(np.isfinite(warm["c"]).sum()), "control_difference_max": difference,
             **{f"{name}_us_median": float(np.nanmedian(values)) for name, values in warm.items()},
             "speed-up": float(np.nanmedian(warm["python"] / warm["c"])),
             "speed-up bound": float(np.nanmedian(warm["python"] / warm["generated"]))}
@@ -214,8 +229,8 @@ def run(scenes: Sequence[str], true_model: bool, load_workers: int, seed: int,
             row[f"feedback speed-up {condition}"] = python_row["feedback_us_median"] / c_row["feedback_us_median"]
             row[f"period CPU speed-up {condition}"] = (python_row["period_cpu_us_median"]
                                                        / c_row["period_cpu_us_median"])
-        single = python.settings.rti.max_iter == 1 and python.settings.rti.feedback == "qp"
-        row["paired"] = paired(env, python, c_loop, duration, options, seed) if single else None
+        row["paired"] = paired(env, python, c_loop, duration, options, seed) if python.settings.rti.feedback == "qp" \
+            else None
         row["instructions"] = generated_instructions(python)
         rows.append(row)
     return rows
@@ -244,7 +259,7 @@ def markdown(rows: list[dict[str, Any]]) -> str:
     for row in rows:
         p = row["paired"]
         if p is None:
-            lines.append(f"| {row['scene']} | — (several iterations or the prepared feedback a period) | | | | | | |")
+            lines.append(f"| {row['scene']} | — (the prepared feedback) | | | | | | |")
             continue
         lines.append(f"| {row['scene']} | {p['periods']} | {p['python_us_median']:.0f} | {p['c_us_median']:.0f} "
                      f"| {p['generated_us_median']:.0f} | {p['speed-up']:.2f}× | {p['speed-up bound']:.2f}× "
