@@ -41,6 +41,17 @@ def positive_float(text: str) -> float:
     return value
 
 
+def positive_int(text: str) -> int:
+    """An option that must be a whole number above zero (``--rti-cold-iter``): refused while parsing."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number > 0, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {text!r}")
+    return value
+
+
 def add_scene_arguments(parser: argparse.ArgumentParser, newton_iters: bool = True) -> None:
     """``--scene``, ``--checkpoint``, ``--control-period`` and (unless ``newton_iters=False``) ``--newton-iters``."""
     parser.add_argument("--scene", default="pendulum", help="built-in scene name or MJCF path")
@@ -72,6 +83,10 @@ def add_mpc_arguments(parser: argparse.ArgumentParser) -> None:
                        help="rti only: what a period's call computes — qp: the QP at the measured state (default); "
                             "prepared: the preparation solves it at the predicted state and the call applies its "
                             "Riccati gains (a forward pass; one iteration per period)")
+    group.add_argument("--rti-cold-iter", type=positive_int, default=None,
+                       help="rti only: Gauss–Newton iterations per first guess of a cold call (a count: the C loop "
+                            "runs it in full, the Python loop within its wall-clock cold budget; default: the "
+                            "scene's)")
 
 
 def add_loop_argument(parser: argparse.ArgumentParser) -> None:
@@ -112,7 +127,7 @@ def mpc_overrides(args: argparse.Namespace) -> dict[str, Any]:
     """The :func:`~fvin_mpc.control.scene.scene_mpc_settings` overrides the options ask for."""
     given = {field: getattr(args, option[2:].replace("-", "_")) for option, (field, _, _) in MPC_OPTIONS.items()}
     given.update({"ipopt.hessian": args.hessian, "solver": args.solver, "rti.dynamics": args.rti_dynamics,
-                  "rti.feedback": args.rti_feedback})
+                  "rti.feedback": args.rti_feedback, "rti.cold_iter": args.rti_cold_iter})
     if args.single_start:
         given["cold_starts"] = ("rollout+",)
     if args.rti_feedback == "prepared":  # it applies one prepared solve: a preset's further iterations go

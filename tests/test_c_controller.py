@@ -349,6 +349,17 @@ def test_the_prepared_feedback_option_sets_one_iteration_per_period():
     assert "rti" not in mpc_overrides(build_parser().parse_args(["--solver", "rti"]))
 
 
+def test_the_cold_count_option_reaches_the_settings_and_refuses_zero(capsys):
+    from fvin_mpc._cli import mpc_overrides
+    from fvin_mpc.evaluate import build_parser
+
+    args = build_parser().parse_args(["--solver", "rti", "--rti-cold-iter", "4"])
+    assert mpc_overrides(args)["rti"] == {"cold_iter": 4}
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["--rti-cold-iter", "0"])
+    assert "must be >= 1" in capsys.readouterr().err
+
+
 def test_a_two_motor_ball_with_a_free_axis_c_loop_equals_python_loop(tmp_path):
     # The free axis reaches the C loop twice: in the generated cost, and in its disturbance
     # estimate's region (the axis's direction, the speed without the spin about it).
