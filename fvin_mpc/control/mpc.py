@@ -378,14 +378,6 @@ class Plan:
     lam_x: np.ndarray | None
 
 
-def _ordered_dot(a: Any, b: Any) -> float:
-    """``Σ a_i b_i`` summed in order from 0.0, each product and sum rounded, as the C driver's loops do."""
-    total = 0.0
-    for x, y in zip(a, b):
-        total += float(x) * float(y)
-    return total
-
-
 class MPC:
     """Receding-horizon controller over an :class:`~fvin_mpc.control.model_export.ExportedModel`.
 
@@ -740,9 +732,9 @@ class MPC:
             # that the ball joint's swing-up amplified past 1e-9 (tests/test_c_controller.py).
             n = self.horizon
             q0 = [float(value) for value in x0[:4]]
-            sign = 1.0 if _ordered_dot(q0, self.goal) >= 0 else -1.0
+            sign = 1.0 if float(ordered_matvec(np.array([q0]), self.goal)[0]) >= 0 else -1.0
             goal = [sign * float(value) for value in self.goal]
-            angle = math.acos(min(max(_ordered_dot(q0, goal), -1.0), 1.0))
+            angle = math.acos(min(max(float(ordered_matvec(np.array([q0]), goal)[0]), -1.0), 1.0))
             third = max(1, n // 3)
             quaternions = np.empty((n + 1, 4))
             for k in range(n + 1):
