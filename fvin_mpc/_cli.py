@@ -87,6 +87,9 @@ def add_mpc_arguments(parser: argparse.ArgumentParser) -> None:
                        help="rti only: Gauss–Newton iterations per first guess of a cold call (a count: the C loop "
                             "runs it in full, the Python loop within its wall-clock cold budget; default: the "
                             "scene's)")
+    group.add_argument("--rti-qp-iterations", type=positive_int, default=None,
+                       help="rti only: interior-point iterations of the Riccati QP per Gauss–Newton iteration (a "
+                            "count, the same in both loops; default: the scene's)")
 
 
 def add_loop_argument(parser: argparse.ArgumentParser) -> None:
@@ -127,7 +130,8 @@ def mpc_overrides(args: argparse.Namespace) -> dict[str, Any]:
     """The :func:`~fvin_mpc.control.scene.scene_mpc_settings` overrides the options ask for."""
     given = {field: getattr(args, option[2:].replace("-", "_")) for option, (field, _, _) in MPC_OPTIONS.items()}
     given.update({"ipopt.hessian": args.hessian, "solver": args.solver, "rti.dynamics": args.rti_dynamics,
-                  "rti.feedback": args.rti_feedback, "rti.cold_iter": args.rti_cold_iter})
+                  "rti.feedback": args.rti_feedback, "rti.cold_iter": args.rti_cold_iter,
+                  "rti.qp_iterations": args.rti_qp_iterations})
     if args.single_start:
         given["cold_starts"] = ("rollout+",)
     if args.rti_feedback == "prepared":  # it applies one prepared solve: a preset's further iterations go

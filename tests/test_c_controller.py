@@ -349,14 +349,19 @@ def test_the_prepared_feedback_option_sets_one_iteration_per_period():
     assert "rti" not in mpc_overrides(build_parser().parse_args(["--solver", "rti"]))
 
 
-def test_the_cold_count_option_reaches_the_settings_and_refuses_zero(capsys):
+@pytest.mark.parametrize(("option", "field"), [("--rti-cold-iter", "cold_iter"),
+                                               ("--rti-qp-iterations", "qp_iterations")])
+def test_the_count_options_reach_the_settings_and_refuse_zero(capsys, option, field):
     from fvin_mpc._cli import mpc_overrides
+    from fvin_mpc.control.scene import scene_env, scene_mpc_settings
     from fvin_mpc.evaluate import build_parser
 
-    args = build_parser().parse_args(["--solver", "rti", "--rti-cold-iter", "4"])
-    assert mpc_overrides(args)["rti"] == {"cold_iter": 4}
+    args = build_parser().parse_args(["--solver", "rti", option, "4"])
+    assert mpc_overrides(args)["rti"] == {field: 4}
+    settings = scene_mpc_settings(scene_env("pendulum", true_model=True), **mpc_overrides(args))
+    assert getattr(settings.rti, field) == 4
     with pytest.raises(SystemExit):
-        build_parser().parse_args(["--rti-cold-iter", "0"])
+        build_parser().parse_args([option, "0"])
     assert "must be >= 1" in capsys.readouterr().err
 
 
@@ -392,13 +397,17 @@ def test_a_knock_restarts_both_loops_alike_and_the_damped_pendulum_swings_back_u
     assert all(python_episode.controller_info[k].get("cold_start") for k in restarts)  # each a cold call
 
 
-def test_the_paired_timing_replays_the_same_plan_to_both_loops(closed_form_pendulum):
-    """``benchmarks.c_loop``'s paired periods feed one episode's observations to both loops alternately; its
-    speed-up figures mean something only if the loops stay on the same plan there (no timing asserted)."""
+@pytest.mark.parametrize("block", [1, 7])
+def test_the_paired_timing_replays_the_same_plan_to_both_loops(closed_form_pendulum, block):
+    """``benchmarks.c_loop``'s paired periods feed one episode's observations to both loops in turns (period by
+    period, or in blocks); its speed-up figures mean something only if the loops stay on the same plan there
+    (no timing asserted)."""
     from benchmarks.c_loop import LeanC, paired
 
     env, python, c_loop = closed_form_pendulum
-    result = paired(env, python, LeanC(c_loop), 1.0, {"random": True}, 2)
-    assert result["periods"] == 19 and result["control_difference_max"] <= 1e-9
+    result = paired(env, python, LeanC(c_loop), 1.0, {"random": True}, 2, block=block)
+    assert result["periods"] == 19 and result["block"] == block and result["control_difference_max"] <= 1e-9
     for key in ("python_us_median", "c_us_median", "generated_us_median", "speed-up", "speed-up bound"):
         assert np.isfinite(result[key]) and result[key] > 0.0
+    with pytest.raises(ValueError, match="block"):
+        paired(env, python, LeanC(c_loop), 1.0, {"random": True}, 2, block=0)
