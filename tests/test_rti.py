@@ -12,7 +12,7 @@ from helpers import iterated_rti_plan
 
 from fvin_mpc.control.closed_loop import episode_metrics, run_episode
 from fvin_mpc.control.mpc import MPC
-from fvin_mpc.control.rti import RealTimeMPC
+from fvin_mpc.control.rti import RealTimeMPC, riccati_feedback_function
 from fvin_mpc.control.scene import scene_env, scene_model, scene_mpc, scene_mpc_settings
 from fvin_mpc.envs.disturbance import ConstantTorqueDisturbance
 
@@ -207,3 +207,40 @@ def test_riccati_stage_matches_the_matrix_formulas(nd, m):
     np.testing.assert_allclose(out[1].ravel(), p_prev, atol=1e-12 * scale)
     np.testing.assert_allclose(out[2], K, atol=1e-12 * max(1.0, np.abs(K).max()))
     np.testing.assert_allclose(out[3].ravel(), k, atol=1e-12 * max(1.0, np.abs(k).max()))
+
+
+def test_the_generated_qp_reaches_an_active_set_solvers_solution(pendulum):
+    """The interior-point QP generated with the Riccati recursion against an independent solver: every QP of a
+    swing-up, written out whole (``benchmarks.qp_accuracy.exact_controls``) and solved by qpOASES. With enough
+    iterations the first control is the exact one; the default count leaves a few hard QPs short
+    (``python -m benchmarks.qp_accuracy`` measures how many, docs/realtime.md)."""
+    from benchmarks.qp_accuracy import exact_controls
+
+    env, model = pendulum
+    controller = rti(env, model)
+    records = []
+    solve = controller._iterate_riccati
+
+    def recording(plan, linearization, x0):
+        h, h_n, g, g_n, ab, gaps, _ = linearization
+        records.append(tuple(np.array(a, dtype=float) for a in (plan.states.T, plan.controls.T, x0, h, h_n, g, g_n,
+                                                                  ab, gaps)))
+        return solve(plan, linearization, x0)
+
+    controller._iterate_riccati = recording
+    run_episode(env, controller, 3.0, {"qpos": np.array([0.3]), "qvel": np.array([0.0])}, latency="none")
+    n, m, nd = controller.horizon, model.control_dim, controller.layout.tangent_dim
+    size = n * (nd + m)
+    shapes = {"h": ca.Sparsity.dense(size, size), "a": ca.Sparsity.dense(n * nd, size)}
+    active_set = ca.conic("exact", "qpoases", shapes, {"printLevel": "none", "error_on_fail": True})
+    many = riccati_feedback_function(controller.layout, n, m, *controller._control_bounds, controller._step_limits,
+                                     controller._omega_valid, 40)[0]
+    span = float(np.max(controller._control_bounds[1] - controller._control_bounds[0]))
+    distances = {"default": [], "40": []}
+    for arguments in records:
+        exact = exact_controls(controller, arguments, active_set)[:, 0]
+        distances["default"].append(np.max(np.abs(controller._feedback(*arguments)[1][:, 0] - exact)) / span)
+        distances["40"].append(np.max(np.abs(np.array(many(*arguments)[1])[:, 0] - exact)) / span)
+    assert len(records) > 40
+    assert np.median(distances["40"]) < 1e-9 and np.mean(np.array(distances["40"]) < 1e-6) >= 0.9
+    assert np.median(distances["default"]) < 1e-8
