@@ -27,8 +27,8 @@ saves only what is around the generated code, so the second ratio bounds the spe
 generated code can reach. The replay runs twice: in turns of one period, and in turns of
 :data:`PAIRED_BLOCK` periods per loop (the order swapped each turn). Period by period, each of a loop's
 periods follows the other loop's whole period, which evicts from the caches what the loop's next period
-would find there on a robot (there only the plant's I/O runs between two periods): the C loop's period was
-15–30 % longer that way than run back to back. In blocks, most periods follow the loop's own previous one.
+would find there on a robot (there only the plant's I/O runs between two periods); in blocks, most periods
+follow the loop's own previous one (what that changes: docs/c-controller.md).
 """
 
 from __future__ import annotations

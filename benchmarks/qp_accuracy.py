@@ -53,7 +53,7 @@ def recorded_qps(scene: str, seed: int) -> tuple[Any, list[tuple[np.ndarray, ...
         return solve(plan, linearization, x0)
 
     controller._iterate_riccati = recording
-    # the wall-clock budgets lifted: the same QPs on every run
+    # the wall-clock budgets lifted: the same QPs on every run (the controller serves only this recording)
     controller.settings = controller.settings.updated(rti={"budget_s": math.inf, "cold_budget_s": math.inf})
     try:
         run_episode(env, controller, DURATION_S[scene], options, seed, latency="none")
