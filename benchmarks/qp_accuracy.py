@@ -36,13 +36,12 @@ SCENES = ("pendulum", "spherical_pendulum", "quadrotor")
 DURATION_S = {"pendulum": 6.0, "spherical_pendulum": 6.0, "quadrotor": 3.0}
 
 
-def recorded_qps(scene: str, seed: int) -> tuple[Any, list[tuple[np.ndarray, ...]]]:
-    """The scene's learned real-time MPC and the arguments of every QP it solved in one waiting-mode episode."""
-    from benchmarks.c_loop import controllers
-
-    env, controller, _, options, seed = controllers(scene, False, seed)
+def record_qps(env: Any, controller: Any, duration: float, options: Any, seed: int | None = None
+               ) -> list[tuple[np.ndarray, ...]]:
+    """The arguments of every QP ``controller`` (a :class:`~fvin_mpc.control.rti.RealTimeMPC` with the generated
+    Riccati QP) solves in one waiting-mode episode on ``env``, in the generated QP's input order."""
     if controller.settings.rti.qp_solver != "riccati":
-        raise ValueError(f"{scene}: the QP is {controller.settings.rti.qp_solver!r}, not the generated Riccati one")
+        raise ValueError(f"the QP is {controller.settings.rti.qp_solver!r}, not the generated Riccati one")
     records: list[tuple[np.ndarray, ...]] = []
     solve = controller._iterate_riccati
 
@@ -53,19 +52,37 @@ def recorded_qps(scene: str, seed: int) -> tuple[Any, list[tuple[np.ndarray, ...
         return solve(plan, linearization, x0)
 
     controller._iterate_riccati = recording
+    try:
+        run_episode(env, controller, duration, options, seed, latency="none")
+    finally:
+        del controller._iterate_riccati
+    return records
+
+
+def recorded_qps(scene: str, seed: int) -> tuple[Any, list[tuple[np.ndarray, ...]]]:
+    """The scene's learned real-time MPC and the QPs it solved in one waiting-mode episode (:func:`record_qps`)."""
+    from benchmarks.c_loop import controllers
+
+    env, controller, _, options, seed = controllers(scene, False, seed)
     # the wall-clock budgets lifted: the same QPs on every run (the controller serves only this recording)
     controller.settings = controller.settings.updated(rti={"budget_s": math.inf, "cold_budget_s": math.inf})
     try:
-        run_episode(env, controller, DURATION_S[scene], options, seed, latency="none")
+        return controller, record_qps(env, controller, DURATION_S[scene], options, seed)
     finally:
-        del controller._iterate_riccati
         env.close()
-    return controller, records
+
+
+def exact_solver(controller: Any) -> Any:
+    """qpOASES through ``casadi.conic`` for :func:`exact_controls`' QPs of ``controller`` (failure is an error)."""
+    n, m, nd = controller.horizon, controller.model.control_dim, controller.layout.tangent_dim
+    count = n * (nd + m)
+    shapes = {"h": ca.Sparsity.dense(count, count), "a": ca.Sparsity.dense(n * nd, count)}
+    return ca.conic("exact", "qpoases", shapes, {"error_on_fail": True, "printLevel": "none"})
 
 
 def exact_controls(controller: Any, arguments: tuple[np.ndarray, ...], solver: Any) -> np.ndarray:
     """The new controls ``clip(Ū + Δu*)`` (m, N) of the QP ``arguments`` (the generated QP's inputs) solved by an
-    active-set solver: the same stage-wise QP, written out as one sparse QP in ``z = (Δu_0, δ_1, Δu_1, …, δ_N)``,
+    active-set solver: the same stage-wise QP, written out as one QP in ``z = (Δu_0, δ_1, Δu_1, …, δ_N)``,
     ``δ_0`` fixed by the measured state."""
     states, controls, x0, h, h_n, g, g_n, ab, gaps = arguments
     n, m, nd = controller.horizon, controller.model.control_dim, controller.layout.tangent_dim
@@ -111,8 +128,8 @@ def exact_controls(controller: Any, arguments: tuple[np.ndarray, ...], solver: A
 
 def accuracy(controller: Any, records: list[tuple[np.ndarray, ...]], counts: Sequence[int], reference: int
              ) -> list[dict[str, Any]]:
-    """One row per count (and the ``reference`` count): the distances of the first control and the control plan
-    to the exact solution's (:func:`exact_controls`)."""
+    """One row per count (and the ``reference`` count): the distances of the first control to the exact
+    solution's (:func:`exact_controls`), as a fraction of the torque range."""
     n, m = controller.horizon, controller.model.control_dim
     functions = [riccati_feedback_function(controller.layout, n, m, *controller._control_bounds,
                                            controller._step_limits, controller._omega_valid, count)[0]
@@ -134,11 +151,7 @@ def accuracy(controller: Any, records: list[tuple[np.ndarray, ...]], counts: Seq
             seconds[index].append(time.perf_counter() - start)
             solutions[index].append(np.asarray(controls, dtype=float))
             barrier[index].append(float(mu))
-    n, m, nd = controller.horizon, controller.model.control_dim, controller.layout.tangent_dim
-    count = n * (nd + m)
-    active_set = ca.conic("exact", "qpoases", {"h": ca.Sparsity.dense(count, count),
-                                               "a": ca.Sparsity.dense(n * nd, count)},
-                          {"error_on_fail": True, "printLevel": "none"})
+    active_set = exact_solver(controller)
     exact = [exact_controls(controller, arguments, active_set) for arguments in records]
     rows = []
     for index, count in enumerate((*counts, reference)):

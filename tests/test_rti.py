@@ -214,25 +214,12 @@ def test_the_generated_qp_reaches_an_active_set_solvers_solution(pendulum):
     swing-up, written out whole (``benchmarks.qp_accuracy.exact_controls``) and solved by qpOASES. With enough
     iterations the first control is the exact one; the default count leaves a few hard QPs short
     (``python -m benchmarks.qp_accuracy`` measures how many, docs/realtime.md)."""
-    from benchmarks.qp_accuracy import exact_controls
+    from benchmarks.qp_accuracy import exact_controls, exact_solver, record_qps
 
     env, model = pendulum
     controller = rti(env, model)
-    records = []
-    solve = controller._iterate_riccati
-
-    def recording(plan, linearization, x0):
-        h, h_n, g, g_n, ab, gaps, _ = linearization
-        records.append(tuple(np.array(a, dtype=float) for a in (plan.states.T, plan.controls.T, x0, h, h_n, g, g_n,
-                                                                  ab, gaps)))
-        return solve(plan, linearization, x0)
-
-    controller._iterate_riccati = recording
-    run_episode(env, controller, 3.0, {"qpos": np.array([0.3]), "qvel": np.array([0.0])}, latency="none")
-    n, m, nd = controller.horizon, model.control_dim, controller.layout.tangent_dim
-    size = n * (nd + m)
-    shapes = {"h": ca.Sparsity.dense(size, size), "a": ca.Sparsity.dense(n * nd, size)}
-    active_set = ca.conic("exact", "qpoases", shapes, {"printLevel": "none", "error_on_fail": True})
+    records = record_qps(env, controller, 3.0, {"qpos": np.array([0.3]), "qvel": np.array([0.0])})
+    n, m, active_set = controller.horizon, model.control_dim, exact_solver(controller)
     many = riccati_feedback_function(controller.layout, n, m, *controller._control_bounds, controller._step_limits,
                                      controller._omega_valid, 40)[0]
     span = float(np.max(controller._control_bounds[1] - controller._control_bounds[0]))
