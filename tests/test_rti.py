@@ -231,3 +231,34 @@ def test_the_generated_qp_reaches_an_active_set_solvers_solution(pendulum):
     assert len(records) > 40
     assert np.median(distances["40"]) < 1e-9 and np.mean(np.array(distances["40"]) < 1e-6) >= 0.9
     assert np.median(distances["default"]) < 1e-8
+
+
+def test_common_subexpression_elimination_changes_no_bit_of_a_learned_stage(monkeypatch):
+    """The generated stage functions are built with CSE (``GENERATED_SX_OPTIONS``): fewer operations, and
+    outputs identical to the bit to the same function built without it, at random nodes of a learned ball joint
+    (unrolled step) and of the learned planar pendulum's node terms (implicit dynamics)."""
+    from fvin_mpc.control import implicit_dynamics
+    from fvin_mpc.control.model_export import GENERATED_SX_OPTIONS
+    from fvin_mpc.control.rti import retract, unrolled_stage_function
+
+    def built(cse, scene):
+        monkeypatch.setitem(GENERATED_SX_OPTIONS, "cse", cse)
+        model = scene_model(scene_env(scene), true_model=False)
+        if scene == "pendulum":
+            return implicit_dynamics.node_terms_function(model.casadi_terms, retract, None)[0]
+        return unrolled_stage_function(model.step, model.space.layout, model.control_dim)
+
+    rng = np.random.default_rng(7)
+    for scene in ("spherical_pendulum", "pendulum"):
+        plain, eliminated = built(False, scene), built(True, scene)
+        assert eliminated.n_instructions() < plain.n_instructions()
+        for _ in range(5):
+            inputs = []
+            for index in range(plain.n_in()):
+                value = rng.standard_normal(plain.size_in(index))
+                if plain.name_in(index) in ("x_bar", "x_next_bar", "q_bar"):
+                    value[:4] /= np.linalg.norm(value[:4])
+                inputs.append(value)
+            for a, b in zip(plain.call(inputs), eliminated.call(inputs)):
+                assert np.all(np.isfinite(np.asarray(a)))
+                np.testing.assert_array_equal(np.asarray(a), np.asarray(b))

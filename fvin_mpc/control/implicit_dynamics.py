@@ -42,6 +42,7 @@ from typing import Any
 
 import casadi as ca
 
+from fvin_mpc.control.model_export import GENERATED_SX_OPTIONS
 from fvin_mpc.core import fvin, s3
 from fvin_mpc.core.backend import get_ops
 
@@ -123,7 +124,8 @@ def node_terms_function(terms: Any, retract: Any, parameters: Any = None) -> tup
     layout = TermLayout(terms, q_components)
     flat = layout.flatten(terms, q_components)
     values, derivatives = ca.substitute([flat, ca.jacobian(flat, delta)], [delta], [ca.DM.zeros(3)])
-    return ca.Function("rti_node_terms", inputs, [values, derivatives], names, ["T", "dT"]), layout
+    node_terms = ca.Function("rti_node_terms", inputs, [values, derivatives], names, ["T", "dT"], GENERATED_SX_OPTIONS)
+    return node_terms, layout
 
 
 def implicit_stage_function(terms: Any, layout: TermLayout, step_size: float, retract: Any,
@@ -171,4 +173,5 @@ def implicit_stage_function(terms: Any, layout: TermLayout, step_size: float, re
     return ca.Function("rti_implicit_dynamics",
                        [x_bar, u_bar, x_next_bar, d, values, slopes, values_next, slopes_next, *extra_inputs],
                        [solution[:, 0], solution[:, 1:]],
-                       ["x_bar", "u_bar", "x_next_bar", "d", "T", "dT", "T_next", "dT_next", *extra_names], ["c", "AB"])
+                       ["x_bar", "u_bar", "x_next_bar", "d", "T", "dT", "T_next", "dT_next", *extra_names], ["c", "AB"],
+                       GENERATED_SX_OPTIONS)

@@ -304,6 +304,12 @@ class CompileReport:
 
 
 COMPILER_FLAGS: tuple[str, ...] = ("-O2", "-fPIC", "-shared")
+#: Options of every scalar (SX) function the real-time loop generates as C. Common subexpression
+#: elimination: a stage built from several calls of the model repeats their shared terms (the step's
+#: learned terms in its value and again in its derivatives), each computed once in the generated code. It
+#: only merges identical operations on identical operands, so the results are the same to the bit
+#: (``tests/test_rti.py``); ``python -m benchmarks.c_loop`` prints the instruction counts.
+GENERATED_SX_OPTIONS: dict[str, Any] = {"cse": True}
 
 
 class CompileCount:

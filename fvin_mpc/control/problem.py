@@ -36,6 +36,7 @@ from typing import Any, Callable, Protocol
 import casadi as ca
 import numpy as np
 
+from fvin_mpc.control.model_export import GENERATED_SX_OPTIONS
 from fvin_mpc.core import s3
 from fvin_mpc.core.backend import get_ops
 from fvin_mpc.core.space import StateLayout
@@ -165,7 +166,7 @@ def predict_function(model: Any, name: str = "predict", parameters: str = "none"
         if parameters == "constant":
             inputs.append(ca.SX.sym("p", model.model_parameters.size))
     b = ca.jacobian(stepped[layout.rates], u)
-    return ca.Function(name, inputs, [stepped, b, residual, least_squares_inverse(b)])
+    return ca.Function(name, inputs, [stepped, b, residual, least_squares_inverse(b)], GENERATED_SX_OPTIONS)
 
 
 #: The ridge of :func:`least_squares_inverse`, relative to ``‖B‖_F²``. CasADi's symbolic solve does not

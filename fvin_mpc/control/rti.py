@@ -85,7 +85,7 @@ import numpy as np
 
 from fvin_mpc.control import implicit_dynamics
 from fvin_mpc.control.buffered import BufferedFunction
-from fvin_mpc.control.model_export import ExportedModel, compile_functions
+from fvin_mpc.control.model_export import GENERATED_SX_OPTIONS, ExportedModel, compile_functions
 from fvin_mpc.control.mpc import MPC, MPCSettings, Plan
 from fvin_mpc.control.problem import control_bounds, predict_function, residual_functions
 from fvin_mpc.core.backend import get_ops
@@ -168,7 +168,8 @@ def unrolled_stage_function(step: ca.Function, layout: StateLayout, m: int) -> c
     c, jacobian = ca.substitute([gap, ca.jacobian(gap, ca.vertcat(delta, du))], [delta, du],
                                 [ca.DM.zeros(layout.tangent_dim), ca.DM.zeros(m)])
     return ca.Function("rti_dynamics", [x_bar, u_bar, x_next_bar, d, *parameters], [c, jacobian],
-                       ["x_bar", "u_bar", "x_next_bar", "d", "p"][:4 + len(parameters)], ["c", "AB"])
+                       ["x_bar", "u_bar", "x_next_bar", "d", "p"][:4 + len(parameters)], ["c", "AB"],
+                       GENERATED_SX_OPTIONS)
 
 
 def riccati_stage_function(nd: int, m: int) -> ca.Function:
@@ -248,7 +249,8 @@ def riccati_stage_function(nd: int, m: int) -> ca.Function:
             K[a, j] = gains[j][a]
     return ca.Function("rti_riccati_stage", [P, p, H, g, AB, c, d, r],
                        [P_prev, ca.vertcat(*p_prev), K, ca.vertcat(*feedforward)],
-                       ["P", "p", "H", "g", "AB", "c", "d", "r"], ["P_prev", "p_prev", "K", "k"])
+                       ["P", "p", "H", "g", "AB", "c", "d", "r"], ["P_prev", "p_prev", "K", "k"],
+                       GENERATED_SX_OPTIONS)
 
 
 def riccati_feedback_function(layout: StateLayout, n: int, m: int, low: np.ndarray, high: np.ndarray,
@@ -282,7 +284,8 @@ def riccati_feedback_function(layout: StateLayout, n: int, m: int, low: np.ndarr
     delta, gain_k, ff_k = ca.SX.sym("delta", nd), ca.SX.sym("K", m, nd), ca.SX.sym("k", m)
     v = ca.mtimes(gain_k, delta) + ff_k
     forward = ca.Function("rti_forward_stage", [delta, gain_k, ff_k, abk, ck],
-                          [ca.mtimes(abk, ca.vertcat(delta, v)) + ck, v]).mapaccum("rti_forward", n, 1)
+                          [ca.mtimes(abk, ca.vertcat(delta, v)) + ck, v],
+                          GENERATED_SX_OPTIONS).mapaccum("rti_forward", n, 1)
 
     def reverse(matrix: Any, width: int) -> Any:  # stage blocks of `width` columns in reverse order
         return matrix[:, [(n - 1 - k) * width + j for k in range(n) for j in range(width)]]
@@ -353,7 +356,8 @@ def _trust_region_update(layout: StateLayout, states: Any, controls: Any, x0: An
     and the step's size (largest ``|Δu|`` over the control range or ``|δ|`` over the trust region)."""
     ns, nd = layout.state_dim, layout.tangent_dim
     x_bar, step_k = ca.SX.sym("x_bar", ns), ca.SX.sym("step", nd)
-    retracted = ca.Function("rti_retract", [x_bar, step_k], [retract_state(layout, x_bar, step_k)]).map(n)
+    retracted = ca.Function("rti_retract", [x_bar, step_k], [retract_state(layout, x_bar, step_k)],
+                            GENERATED_SX_OPTIONS).map(n)
     bound = ca.repmat(ca.DM(limits), 1, n)
     steps = ca.fmin(ca.fmax(deltas, -bound), bound)
     moved = retracted(states[:, 1:], steps)
@@ -461,9 +465,10 @@ class RealTimeMPC(MPC):
             return at_zero([ca.densify(hessian), 2.0 * ca.mtimes(jacobian.T, residual), ca.sumsqr(residual)])
 
         stage_cost = ca.Function("rti_stage_cost", [x_bar, u_bar, reference, u_s, *cost_parameters],
-                                 gauss_newton(stage_residual, ca.vertcat(delta, du), stage_size))
+                                 gauss_newton(stage_residual, ca.vertcat(delta, du), stage_size),
+                                 GENERATED_SX_OPTIONS)
         terminal_cost = ca.Function("rti_terminal_cost", [x_bar, reference, *cost_parameters],
-                                    gauss_newton(terminal_residual, delta, nd))
+                                    gauss_newton(terminal_residual, delta, nd), GENERATED_SX_OPTIONS)
 
         # --- the whole QP over the horizon, stage-wise, δ_0 eliminated (it is fixed by the measurement):
         # z = (Δu_0, δ_1, Δu_1, …, δ_N); the feedback adds A_0 δ_0 to the first gap and S_0 δ_0 to the
