@@ -42,6 +42,7 @@ import time
 from pathlib import Path
 from typing import Any, Sequence
 
+import casadi as ca
 import numpy as np
 
 from fvin_mpc._cli import run_command
@@ -105,15 +106,17 @@ class BackgroundLoad:
             process.join()
 
 
-def controllers(scene: str, true_model: bool, seed: int, feedback: str = "qp", cold_iter: int | None = None
-                ) -> tuple[Any, Any, Any, dict[str, Any], int]:
+def controllers(scene: str, true_model: bool, seed: int, feedback: str = "qp", cold_iter: int | None = None,
+                relinearize_every: int | None = None) -> tuple[Any, Any, Any, dict[str, Any], int]:
     """``(env, python loop, C loop, reset options, env seed)`` of ``scene``: a random start, or the
     quadrotor's first random recovery start. ``feedback``: ``RTIOptions.feedback`` of both loops
-    (``"prepared"`` with one iteration per period); ``cold_iter``: both loops' ``RTIOptions.cold_iter``
-    (``None``: the scene's)."""
+    (``"prepared"`` with one iteration per period); ``cold_iter``, ``relinearize_every``: both loops'
+    ``RTIOptions`` fields (``None``: the scene's)."""
     rti: dict[str, Any] = {} if feedback == "qp" else {"feedback": feedback, "max_iter": 1}
     if cold_iter is not None:
         rti["cold_iter"] = cold_iter
+    if relinearize_every is not None:
+        rti["relinearize_every"] = relinearize_every
     if resolve_scene(scene).space.pivoted:
         env = scene_env(scene, true_model=true_model)
         python = scene_mpc(env, scene_model(env, true_model=true_model),
@@ -134,7 +137,7 @@ def generated_period(python: Any, iterations: int) -> float:
     shifted plan's last node and the disturbance estimate's prediction) — the ``"qp"`` feedback. Each is
     called once to fill its buffers, then timed as the bare compiled call (no Python conversions)."""
     plan, linearization = python._plan, python._linearization
-    python._linearize_at(plan)
+    python._linearize_at(plan, python._plan_jacobians)  # a warm linearization: the items it renews
     python._feedback(plan.states.T, plan.controls.T, plan.states[0], *linearization[:6])
     python._predict(plan.states[-1], plan.controls[-1])
     calls = ((python._linearize._evaluate, python._feedback._evaluate) * iterations
@@ -147,10 +150,21 @@ def generated_period(python: Any, iterations: int) -> float:
 
 def generated_instructions(python: Any) -> dict[str, int]:
     """CasADi instructions of the functions a warm period calls (each expanded to scalar operations): a
-    count, deterministic where the machine's timings are not."""
+    count, deterministic where the machine's timings are not. The linearization's is that of a warm period's:
+    its items renewed as ``rti.relinearize_every`` says (the branches not taken are not counted)."""
     names = {"rti_linearize_blocks": "linearize", "rti_feedback": "qp", "rti_predict": "predict"}
-    return {names[f.name()]: int((f.expand() if f.is_a("MXFunction") else f).n_instructions())
-            for f in python.loop_functions if f.name() in names}
+    counts = {}
+    for function in python.loop_functions:
+        if function.name() not in names:
+            continue
+        if function.name() == "rti_linearize_blocks":
+            inputs = function.mx_in()
+            inputs[function.index_in("fresh")] = ca.DM(python.kept_jacobians[2].reshape(1, -1))
+            kept = [x for i, x in enumerate(function.mx_in()) if function.name_in(i) != "fresh"]
+            function = ca.Function("warm", kept, function.call(inputs))
+        counts[names[function.name()] if function.name() in names else "linearize"] = int(
+            (function.expand() if function.is_a("MXFunction") else function).n_instructions())
+    return counts
 
 
 def paired(env: Any, python: Any, c_loop: Any, duration: float, options: dict[str, Any], seed: int,
@@ -221,12 +235,14 @@ def summary(episode: Any) -> dict[str, Any]:
 
 
 def run(scenes: Sequence[str], true_model: bool, load_workers: int, seed: int,
-        feedback: str = "qp", cold_iter: int | None = None) -> list[dict[str, Any]]:
+        feedback: str = "qp", cold_iter: int | None = None,
+        relinearize_every: int | None = None) -> list[dict[str, Any]]:
     from tqdm.auto import tqdm
 
     rows = []
     for scene in tqdm(scenes, desc="scenes"):
-        env, python, c_loop, options, seed = controllers(scene, true_model, seed, feedback, cold_iter)
+        env, python, c_loop, options, seed = controllers(scene, true_model, seed, feedback, cold_iter,
+                                                         relinearize_every)
         duration = DURATION_S.get(scene, 8.0)
         row: dict[str, Any] = {"scene": scene, "model": python.model.name, "horizon": python.horizon}
         for condition in ("as is", "loaded"):
@@ -302,17 +318,23 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--cold-iter", type=int, default=None,
                         help="RTIOptions.cold_iter of both loops: the iterations per first guess of the cold call, "
                              "a count (default: the scene's; the quadrotor's is 2, which the C loop runs in full)")
+    parser.add_argument("--relinearize-every", type=int, default=None,
+                        help="RTIOptions.relinearize_every of both loops: renew the dynamics' Jacobians of every K-th "
+                             "stage (and the first and last), keep the others' from the last linearization "
+                             "(default: the scene's, 1)")
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    if args.cold_iter is not None and args.cold_iter < 1:
-        raise ValueError(f"--cold-iter must be >= 1, got {args.cold_iter}")
-    rows = run(args.scenes, args.true_model, args.load_workers, args.seed, args.feedback, args.cold_iter)
+    for option in ("cold_iter", "relinearize_every"):
+        if getattr(args, option) is not None and getattr(args, option) < 1:
+            raise ValueError(f"--{option.replace('_', '-')} must be >= 1, got {getattr(args, option)}")
+    rows = run(args.scenes, args.true_model, args.load_workers, args.seed, args.feedback, args.cold_iter,
+               args.relinearize_every)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps({"command": "python -m benchmarks.c_loop", "feedback": args.feedback,
-                                    "cold_iter": args.cold_iter,
+                                    "cold_iter": args.cold_iter, "relinearize_every": args.relinearize_every,
                                     "load_average": os.getloadavg(), "cpus": os.cpu_count(),
                                     "load_workers": args.load_workers, "rows": rows}, indent=1))
     print(markdown(rows))

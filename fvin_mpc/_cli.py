@@ -90,6 +90,10 @@ def add_mpc_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--rti-qp-iterations", type=positive_int, default=None,
                        help="rti only: interior-point iterations of the Riccati QP per Gauss–Newton iteration (a "
                             "count, the same in both loops; default: the scene's)")
+    group.add_argument("--rti-relinearize-every", type=positive_int, default=None,
+                       help="rti only: a warm linearization renews the dynamics' Jacobians of the first stages, "
+                            "every K-th and the last, and keeps the previous ones, shifted with the plan, for the "
+                            "rest (none older than K-1 periods; default 1: all renewed every time)")
 
 
 def add_loop_argument(parser: argparse.ArgumentParser) -> None:
@@ -131,7 +135,8 @@ def mpc_overrides(args: argparse.Namespace) -> dict[str, Any]:
     given = {field: getattr(args, option[2:].replace("-", "_")) for option, (field, _, _) in MPC_OPTIONS.items()}
     given.update({"ipopt.hessian": args.hessian, "solver": args.solver, "rti.dynamics": args.rti_dynamics,
                   "rti.feedback": args.rti_feedback, "rti.cold_iter": args.rti_cold_iter,
-                  "rti.qp_iterations": args.rti_qp_iterations})
+                  "rti.qp_iterations": args.rti_qp_iterations,
+                  "rti.relinearize_every": args.rti_relinearize_every})
     if args.single_start:
         given["cold_starts"] = ("rollout+",)
     if args.rti_feedback == "prepared":  # it applies one prepared solve: a preset's further iterations go

@@ -55,7 +55,8 @@ def test_compiled_rti_functions_agree_with_their_unbuffered_calls():
     from fvin_mpc.control.scene import scene_env, scene_model, scene_mpc, scene_mpc_settings
 
     env = scene_env("pendulum")
-    controller = scene_mpc(env, scene_model(env, true_model=True), scene_mpc_settings(env, solver="rti"))
+    controller = scene_mpc(env, scene_model(env, true_model=True),
+                           scene_mpc_settings(env, solver="rti", rti={"relinearize_every": 3}))
     x0 = np.array([0.0, 1.0, 0.0, 0.0, 0.0, 0.3, 0.0])
     controller(x0)
     controller.prepare()
@@ -63,6 +64,9 @@ def test_compiled_rti_functions_agree_with_their_unbuffered_calls():
     buffered = controller._linearize
     _, _, scales, references = controller._sample_reference()
     targets = np.clip(scales[:, None] * controller._u_goal, controller.torque_low, controller.torque_high).T
-    arguments = (plan.states.T, plan.controls.T, references, controller.disturbance, targets, controller.parameters)
+    renewed = controller.kept_jacobians[2]
+    assert 0 < renewed.sum() < renewed.size
+    arguments = (plan.states.T, plan.controls.T, references, controller.disturbance, targets, controller.parameters,
+                 controller._plan_jacobians, renewed.reshape(1, -1))  # the prepared plan's, some items kept
     for result, reference in zip(buffered(*arguments), buffered.function(*arguments)):
         np.testing.assert_allclose(result, np.asarray(reference).reshape(result.shape), rtol=0, atol=0)

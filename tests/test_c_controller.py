@@ -350,7 +350,8 @@ def test_the_prepared_feedback_option_sets_one_iteration_per_period():
 
 
 @pytest.mark.parametrize(("option", "field"), [("--rti-cold-iter", "cold_iter"),
-                                               ("--rti-qp-iterations", "qp_iterations")])
+                                               ("--rti-qp-iterations", "qp_iterations"),
+                                               ("--rti-relinearize-every", "relinearize_every")])
 def test_the_count_options_reach_the_settings_and_refuse_zero(capsys, option, field):
     from fvin_mpc._cli import mpc_overrides
     from fvin_mpc.control.scene import scene_env, scene_mpc_settings
@@ -411,3 +412,33 @@ def test_the_paired_timing_replays_the_same_plan_to_both_loops(closed_form_pendu
         assert np.isfinite(result[key]) and result[key] > 0.0
     with pytest.raises(ValueError, match="block"):
         paired(env, python, LeanC(c_loop), 1.0, {"random": True}, 2, block=0)
+
+
+@pytest.mark.parametrize(("scene", "latency"), [("pendulum", "none"), ("pendulum_damped", 0.01)])
+def test_kept_jacobians_are_the_same_in_both_loops(scene, latency):
+    """``rti.relinearize_every``: both loops keep and renew the same Jacobians — shifted at each preparation,
+    renewed whole after a cold call — on the implicit dynamics' node slopes (pendulum) and the unrolled stages
+    (damped pendulum, with a measured-latency delay)."""
+    env, python, c_loop = pendulum_pair(scene, True, rti={"relinearize_every": 3, "relinearize_head": 2})
+    assert python.kept_jacobians[2].sum() < python.kept_jacobians[0]
+    _, c_episode = assert_same_closed_loops(env, python, c_loop, 5.0, latency, seed=2,
+                                            reset_options={"random": True})
+    assert episode_metrics(c_episode)["success"]
+
+
+@pytest.mark.slow
+def test_kept_jacobians_are_the_same_in_both_loops_on_the_learned_ball_joint_and_quadrotor():
+    """``rti.relinearize_every`` on the learned models: the ball joint's three iterations per period (each
+    further one keeps the last one's Jacobians where they stand) and the R³ × S³ stages."""
+    from fvin_mpc.control.flight import quadrotor_model, quadrotor_mpc, quadrotor_mpc_settings, recovery_starts
+    from fvin_mpc.envs import QuadrotorEnv
+    from fvin_mpc.envs.scenes import resolve_scene
+
+    kept = {"relinearize_every": 4}
+    env, python, c_loop = pendulum_pair("spherical_pendulum", False, rti=kept)
+    assert_same_closed_loops(env, python, c_loop, 6.0, "none", seed=0, reset_options={"random": True})
+    env = QuadrotorEnv(resolve_scene("quadrotor"))
+    python = quadrotor_mpc(env, quadrotor_model(env, true_model=False),
+                           quadrotor_mpc_settings().updated(rti={**UNBOUNDED, **kept}))
+    options, seed = recovery_starts(env.unwrapped.goal_state[:3], count=1)[0]
+    assert_same_closed_loops(env, python, CRealTimeMPC(python), 3.0, 0.004, seed=seed, reset_options=options)

@@ -262,3 +262,51 @@ def test_common_subexpression_elimination_changes_no_bit_of_a_learned_stage(monk
             for a, b in zip(plain.call(inputs), eliminated.call(inputs)):
                 assert np.all(np.isfinite(np.asarray(a)))
                 np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+@pytest.mark.parametrize(("items", "every", "head"), [(20, 1, 4), (21, 4, 4), (50, 4, 0), (30, 5, 3), (7, 10, 2)])
+def test_kept_jacobians_are_never_older_than_the_rule_says(items, every, head):
+    """:func:`relinearized` as the shift moves the items: following each node through 3·items periods, its
+    Jacobians are renewed at least every ``every`` periods, the first ``head`` items every period, and each
+    linearization renews the same number of items."""
+    from fvin_mpc.control.rti import relinearized
+
+    renewed = relinearized(items, every, head).astype(bool)
+    assert renewed[:head].all() and renewed[-1] and renewed[0]
+    age = np.zeros(items, dtype=int)
+    oldest = 0
+    for _ in range(3 * items):
+        age = np.concatenate([age[1:] + 1, [0]])  # the shift: a new item at the end
+        age[renewed] = 0
+        oldest = max(oldest, int(age.max()))
+    assert oldest <= every - 1
+    if every == 1:
+        assert renewed.all()
+
+
+@pytest.mark.parametrize("scene", ["spherical_pendulum", "pendulum"])
+def test_a_linearization_renews_the_jacobians_it_is_told_to_and_keeps_the_rest(scene):
+    """The generated linearization with kept Jacobians (``rti.relinearize_every``): renewed items are the full
+    linearization's to the bit, kept ones the given ones to the bit; on the unrolled stages (learned ball joint)
+    the gaps, Hessians and gradients do not depend on which were kept; the implicit dynamics' node slopes
+    (learned pendulum) are kept the same way."""
+    env = scene_env(scene)
+    controller = rti(env, scene_model(env, true_model=False), rti={"relinearize_every": 3})
+    controller(env.reset(seed=1, options={"random": True})[0])
+    plan = controller._plan
+    full = controller._linearize_at(plan)
+    full_jacobians = controller._last_jacobians
+    items, size, renewed = controller.kept_jacobians
+    assert 1 < renewed.sum() < items
+    given = np.random.default_rng(3).standard_normal(full_jacobians.shape)
+    kept = controller._linearize_at(plan, given)
+    width = full_jacobians.shape[1] // items
+    for item in range(items):
+        columns = slice(item * width, (item + 1) * width)
+        expected = full_jacobians if renewed[item] else given
+        np.testing.assert_array_equal(controller._last_jacobians[:, columns], expected[:, columns])
+    assert controller._last_jacobians.size == items * size
+    if scene == "spherical_pendulum":  # unrolled: the stages' [A B] are the kept Jacobians
+        np.testing.assert_array_equal(kept[4], controller._last_jacobians)
+        for index in (0, 1, 2, 3, 5, 6):  # H, H_N, g, g_N, gaps, cost
+            np.testing.assert_array_equal(kept[index], full[index])

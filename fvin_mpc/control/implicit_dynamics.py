@@ -108,11 +108,13 @@ class TermLayout:
         return ca.vertcat(*parts)
 
 
-def node_terms_function(terms: Any, retract: Any, parameters: Any = None) -> tuple[ca.Function, TermLayout]:
+def node_terms_function(terms: Any, retract: Any, parameters: Any = None,
+                        derivatives: bool = True) -> tuple[ca.Function, TermLayout]:
     """``node(q̄[4]) -> (T[s], ∂T/∂δ[s×3])``: the terms at ``q̄`` and their derivatives along the chart
     ``q = retract(q̄, δ)`` at ``δ = 0``; ``terms`` on the CasADi backend. With ``parameters`` (an
     :class:`~fvin_mpc.control.model_export.ExportedModel`) the terms are its :meth:`terms_at` the model
-    parameters, an input: ``node(q̄, p)``."""
+    parameters, an input: ``node(q̄, p)``. ``derivatives=False``: ``T`` alone, the same expression (the same
+    to the bit)."""
     q_bar, delta = ca.SX.sym("q_bar", 4), ca.SX.sym("delta", 3)
     inputs, names = [q_bar], ["q_bar"]
     if parameters is not None:
@@ -123,8 +125,9 @@ def node_terms_function(terms: Any, retract: Any, parameters: Any = None) -> tup
     q_components = tuple(q[i] for i in range(4))
     layout = TermLayout(terms, q_components)
     flat = layout.flatten(terms, q_components)
-    values, derivatives = ca.substitute([flat, ca.jacobian(flat, delta)], [delta], [ca.DM.zeros(3)])
-    node_terms = ca.Function("rti_node_terms", inputs, [values, derivatives], names, ["T", "dT"], GENERATED_SX_OPTIONS)
+    outputs = ca.substitute([flat, ca.jacobian(flat, delta)] if derivatives else [flat], [delta], [ca.DM.zeros(3)])
+    node_terms = ca.Function("rti_node_terms" if derivatives else "rti_node_values", inputs, outputs, names,
+                             ["T", "dT"][:len(outputs)], GENERATED_SX_OPTIONS)
     return node_terms, layout
 
 

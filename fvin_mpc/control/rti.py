@@ -155,21 +155,54 @@ def step_limits(layout: StateLayout, omega_step: float) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------- compiled QP + update
-def unrolled_stage_function(step: ca.Function, layout: StateLayout, m: int) -> ca.Function:
+def unrolled_stage_function(step: ca.Function, layout: StateLayout, m: int, jacobian: bool = True) -> ca.Function:
     """``stage(x̄_k, ū_k, x̄_{k+1}, d) -> (c, [A B])`` of the unrolled dynamics: ``c`` the gap between
     ``F(x̄_k, ū_k + d)`` and ``x̄_{k+1}`` in ``x̄_{k+1}``'s chart, ``[A B]`` its derivatives in ``(δ_k, Δu_k)``.
     A ``step`` with a third input (the model parameters ``p``,
-    :attr:`~fvin_mpc.control.model_export.ExportedModel.parametric_step`) gives ``stage(…, d, p)``."""
+    :attr:`~fvin_mpc.control.model_export.ExportedModel.parametric_step`) gives ``stage(…, d, p)``.
+    ``jacobian=False``: ``c`` alone, the same expression (the same to the bit)."""
     x_bar, x_next_bar = ca.SX.sym("x_bar", layout.state_dim), ca.SX.sym("x_next_bar", layout.state_dim)
     u_bar, d = ca.SX.sym("u_bar", m), ca.SX.sym("d", m)
     delta, du = ca.SX.sym("delta", layout.tangent_dim), ca.SX.sym("du", m)
     parameters = [ca.SX.sym("p", step.size1_in(2))] if step.n_in() == 3 else []
     gap = local_state(layout, x_next_bar, step(retract_state(layout, x_bar, delta), u_bar + du + d, *parameters)[0])
-    c, jacobian = ca.substitute([gap, ca.jacobian(gap, ca.vertcat(delta, du))], [delta, du],
-                                [ca.DM.zeros(layout.tangent_dim), ca.DM.zeros(m)])
-    return ca.Function("rti_dynamics", [x_bar, u_bar, x_next_bar, d, *parameters], [c, jacobian],
-                       ["x_bar", "u_bar", "x_next_bar", "d", "p"][:4 + len(parameters)], ["c", "AB"],
-                       GENERATED_SX_OPTIONS)
+    outputs = ca.substitute([gap, ca.jacobian(gap, ca.vertcat(delta, du))] if jacobian else [gap], [delta, du],
+                            [ca.DM.zeros(layout.tangent_dim), ca.DM.zeros(m)])
+    return ca.Function("rti_dynamics" if jacobian else "rti_dynamics_value", [x_bar, u_bar, x_next_bar, d, *parameters],
+                       outputs, ["x_bar", "u_bar", "x_next_bar", "d", "p"][:4 + len(parameters)],
+                       ["c", "AB"][:len(outputs)], GENERATED_SX_OPTIONS)
+
+
+def kept_jacobian_switch(name: str, full: ca.Function, value: ca.Function) -> ca.Function:
+    """``name(fresh, *inputs, J) → (*values, J)``: where ``fresh`` is non-zero ``full(*inputs) → (*values, J)``
+    (``J`` the derivatives, its last output), else ``value(*inputs) → (*values)`` with the given ``J`` passed
+    through — one stage (or node) of a linearization that keeps the Jacobians of the previous one
+    (:attr:`~fvin_mpc.control.mpc.RTIOptions.relinearize_every`). Only the branch taken runs."""
+    inputs = full.sx_in()
+    kept = ca.SX.sym("J", full.sparsity_out(full.n_out() - 1))
+    names = [*full.name_in(), "J"]
+    computed = ca.Function(f"{name}_fresh", [*inputs, kept], full.call(inputs), names, full.name_out(),
+                           GENERATED_SX_OPTIONS)
+    passed = ca.Function(f"{name}_kept", [*inputs, kept], [*value.call(inputs), kept], names, full.name_out(),
+                         GENERATED_SX_OPTIONS)
+    return ca.Function.conditional(name, [passed], computed)
+
+
+def relinearized(items: int, every: int, head: int) -> np.ndarray:
+    """Which of a linearization's ``items`` (stages, or nodes of the implicit dynamics) get new Jacobians when
+    the previous linearization's are at hand (``1.0``; ``0.0`` keeps the previous one's): the first ``head``,
+    every ``every``-th and the last. The plan shifts one item a period, so each kept Jacobian is renewed
+    when its node passes a multiple of ``every``: none is older than ``every − 1`` periods, and each
+    linearization renews the same number. ``every = 1``: all."""
+    index = np.arange(items)
+    return ((index < head) | (index % every == 0) | (index == items - 1)).astype(float)
+
+
+def shifted_items(jacobians: np.ndarray, items: int) -> np.ndarray:
+    """A linearization's Jacobians (``items`` equal column blocks) moved one item earlier, as the plan moves
+    at the shift; the last block repeated (:func:`relinearized` always renews it)."""
+    width = jacobians.shape[1] // items
+    return np.concatenate([jacobians[:, width:], jacobians[:, -width:]], axis=1)
 
 
 def riccati_stage_function(nd: int, m: int) -> ca.Function:
@@ -439,8 +472,21 @@ class RealTimeMPC(MPC):
             implicit_stage = implicit_dynamics.implicit_stage_function(self.model.casadi_terms, term_layout,
                                                                        self.model.step_size, retract, parametrized)
         else:
-            stage_dynamics = unrolled_stage_function(self.model.parametric_step if parametric else self.model.step,
-                                                     layout, m)
+            step = self.model.parametric_step if parametric else self.model.step
+            stage_dynamics = unrolled_stage_function(step, layout, m)
+        # --- the Jacobians a linearization may keep from the previous one (rti.relinearize_every): each item
+        # (a stage; a node of the implicit dynamics, whose derivatives are its terms' slopes) computes its values
+        # always and its derivatives where `fresh` says, else passes the given ones through
+        if implicit:
+            node_values, _ = implicit_dynamics.node_terms_function(self.model.casadi_terms, retract, parametrized,
+                                                                   derivatives=False)
+            item_function = kept_jacobian_switch("rti_node_terms_select", node_terms, node_values)
+            items, kept_rows, kept_width = n + 1, term_layout.size, 3
+        else:
+            item_function = kept_jacobian_switch("rti_dynamics_select", stage_dynamics,
+                                                 unrolled_stage_function(step, layout, m, jacobian=False))
+            items, kept_rows, kept_width = n, nd, stage_size
+        kept_mx, fresh_mx = ca.MX.sym("J", kept_rows, kept_width * items), ca.MX.sym("fresh", 1, items)
 
         # --- cost: the problem's residuals (control/problem.py), the ω bound as a stiff penalty on its
         # excess (zero inside the bound): the linearized QP then has only the torque boxes and is always
@@ -477,13 +523,15 @@ class RealTimeMPC(MPC):
         references, d_mx, u_s_mx = ca.MX.sym("R", ns, n + 1), ca.MX.sym("d", m), ca.MX.sym("u_s", m, n)
         if implicit:  # the terms once per node, each stage reads its two nodes'
             node_parameters = [ca.repmat(p_mx, 1, n + 1)] if parametric else []
-            values, slopes = node_terms.map(n + 1)(states[qs, :], *node_parameters)
+            values, slopes = item_function.map(n + 1)(fresh_mx, states[qs, :], *node_parameters, kept_mx)
             gaps, jacobians = implicit_stage.map(n)(states[:, :n], controls, states[:, 1:], ca.repmat(d_mx, 1, n),
                                                     values[:, :n], slopes[:, :3 * n], values[:, 1:], slopes[:, 3:],
                                                     *p_stages)
+            kept_out = slopes
         else:
-            gaps, jacobians = stage_dynamics.map(n)(states[:, :n], controls, states[:, 1:], ca.repmat(d_mx, 1, n),
-                                                    *p_stages)
+            gaps, jacobians = item_function.map(n)(fresh_mx, states[:, :n], controls, states[:, 1:],
+                                                   ca.repmat(d_mx, 1, n), *p_stages, kept_mx)
+            kept_out = jacobians
         hessians, gradients, costs = stage_cost.map(n)(states[:, :n], controls, references[:, :n], u_s_mx, *p_stages)
         terminal_hessian, terminal_gradient, terminal_value = terminal_cost(states[:, n], references[:, n],
                                                                             *([p_mx] if parametric else []))
@@ -497,17 +545,27 @@ class RealTimeMPC(MPC):
                                    -ca.MX.eye(nd), ca.MX(nd, size - column - stage_size - nd)))
         constraints = ca.vertcat(*rows)
         gradient = ca.vertcat(gradients[nd:, 0], ca.vec(gradients[:, 1:]), terminal_gradient)
-        linearize = ca.Function("rti_linearize", [states, controls, references, d_mx, u_s_mx, p_mx],
+        linearize = ca.Function("rti_linearize", [states, controls, references, d_mx, u_s_mx, p_mx, kept_mx, fresh_mx],
                                 [hessian, gradient, constraints, ca.vec(gaps), ca.sum2(costs) + terminal_value,
-                                 jacobians[:, :nd], blocks[0][nd:, :nd]],
-                                ["X", "U", "R", "d", "u_s", "p"], ["H", "g", "A", "gaps", "cost", "A0", "S0"])
-        linearize_blocks = ca.Function("rti_linearize_blocks", [states, controls, references, d_mx, u_s_mx, p_mx],
+                                 jacobians[:, :nd], blocks[0][nd:, :nd], kept_out],
+                                ["X", "U", "R", "d", "u_s", "p", "J_kept", "fresh"],
+                                ["H", "g", "A", "gaps", "cost", "A0", "S0", "J"])
+        linearize_blocks = ca.Function("rti_linearize_blocks",
+                                       [states, controls, references, d_mx, u_s_mx, p_mx, kept_mx, fresh_mx],
                                        [hessians, terminal_hessian, gradients, terminal_gradient, jacobians, gaps,
-                                        ca.sum2(costs) + terminal_value],
-                                       ["X", "U", "R", "d", "u_s", "p"], ["H", "HN", "g", "gN", "AB", "gaps", "cost"])
+                                        ca.sum2(costs) + terminal_value, kept_out],
+                                       ["X", "U", "R", "d", "u_s", "p", "J_kept", "fresh"],
+                                       ["H", "HN", "g", "gN", "AB", "gaps", "cost", "J"])
         predict = predict_function(self.model, "rti_predict", "input" if parametric else "constant")
 
         self._implicit = implicit
+        #: the Jacobians a linearization may keep (rti.relinearize_every): how many items, which it renews when
+        #: it has the previous ones, all of them when not, and the previous ones on the plan's lineage
+        self._kept_items = items
+        self._relinearized = relinearized(items, s.rti.relinearize_every, s.rti.relinearize_head)
+        self._all_fresh = np.ones(items)
+        self._no_jacobians = np.zeros((kept_rows, kept_width * items))
+        self._plan_jacobians: np.ndarray | None = None
         self._control_bounds = control_bounds(self.torque_low, self.torque_high, n, s.torque_reserve)
         self._omega_valid = OMEGA_VALID_FRACTION / self.model.step_size
         self._step_limits = step_limits(layout, STEP_LIMIT_OMEGA * self.omega_bound)
@@ -548,7 +606,10 @@ class RealTimeMPC(MPC):
                        "error_on_fail": False}
         return ca.conic("rti_qp", s.rti.qp_solver, {"h": h, "a": a}, options)
 
-    def _linearize_at(self, plan: Plan) -> tuple[Any, ...]:
+    def _linearize_at(self, plan: Plan, kept: np.ndarray | None = None) -> tuple[Any, ...]:
+        """The linearization at ``plan``. ``kept``: the previous linearization's Jacobians on this plan's
+        lineage (shifted as the plan was), of which it keeps those :func:`relinearized` does not renew; ``None``
+        renews all. The Jacobians it ends with are left in ``_last_jacobians``."""
         if self._implicit:
             # Both ends of a stage on one sheet of S³, as the exported step continues q_k: a model
             # whose terms are not sign-invariant reads them at each node's own sign (the measured
@@ -562,8 +623,11 @@ class RealTimeMPC(MPC):
         cached = getattr(self, "_targets_cache", None)
         if cached is None or cached[0] != key:  # u_s changes only with the time and d̂: compute once
             cached = self._targets_cache = (key, self.reference_window()[1].T)
-        return self._linearize(plan.states.T, plan.controls.T, references, self.disturbance, cached[1],
-                               self._parameters)
+        *linearization, jacobians = self._linearize(
+            plan.states.T, plan.controls.T, references, self.disturbance, cached[1], self._parameters,
+            self._no_jacobians if kept is None else kept, self._all_fresh if kept is None else self._relinearized)
+        self._last_jacobians = np.asarray(jacobians, dtype=float)
+        return tuple(linearization)
 
     # ------------------------------------------------------------------ model parameters
     def _predict(self, x: Any, u: Any) -> tuple[Any, ...]:
@@ -578,6 +642,12 @@ class RealTimeMPC(MPC):
             stepped = self.model.parametric_step(states[-1], u, self._parameters)[0]
             states.append(np.asarray(stepped, dtype=float).ravel())
         return np.array(states)
+
+    @property
+    def kept_jacobians(self) -> tuple[int, int, np.ndarray]:
+        """``(items, numbers per item, renewed)`` of the Jacobians a linearization may keep
+        (``rti.relinearize_every``): stages, or nodes of the implicit dynamics; :func:`relinearized`'s flags."""
+        return self._kept_items, self._no_jacobians.size // self._kept_items, self._relinearized.copy()
 
     @property
     def parameter_names(self) -> tuple[str, ...]:
@@ -676,12 +746,14 @@ class RealTimeMPC(MPC):
         return Plan(states, controls, None, None), 1, "rti"
 
     def _improve(self, plan: Plan, x0: np.ndarray, iterations: int, deadline: float,
-                 linearization: tuple[Any, ...] | None = None) -> tuple[Plan | None, int, str, float]:
+                 linearization: tuple[Any, ...] | None = None,
+                 keep_jacobians: bool = False) -> tuple[Plan | None, int, str, float]:
         """Up to ``iterations`` SQP iterations from ``plan``: the first always, each further one only
         while the last step was not negligible (``rti.tol``) and the last iteration's duration still
         fits before ``deadline`` (perf_counter). Returns the plan (``None`` if the first QP failed), the
         iterations done, the status (``"budget"`` if time, not convergence, stopped it) and the time of
-        the last iteration."""
+        the last iteration. ``keep_jacobians``: ``plan`` is the controller's own (a warm call), and each
+        further linearization may keep the last one's Jacobians (``rti.relinearize_every``)."""
         done, status, last = 0, "rti", 0.0
         current = plan
         while done < iterations:
@@ -693,7 +765,9 @@ class RealTimeMPC(MPC):
                     break
             start = time.perf_counter()
             if linearization is None:
-                linearization = self._linearize_at(current)
+                linearization = self._linearize_at(current, self._plan_jacobians if keep_jacobians else None)
+                if keep_jacobians:
+                    self._plan_jacobians = self._last_jacobians
             updated, qp_status = self._iterate(current, linearization, x0)
             linearization = None
             last = time.perf_counter() - start
@@ -714,7 +788,9 @@ class RealTimeMPC(MPC):
         states[-1, omega] = np.clip(states[-1, omega], -self.omega_bound, self.omega_bound)
         controls = np.vstack([plan.controls[1:], plan.controls[-1:]])
         self._plan = Plan(states, controls, None, None)
-        self._linearization = self._linearize_at(self._plan)
+        kept = None if self._plan_jacobians is None else shifted_items(self._plan_jacobians, self._kept_items)
+        self._linearization = self._linearize_at(self._plan, kept)
+        self._plan_jacobians = self._last_jacobians
         if self.settings.rti.feedback == "prepared":
             # The QP solved now, at the predicted first state; the call applies its gains to the measured one.
             h, h_n, g, g_n, ab, gaps, _ = self._linearization
@@ -728,6 +804,7 @@ class RealTimeMPC(MPC):
         restarts at 0."""
         super().reset()
         self._plan: Plan | None = None
+        self._plan_jacobians = None
 
     def _forget_preparation(self) -> None:
         self._linearization: tuple[Any, ...] | None = None
@@ -742,6 +819,8 @@ class RealTimeMPC(MPC):
         restarted = self._leaves_plan(x0)
         if restarted:
             self._plan, self._linearization = None, None
+        if self._plan is None:  # a cold call's plan comes with no Jacobians of its own lineage
+            self._plan_jacobians = None
         if self._plan is None and self._cold_mpc is not None:  # cold: IPOPT to convergence, once
             self._cold_mpc.reset()
             _, cold_info = self._cold_mpc(x0)
@@ -788,7 +867,7 @@ class RealTimeMPC(MPC):
                 plan, iterations, status = self._apply_prepared(x0)
             else:
                 plan, iterations, status, _ = self._improve(self._plan, x0, s.rti.max_iter, start + s.rti.budget_s,
-                                                            self._linearization)
+                                                            self._linearization, keep_jacobians=True)
             fallback, success = None, plan is not None
             if plan is None:  # the shifted previous plan, clipped
                 plan, fallback = self._plan, "previous-plan"

@@ -20,7 +20,10 @@
 #define NR (NS - RS)              /* rates */
 #define OM (NS - 3)               /* first ω entry */
 
-enum { LIN_H, LIN_HN, LIN_G, LIN_GN, LIN_AB, LIN_GAPS, LIN_COST, LIN_COUNT };
+enum { LIN_H, LIN_HN, LIN_G, LIN_GN, LIN_AB, LIN_GAPS, LIN_COST, LIN_J, LIN_COUNT };
+/* Which Jacobians a linearization keeps from the last one (RTIOptions.relinearize_every): none, the last one's
+ * where they stand (a further iteration on the same plan), or moved one item earlier (the shifted plan). */
+enum { RENEW_ALL, KEEP_SAME, KEEP_SHIFTED };
 
 struct fvc_controller {
     double X[(N + 1) * NS], U[N * M];        /* the plan */
@@ -36,6 +39,8 @@ struct fvc_controller {
     double sent_x[NS], sent_u[M];            /* the last call's state and control, for the prediction */
     double time;
     double *lin[LIN_COUNT];
+    double kept[FVC_KEPT_ITEMS * FVC_KEPT_ITEM];  /* the Jacobians a linearization may keep, as it reads them */
+    int jacobians_on_plan;                        /* lin[LIN_J] is the plan's (RealTimeMPC._plan_jacobians) */
     /* CasADi work memory, shared by the three functions */
     const casadi_real **arg;
     casadi_real **res;
@@ -62,7 +67,7 @@ static void targets(fvc_controller *c) {
 }
 
 /* ------------------------------------------------------------------ generated calls */
-static void call_linearize(fvc_controller *c, double *X, double *U) {
+static void call_linearize(fvc_controller *c, double *X, double *U, int keep) {
     if (FVC_IMPLICIT) {
         /* Both ends of a stage on one sheet of S³ (RealTimeMPC._linearize_at): flip every node after a sign change. */
         double turns[N];
@@ -82,9 +87,23 @@ static void call_linearize(fvc_controller *c, double *X, double *U) {
         }
     }
     targets(c);
+    const double *renewed = fvc_all_renewed;
+    if (keep != RENEW_ALL && c->jacobians_on_plan) {  /* RealTimeMPC.prepare / _improve: shifted_items */
+        const double *last = c->lin[LIN_J];
+        if (keep == KEEP_SHIFTED) {
+            memcpy(c->kept, last + FVC_KEPT_ITEM, sizeof(double) * (FVC_KEPT_ITEMS - 1) * FVC_KEPT_ITEM);
+            memcpy(c->kept + (FVC_KEPT_ITEMS - 1) * FVC_KEPT_ITEM, last + (FVC_KEPT_ITEMS - 1) * FVC_KEPT_ITEM,
+                   sizeof(double) * FVC_KEPT_ITEM);
+        } else {
+            memcpy(c->kept, last, sizeof c->kept);
+        }
+        renewed = fvc_relinearized;
+    }
     c->arg[0] = X; c->arg[1] = U; c->arg[2] = c->ref; c->arg[3] = c->d; c->arg[4] = c->u_s; c->arg[5] = c->p;
+    c->arg[6] = c->kept; c->arg[7] = renewed;
     for (int i = 0; i < LIN_COUNT; i++) c->res[i] = c->lin[i];
     rti_linearize_blocks(c->arg, c->res, c->iw, c->w, 0);
+    c->jacobians_on_plan = keep != RENEW_ALL;
 }
 
 static void call_predict(fvc_controller *c, const double *x, const double *u, double *next, double *b,
@@ -139,12 +158,12 @@ static int apply_prepared(fvc_controller *c, const double *x0) {
  * clock): the first always, each further one while the last step was not below the tolerance.
  * Returns the iterations done; *failed when the first gave no finite plan (X, U unchanged). */
 static int improve(fvc_controller *c, double *X, double *U, const double *x0, int iterations, int linearized,
-                   int *failed) {
+                   int keep, int *failed) {
     int done = 0;
     *failed = 0;
     while (done < iterations) {
         if (done > 0 && c->status.last_step < FVC_TOL) break;
-        if (!linearized) call_linearize(c, X, U);
+        if (!linearized) call_linearize(c, X, U, keep);
         linearized = 0;
         if (!iterate(c, X, U, x0)) {
             *failed = done == 0;
@@ -199,7 +218,7 @@ static void rollout_guess(fvc_controller *c, const double *x0, double sign, doub
 }
 
 static double score(fvc_controller *c, double *X, double *U) {
-    call_linearize(c, X, U);
+    call_linearize(c, X, U, RENEW_ALL);
     double gaps = 0.0;
     for (int i = 0; i < N * FVC_ND; i++) gaps += c->lin[LIN_GAPS][i] * c->lin[LIN_GAPS][i];
     return c->lin[LIN_COST][0] + 1e3 * gaps;
@@ -212,7 +231,7 @@ static int cold_start(fvc_controller *c, const double *x0) {
         int guess = fvc_cold_order[g];
         if (guess == 0) goal_guess(c, x0, c->CX, c->CU);
         else rollout_guess(c, x0, guess == 1 ? 1.0 : -1.0, c->CX, c->CU);
-        iterations += improve(c, c->CX, c->CU, x0, FVC_COLD_ITER, 0, &failed);
+        iterations += improve(c, c->CX, c->CU, x0, FVC_COLD_ITER, 0, RENEW_ALL, &failed);
         double value = score(c, c->CX, c->CU);
         if (!have_best || value < best) {
             have_best = 1;
@@ -346,7 +365,7 @@ void fvc_free(fvc_controller *c) {
 }
 
 void fvc_reset(fvc_controller *c) {
-    c->have_plan = c->prepared = c->have_prediction = c->pending_prediction = 0;
+    c->have_plan = c->prepared = c->have_prediction = c->pending_prediction = c->jacobians_on_plan = 0;
     memset(c->d, 0, sizeof c->d);
     c->time = 0.0;
 }
@@ -363,7 +382,7 @@ void fvc_prepare(fvc_controller *c) {
     memcpy(c->X + N * NS, last, sizeof last);
     for (int i = OM; i < NS; i++) c->X[N * NS + i] = clip(c->X[N * NS + i], -FVC_OMEGA_BOUND, FVC_OMEGA_BOUND);
     memmove(c->U, c->U + M, sizeof(double) * (N - 1) * M);
-    call_linearize(c, c->X, c->U);
+    call_linearize(c, c->X, c->U, KEEP_SHIFTED);
     if (FVC_PREPARED_FEEDBACK) prepare_gains(c);
     c->prepared = 1;
     c->status.prepares++;
@@ -409,7 +428,7 @@ int fvc_feedback(fvc_controller *c, const double *x, double *u) {
         } else {
             memcpy(c->CX, c->X, sizeof c->X);
             memcpy(c->CU, c->U, sizeof c->U);
-            c->status.iterations = improve(c, c->CX, c->CU, x0, FVC_MAX_ITER, 1, &failed);
+            c->status.iterations = improve(c, c->CX, c->CU, x0, FVC_MAX_ITER, 1, KEEP_SAME, &failed);
         }
         if (failed) {  /* the shifted previous plan */
             c->status.fallbacks++;
