@@ -64,9 +64,9 @@ def test_compiled_rti_functions_agree_with_their_unbuffered_calls():
     buffered = controller._linearize
     _, _, scales, references = controller._sample_reference()
     targets = np.clip(scales[:, None] * controller._u_goal, controller.torque_low, controller.torque_high).T
-    renewed = controller.kept_jacobians[2]
+    renewed = controller.kept_jacobians[3]
     assert 0 < renewed.sum() < renewed.size
     arguments = (plan.states.T, plan.controls.T, references, controller.disturbance, targets, controller.parameters,
-                 controller._plan_jacobians, renewed.reshape(1, -1))  # the prepared plan's, some items kept
+                 *controller._plan_jacobians, renewed.reshape(1, -1))  # the prepared plan's, some items kept
     for result, reference in zip(buffered(*arguments), buffered.function(*arguments)):
         np.testing.assert_allclose(result, np.asarray(reference).reshape(result.shape), rtol=0, atol=0)

@@ -287,26 +287,45 @@ def test_kept_jacobians_are_never_older_than_the_rule_says(items, every, head):
 @pytest.mark.parametrize("scene", ["spherical_pendulum", "pendulum"])
 def test_a_linearization_renews_the_jacobians_it_is_told_to_and_keeps_the_rest(scene):
     """The generated linearization with kept Jacobians (``rti.relinearize_every``): renewed items are the full
-    linearization's to the bit, kept ones the given ones to the bit; on the unrolled stages (learned ball joint)
-    the gaps, Hessians and gradients do not depend on which were kept; the implicit dynamics' node slopes
-    (learned pendulum) are kept the same way."""
+    linearization's to the bit, kept ones the given ones to the bit, with the points they were computed at; an item
+    renews where its node moved more than ``rti.relinearize_tol`` from its kept point, and only there; on the
+    unrolled stages (learned ball joint) the gaps, Hessians and gradients do not depend on which were kept; the
+    implicit dynamics' node slopes (learned pendulum) are kept the same way."""
     env = scene_env(scene)
     controller = rti(env, scene_model(env, true_model=False), rti={"relinearize_every": 3})
     controller(env.reset(seed=1, options={"random": True})[0])
     plan = controller._plan
     full = controller._linearize_at(plan)
-    full_jacobians = controller._last_jacobians
-    items, size, renewed = controller.kept_jacobians
-    assert 1 < renewed.sum() < items
+    full_jacobians, here = controller._last_jacobians
+    items, size, point_size, rule = controller.kept_jacobians
+    assert 1 < rule.sum() < items and here.shape == (point_size, items)
     given = np.random.default_rng(3).standard_normal(full_jacobians.shape)
-    kept = controller._linearize_at(plan, given)
+    # every point where its item is now, but the item after each one the rule keeps moved by 1.5 tolerances
+    points = here.copy()
+    moved = np.zeros(items, dtype=bool)
+    moved[np.flatnonzero(rule == 0)[::2]] = True
+    shift = 1.5 * controller.settings.rti.relinearize_tol * (controller.torque_high - controller.torque_low)
+    if scene == "spherical_pendulum":
+        points[-len(shift):, moved] += shift[:, None]  # the stage's control
+    else:  # the node's rotation: a chart step (tan of half the angle) of 1.5 tolerances of STEP_LIMIT_ANGLE
+        from fvin_mpc.control.rti import STEP_LIMIT_ANGLE
+        from fvin_mpc.core import s3
+
+        half = np.arctan(1.5 * controller.settings.rti.relinearize_tol * STEP_LIMIT_ANGLE)
+        for item in np.flatnonzero(moved):
+            points[:, item] = s3.multiply(tuple(here[:, item]), (np.cos(half), np.sin(half), 0.0, 0.0))
+    kept = controller._linearize_at(plan, (given, points))
+    jacobians, new_points = controller._last_jacobians
+    renewed = (rule > 0) | moved
+    assert moved.any() and not renewed.all()
     width = full_jacobians.shape[1] // items
     for item in range(items):
         columns = slice(item * width, (item + 1) * width)
         expected = full_jacobians if renewed[item] else given
-        np.testing.assert_array_equal(controller._last_jacobians[:, columns], expected[:, columns])
-    assert controller._last_jacobians.size == items * size
+        np.testing.assert_array_equal(jacobians[:, columns], expected[:, columns])
+        np.testing.assert_array_equal(new_points[:, item], (here if renewed[item] else points)[:, item])
+    assert jacobians.size == items * size
     if scene == "spherical_pendulum":  # unrolled: the stages' [A B] are the kept Jacobians
-        np.testing.assert_array_equal(kept[4], controller._last_jacobians)
+        np.testing.assert_array_equal(kept[4], jacobians)
         for index in (0, 1, 2, 3, 5, 6):  # H, H_N, g, g_N, gaps, cost
             np.testing.assert_array_equal(kept[index], full[index])

@@ -176,13 +176,17 @@ class RTIOptions:
             (:data:`~fvin_mpc.control.scene.RESTART_SPEED_FRACTION`).
         relinearize_every: a warm linearization computes the dynamics' derivatives (the most expensive part
             of a learned model's period) only for the first ``relinearize_head`` stages, every
-            ``relinearize_every``-th and the last, and keeps the previous linearization's for the others,
-            shifted with the plan (:func:`~fvin_mpc.control.rti.relinearized`): none is older than
-            ``relinearize_every − 1`` periods. The gaps, costs and their derivatives are new every time, so
-            the iterations still close the gaps; what the kept derivatives cost is optimality, measured in
-            docs/c-controller.md. The implicit dynamics keep their nodes' term slopes the same way. Cold calls
+            ``relinearize_every``-th, the last, and those whose node moved more than ``relinearize_tol`` since
+            their derivatives were computed; it keeps the previous linearization's for the others, shifted with
+            the plan (:func:`~fvin_mpc.control.rti.relinearized`): none is older than ``relinearize_every − 1``
+            periods. The gaps, costs and their derivatives are new every time, so the iterations still close
+            the gaps; what the kept derivatives cost is optimality, measured in docs/c-controller.md. The
+            implicit dynamics keep their nodes' term slopes the same way. Cold calls and new model parameters
             renew all. ``1`` (default): every stage every time.
         relinearize_head: the leading stages renewed every time (see ``relinearize_every``).
+        relinearize_tol: how far a node may move before its kept derivatives are renewed, as a fraction of the
+            iteration's trust region (:func:`~fvin_mpc.control.rti.step_limits`: a chart step of 0.5, about a
+            radian of rotation; half the ``ω`` bound; …) or of the control range, whichever is reached first.
     """
 
     max_iter: int = 1
@@ -201,6 +205,7 @@ class RTIOptions:
     restart_speed: float = math.inf
     relinearize_every: int = 1
     relinearize_head: int = 4
+    relinearize_tol: float = 0.02
 
     def __post_init__(self) -> None:
         if not self.restart_speed > 0.0:
@@ -214,9 +219,9 @@ class RTIOptions:
             raise ValueError(f"unknown cold_solver {self.cold_solver!r}")
         if self.qp_iterations < 1:
             raise ValueError(f"qp_iterations must be >= 1, got {self.qp_iterations}")
-        if self.relinearize_every < 1 or self.relinearize_head < 0:
-            raise ValueError(f"relinearize_every must be >= 1 and relinearize_head >= 0, got "
-                             f"{self.relinearize_every}, {self.relinearize_head}")
+        if self.relinearize_every < 1 or self.relinearize_head < 0 or not self.relinearize_tol >= 0.0:
+            raise ValueError(f"relinearize_every must be >= 1, relinearize_head and relinearize_tol >= 0, got "
+                             f"{self.relinearize_every}, {self.relinearize_head}, {self.relinearize_tol}")
         if self.qp_solver not in ("riccati", "hpipm", "qrqp", "osqp"):
             raise ValueError(f"unknown qp_solver {self.qp_solver!r}")
         if self.dynamics not in ("unrolled", "implicit"):

@@ -188,6 +188,43 @@ def kept_jacobian_switch(name: str, full: ca.Function, value: ca.Function) -> ca
     return ca.Function.conditional(name, [passed], computed)
 
 
+def renewing_item_function(name: str, switch: ca.Function, distance: ca.Function, tolerance: float) -> ca.Function:
+    """``name(rule, *inputs, J, point) → (*values, J, point)``: :func:`kept_jacobian_switch`'s ``switch``, renewing
+    the item where ``rule`` is non-zero or where it moved: ``distance(*inputs, point) → (far, here)`` is how far
+    the item is from the ``point`` its kept Jacobians were computed at, in trust-region units, and where it is
+    now; it reads the item's first inputs (as many as it has before ``point``). Renewed, the item returns ``here``
+    as its point; kept, the given one."""
+    count, reads = switch.n_in() - 2, distance.n_in() - 1
+    rule = ca.MX.sym("rule")
+    inputs = [ca.MX.sym(switch.name_in(i + 1), switch.sparsity_in(i + 1)) for i in range(count)]
+    kept, point = ca.MX.sym("J", switch.sparsity_in(count + 1)), ca.MX.sym("point", distance.sparsity_in(reads))
+    far, here = distance(*inputs[:reads], point)
+    renew = ca.logic_or(rule, far > tolerance)
+    return ca.Function(name, [rule, *inputs, kept, point],
+                       [*switch(renew, *inputs, kept), ca.if_else(renew, here, point)])
+
+
+def stage_distance_function(layout: StateLayout, m: int, limits: np.ndarray, control_range: np.ndarray
+                            ) -> ca.Function:
+    """``distance(x̄, ū, point) → (far, here)`` of a stage (:func:`renewing_item_function`): its node ``x̄`` in the
+    chart of the kept point's state over the trust region (``limits``: :func:`step_limits`), or its control's
+    change over ``control_range``, whichever is larger; ``here = (x̄, ū)``."""
+    ns = layout.state_dim
+    x_bar, u_bar, point = ca.SX.sym("x_bar", ns), ca.SX.sym("u_bar", m), ca.SX.sym("point", ns + m)
+    state_far = ca.mmax(ca.fabs(local_state(layout, point[:ns], x_bar)) / ca.DM(limits))
+    control_far = ca.mmax(ca.fabs(u_bar - point[ns:]) / ca.DM(control_range))
+    return ca.Function("rti_stage_distance", [x_bar, u_bar, point],
+                       [ca.fmax(state_far, control_far), ca.vertcat(x_bar, u_bar)], GENERATED_SX_OPTIONS)
+
+
+def node_distance_function() -> ca.Function:
+    """``distance(q̄, point) → (far, here)`` of a node of the implicit dynamics, whose terms depend on its rotation
+    alone: the rotation from the kept point's in its chart over :data:`STEP_LIMIT_ANGLE`; ``here = q̄``."""
+    q_bar, point = ca.SX.sym("q_bar", 4), ca.SX.sym("point", 4)
+    return ca.Function("rti_node_distance", [q_bar, point],
+                       [ca.mmax(ca.fabs(local(point, q_bar))) / STEP_LIMIT_ANGLE, q_bar], GENERATED_SX_OPTIONS)
+
+
 def relinearized(items: int, every: int, head: int) -> np.ndarray:
     """Which of a linearization's ``items`` (stages, or nodes of the implicit dynamics) get new Jacobians when
     the previous linearization's are at hand (``1.0``; ``0.0`` keeps the previous one's): the first ``head``,
@@ -476,17 +513,27 @@ class RealTimeMPC(MPC):
             stage_dynamics = unrolled_stage_function(step, layout, m)
         # --- the Jacobians a linearization may keep from the previous one (rti.relinearize_every): each item
         # (a stage; a node of the implicit dynamics, whose derivatives are its terms' slopes) computes its values
-        # always and its derivatives where `fresh` says, else passes the given ones through
+        # always and its derivatives where `fresh` says or where it moved more than rti.relinearize_tol from
+        # where its kept ones were computed (its `point`), else passes the given ones through
+        self._step_limits = step_limits(layout, STEP_LIMIT_OMEGA * self.omega_bound)
+        tolerance = s.rti.relinearize_tol
         if implicit:
             node_values, _ = implicit_dynamics.node_terms_function(self.model.casadi_terms, retract, parametrized,
                                                                    derivatives=False)
-            item_function = kept_jacobian_switch("rti_node_terms_select", node_terms, node_values)
-            items, kept_rows, kept_width = n + 1, term_layout.size, 3
+            item_function = renewing_item_function(
+                "rti_node_terms_renewing", kept_jacobian_switch("rti_node_terms_select", node_terms, node_values),
+                node_distance_function(), tolerance)
+            items, kept_rows, kept_width, point_size = n + 1, term_layout.size, 3, 4
         else:
-            item_function = kept_jacobian_switch("rti_dynamics_select", stage_dynamics,
-                                                 unrolled_stage_function(step, layout, m, jacobian=False))
-            items, kept_rows, kept_width = n, nd, stage_size
+            item_function = renewing_item_function(
+                "rti_dynamics_renewing",
+                kept_jacobian_switch("rti_dynamics_select", stage_dynamics,
+                                     unrolled_stage_function(step, layout, m, jacobian=False)),
+                stage_distance_function(layout, m, self._step_limits, self.torque_high - self.torque_low),
+                tolerance)
+            items, kept_rows, kept_width, point_size = n, nd, stage_size, ns + m
         kept_mx, fresh_mx = ca.MX.sym("J", kept_rows, kept_width * items), ca.MX.sym("fresh", 1, items)
+        points_mx = ca.MX.sym("points", point_size, items)
 
         # --- cost: the problem's residuals (control/problem.py), the ω bound as a stiff penalty on its
         # excess (zero inside the bound): the linearized QP then has only the torque boxes and is always
@@ -523,14 +570,15 @@ class RealTimeMPC(MPC):
         references, d_mx, u_s_mx = ca.MX.sym("R", ns, n + 1), ca.MX.sym("d", m), ca.MX.sym("u_s", m, n)
         if implicit:  # the terms once per node, each stage reads its two nodes'
             node_parameters = [ca.repmat(p_mx, 1, n + 1)] if parametric else []
-            values, slopes = item_function.map(n + 1)(fresh_mx, states[qs, :], *node_parameters, kept_mx)
+            values, slopes, points_out = item_function.map(n + 1)(fresh_mx, states[qs, :], *node_parameters, kept_mx,
+                                                                  points_mx)
             gaps, jacobians = implicit_stage.map(n)(states[:, :n], controls, states[:, 1:], ca.repmat(d_mx, 1, n),
                                                     values[:, :n], slopes[:, :3 * n], values[:, 1:], slopes[:, 3:],
                                                     *p_stages)
             kept_out = slopes
         else:
-            gaps, jacobians = item_function.map(n)(fresh_mx, states[:, :n], controls, states[:, 1:],
-                                                   ca.repmat(d_mx, 1, n), *p_stages, kept_mx)
+            gaps, jacobians, points_out = item_function.map(n)(fresh_mx, states[:, :n], controls, states[:, 1:],
+                                                               ca.repmat(d_mx, 1, n), *p_stages, kept_mx, points_mx)
             kept_out = jacobians
         hessians, gradients, costs = stage_cost.map(n)(states[:, :n], controls, references[:, :n], u_s_mx, *p_stages)
         terminal_hessian, terminal_gradient, terminal_value = terminal_cost(states[:, n], references[:, n],
@@ -545,17 +593,18 @@ class RealTimeMPC(MPC):
                                    -ca.MX.eye(nd), ca.MX(nd, size - column - stage_size - nd)))
         constraints = ca.vertcat(*rows)
         gradient = ca.vertcat(gradients[nd:, 0], ca.vec(gradients[:, 1:]), terminal_gradient)
-        linearize = ca.Function("rti_linearize", [states, controls, references, d_mx, u_s_mx, p_mx, kept_mx, fresh_mx],
+        linearize = ca.Function("rti_linearize",
+                                [states, controls, references, d_mx, u_s_mx, p_mx, kept_mx, points_mx, fresh_mx],
                                 [hessian, gradient, constraints, ca.vec(gaps), ca.sum2(costs) + terminal_value,
-                                 jacobians[:, :nd], blocks[0][nd:, :nd], kept_out],
-                                ["X", "U", "R", "d", "u_s", "p", "J_kept", "fresh"],
-                                ["H", "g", "A", "gaps", "cost", "A0", "S0", "J"])
+                                 jacobians[:, :nd], blocks[0][nd:, :nd], kept_out, points_out],
+                                ["X", "U", "R", "d", "u_s", "p", "J_kept", "points_kept", "fresh"],
+                                ["H", "g", "A", "gaps", "cost", "A0", "S0", "J", "points"])
         linearize_blocks = ca.Function("rti_linearize_blocks",
-                                       [states, controls, references, d_mx, u_s_mx, p_mx, kept_mx, fresh_mx],
+                                       [states, controls, references, d_mx, u_s_mx, p_mx, kept_mx, points_mx, fresh_mx],
                                        [hessians, terminal_hessian, gradients, terminal_gradient, jacobians, gaps,
-                                        ca.sum2(costs) + terminal_value, kept_out],
-                                       ["X", "U", "R", "d", "u_s", "p", "J_kept", "fresh"],
-                                       ["H", "HN", "g", "gN", "AB", "gaps", "cost", "J"])
+                                        ca.sum2(costs) + terminal_value, kept_out, points_out],
+                                       ["X", "U", "R", "d", "u_s", "p", "J_kept", "points_kept", "fresh"],
+                                       ["H", "HN", "g", "gN", "AB", "gaps", "cost", "J", "points"])
         predict = predict_function(self.model, "rti_predict", "input" if parametric else "constant")
 
         self._implicit = implicit
@@ -563,12 +612,13 @@ class RealTimeMPC(MPC):
         #: it has the previous ones, all of them when not, and the previous ones on the plan's lineage
         self._kept_items = items
         self._relinearized = relinearized(items, s.rti.relinearize_every, s.rti.relinearize_head)
-        self._all_fresh = np.ones(items)
-        self._no_jacobians = np.zeros((kept_rows, kept_width * items))
-        self._plan_jacobians: np.ndarray | None = None
+        self._all_fresh, self._none_by_rule = np.ones(items), np.zeros(items)
+        no_points = np.zeros((items, point_size))
+        no_points[:, qs.start if not implicit else 0] = 1.0  # unit quaternions: a distance from them is finite
+        self._nothing_kept = (np.zeros((kept_rows, kept_width * items)), no_points.T.copy())
+        self._plan_jacobians: tuple[np.ndarray, np.ndarray] | None = None
         self._control_bounds = control_bounds(self.torque_low, self.torque_high, n, s.torque_reserve)
         self._omega_valid = OMEGA_VALID_FRACTION / self.model.step_size
-        self._step_limits = step_limits(layout, STEP_LIMIT_OMEGA * self.omega_bound)
         riccati = s.rti.qp_solver == "riccati"
         if riccati:
             linearize = linearize_blocks
@@ -606,10 +656,13 @@ class RealTimeMPC(MPC):
                        "error_on_fail": False}
         return ca.conic("rti_qp", s.rti.qp_solver, {"h": h, "a": a}, options)
 
-    def _linearize_at(self, plan: Plan, kept: np.ndarray | None = None) -> tuple[Any, ...]:
+    def _linearize_at(self, plan: Plan, kept: tuple[np.ndarray, np.ndarray] | None = None,
+                      by_rule: bool = True) -> tuple[Any, ...]:
         """The linearization at ``plan``. ``kept``: the previous linearization's Jacobians on this plan's
-        lineage (shifted as the plan was), of which it keeps those :func:`relinearized` does not renew; ``None``
-        renews all. The Jacobians it ends with are left in ``_last_jacobians``."""
+        lineage and the points they were computed at (shifted as the plan was), of which it keeps those that
+        :func:`relinearized` does not renew (``by_rule``; else none: a further iteration of a period whose first
+        linearization renewed them) and that moved less than ``rti.relinearize_tol``; ``None`` renews all. The
+        Jacobians and points it ends with are left in ``_last_jacobians``."""
         if self._implicit:
             # Both ends of a stage on one sheet of S³, as the exported step continues q_k: a model
             # whose terms are not sign-invariant reads them at each node's own sign (the measured
@@ -623,10 +676,11 @@ class RealTimeMPC(MPC):
         cached = getattr(self, "_targets_cache", None)
         if cached is None or cached[0] != key:  # u_s changes only with the time and d̂: compute once
             cached = self._targets_cache = (key, self.reference_window()[1].T)
-        *linearization, jacobians = self._linearize(
+        *linearization, jacobians, points = self._linearize(
             plan.states.T, plan.controls.T, references, self.disturbance, cached[1], self._parameters,
-            self._no_jacobians if kept is None else kept, self._all_fresh if kept is None else self._relinearized)
-        self._last_jacobians = np.asarray(jacobians, dtype=float)
+            *(self._nothing_kept if kept is None else kept),
+            self._all_fresh if kept is None else self._relinearized if by_rule else self._none_by_rule)
+        self._last_jacobians = (np.asarray(jacobians, dtype=float), np.asarray(points, dtype=float))
         return tuple(linearization)
 
     # ------------------------------------------------------------------ model parameters
@@ -644,10 +698,19 @@ class RealTimeMPC(MPC):
         return np.array(states)
 
     @property
-    def kept_jacobians(self) -> tuple[int, int, np.ndarray]:
-        """``(items, numbers per item, renewed)`` of the Jacobians a linearization may keep
-        (``rti.relinearize_every``): stages, or nodes of the implicit dynamics; :func:`relinearized`'s flags."""
-        return self._kept_items, self._no_jacobians.size // self._kept_items, self._relinearized.copy()
+    def kept_jacobians(self) -> tuple[int, int, int, np.ndarray]:
+        """``(items, Jacobian numbers per item, point numbers per item, renewed)`` of the Jacobians a linearization
+        may keep (``rti.relinearize_every``): stages, or nodes of the implicit dynamics; :func:`relinearized`'s
+        flags."""
+        jacobians, points = self._nothing_kept
+        return (self._kept_items, jacobians.size // self._kept_items, points.size // self._kept_items,
+                self._relinearized.copy())
+
+    @property
+    def nothing_kept(self) -> tuple[np.ndarray, np.ndarray]:
+        """What a linearization that renews every item is given as kept Jacobians and points (zeros, unit
+        quaternions), in its input shapes."""
+        return self._nothing_kept[0].copy(), self._nothing_kept[1].copy()
 
     @property
     def parameter_names(self) -> tuple[str, ...]:
@@ -674,6 +737,7 @@ class RealTimeMPC(MPC):
         self._parameters = parameters.values(self._parameters if values is None else values, **blocks)
         self._u_goal = self._goal_control()
         self._targets_cache = None
+        self._plan_jacobians = None  # computed with the old parameters: the next linearization renews them all
 
     # ------------------------------------------------------------------ one SQP iteration
     def _iterate(self, plan: Plan, linearization: tuple[Any, ...], x0: np.ndarray) -> tuple[Plan | None, str]:
@@ -753,7 +817,8 @@ class RealTimeMPC(MPC):
         fits before ``deadline`` (perf_counter). Returns the plan (``None`` if the first QP failed), the
         iterations done, the status (``"budget"`` if time, not convergence, stopped it) and the time of
         the last iteration. ``keep_jacobians``: ``plan`` is the controller's own (a warm call), and each
-        further linearization may keep the last one's Jacobians (``rti.relinearize_every``)."""
+        further linearization keeps the last one's Jacobians where the plan's nodes did not move
+        (``rti.relinearize_tol``): the period's first linearization renewed those the rule renews."""
         done, status, last = 0, "rti", 0.0
         current = plan
         while done < iterations:
@@ -765,7 +830,8 @@ class RealTimeMPC(MPC):
                     break
             start = time.perf_counter()
             if linearization is None:
-                linearization = self._linearize_at(current, self._plan_jacobians if keep_jacobians else None)
+                linearization = self._linearize_at(current, self._plan_jacobians if keep_jacobians else None,
+                                                   by_rule=False)
                 if keep_jacobians:
                     self._plan_jacobians = self._last_jacobians
             updated, qp_status = self._iterate(current, linearization, x0)
@@ -788,7 +854,8 @@ class RealTimeMPC(MPC):
         states[-1, omega] = np.clip(states[-1, omega], -self.omega_bound, self.omega_bound)
         controls = np.vstack([plan.controls[1:], plan.controls[-1:]])
         self._plan = Plan(states, controls, None, None)
-        kept = None if self._plan_jacobians is None else shifted_items(self._plan_jacobians, self._kept_items)
+        kept = None if self._plan_jacobians is None else tuple(
+            shifted_items(array, self._kept_items) for array in self._plan_jacobians)
         self._linearization = self._linearize_at(self._plan, kept)
         self._plan_jacobians = self._last_jacobians
         if self.settings.rti.feedback == "prepared":

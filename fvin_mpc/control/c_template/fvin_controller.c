@@ -20,9 +20,10 @@
 #define NR (NS - RS)              /* rates */
 #define OM (NS - 3)               /* first ω entry */
 
-enum { LIN_H, LIN_HN, LIN_G, LIN_GN, LIN_AB, LIN_GAPS, LIN_COST, LIN_J, LIN_COUNT };
+enum { LIN_H, LIN_HN, LIN_G, LIN_GN, LIN_AB, LIN_GAPS, LIN_COST, LIN_J, LIN_POINTS, LIN_COUNT };
 /* Which Jacobians a linearization keeps from the last one (RTIOptions.relinearize_every): none, the last one's
- * where they stand (a further iteration on the same plan), or moved one item earlier (the shifted plan). */
+ * where they stand (a further iteration on the same plan: renewed only where its nodes moved), or moved one item
+ * earlier (the shifted plan: renewed also where fvc_relinearized says). */
 enum { RENEW_ALL, KEEP_SAME, KEEP_SHIFTED };
 
 struct fvc_controller {
@@ -39,7 +40,8 @@ struct fvc_controller {
     double sent_x[NS], sent_u[M];            /* the last call's state and control, for the prediction */
     double time;
     double *lin[LIN_COUNT];
-    double kept[FVC_KEPT_ITEMS * FVC_KEPT_ITEM];  /* the Jacobians a linearization may keep, as it reads them */
+    double kept[FVC_KEPT_ITEMS * FVC_KEPT_ITEM];  /* the Jacobians a linearization may keep, as it reads them, */
+    double kept_points[FVC_KEPT_ITEMS * FVC_KEPT_POINT];  /* and where they were computed */
     int jacobians_on_plan;                        /* lin[LIN_J] is the plan's (RealTimeMPC._plan_jacobians) */
     /* CasADi work memory, shared by the three functions */
     const casadi_real **arg;
@@ -67,6 +69,17 @@ static void targets(fvc_controller *c) {
 }
 
 /* ------------------------------------------------------------------ generated calls */
+/* The last linearization's items (FVC_KEPT_ITEMS of `size` numbers) as the next reads them: where they stand, or
+ * moved one item earlier with the last one repeated (rti.shifted_items). */
+static void keep_items(double *to, const double *last, int size, int shifted) {
+    if (shifted) {
+        memcpy(to, last + size, sizeof(double) * (FVC_KEPT_ITEMS - 1) * size);
+        memcpy(to + (FVC_KEPT_ITEMS - 1) * size, last + (FVC_KEPT_ITEMS - 1) * size, sizeof(double) * size);
+    } else {
+        memcpy(to, last, sizeof(double) * FVC_KEPT_ITEMS * size);
+    }
+}
+
 static void call_linearize(fvc_controller *c, double *X, double *U, int keep) {
     if (FVC_IMPLICIT) {
         /* Both ends of a stage on one sheet of S³ (RealTimeMPC._linearize_at): flip every node after a sign change. */
@@ -89,18 +102,14 @@ static void call_linearize(fvc_controller *c, double *X, double *U, int keep) {
     targets(c);
     const double *renewed = fvc_all_renewed;
     if (keep != RENEW_ALL && c->jacobians_on_plan) {  /* RealTimeMPC.prepare / _improve: shifted_items */
-        const double *last = c->lin[LIN_J];
-        if (keep == KEEP_SHIFTED) {
-            memcpy(c->kept, last + FVC_KEPT_ITEM, sizeof(double) * (FVC_KEPT_ITEMS - 1) * FVC_KEPT_ITEM);
-            memcpy(c->kept + (FVC_KEPT_ITEMS - 1) * FVC_KEPT_ITEM, last + (FVC_KEPT_ITEMS - 1) * FVC_KEPT_ITEM,
-                   sizeof(double) * FVC_KEPT_ITEM);
-        } else {
-            memcpy(c->kept, last, sizeof c->kept);
-        }
-        renewed = fvc_relinearized;
+        keep_items(c->kept, c->lin[LIN_J], FVC_KEPT_ITEM, keep == KEEP_SHIFTED);
+        keep_items(c->kept_points, c->lin[LIN_POINTS], FVC_KEPT_POINT, keep == KEEP_SHIFTED);
+        renewed = keep == KEEP_SHIFTED ? fvc_relinearized : fvc_none_renewed;  /* RealTimeMPC._linearize_at by_rule */
+    } else {
+        memcpy(c->kept_points, fvc_no_points, sizeof c->kept_points);
     }
     c->arg[0] = X; c->arg[1] = U; c->arg[2] = c->ref; c->arg[3] = c->d; c->arg[4] = c->u_s; c->arg[5] = c->p;
-    c->arg[6] = c->kept; c->arg[7] = renewed;
+    c->arg[6] = c->kept; c->arg[7] = c->kept_points; c->arg[8] = renewed;
     for (int i = 0; i < LIN_COUNT; i++) c->res[i] = c->lin[i];
     rti_linearize_blocks(c->arg, c->res, c->iw, c->w, 0);
     c->jacobians_on_plan = keep != RENEW_ALL;
@@ -487,5 +496,6 @@ int fvc_set_parameters(fvc_controller *c, const double *p) {
     complete_prediction(c);
     memcpy(c->p, p, sizeof c->p);
     goal_control(c);
+    c->jacobians_on_plan = 0;  /* computed with the old parameters: the next linearization renews them all */
     return 0;
 }
