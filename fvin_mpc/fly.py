@@ -12,7 +12,13 @@ from pathlib import Path
 from typing import Sequence
 
 import fvin_mpc.studies.flight_report as study
-from fvin_mpc._cli import add_latency_argument, add_loop_argument, checked_scene_and_checkpoint, run_command
+from fvin_mpc._cli import (
+    add_latency_argument,
+    add_loop_argument,
+    checked_scene_and_checkpoint,
+    positive_int,
+    run_command,
+)
 from fvin_mpc.control.c_controller import on_loop
 from fvin_mpc.control.closed_loop import write_video
 from fvin_mpc.core.errors import UsageError
@@ -32,6 +38,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--solver", choices=["rti", "ipopt"], default="rti",
                         help="rti: one real-time iteration per period (default); ipopt: the same problem solved to "
                              "convergence every period")
+    parser.add_argument("--rti-relinearize-every", type=positive_int, default=None,
+                        help="rti only: a warm linearization renews the dynamics' Jacobians of the first stages, every "
+                             "K-th, the last and those whose node moved, and keeps the previous ones for the rest "
+                             "(default 1: all renewed every time)")
     parser.add_argument("--episodes", type=int, default=20, help="recovery starts (default: 20)")
     parser.add_argument("--seed", type=int, default=0, help="seeds the recovery starts (default: 0)")
     add_latency_argument(parser, default="measured")
@@ -59,15 +69,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     if spec.space.pivoted:
         raise UsageError(f"scene {spec.name!r} is a body on a pivot; swing it up with python -m fvin_mpc.swingup")
     if args.report is not None:
-        if args.loop != "python":
-            raise UsageError("--report runs the studies' own controllers in Python; leave out --loop c")
+        if args.loop != "python" or args.rti_relinearize_every is not None:
+            raise UsageError("--report runs the studies' own controllers in Python; leave out --loop c and "
+                             "--rti-relinearize-every")
         results = study.side_by_side(args.report, argv, args.episodes, args.seed, args.latency, args.checkpoint,
                                      progress=not args.quiet, scene=args.scene)
         study.print_rows([model["summary"] for model in results["models"].values()])
         print(f"report: {args.report / 'quadrotor.md'}", file=sys.stderr)
         return 0
     env = study.make_env(render=args.video is not None, scene=args.scene)
-    controller = on_loop(study.make_controller(env, args.model, args.checkpoint, solver=args.solver), args.loop)
+    rti = None if args.rti_relinearize_every is None else {"relinearize_every": args.rti_relinearize_every}
+    controller = on_loop(study.make_controller(env, args.model, args.checkpoint, solver=args.solver, rti=rti),
+                         args.loop)
     if args.model == "closed-form":
         for left_out in env.space.closed_form(env.model, env.body_name).unmodelled:
             print(f"note: the closed form leaves out {left_out}", file=sys.stderr)

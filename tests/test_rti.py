@@ -284,6 +284,19 @@ def test_kept_jacobians_are_never_older_than_the_rule_says(items, every, head):
         assert renewed.all()
 
 
+@pytest.mark.parametrize("every", [1, 3])
+def test_only_kept_jacobians_let_a_periods_further_iterations_keep_any(spherical, every):
+    """The default (``relinearize_every=1``) renews every item in every linearization, the further iterations of a
+    period included; with kept Jacobians those renew only the items that moved (none by the rule)."""
+    controller = rti(*spherical, rti={"relinearize_every": every})
+    items, _, _, preparation, further = controller.kept_jacobians
+    assert controller.settings.rti.max_iter == 3
+    if every == 1:
+        assert preparation.all() and further.all()
+    else:
+        assert 0 < preparation.sum() < items and not further.any()
+
+
 @pytest.mark.parametrize("scene", ["spherical_pendulum", "pendulum"])
 def test_a_linearization_renews_the_jacobians_it_is_told_to_and_keeps_the_rest(scene):
     """The generated linearization with kept Jacobians (``rti.relinearize_every``): renewed items are the full
@@ -297,7 +310,7 @@ def test_a_linearization_renews_the_jacobians_it_is_told_to_and_keeps_the_rest(s
     plan = controller._plan
     full = controller._linearize_at(plan)
     full_jacobians, here = controller._last_jacobians
-    items, size, point_size, rule = controller.kept_jacobians
+    items, size, point_size, rule, _ = controller.kept_jacobians
     assert 1 < rule.sum() < items and here.shape == (point_size, items)
     given = np.random.default_rng(3).standard_normal(full_jacobians.shape)
     # every point where its item is now, but the item after each one the rule keeps moved by 1.5 tolerances

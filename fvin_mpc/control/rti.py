@@ -612,7 +612,9 @@ class RealTimeMPC(MPC):
         #: it has the previous ones, all of them when not, and the previous ones on the plan's lineage
         self._kept_items = items
         self._relinearized = relinearized(items, s.rti.relinearize_every, s.rti.relinearize_head)
-        self._all_fresh, self._none_by_rule = np.ones(items), np.zeros(items)
+        self._all_fresh = np.ones(items)
+        # a period's further iterations renew only what moved — unless every item is renewed every time
+        self._renewed_further = np.ones(items) if s.rti.relinearize_every == 1 else np.zeros(items)
         no_points = np.zeros((items, point_size))
         no_points[:, qs.start if not implicit else 0] = 1.0  # unit quaternions: a distance from them is finite
         self._nothing_kept = (np.zeros((kept_rows, kept_width * items)), no_points.T.copy())
@@ -660,9 +662,9 @@ class RealTimeMPC(MPC):
                       by_rule: bool = True) -> tuple[Any, ...]:
         """The linearization at ``plan``. ``kept``: the previous linearization's Jacobians on this plan's
         lineage and the points they were computed at (shifted as the plan was), of which it keeps those that
-        :func:`relinearized` does not renew (``by_rule``; else none: a further iteration of a period whose first
-        linearization renewed them) and that moved less than ``rti.relinearize_tol``; ``None`` renews all. The
-        Jacobians and points it ends with are left in ``_last_jacobians``."""
+:func:`relinearized` does not renew (``by_rule``; else, in a period's further iteration, it renews only
+        what moved — all when ``rti.relinearize_every`` is 1) and that moved less than ``rti.relinearize_tol``;
+        ``None`` renews all. The Jacobians and points it ends with are left in ``_last_jacobians``."""
         if self._implicit:
             # Both ends of a stage on one sheet of S³, as the exported step continues q_k: a model
             # whose terms are not sign-invariant reads them at each node's own sign (the measured
@@ -679,7 +681,7 @@ class RealTimeMPC(MPC):
         *linearization, jacobians, points = self._linearize(
             plan.states.T, plan.controls.T, references, self.disturbance, cached[1], self._parameters,
             *(self._nothing_kept if kept is None else kept),
-            self._all_fresh if kept is None else self._relinearized if by_rule else self._none_by_rule)
+            self._all_fresh if kept is None else self._relinearized if by_rule else self._renewed_further)
         self._last_jacobians = (np.asarray(jacobians, dtype=float), np.asarray(points, dtype=float))
         return tuple(linearization)
 
@@ -698,13 +700,14 @@ class RealTimeMPC(MPC):
         return np.array(states)
 
     @property
-    def kept_jacobians(self) -> tuple[int, int, int, np.ndarray]:
-        """``(items, Jacobian numbers per item, point numbers per item, renewed)`` of the Jacobians a linearization
-        may keep (``rti.relinearize_every``): stages, or nodes of the implicit dynamics; :func:`relinearized`'s
-        flags."""
+    def kept_jacobians(self) -> tuple[int, int, int, np.ndarray, np.ndarray]:
+        """``(items, Jacobian numbers per item, point numbers per item, renewed, renewed further)`` of the
+        Jacobians a linearization may keep (``rti.relinearize_every``): stages, or nodes of the implicit dynamics;
+        the items a preparation renews whether they moved or not (:func:`relinearized`), and those a period's
+        further iteration renews (none, or all when ``relinearize_every`` is 1)."""
         jacobians, points = self._nothing_kept
         return (self._kept_items, jacobians.size // self._kept_items, points.size // self._kept_items,
-                self._relinearized.copy())
+                self._relinearized.copy(), self._renewed_further.copy())
 
     @property
     def nothing_kept(self) -> tuple[np.ndarray, np.ndarray]:

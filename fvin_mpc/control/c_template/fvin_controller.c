@@ -22,8 +22,9 @@
 
 enum { LIN_H, LIN_HN, LIN_G, LIN_GN, LIN_AB, LIN_GAPS, LIN_COST, LIN_J, LIN_POINTS, LIN_COUNT };
 /* Which Jacobians a linearization keeps from the last one (RTIOptions.relinearize_every): none, the last one's
- * where they stand (a further iteration on the same plan: renewed only where its nodes moved), or moved one item
- * earlier (the shifted plan: renewed also where fvc_relinearized says). */
+ * where they stand (a further iteration on the same plan: renewed where its nodes moved, or all where every item
+ * is renewed every time: fvc_renewed_further), or moved one item earlier (the shifted plan: renewed also where
+ * fvc_relinearized says). */
 enum { RENEW_ALL, KEEP_SAME, KEEP_SHIFTED };
 
 struct fvc_controller {
@@ -104,7 +105,7 @@ static void call_linearize(fvc_controller *c, double *X, double *U, int keep) {
     if (keep != RENEW_ALL && c->jacobians_on_plan) {  /* RealTimeMPC.prepare / _improve: shifted_items */
         keep_items(c->kept, c->lin[LIN_J], FVC_KEPT_ITEM, keep == KEEP_SHIFTED);
         keep_items(c->kept_points, c->lin[LIN_POINTS], FVC_KEPT_POINT, keep == KEEP_SHIFTED);
-        renewed = keep == KEEP_SHIFTED ? fvc_relinearized : fvc_none_renewed;  /* RealTimeMPC._linearize_at by_rule */
+        renewed = keep == KEEP_SHIFTED ? fvc_relinearized : fvc_renewed_further;  /* RealTimeMPC._linearize_at */
     } else {
         memcpy(c->kept_points, fvc_no_points, sizeof c->kept_points);
     }
