@@ -135,17 +135,29 @@ def generated_period(python: Any, iterations: int) -> float:
     ``rti_linearize_blocks`` and ``rti_feedback`` (the QP's interior-point iterations) once per Gauss–Newton
     iteration the period ran (the first linearization is the preparation's), ``rti_predict`` twice (the
     shifted plan's last node and the disturbance estimate's prediction) — the ``"qp"`` feedback. Each is
-    called once to fill its buffers, then timed as the bare compiled call (no Python conversions)."""
+    called once to fill its buffers, then timed as the bare compiled call (no Python conversions). With kept
+    Jacobians (``rti.relinearize_every``) the linearizations renew what a warm period's would on this plan: the
+    first those the rule names and those that moved since the kept ones were computed, the further ones only
+    those that moved (from the same kept points here: the plan stands still) — an estimate, where the loops'
+    own periods are measured."""
     plan, linearization = python._plan, python._linearization
     python._linearize_at(plan, python._plan_jacobians)  # a warm linearization: the items it renews
     python._feedback(plan.states.T, plan.controls.T, plan.states[0], *linearization[:6])
     python._predict(plan.states[-1], plan.controls[-1])
-    calls = ((python._linearize._evaluate, python._feedback._evaluate) * iterations
-             + (python._predict_with_parameters._evaluate,) * 2)
+    renew = python._linearize._inputs[python._linearize.function.index_in("fresh")]
+    _, _, _, first, further = python.kept_jacobians
+
+    elapsed = 0.0
+    for iteration in range(iterations):
+        renew[...] = (first if iteration == 0 else further).reshape(renew.shape)
+        start = time.perf_counter()
+        python._linearize._evaluate()
+        python._feedback._evaluate()
+        elapsed += time.perf_counter() - start
     start = time.perf_counter()
-    for call in calls:
-        call()
-    return time.perf_counter() - start
+    for _ in range(2):
+        python._predict_with_parameters._evaluate()
+    return elapsed + time.perf_counter() - start
 
 
 def generated_instructions(python: Any) -> dict[str, int]:
