@@ -104,6 +104,11 @@ def build_parser() -> argparse.ArgumentParser:
         help="the MPC of both models, learned and closed form (default: %(default)s)",
     )
     parser.add_argument(
+        "--rti-relinearize-every", type=int, default=None,
+        help="RTIOptions.relinearize_every of both models' real-time MPC (kept Jacobians; default: the scene's, 1); "
+        "its own cache",
+    )
+    parser.add_argument(
         "--out-dir", type=Path, default=None,
         help="where the report goes (default: docs/scene-families-FAMILY; docs/scene-families.md is the hand-written "
         "overview)"
@@ -159,6 +164,7 @@ def run_scene(
     latency: Any,
     max_duration: float,
     solver: str = "rti",
+    relinearize_every: int | None = None,
 ) -> dict[str, Any]:
     """Collect → train → build → evaluate one scene; the record cached for it."""
     import contextlib
@@ -189,7 +195,9 @@ def run_scene(
             ["--data", str(data), "--out", str(stem), "--quiet", "--threads", "1", *(QUICK["train"] if quick else [])]
         )
     t2 = time.perf_counter()
-    overrides = {**(QUICK["mpc"] if quick else {}), "solver": solver}
+    overrides: dict[str, Any] = {**(QUICK["mpc"] if quick else {}), "solver": solver}
+    if relinearize_every is not None:
+        overrides["rti"] = {"relinearize_every": relinearize_every}
     env = scene_env(str(scene_path), checkpoint=str(stem))
     learned_model = scene_model(env, str(stem))
     learned = scene_mpc(env, learned_model, scene_mpc_settings(env, **overrides))
@@ -222,10 +230,17 @@ def run_scene(
 
 
 # ----------------------------------------------------------------------------- the family run
+def mode_name(args: argparse.Namespace) -> str:
+    """The cache folder of a mode: the verdicts and records depend on the solver, the latency and the kept
+    Jacobians they were run with."""
+    kept = "" if args.rti_relinearize_every is None else f"-relinearize{args.rti_relinearize_every}"
+    return f"{args.solver}-{args.latency}{kept}"
+
+
 def run(args: argparse.Namespace) -> list[dict[str, Any]]:
 
     # The verdicts and records depend on the mode they were run in: one cache per solver and latency.
-    cache = args.cache_dir / args.family / ("quick" if args.quick else "full") / f"{args.solver}-{args.latency}"
+    cache = args.cache_dir / args.family / ("quick" if args.quick else "full") / mode_name(args)
     scenes_dir, work = cache / "scenes", cache / "work"
     work.mkdir(parents=True, exist_ok=True)
     max_draws = args.max_draws or 5 * args.scenes
@@ -270,7 +285,8 @@ def run(args: argparse.Namespace) -> list[dict[str, Any]]:
             record = json.loads(done.read_text())
         else:
             record = run_scene(
-                args.family, seed, path, work, args.starts, args.quick, args.latency, args.max_duration, args.solver
+                args.family, seed, path, work, args.starts, args.quick, args.latency, args.max_duration, args.solver,
+                args.rti_relinearize_every,
             )
             done.write_text(json.dumps(record, indent=2) + "\n")
         print(
@@ -445,7 +461,9 @@ def write_report(
         "from gravity; upright at any `qpos`; damping ratio 0–0.5; optional armature; torque bound 0.15–1.5× the "
         "largest gravity torque; timestep 1–20 ms; gravity 1.6–9.81 m/s²), filtered by the closed-form MPC (below), "
         "then each member goes through `collect` → `train` (defaults, one torch thread) → the learned-model MPC "
-        f"beside the closed-form MPC (the scene's default settings, solver {args.solver}) from the same starts. "
+        f"beside the closed-form MPC (the scene's default settings, solver {args.solver}"
+        + ("" if args.rti_relinearize_every is None else f", relinearize_every {args.rti_relinearize_every}")
+        + ") from the same starts. "
         "Cost is the env's "
         "accumulated quadratic cost over the same episode; success is the evaluation's criterion (upright within "
         "0.1 rad from some time on, held within 0.05 rad over the last 3 s).",
@@ -527,7 +545,7 @@ def write_report(
         ]
         for seed in sorted(args.filter_facts):
             v = args.filter_facts[seed]
-            mode = f"{args.solver}-{args.latency}"
+            mode = mode_name(args)
             scene_facts = args.cache_dir / args.family / "full" / mode / "scenes" / f"{args.family}_{seed}.json"
             f = json.loads(scene_facts.read_text())
             lines.append(
@@ -545,6 +563,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     if args.latency is None:
         args.latency = "none" if args.quick else "measured"
+    if args.rti_relinearize_every is not None and (args.rti_relinearize_every < 1 or args.solver != "rti"):
+        raise ValueError("--rti-relinearize-every takes K >= 1 and the real-time iteration (--solver rti)")
     latency: Any = args.latency if args.latency in ("none", "measured") else float(args.latency)
     args.latency = latency
     args.out_dir = args.out_dir or Path("docs") / f"scene-families-{args.family}"
