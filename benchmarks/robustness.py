@@ -100,6 +100,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--controllers", nargs="+", choices=CONTROLLERS + DIAGNOSTICS, default=list(CONTROLLERS),
                         help="default: the four controllers; the +recold variants are diagnostics (see the docstring)")
     parser.add_argument("--solver", choices=("rti", "ipopt"), default="rti", help="the MPCs' (default: %(default)s)")
+    parser.add_argument("--rti-relinearize-every", type=int, default=None,
+                        help="RTIOptions.relinearize_every of the real-time MPCs (kept Jacobians; default: the "
+                             "scene's, 1); its own cache")
     parser.add_argument("--latency", choices=("measured", "none"), default="measured",
                         help="measured: compute time charged to the plant; none: waiting mode (default: %(default)s)")
     parser.add_argument("--cache-dir", type=Path, default=Path("build/robustness-cache"), help="default: %(default)s")
@@ -108,13 +111,15 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _controller(name: str, scene: str, solver: str) -> tuple[Any, float]:
-    """The controller ``name`` built on the *nominal* scene, and the control period it plans at."""
+def _controller(name: str, scene: str, solver: str, relinearize_every: int | None = None) -> tuple[Any, float]:
+    """The controller ``name`` built on the *nominal* scene, and the control period it plans at
+    (``relinearize_every``: the real-time MPC's ``RTIOptions`` field, ``None`` the scene's)."""
     learned = name.removesuffix("+recold").endswith("-learned")
     env = scene_env(scene) if learned else scene_env(scene, true_model=True)
     model = scene_model(env) if learned else scene_model(env, true_model=True)
     if name.startswith("mpc"):
-        controller = scene_mpc(env, model, scene_mpc_settings(env, solver=solver))
+        rti = {} if relinearize_every is None else {"rti": {"relinearize_every": relinearize_every}}
+        controller = scene_mpc(env, model, scene_mpc_settings(env, solver=solver, **rti))
     else:
         controller = scene_energy_shaping(env, model)
     period = float(env.unwrapped.dt)
@@ -189,7 +194,8 @@ def run(args: argparse.Namespace) -> dict[tuple[str, str, str], dict[str, Any]]:
     """Every (scene, condition, controller) cell, from the cache where it is there."""
     cells: dict[tuple[str, str, str], dict[str, Any]] = {}
     for scene in args.scenes:
-        cache = args.cache_dir / f"{scene}-default-v{CACHE_VERSION}" / f"{args.solver}-{args.latency}" / (
+        kept = "" if args.rti_relinearize_every is None else f"-relinearize{args.rti_relinearize_every}"
+        cache = args.cache_dir / f"{scene}-default-v{CACHE_VERSION}" / f"{args.solver}-{args.latency}{kept}" / (
             f"seed{args.seed}-starts{args.starts}-T{args.duration:g}")
         cache.mkdir(parents=True, exist_ok=True)
         for name in args.controllers:
@@ -200,7 +206,7 @@ def run(args: argparse.Namespace) -> dict[tuple[str, str, str], dict[str, Any]]:
                     cells[scene, condition, name] = json.loads(path.read_text())
                     continue
                 if controller is None:
-                    controller, period = _controller(name, scene, args.solver)
+                    controller, period = _controller(name, scene, args.solver, args.rti_relinearize_every)
                 start = time.perf_counter()
                 cell = run_cell(args, scene, condition, name, controller, period)
                 cell["wall_s"] = time.perf_counter() - start
@@ -324,6 +330,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     if args.starts < 1:
         raise UsageError(f"--starts must be >= 1, got {args.starts}")
+    if args.rti_relinearize_every is not None and (args.rti_relinearize_every < 1 or args.solver != "rti"):
+        raise UsageError("--rti-relinearize-every takes K >= 1 and the real-time iteration (--solver rti)")
     unknown = [scene for scene in args.scenes if scene not in SCENES]
     if unknown:
         raise UsageError(f"--scenes {unknown}: expected built-in pivoted scenes, some of {sorted(SCENES)}")
