@@ -65,6 +65,9 @@ def build_parser() -> argparse.ArgumentParser:
                         help="fly the members' real-time MPC in Python or on its generated C library (the "
                              "deployable controller; built once per model and cached). The filter always flies the "
                              "Python loop (default: %(default)s)")
+    parser.add_argument("--rti-relinearize-every", type=int, default=None,
+                        help="RTIOptions.relinearize_every of the members' MPC, both models (kept Jacobians; default: "
+                             "1); its own flights in the cache, the filter and the data and checkpoints shared")
     parser.add_argument("--cache-dir", type=Path, default=Path("build/flyer-family-cache"),
                         help="per-scene JSON and the data and checkpoints (default: %(default)s)")
     parser.add_argument("--out-dir", type=Path, default=Path("docs/flyer-family"),
@@ -111,10 +114,13 @@ def hover_margin(scales: Any, low: np.ndarray, high: np.ndarray) -> float:
 WAITING_RTI = {"cold_budget_s": float("inf"), "budget_s": float("inf")}
 
 
-def _controller(env: Any, model: str, latency: str, checkpoint: str | None = None, loop: str = "python") -> Any:
-    """``fly``'s controller of ``model`` on ``loop``; in waiting mode bounded by counts only (:data:`WAITING_RTI`)."""
-    return on_loop(make_controller(env, model, checkpoint, **({"rti": WAITING_RTI} if latency == "none" else {})),
-                   loop)
+def _controller(env: Any, model: str, latency: str, checkpoint: str | None = None, loop: str = "python",
+                relinearize_every: int | None = None) -> Any:
+    """``fly``'s controller of ``model`` on ``loop``; in waiting mode bounded by counts only (:data:`WAITING_RTI`);
+    ``relinearize_every``: ``RTIOptions.relinearize_every`` (``None``: the default)."""
+    rti = {**(WAITING_RTI if latency == "none" else {}),
+           **({} if relinearize_every is None else {"relinearize_every": relinearize_every})}
+    return on_loop(make_controller(env, model, checkpoint, **({"rti": rti} if rti else {})), loop)
 
 
 def filter_verdict(path: Path, starts: int, seed: int) -> dict[str, Any]:
@@ -162,13 +168,14 @@ def _pipeline(seed: int, path: Path, work: Path, time_limit: float | None = None
 
 
 def run_scene(seed: int, path: Path, work: Path, verdict: dict[str, Any], starts: int, seed_starts: int,
-              latency: str, train_time_limit: float | None = None, loop: str = "python") -> dict[str, Any]:
+              latency: str, train_time_limit: float | None = None, loop: str = "python",
+              relinearize_every: int | None = None) -> dict[str, Any]:
     """Collect → train → build → fly one member; the record cached for it. In measured latency the closed
     form flies again in that mode (the filter's flights wait for the controller)."""
     stem, times = _pipeline(seed, path, work, train_time_limit)
     t2 = time.perf_counter()
     env = make_env(scene=path)
-    learned = _controller(env, "learned", latency, str(stem), loop)
+    learned = _controller(env, "learned", latency, str(stem), loop, relinearize_every)
     t3 = time.perf_counter()
     sidecar = json.loads(Path(f"{stem}.json").read_text()) if Path(f"{stem}.json").exists() else {}
     training = sidecar.get("training", {})
@@ -183,10 +190,10 @@ def run_scene(seed: int, path: Path, work: Path, verdict: dict[str, Any], starts
                     "figure_eight": _figure_eight(env, learned, latency)},
         "unmodelled": verdict["unmodelled"], "recovery_duration_s": verdict["recovery_duration_s"],
     }
-    if latency == "none" and loop == "python":
+    if latency == "none" and loop == "python" and relinearize_every is None:
         record["closed_form"] = {"recovery": verdict["recovery"], "figure_eight": verdict["figure_eight"]}
     else:
-        closed = _controller(env, "closed-form", latency, loop=loop)
+        closed = _controller(env, "closed-form", latency, loop=loop, relinearize_every=relinearize_every)
         record["closed_form"] = {"recovery": _recovery(env, closed, starts, seed_starts, latency),
                                  "figure_eight": _figure_eight(env, closed, latency)}
     env.close()
@@ -194,7 +201,9 @@ def run_scene(seed: int, path: Path, work: Path, verdict: dict[str, Any], starts
 
 
 def run(args: argparse.Namespace) -> tuple[list[dict[str, Any]], dict[int, dict[str, Any]]]:
-    cache = args.cache_dir / (args.latency if args.loop == "python" else f"{args.latency}-{args.loop}")
+    cache = args.cache_dir / ((args.latency if args.loop == "python" else f"{args.latency}-{args.loop}")
+                              + ("" if args.rti_relinearize_every is None else
+                                 f"-relinearize{args.rti_relinearize_every}"))
     scenes_dir, work = args.cache_dir / "scenes", args.cache_dir / "work"
     work.mkdir(parents=True, exist_ok=True)
     cache.mkdir(parents=True, exist_ok=True)
@@ -226,7 +235,7 @@ def run(args: argparse.Namespace) -> tuple[list[dict[str, Any]], dict[int, dict[
                     break
                 trainings += 1
             record = run_scene(seed, path, work, verdict, args.starts, args.seed, args.latency, args.train_time_limit,
-                               args.loop)
+                               args.loop, args.rti_relinearize_every)
             done.write_text(json.dumps(record, indent=1) + "\n")
         learned = sum(r["recovered"] for r in record["learned"]["recovery"])
         print(f"flyer {seed}: learned {learned}/{args.starts}, figure-eight RMS "
@@ -394,6 +403,8 @@ def write_report(records: list[dict[str, Any]], verdicts: dict[int, dict[str, An
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     args = build_parser().parse_args(argv)
+    if args.rti_relinearize_every is not None and args.rti_relinearize_every < 1:
+        raise ValueError(f"--rti-relinearize-every must be >= 1, got {args.rti_relinearize_every}")
     records, verdicts = run(args)
     args.load_average = os.getloadavg()[0]
     summary = summarize(records, verdicts)

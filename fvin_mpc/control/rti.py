@@ -662,7 +662,7 @@ class RealTimeMPC(MPC):
                       by_rule: bool = True) -> tuple[Any, ...]:
         """The linearization at ``plan``. ``kept``: the previous linearization's Jacobians on this plan's
         lineage and the points they were computed at (shifted as the plan was), of which it keeps those that
-:func:`relinearized` does not renew (``by_rule``; else, in a period's further iteration, it renews only
+        :func:`relinearized` does not renew (``by_rule``; else, in a period's further iteration, it renews only
         what moved — all when ``rti.relinearize_every`` is 1) and that moved less than ``rti.relinearize_tol``;
         ``None`` renews all. The Jacobians and points it ends with are left in ``_last_jacobians``."""
         if self._implicit:
