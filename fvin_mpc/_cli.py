@@ -90,10 +90,15 @@ def add_mpc_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--rti-qp-iterations", type=positive_int, default=None,
                        help="rti only: interior-point iterations of the Riccati QP per Gauss–Newton iteration (a "
                             "count, the same in both loops; default: the scene's)")
-    group.add_argument("--rti-relinearize-every", type=positive_int, default=None,
-                       help="rti only: a warm linearization renews the dynamics' Jacobians of the first stages, "
-                            "every K-th and the last, and keeps the previous ones, shifted with the plan, for the "
-                            "rest (none older than K-1 periods; default 1: all renewed every time)")
+    add_relinearize_argument(group)
+
+
+def add_relinearize_argument(parser: Any) -> None:
+    """``--rti-relinearize-every K``: :attr:`~fvin_mpc.control.mpc.RTIOptions.relinearize_every` (kept Jacobians)."""
+    parser.add_argument("--rti-relinearize-every", type=positive_int, default=None,
+                        help="rti only: a warm linearization renews the dynamics' Jacobians of the first stages, every "
+                             "K-th, the last and those whose node moved, and keeps the previous ones, shifted with the "
+                             "plan, for the rest (none older than K-1 periods; default 1: all renewed every time)")
 
 
 def add_loop_argument(parser: argparse.ArgumentParser) -> None:

@@ -15,8 +15,8 @@ import fvin_mpc.studies.flight_report as study
 from fvin_mpc._cli import (
     add_latency_argument,
     add_loop_argument,
+    add_relinearize_argument,
     checked_scene_and_checkpoint,
-    positive_int,
     run_command,
 )
 from fvin_mpc.control.c_controller import on_loop
@@ -38,10 +38,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--solver", choices=["rti", "ipopt"], default="rti",
                         help="rti: one real-time iteration per period (default); ipopt: the same problem solved to "
                              "convergence every period")
-    parser.add_argument("--rti-relinearize-every", type=positive_int, default=None,
-                        help="rti only: a warm linearization renews the dynamics' Jacobians of the first stages, every "
-                             "K-th, the last and those whose node moved, and keeps the previous ones for the rest "
-                             "(default 1: all renewed every time)")
+    add_relinearize_argument(parser)
     parser.add_argument("--episodes", type=int, default=20, help="recovery starts (default: 20)")
     parser.add_argument("--seed", type=int, default=0, help="seeds the recovery starts (default: 0)")
     add_latency_argument(parser, default="measured")

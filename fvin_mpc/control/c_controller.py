@@ -213,6 +213,7 @@ def config_header(controller: RealTimeMPC, example_state: np.ndarray) -> str:
         f"#define FVC_NP {len(names)}", f"#define FVC_PARAMETRIC {int(rti.model_parameters)}",
         f"#define FVC_PREPARED_FEEDBACK {int(rti.feedback == 'prepared')}",
         f"#define FVC_KEPT_ITEMS {items}", f"#define FVC_KEPT_ITEM {item_size}", f"#define FVC_KEPT_POINT {point_size}",
+        f"#define FVC_RELINEARIZE_EVERY {s.rti.relinearize_every}",
         f"static const double fvc_no_points[{items * point_size}] = {{{_literal(controller.nothing_kept[1].T)}}};",
         f"static const double fvc_relinearized[{items}] = {{{_literal(renewed)}}};",
         f"static const double fvc_all_renewed[{items}] = {{{_literal(np.ones(items))}}};",

@@ -833,8 +833,8 @@ class RealTimeMPC(MPC):
                     break
             start = time.perf_counter()
             if linearization is None:
-                linearization = self._linearize_at(current, self._plan_jacobians if keep_jacobians else None,
-                                                   by_rule=False)
+                keeps = keep_jacobians and self.settings.rti.relinearize_every > 1
+                linearization = self._linearize_at(current, self._plan_jacobians if keeps else None, by_rule=False)
                 if keep_jacobians:
                     self._plan_jacobians = self._last_jacobians
             updated, qp_status = self._iterate(current, linearization, x0)
@@ -857,7 +857,8 @@ class RealTimeMPC(MPC):
         states[-1, omega] = np.clip(states[-1, omega], -self.omega_bound, self.omega_bound)
         controls = np.vstack([plan.controls[1:], plan.controls[-1:]])
         self._plan = Plan(states, controls, None, None)
-        kept = None if self._plan_jacobians is None else tuple(
+        # relinearize_every = 1 renews every item: nothing kept to shift
+        kept = None if self._plan_jacobians is None or self.settings.rti.relinearize_every == 1 else tuple(
             shifted_items(array, self._kept_items) for array in self._plan_jacobians)
         self._linearization = self._linearize_at(self._plan, kept)
         self._plan_jacobians = self._last_jacobians

@@ -102,7 +102,8 @@ static void call_linearize(fvc_controller *c, double *X, double *U, int keep) {
     }
     targets(c);
     const double *renewed = fvc_all_renewed;
-    if (keep != RENEW_ALL && c->jacobians_on_plan) {  /* RealTimeMPC.prepare / _improve: shifted_items */
+    /* RealTimeMPC.prepare / _improve: shifted_items; relinearize_every = 1 renews every item, nothing to copy */
+    if (keep != RENEW_ALL && c->jacobians_on_plan && FVC_RELINEARIZE_EVERY > 1) {
         keep_items(c->kept, c->lin[LIN_J], FVC_KEPT_ITEM, keep == KEEP_SHIFTED);
         keep_items(c->kept_points, c->lin[LIN_POINTS], FVC_KEPT_POINT, keep == KEEP_SHIFTED);
         renewed = keep == KEEP_SHIFTED ? fvc_relinearized : fvc_renewed_further;  /* RealTimeMPC._linearize_at */
