@@ -45,7 +45,7 @@ from typing import Any, Sequence
 import casadi as ca
 import numpy as np
 
-from fvin_mpc._cli import run_command
+from fvin_mpc._cli import positive_int, run_command
 from fvin_mpc.control.c_controller import CRealTimeMPC
 from fvin_mpc.control.closed_loop import episode_metrics, run_episode
 from fvin_mpc.control.flight import quadrotor_model, quadrotor_mpc, quadrotor_mpc_settings, recovery_starts
@@ -170,13 +170,13 @@ def generated_instructions(python: Any) -> dict[str, int]:
     for function in python.loop_functions:
         if function.name() not in names:
             continue
-        if function.name() == "rti_linearize_blocks":
+        name = names[function.name()]
+        if name == "linearize":  # every item renewed
             inputs = function.mx_in()
             inputs[function.index_in("fresh")] = ca.DM.ones(1, python.kept_jacobians[0])
             kept = [x for i, x in enumerate(function.mx_in()) if function.name_in(i) != "fresh"]
             function = ca.Function("warm", kept, function.call(inputs))
-        counts[names[function.name()] if function.name() in names else "linearize"] = int(
-            (function.expand() if function.is_a("MXFunction") else function).n_instructions())
+        counts[name] = int((function.expand() if function.is_a("MXFunction") else function).n_instructions())
     return counts
 
 
@@ -328,10 +328,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--feedback", choices=["qp", "prepared"], default="qp",
                         help="RTIOptions.feedback of both loops: qp (the QP at the measured state, the default) or "
                              "prepared (the preparation's Riccati gains applied to it; one iteration per period)")
-    parser.add_argument("--cold-iter", type=int, default=None,
+    parser.add_argument("--cold-iter", type=positive_int, default=None,
                         help="RTIOptions.cold_iter of both loops: the iterations per first guess of the cold call, "
                              "a count (default: the scene's; the quadrotor's is 2, which the C loop runs in full)")
-    parser.add_argument("--relinearize-every", type=int, default=None,
+    parser.add_argument("--relinearize-every", type=positive_int, default=None,
                         help="RTIOptions.relinearize_every of both loops: renew the dynamics' Jacobians of every K-th "
                              "stage (and the first and last), keep the others' from the last linearization "
                              "(default: the scene's, 1)")
@@ -340,9 +340,6 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    for option in ("cold_iter", "relinearize_every"):
-        if getattr(args, option) is not None and getattr(args, option) < 1:
-            raise ValueError(f"--{option.replace('_', '-')} must be >= 1, got {getattr(args, option)}")
     rows = run(args.scenes, args.true_model, args.load_workers, args.seed, args.feedback, args.cold_iter,
                args.relinearize_every)
     args.out.parent.mkdir(parents=True, exist_ok=True)

@@ -41,7 +41,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from fvin_mpc import collect, train
-from fvin_mpc._cli import run_command
+from fvin_mpc._cli import add_relinearize_argument, run_command
 from fvin_mpc.control.c_controller import LOOPS, on_loop
 from fvin_mpc.control.flight import recovery_duration
 from fvin_mpc.core.quadrotor import from_mujoco
@@ -65,9 +65,7 @@ def build_parser() -> argparse.ArgumentParser:
                         help="fly the members' real-time MPC in Python or on its generated C library (the "
                              "deployable controller; built once per model and cached). The filter always flies the "
                              "Python loop (default: %(default)s)")
-    parser.add_argument("--rti-relinearize-every", type=int, default=None,
-                        help="RTIOptions.relinearize_every of the members' MPC, both models (kept Jacobians; default: "
-                             "1); its own flights in the cache, the filter and the data and checkpoints shared")
+    add_relinearize_argument(parser)  # its own flights in the cache; the filter, data and checkpoints shared
     parser.add_argument("--cache-dir", type=Path, default=Path("build/flyer-family-cache"),
                         help="per-scene JSON and the data and checkpoints (default: %(default)s)")
     parser.add_argument("--out-dir", type=Path, default=Path("docs/flyer-family"),
@@ -403,8 +401,6 @@ def write_report(records: list[dict[str, Any]], verdicts: dict[int, dict[str, An
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     args = build_parser().parse_args(argv)
-    if args.rti_relinearize_every is not None and args.rti_relinearize_every < 1:
-        raise ValueError(f"--rti-relinearize-every must be >= 1, got {args.rti_relinearize_every}")
     records, verdicts = run(args)
     args.load_average = os.getloadavg()[0]
     summary = summarize(records, verdicts)

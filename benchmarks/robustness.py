@@ -51,6 +51,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from fvin_mpc._cli import add_relinearize_argument
 from fvin_mpc.control.family_filter import run_judged
 from fvin_mpc.control.scene import scene_energy_shaping, scene_env, scene_model, scene_mpc, scene_mpc_settings
 from fvin_mpc.core.errors import UsageError, run_command
@@ -100,9 +101,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--controllers", nargs="+", choices=CONTROLLERS + DIAGNOSTICS, default=list(CONTROLLERS),
                         help="default: the four controllers; the +recold variants are diagnostics (see the docstring)")
     parser.add_argument("--solver", choices=("rti", "ipopt"), default="rti", help="the MPCs' (default: %(default)s)")
-    parser.add_argument("--rti-relinearize-every", type=int, default=None,
-                        help="RTIOptions.relinearize_every of the real-time MPCs (kept Jacobians; default: the "
-                             "scene's, 1); its own cache")
+    add_relinearize_argument(parser)  # its own cache
     parser.add_argument("--latency", choices=("measured", "none"), default="measured",
                         help="measured: compute time charged to the plant; none: waiting mode (default: %(default)s)")
     parser.add_argument("--cache-dir", type=Path, default=Path("build/robustness-cache"), help="default: %(default)s")
@@ -330,8 +329,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     if args.starts < 1:
         raise UsageError(f"--starts must be >= 1, got {args.starts}")
-    if args.rti_relinearize_every is not None and (args.rti_relinearize_every < 1 or args.solver != "rti"):
-        raise UsageError("--rti-relinearize-every takes K >= 1 and the real-time iteration (--solver rti)")
+    if args.rti_relinearize_every is not None and args.solver != "rti":
+        raise UsageError("--rti-relinearize-every needs the real-time iteration (--solver rti)")
     unknown = [scene for scene in args.scenes if scene not in SCENES]
     if unknown:
         raise UsageError(f"--scenes {unknown}: expected built-in pivoted scenes, some of {sorted(SCENES)}")

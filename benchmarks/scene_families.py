@@ -45,6 +45,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from fvin_mpc import collect, train
+from fvin_mpc._cli import add_relinearize_argument
 from fvin_mpc.control.family_filter import feasible, run_judged, swingup_duration
 from fvin_mpc.envs.families import write_family
 
@@ -103,11 +104,7 @@ def build_parser() -> argparse.ArgumentParser:
         default="rti",
         help="the MPC of both models, learned and closed form (default: %(default)s)",
     )
-    parser.add_argument(
-        "--rti-relinearize-every", type=int, default=None,
-        help="RTIOptions.relinearize_every of both models' real-time MPC (kept Jacobians; default: the scene's, 1); "
-        "its own cache",
-    )
+    add_relinearize_argument(parser)  # its own cache
     parser.add_argument(
         "--out-dir", type=Path, default=None,
         help="where the report goes (default: docs/scene-families-FAMILY; docs/scene-families.md is the hand-written "
@@ -563,8 +560,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     if args.latency is None:
         args.latency = "none" if args.quick else "measured"
-    if args.rti_relinearize_every is not None and (args.rti_relinearize_every < 1 or args.solver != "rti"):
-        raise ValueError("--rti-relinearize-every takes K >= 1 and the real-time iteration (--solver rti)")
+    if args.rti_relinearize_every is not None and args.solver != "rti":
+        raise ValueError("--rti-relinearize-every needs the real-time iteration (--solver rti)")
     latency: Any = args.latency if args.latency in ("none", "measured") else float(args.latency)
     args.latency = latency
     args.out_dir = args.out_dir or Path("docs") / f"scene-families-{args.family}"
