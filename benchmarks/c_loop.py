@@ -49,6 +49,7 @@ from fvin_mpc._cli import positive_int, run_command
 from fvin_mpc.control.c_controller import CRealTimeMPC
 from fvin_mpc.control.closed_loop import episode_metrics, run_episode
 from fvin_mpc.control.flight import quadrotor_model, quadrotor_mpc, quadrotor_mpc_settings, recovery_starts
+from fvin_mpc.control.model_export import COMPILER_FLAGS, generated_code_flags
 from fvin_mpc.control.scene import scene_env, scene_model, scene_mpc, scene_mpc_settings
 from fvin_mpc.envs import QuadrotorEnv
 from fvin_mpc.envs.scenes import resolve_scene
@@ -346,7 +347,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     args.out.write_text(json.dumps({"command": "python -m benchmarks.c_loop", "feedback": args.feedback,
                                     "cold_iter": args.cold_iter, "relinearize_every": args.relinearize_every,
                                     "load_average": os.getloadavg(), "cpus": os.cpu_count(),
-                                    "load_workers": args.load_workers, "rows": rows}, indent=1))
+                                    "load_workers": args.load_workers,
+                                    "compiler_flags": [*COMPILER_FLAGS,
+                                                       *generated_code_flags(os.environ.get("CC", "gcc"))],
+                                    "rows": rows}, indent=1))
     print(markdown(rows))
     return 0
 

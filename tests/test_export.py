@@ -105,3 +105,56 @@ def test_compiled_functions_are_cached_and_equal(tmp_path, monkeypatch):
     step_k3 = ca.Function("step_only", [x_sym, u_sym], [other.step(x_sym, u_sym)[0]])
     _, report_other = export.compile_functions([step_k3], prefix="test")
     assert not report_other.cached and report_other.library != report_first.library
+
+
+def _pendulum_step() -> ca.Function:
+    model = export.from_rigid_body(PENDULUM, 0.05, 2)
+    x_sym, u_sym = ca.SX.sym("x", 7), ca.SX.sym("u", 1)
+    return ca.Function("step_only", [x_sym, u_sym], [model.step(x_sym, u_sym)[0]])
+
+
+@pytest.fixture
+def fresh_target_flags():
+    """The host's target flags found again in the test (they are cached per process), and after it."""
+    export.generated_code_flags.cache_clear()
+    yield
+    export.generated_code_flags.cache_clear()
+
+
+def test_code_compiled_for_this_cpu_is_keyed_by_it_and_equals_the_portable_build(tmp_path, monkeypatch,
+                                                                                  fresh_target_flags):
+    """``-march=native`` where the compiler takes it; the library's cache key names the CPU, so a cache shared
+    with another CPU gives it its own library; the portable build (``FVIN_MPC_PORTABLE=1``) is another library
+    with the same results to rounding."""
+    monkeypatch.setenv("FVIN_MPC_CACHE", str(tmp_path / "cache"))
+    step = _pendulum_step()
+    if export.generated_code_flags() != ("-march=native",):
+        pytest.skip("the compiler does not take -march=native")
+    native, report = export.compile_functions([step], prefix="test")
+    monkeypatch.setattr(export, "host_cpu", lambda: "another CPU")
+    _, report_other_cpu = export.compile_functions([step], prefix="test")
+    assert not report_other_cpu.cached and report_other_cpu.library != report.library
+    monkeypatch.setenv(export.PORTABLE_ENV, "1")
+    export.generated_code_flags.cache_clear()
+    assert export.generated_code_flags() == ()
+    portable, report_portable = export.compile_functions([step], prefix="test")
+    assert report_portable.library not in (report.library, report_other_cpu.library)
+    states = [np.array([np.cos(a / 2), np.sin(a / 2) * 0.6, np.sin(a / 2) * 0.8, 0.0, w, -w, 0.3])
+              for a, w in zip(np.linspace(-3.0, 3.0, 7), np.linspace(-8.0, 8.0, 7))]
+    for x in states:
+        np.testing.assert_allclose(np.asarray(native["step_only"](x, [0.7])),
+                                   np.asarray(portable["step_only"](x, [0.7])), rtol=1e-13, atol=1e-15)
+
+
+def test_a_compiler_without_native_targets_builds_portable_code_and_says_so(tmp_path, monkeypatch,
+                                                                           fresh_target_flags):
+    compiler = tmp_path / "old-cc"
+    compiler.write_text('#!/bin/sh\nfor a in "$@"; do [ "$a" = -march=native ] && { echo "unknown target" >&2; '
+                        'exit 1; }; done\nexec gcc "$@"\n')
+    compiler.chmod(0o755)
+    with pytest.warns(RuntimeWarning, match="does not take -march=native"):
+        assert export.generated_code_flags(str(compiler)) == ()
+    monkeypatch.setenv("FVIN_MPC_CACHE", str(tmp_path / "cache"))
+    monkeypatch.setenv("CC", str(compiler))
+    compiled, _ = export.compile_functions([_pendulum_step()], prefix="test")  # the baseline build works
+    assert np.all(np.isfinite(np.asarray(compiled["step_only"]([1.0, 0, 0, 0, 0, 0, 0], [0.1]))))

@@ -49,7 +49,7 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
-from fvin_mpc.control.model_export import CompileCount, cache_dir
+from fvin_mpc.control.model_export import CompileCount, cache_dir, generated_code_flags, host_cpu
 from fvin_mpc.control.problem import ConstantReference, Reference
 from fvin_mpc.control.rti import RTI_COLD_ORDER, RealTimeMPC
 from fvin_mpc.core import s3
@@ -62,9 +62,13 @@ CA = get_ops("casadi")
 TEMPLATE_FILES = ("fvin_controller.c", "fvin_controller.h", "main.c", "Makefile")
 #: The generated functions, in the order RealTimeMPC.loop_functions holds them.
 LOOP_FUNCTION_NAMES = ("rti_linearize_blocks", "rti_predict", "rti_feedback", "rti_apply")
-#: Flags of the shared library: those of the Python loop's compiled functions
-#: (:data:`fvin_mpc.control.model_export.COMPILER_FLAGS`), so both run the same machine code.
-LIBRARY_FLAGS = ("-O2", "-fPIC", "-shared")
+#: Flags of the shared library's objects: those of the Python loop's compiled functions
+#: (:data:`fvin_mpc.control.model_export.COMPILER_FLAGS` and the host's target flags,
+#: :func:`~fvin_mpc.control.model_export.generated_code_flags`), so both run the same machine code.
+LIBRARY_FLAGS = ("-O2", "-fPIC")
+#: The hand-written driver is also compiled without fused multiply–adds: its sums (the goal control, the
+#: disturbance estimate) must round as the Python loop's (``problem.ordered_matvec``), whatever the target.
+DRIVER_FLAGS = ("-ffp-contract=off",)
 #: What ``fvc_feedback`` returns (fvin_controller.h).
 STATUS_NAMES = {0: "rti", 1: "cold", 2: "previous-plan", -1: "bad-state", -2: "no-memory", -3: "bad-parameters",
                 -4: "not-parametric"}
@@ -253,8 +257,16 @@ def write_controller(controller: RealTimeMPC, directory: str | Path, example_sta
     return directory
 
 
-def build_library(directory: str | Path, flags: tuple[str, ...] = LIBRARY_FLAGS) -> Path:
-    """Compile ``directory``'s controller into ``libfvin_controller.so`` with ``$CC`` (default ``cc``).
+def library_flags(compiler: str) -> tuple[str, ...]:
+    """The flags :func:`build_library` compiles with on this host: :data:`LIBRARY_FLAGS` and the target flags
+    of the Python loop's libraries (``-march=native`` where ``compiler`` takes it)."""
+    return (*LIBRARY_FLAGS, *generated_code_flags(compiler))
+
+
+def build_library(directory: str | Path, flags: tuple[str, ...] | None = None) -> Path:
+    """Compile ``directory``'s controller into ``libfvin_controller.so`` with ``$CC`` (default ``cc``):
+    the generated code with ``flags`` (default :func:`library_flags`), the driver with those and
+    :data:`DRIVER_FLAGS`, as the folder's ``Makefile`` does.
 
     Raises:
         RuntimeError: no C compiler, or compilation failed (with the compiler's message).
@@ -264,13 +276,22 @@ def build_library(directory: str | Path, flags: tuple[str, ...] = LIBRARY_FLAGS)
     CompileCount.compiler_runs += 1
     if shutil.which(compiler) is None:
         raise RuntimeError(f"no C compiler {compiler!r} on PATH; install one (cc, gcc, clang) or set CC")
+    flags = library_flags(compiler) if flags is None else flags
     library = directory / "libfvin_controller.so"
-    partial = directory / f"libfvin_controller.{os.getpid()}.tmp"
-    process = subprocess.run([compiler, *flags, "fvin_controller.c", "fvc_model.c", "-o", partial.name, "-lm"],
-                             cwd=directory, capture_output=True, text=True)
-    if process.returncode != 0:
-        partial.unlink(missing_ok=True)
-        raise RuntimeError(f"compiling the controller in {directory} failed: {process.stderr.strip()[-2000:]}")
+    tag = f"{os.getpid()}.tmp"
+    partial, driver, model = (directory / f"{name}.{tag}" for name in ("libfvin_controller", "driver", "model"))
+    commands = ([compiler, *flags, *DRIVER_FLAGS, "-c", "fvin_controller.c", "-o", driver.name],
+                [compiler, *flags, "-c", "fvc_model.c", "-o", model.name],
+                [compiler, *flags, "-shared", driver.name, model.name, "-o", partial.name, "-lm"])
+    try:
+        for command in commands:
+            process = subprocess.run(command, cwd=directory, capture_output=True, text=True)
+            if process.returncode != 0:
+                partial.unlink(missing_ok=True)
+                raise RuntimeError(f"compiling the controller in {directory} failed: {process.stderr.strip()[-2000:]}")
+    finally:
+        driver.unlink(missing_ok=True)
+        model.unlink(missing_ok=True)
     os.replace(partial, library)
     return library
 
@@ -285,7 +306,9 @@ def cached_library(controller: RealTimeMPC) -> Path:
     digest = hashlib.sha256()
     for path in sorted(staging.iterdir()):
         digest.update(path.name.encode() + path.read_bytes())
-    digest.update(" ".join(LIBRARY_FLAGS).encode())
+    target = generated_code_flags(os.environ.get("CC", "cc"))
+    flags = " ".join((*LIBRARY_FLAGS, *DRIVER_FLAGS, *target))
+    digest.update(flags.encode() + (host_cpu().encode() if target else b""))
     final = cache_dir() / "c_controller" / f"{controller.model.name.replace(':', '_')}_{digest.hexdigest()[:20]}"
     if not (final / "libfvin_controller.so").is_file():
         build_library(staging)

@@ -25,14 +25,16 @@ No torch here: the control runtime reads weights with safetensors/NumPy.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import os
+import platform
 import shutil
 import subprocess
 import tempfile
 import time
+import warnings
 from dataclasses import dataclass, field
-from functools import cached_property
 from pathlib import Path
 from typing import Any, Callable, Mapping, Sequence
 
@@ -130,7 +132,7 @@ class ExportedModel:
         """The CasADi terms with the parameters ``p`` (a CasADi column) in place of their constants."""
         return self.parametrize(p) if self.parametrize is not None else self.casadi_terms
 
-    @cached_property
+    @functools.cached_property
     def parametric_step(self) -> ca.Function:
         """``F(x[n], u[m], p) -> (x_next[n], residual)``: :attr:`step` with the parameters as an input
         (with :attr:`ModelParameters.defaults` it computes what :attr:`step` does)."""
@@ -144,7 +146,7 @@ class ExportedModel:
                                                **self.step_options)
         return ca.Function("fvin_step_p", [x, u, p], [x_next, residual], ["x", "u", "p"], ["x_next", "residual"])
 
-    @cached_property
+    @functools.cached_property
     def parametric_energy(self) -> ca.Function:
         """``E(x[n], p) -> energy``: :attr:`energy_function` with the parameters as an input."""
         x, p = ca.SX.sym("x", self.state_dim), ca.SX.sym("p", self.model_parameters.size)
@@ -303,7 +305,50 @@ class CompileReport:
     compile_s: float
 
 
+#: How a library of generated code is compiled, beside the target flags (:func:`generated_code_flags`).
 COMPILER_FLAGS: tuple[str, ...] = ("-O2", "-fPIC", "-shared")
+#: Set to ``1`` to compile generated code for the architecture's baseline instructions instead of this CPU's.
+PORTABLE_ENV = "FVIN_MPC_PORTABLE"
+
+
+@functools.cache
+def generated_code_flags(compiler: str = "gcc") -> tuple[str, ...]:
+    """The target flags of every library of generated code on this host: ``-march=native`` where
+    ``compiler`` accepts it, else none; none with ``$FVIN_MPC_PORTABLE=1``.
+
+    The generated functions are long straight-line scalar code; the host's instruction set (AVX, fused
+    multiply–adds) takes 20–35 % off the learned linearization and the QP (docs/c-controller.md, "Compiled
+    for this CPU"). Fused multiply–adds round differently from a multiplication and an addition, so the
+    results move in the last bits against a baseline build; both loops (this module's libraries and
+    :func:`fvin_mpc.control.c_controller.build_library`) use these flags, so they stay the same to the bit.
+    A library built so runs only on CPUs like this one: :func:`compile_functions` puts :func:`host_cpu`
+    in its cache key."""
+    if os.environ.get(PORTABLE_ENV, "") not in ("", "0"):
+        return ()
+    if shutil.which(compiler) is None:
+        return ()  # compiling fails later with the reason
+    probe = subprocess.run([compiler, "-march=native", "-x", "c", "-E", "-o", os.devnull, os.devnull],
+                           capture_output=True, text=True)
+    if probe.returncode != 0:
+        warnings.warn(f"{compiler} does not take -march=native ({probe.stderr.strip()[-200:]}); generated code is "
+                      "compiled for the baseline instruction set (slower, the same results to rounding)",
+                      RuntimeWarning, stacklevel=2)
+        return ()
+    return ("-march=native",)
+
+
+@functools.cache
+def host_cpu() -> str:
+    """What identifies this CPU's instruction set for a cache key: the machine, and on Linux the first
+    processor's model name and feature flags (``/proc/cpuinfo``)."""
+    described = [platform.machine(), platform.processor()]
+    try:
+        lines = Path("/proc/cpuinfo").read_text().splitlines()
+    except OSError:
+        lines = []
+    for key in ("model name", "flags", "Features"):  # x86 names its features "flags", Arm "Features"
+        described += [line for line in lines if line.split(":")[0].strip() == key][:1]
+    return "\n".join(described)
 #: Options of every scalar (SX) function the real-time loop generates as C. Common subexpression
 #: elimination: a stage built from several calls of the model repeats their shared terms (the step's
 #: learned terms in its value and again in its derivatives), each computed once in the generated code. It
@@ -326,9 +371,11 @@ def compile_functions(functions: Sequence[ca.Function], prefix: str, flags: Sequ
     """Generate C for ``functions``, compile it once into a cached shared library, load it.
 
     Returns ``({name: external function}, report)``; ``external_options`` are passed to
-    ``casadi.external`` for every function. The cache key is the SHA-256 of the
-    generated source plus the compiler flags and CasADi version, so anything that changes
-    the math (weights, ``K``, horizon, cost weights) changes the key.
+    ``casadi.external`` for every function. ``flags`` are followed by the host's target flags
+    (:func:`generated_code_flags`). The cache key is the SHA-256 of the generated source plus the
+    compiler flags, the CasADi version and, for a library built for this CPU, :func:`host_cpu`, so
+    anything that changes the math (weights, ``K``, horizon, cost weights) changes the key, and a cache
+    shared by machines of different CPUs never hands one of them another's instructions.
 
     Raises:
         RuntimeError: no C compiler, or compilation failed (with the compiler's message).
@@ -341,14 +388,17 @@ def compile_functions(functions: Sequence[ca.Function], prefix: str, flags: Sequ
         source_path = Path(generator.generate(workdir + os.sep))
         source = source_path.read_bytes()
         codegen_s = time.perf_counter() - start
-        digest = hashlib.sha256(source + " ".join(flags).encode() + ca.__version__.encode()).hexdigest()[:20]
+        compiler = os.environ.get("CC", "gcc")
+        target = generated_code_flags(compiler)
+        flags = (*flags, *target)
+        key = source + " ".join(flags).encode() + ca.__version__.encode() + (host_cpu().encode() if target else b"")
+        digest = hashlib.sha256(key).hexdigest()[:20]
         library = cache_dir() / f"{prefix}_{digest}.so"
         cached = library.is_file()
         compile_s = 0.0
         CompileCount.calls += 1
         if not cached:
             CompileCount.compiler_runs += 1
-            compiler = os.environ.get("CC", "gcc")
             if shutil.which(compiler) is None:
                 raise RuntimeError(f"no C compiler {compiler!r} on PATH; install gcc or use compile='none'")
             library.parent.mkdir(parents=True, exist_ok=True)

@@ -691,12 +691,13 @@ class RealTimeMPC(MPC):
         return self._predict_with_parameters(x, u, self._parameters)
 
     def _rollout(self, x0: np.ndarray, controls: np.ndarray) -> np.ndarray:
-        if not self.settings.rti.model_parameters:
-            return super()._rollout(x0, controls)
+        """The rollout first guesses step with the loop's own compiled prediction (``rti_predict``, with the
+        current model parameters), as the C driver does: the same machine code, so the two loops' cold plans
+        agree to the bit even where the compiled code rounds apart from CasADi's interpreter (fused
+        multiply–adds)."""
         states = [np.asarray(x0, dtype=float)]
         for u in controls:
-            stepped = self.model.parametric_step(states[-1], u, self._parameters)[0]
-            states.append(np.asarray(stepped, dtype=float).ravel())
+            states.append(np.asarray(self._predict(states[-1], u)[0], dtype=float).ravel())
         return np.array(states)
 
     @property
