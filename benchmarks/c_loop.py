@@ -107,17 +107,14 @@ class BackgroundLoad:
             process.join()
 
 
-def controllers(scene: str, true_model: bool, seed: int, feedback: str = "qp", cold_iter: int | None = None,
-                relinearize_every: int | None = None) -> tuple[Any, Any, Any, dict[str, Any], int]:
+def controllers(scene: str, true_model: bool, seed: int, feedback: str = "qp",
+                rti_options: dict[str, Any] | None = None) -> tuple[Any, Any, Any, dict[str, Any], int]:
     """``(env, python loop, C loop, reset options, env seed)`` of ``scene``: a random start, or the
     quadrotor's first random recovery start. ``feedback``: ``RTIOptions.feedback`` of both loops
-    (``"prepared"`` with one iteration per period); ``cold_iter``, ``relinearize_every``: both loops'
-    ``RTIOptions`` fields (``None``: the scene's)."""
+    (``"prepared"`` with one iteration per period); ``rti_options``: more ``RTIOptions`` fields of both loops
+    (``cold_iter``, ``relinearize_every``, ``qp_iterations``, ``qp_method``; the scene's where not given)."""
     rti: dict[str, Any] = {} if feedback == "qp" else {"feedback": feedback, "max_iter": 1}
-    if cold_iter is not None:
-        rti["cold_iter"] = cold_iter
-    if relinearize_every is not None:
-        rti["relinearize_every"] = relinearize_every
+    rti.update(rti_options or {})
     if resolve_scene(scene).space.pivoted:
         env = scene_env(scene, true_model=true_model)
         python = scene_mpc(env, scene_model(env, true_model=true_model),
@@ -249,14 +246,12 @@ def summary(episode: Any) -> dict[str, Any]:
 
 
 def run(scenes: Sequence[str], true_model: bool, load_workers: int, seed: int,
-        feedback: str = "qp", cold_iter: int | None = None,
-        relinearize_every: int | None = None) -> list[dict[str, Any]]:
+        feedback: str = "qp", rti_options: dict[str, Any] | None = None) -> list[dict[str, Any]]:
     from tqdm.auto import tqdm
 
     rows = []
     for scene in tqdm(scenes, desc="scenes"):
-        env, python, c_loop, options, seed = controllers(scene, true_model, seed, feedback, cold_iter,
-                                                         relinearize_every)
+        env, python, c_loop, options, seed = controllers(scene, true_model, seed, feedback, rti_options)
         duration = DURATION_S.get(scene, 8.0)
         row: dict[str, Any] = {"scene": scene, "model": python.model.name, "horizon": python.horizon}
         for condition in ("as is", "loaded"):
@@ -336,16 +331,23 @@ def build_parser() -> argparse.ArgumentParser:
                         help="RTIOptions.relinearize_every of both loops: renew the dynamics' Jacobians of every K-th "
                              "stage (and the first and last), keep the others' from the last linearization "
                              "(default: the scene's, 1)")
+    parser.add_argument("--qp-iterations", type=positive_int, default=None,
+                        help="RTIOptions.qp_iterations of both loops (default: the scene's)")
+    parser.add_argument("--qp-method", choices=["path", "mehrotra"], default=None,
+                        help="RTIOptions.qp_method of both loops: the Riccati QP's interior-point method (default: "
+                             "the scene's, path)")
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    rows = run(args.scenes, args.true_model, args.load_workers, args.seed, args.feedback, args.cold_iter,
-               args.relinearize_every)
+    given = {"cold_iter": args.cold_iter, "relinearize_every": args.relinearize_every,
+             "qp_iterations": args.qp_iterations, "qp_method": args.qp_method}
+    rti_options = {name: value for name, value in given.items() if value is not None}
+    rows = run(args.scenes, args.true_model, args.load_workers, args.seed, args.feedback, rti_options)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps({"command": "python -m benchmarks.c_loop", "feedback": args.feedback,
-                                    "cold_iter": args.cold_iter, "relinearize_every": args.relinearize_every,
+                                    **given,
                                     "load_average": os.getloadavg(), "cpus": os.cpu_count(),
                                     "load_workers": args.load_workers,
                                     "compiler_flags": [*COMPILER_FLAGS,

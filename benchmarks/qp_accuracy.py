@@ -30,7 +30,7 @@ from fvin_mpc._cli import run_command
 from fvin_mpc.control.buffered import BufferedFunction
 from fvin_mpc.control.closed_loop import run_episode
 from fvin_mpc.control.model_export import compile_functions
-from fvin_mpc.control.rti import riccati_feedback_function
+from fvin_mpc.control.rti import QP_METHODS, riccati_feedback_function
 
 SCENES = ("pendulum", "spherical_pendulum", "quadrotor")
 DURATION_S = {"pendulum": 6.0, "spherical_pendulum": 6.0, "quadrotor": 3.0}
@@ -126,16 +126,18 @@ def exact_controls(controller: Any, arguments: tuple[np.ndarray, ...], solver: A
     return np.clip(controls + steps, low, high)
 
 
-def accuracy(controller: Any, records: list[tuple[np.ndarray, ...]], counts: Sequence[int], reference: int
-             ) -> list[dict[str, Any]]:
+def accuracy(controller: Any, records: list[tuple[np.ndarray, ...]], counts: Sequence[int], reference: int,
+             method: str = "path") -> list[dict[str, Any]]:
     """One row per count (and the ``reference`` count): the distances of the first control to the exact
-    solution's (:func:`exact_controls`), as a fraction of the torque range."""
+    solution's (:func:`exact_controls`), as a fraction of the torque range; ``method``: the interior-point
+    method (:data:`~fvin_mpc.control.rti.QP_METHODS`)."""
     n, m = controller.horizon, controller.model.control_dim
     functions = [riccati_feedback_function(controller.layout, n, m, *controller._control_bounds,
-                                           controller._step_limits, controller._omega_valid, count)[0]
+                                           controller._step_limits, controller._omega_valid, count,
+                                           method=method)[0]
                  for count in (*counts, reference)]
     # one library per count: every one is named rti_feedback
-    prefix = re.sub(r"[^0-9A-Za-z_]", "_", f"qp_accuracy_{controller.model.name}")
+    prefix = re.sub(r"[^0-9A-Za-z_]", "_", f"qp_accuracy_{method}_{controller.model.name}")
     compiled = [compile_functions([function], prefix=f"{prefix}_{count}")[0]["rti_feedback"]
                 for function, count in zip(functions, (*counts, reference))]
     solvers = [BufferedFunction(function) for function in compiled]
@@ -156,7 +158,8 @@ def accuracy(controller: Any, records: list[tuple[np.ndarray, ...]], counts: Seq
     rows = []
     for index, count in enumerate((*counts, reference)):
         first = np.array([np.max(np.abs(u[:, 0] - v[:, 0])) for u, v in zip(solutions[index], exact)]) / span
-        rows.append({"qp_iterations": count, "qps": len(records), "first_control_median": float(np.median(first)),
+        rows.append({"method": method, "qp_iterations": count, "qps": len(records),
+                     "first_control_median": float(np.median(first)),
                      "first_control_p99": float(np.percentile(first, 99)), "first_control_max": float(first.max()),
                      "share_off_by_1_percent": float(np.mean(first > 0.01)),
                      "mu_median": float(np.median(barrier[index])),
@@ -172,6 +175,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--reference", type=int, default=40,
                         help="one more count, beyond the others (default: %(default)s)")
     parser.add_argument("--seed", type=int, default=0, help="the episode's start (default: %(default)s)")
+    parser.add_argument("--methods", nargs="+", choices=QP_METHODS, default=["path"],
+                        help="interior-point methods to compare on the same QPs (default: %(default)s)")
     parser.add_argument("--out", type=Path, default=Path("docs/bench/qp_accuracy.json"), help="JSON results")
     return parser
 
@@ -187,15 +192,16 @@ def main(argv: Sequence[str] | None = None) -> int:
         controller, records = recorded_qps(scene, args.seed)
         rows += [{"scene": scene, "model": controller.model.name, "horizon": controller.horizon,
                   "scene_qp_iterations": controller.settings.rti.qp_iterations, **row}
-                 for row in accuracy(controller, records, args.counts, args.reference)]
+                 for method in args.methods for row in accuracy(controller, records, args.counts, args.reference,
+                                                                 method)]
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps({"command": "python -m benchmarks.qp_accuracy", "counts": args.counts,
                                     "reference": args.reference, "seed": args.seed, "rows": rows}, indent=1))
-    lines = ["| scene | QPs | interior-point iterations | first control − exact, / torque range: median / p99 / max "
-             "| QPs off by > 1 % | μ median | call µs median |", "|---|---|---|---|---|---|---|"]
+    lines = ["| scene | QPs | method | interior-point iterations | first control − exact, / torque range: median / "
+             "p99 / max | QPs off by > 1 % | μ median | call µs median |", "|---|---|---|---|---|---|---|---|"]
     mark = {True: " (the scene's)", False: ""}
-    lines += [f"| {r['scene']} (N = {r['horizon']}) | {r['qps']} | {r['qp_iterations']}"
-              f"{mark[r['qp_iterations'] == r['scene_qp_iterations']]} "
+    lines += [f"| {r['scene']} (N = {r['horizon']}) | {r['qps']} | {r['method']} | {r['qp_iterations']}"
+              f"{mark[r['qp_iterations'] == r['scene_qp_iterations'] and r['method'] == 'path']} "
               f"| {r['first_control_median']:.1e} / {r['first_control_p99']:.1e} / {r['first_control_max']:.1e} "
               f"| {100 * r['share_off_by_1_percent']:.1f} % | {r['mu_median']:.0e} | {r['call_us_median']:.0f} |"
               for r in rows]

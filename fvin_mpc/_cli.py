@@ -90,6 +90,9 @@ def add_mpc_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--rti-qp-iterations", type=positive_int, default=None,
                        help="rti only: interior-point iterations of the Riccati QP per Gauss–Newton iteration (a "
                             "count, the same in both loops; default: the scene's)")
+    group.add_argument("--rti-qp-method", choices=["path", "mehrotra"], default=None,
+                       help="rti only: the Riccati QP's interior-point method — path: path-following, one solve per "
+                            "iteration (default); mehrotra: predictor-corrector, two solves of one factorization")
     add_relinearize_argument(group)
 
 
@@ -140,7 +143,7 @@ def mpc_overrides(args: argparse.Namespace) -> dict[str, Any]:
     given = {field: getattr(args, option[2:].replace("-", "_")) for option, (field, _, _) in MPC_OPTIONS.items()}
     given.update({"ipopt.hessian": args.hessian, "solver": args.solver, "rti.dynamics": args.rti_dynamics,
                   "rti.feedback": args.rti_feedback, "rti.cold_iter": args.rti_cold_iter,
-                  "rti.qp_iterations": args.rti_qp_iterations,
+                  "rti.qp_iterations": args.rti_qp_iterations, "rti.qp_method": args.rti_qp_method,
                   "rti.relinearize_every": args.rti_relinearize_every})
     if args.single_start:
         given["cold_starts"] = ("rollout+",)

@@ -426,6 +426,19 @@ def test_kept_jacobians_are_the_same_in_both_loops(scene, latency):
     assert episode_metrics(c_episode)["success"]
 
 
+def test_the_mehrotra_qp_is_the_same_in_both_loops_and_swings_up():
+    """``rti.qp_method="mehrotra"`` (``--rti-qp-method``): the generated QP's predictor–corrector runs in both loops
+    alike, and a closed-form swing-up with it succeeds."""
+    from fvin_mpc._cli import mpc_overrides
+    from fvin_mpc.evaluate import build_parser
+
+    assert mpc_overrides(build_parser().parse_args(["--solver", "rti", "--rti-qp-method", "mehrotra"]))["rti"] == {
+        "qp_method": "mehrotra"}
+    env, python, c_loop = pendulum_pair("pendulum", True, rti={"qp_method": "mehrotra", "qp_iterations": 5})
+    _, c_episode = assert_same_closed_loops(env, python, c_loop, 4.0, "none")
+    assert episode_metrics(c_episode)["success"]
+
+
 @pytest.mark.slow
 def test_kept_jacobians_are_the_same_in_both_loops_on_the_learned_ball_joint_and_quadrotor():
     """``rti.relinearize_every`` on the learned models: the ball joint's three iterations per period (each

@@ -315,6 +315,8 @@ def test_settings_split_into_the_problem_and_each_solvers_options(true_model):
     assert changed.updated(rti=RTIOptions()).rti == RTIOptions()
     with pytest.raises(ValueError, match="qp_iterations"):
         RTIOptions(qp_iterations=0)
+    with pytest.raises(ValueError, match="unknown qp_method"):
+        RTIOptions(qp_method="newton")
     with pytest.raises(ValueError, match="warm_start"):
         IpoptOptions(warm_start="sometimes")
     with pytest.raises(ValueError, match="IpoptOptions"):

@@ -207,6 +207,13 @@ def test_riccati_stage_matches_the_matrix_formulas(nd, m):
     np.testing.assert_allclose(out[1].ravel(), p_prev, atol=1e-12 * scale)
     np.testing.assert_allclose(out[2], K, atol=1e-12 * max(1.0, np.abs(K).max()))
     np.testing.assert_allclose(out[3].ravel(), k, atol=1e-12 * max(1.0, np.abs(k).max()))
+    # its matrix and vector halves (Mehrotra's iteration: one factorization, two solves) give the same bits
+    from fvin_mpc.control.rti import riccati_factor_function, riccati_solve_function
+
+    P_half, K_half, factors, crosses = riccati_factor_function(nd, m)(P_upper, H, AB, d)
+    p_half, k_half = riccati_solve_function(nd, m)(p, P_upper, factors, crosses, g, AB, c, r)
+    for half, whole in zip((P_half, p_half, K_half, k_half), out):
+        np.testing.assert_array_equal(np.asarray(half, dtype=float).reshape(whole.shape), whole)
 
 
 def test_the_generated_qp_reaches_an_active_set_solvers_solution(pendulum):
@@ -231,6 +238,16 @@ def test_the_generated_qp_reaches_an_active_set_solvers_solution(pendulum):
     assert len(records) > 40
     assert np.median(distances["40"]) < 1e-9 and np.mean(np.array(distances["40"]) < 1e-6) >= 0.9
     assert np.median(distances["default"]) < 1e-8
+    # Mehrotra's predictor–corrector (rti.qp_method) reaches the same solutions
+    mehrotra = riccati_feedback_function(controller.layout, n, m, *controller._control_bounds,
+                                         controller._step_limits, controller._omega_valid, 30, method="mehrotra")[0]
+    corrected = [np.max(np.abs(np.array(mehrotra(*arguments)[1])[:, 0] - exact_controls(controller, arguments,
+                                                                                          active_set)[:, 0])) / span
+                 for arguments in records]
+    assert np.median(corrected) < 1e-9 and np.mean(np.array(corrected) < 1e-6) >= 0.9
+    with pytest.raises(ValueError, match="unknown interior-point method"):
+        riccati_feedback_function(controller.layout, n, m, *controller._control_bounds, controller._step_limits,
+                                  controller._omega_valid, 3, method="newton")
 
 
 def test_common_subexpression_elimination_changes_no_bit_of_a_learned_stage(monkeypatch):

@@ -155,6 +155,11 @@ class RTIOptions:
             ``"hpipm"`` (HPIPM through ``casadi.conic`` on the stage-wise sparse QP), ``"qrqp"`` or
             ``"osqp"`` (CasADi's, same QP).
         qp_iterations: interior-point iterations of ``qp_solver="riccati"``.
+        qp_method: the interior-point method of ``qp_solver="riccati"``: ``"path"`` (path-following, a fixed
+            centering of 0.1; one Riccati factorization and solve per iteration) or ``"mehrotra"`` (Mehrotra's
+            predictor–corrector: one factorization and two solves per iteration, about 1.4× an iteration's
+            time, and far more accurate per iteration: ``python -m benchmarks.qp_accuracy --methods path
+            mehrotra``).
         dynamics: the dynamics constraint: ``"unrolled"`` (the exported step ``x_{k+1} = F(x_k, u_k)``, K
             Newton iterations, linearized per stage) or ``"implicit"`` (the step's own equations between
             consecutive plan nodes, the learned terms evaluated once per node; pivoted bodies only;
@@ -199,6 +204,7 @@ class RTIOptions:
     omega_penalty: float = 100.0
     qp_solver: Literal["riccati", "hpipm", "qrqp", "osqp"] = "riccati"
     qp_iterations: int = 10
+    qp_method: Literal["path", "mehrotra"] = "path"
     dynamics: Literal["unrolled", "implicit"] = "unrolled"
     model_parameters: bool = True
     feedback: Literal["qp", "prepared"] = "qp"
@@ -224,6 +230,8 @@ class RTIOptions:
                              f"{self.relinearize_every}, {self.relinearize_head}, {self.relinearize_tol}")
         if self.qp_solver not in ("riccati", "hpipm", "qrqp", "osqp"):
             raise ValueError(f"unknown qp_solver {self.qp_solver!r}")
+        if self.qp_method not in ("path", "mehrotra"):
+            raise ValueError(f"unknown qp_method {self.qp_method!r}; expected 'path' or 'mehrotra'")
         if self.dynamics not in ("unrolled", "implicit"):
             raise ValueError(f"unknown dynamics {self.dynamics!r}")
         if self.feedback not in ("qp", "prepared"):

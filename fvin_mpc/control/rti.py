@@ -105,6 +105,9 @@ STEP_LIMIT_VELOCITY = 2.0
 #: guess the iteration reached IPOPT's optimum on the ball joint in ~10 iterations, from the
 #: rollouts (ω clipped to the bound: large gaps) it diverged (docs/realtime.md).
 RTI_COLD_ORDER = ("goal", "rollout+", "rollout-")
+#: The interior-point methods of the Riccati QP (:func:`riccati_feedback_function`): a path-following
+#: iteration with a fixed centering, or Mehrotra's predictor–corrector.
+QP_METHODS = ("path", "mehrotra")
 #: Smallest barrier parameter of the Riccati QP's interior-point iterations. Without a floor μ falls
 #: tenfold per iteration; past ~20 iterations the barrier curvature λ/s (~λ²/μ) swamps the Riccati
 #: recursion, the dual update cancels catastrophically and μ turned NaN (20 iterations: 11 of 20
@@ -242,6 +245,84 @@ def shifted_items(jacobians: np.ndarray, items: int) -> np.ndarray:
     return np.concatenate([jacobians[:, width:], jacobians[:, -width:]], axis=1)
 
 
+def _total(terms: list[Any]) -> Any:
+    return sum(terms[1:], terms[0])
+
+
+def _gram_factors(gram: dict[tuple[int, int], Any], m: int) -> tuple[list[Any], dict[tuple[int, int], Any]]:
+    """``gram = Uᵀ D U`` (``U`` unit upper triangular, no square roots): the pivots ``D`` and ``U``'s entries
+    above the diagonal, from the upper triangle of the symmetric positive definite ``gram``."""
+    pivot: list[Any] = []
+    upper: dict[tuple[int, int], Any] = {}
+    for a in range(m):
+        pivot.append(gram[a, a] - sum((upper[e, a] * upper[e, a] * pivot[e] for e in range(a)), 0.0))
+        for b in range(a + 1, m):
+            upper[a, b] = (gram[a, b] - sum((upper[e, a] * upper[e, b] * pivot[e] for e in range(a)), 0.0)) / pivot[a]
+    return pivot, upper
+
+
+def _lower_solve(upper: dict[tuple[int, int], Any], column: list[Any]) -> list[Any]:
+    """``y`` of ``Uᵀ y = column``."""
+    y: list[Any] = []
+    for a in range(len(column)):
+        y.append(column[a] - sum((upper[e, a] * y[e] for e in range(a)), 0.0))
+    return y
+
+
+def _upper_solve(upper: dict[tuple[int, int], Any], column: list[Any]) -> list[Any]:
+    """``x`` of ``U x = column``."""
+    m = len(column)
+    x: list[Any] = [0.0] * m
+    for a in reversed(range(m)):
+        x[a] = column[a] - sum((upper[a, e] * x[e] for e in range(a + 1, m)), 0.0)
+    return x
+
+
+def _riccati_matrices(P: Any, H: Any, AB: Any, d: Any, nd: int, m: int) -> dict[str, Any]:
+    """The matrix half of a Riccati stage, entry by entry (:func:`riccati_stage_function`): ``P`` read from its
+    upper triangle, ``PA``, ``PB``, the gram matrix ``R + diag(d) + BᵀPB`` and its factors, ``cross = S + BᵀPA``,
+    ``Y = U⁻ᵀ cross``, ``Z = D⁻¹ Y``."""
+    def p_entry(i: int, j: int) -> Any:
+        return P[min(i, j), max(i, j)]
+
+    A = [[AB[i, j] for j in range(nd)] for i in range(nd)]
+    B = [[AB[i, nd + a] for a in range(m)] for i in range(nd)]
+    PA = [[_total([p_entry(i, k) * A[k][j] for k in range(nd)]) for j in range(nd)] for i in range(nd)]
+    PB = [[_total([p_entry(i, k) * B[k][a] for k in range(nd)]) for a in range(m)] for i in range(nd)]
+    gram = {(a, b): H[nd + a, nd + b] + _total([B[k][a] * PB[k][b] for k in range(nd)]) + (d[a] if a == b else 0.0)
+            for a in range(m) for b in range(a, m)}
+    cross = [[H[nd + a, j] + _total([PB[k][a] * A[k][j] for k in range(nd)]) for j in range(nd)] for a in range(m)]
+    pivot, upper = _gram_factors(gram, m)
+    Y = [_lower_solve(upper, [cross[a][j] for a in range(m)]) for j in range(nd)]  # Y[j] = U⁻ᵀ cross[:, j]
+    Z = [[Y[j][a] / pivot[a] for a in range(m)] for j in range(nd)]               # D⁻¹ Y
+    gains = [_upper_solve(upper, [-Z[j][a] for a in range(m)]) for j in range(nd)]
+    P_prev = ca.SX(nd, nd)
+    for i in range(nd):
+        for j in range(i, nd):
+            P_prev[i, j] = P_prev[j, i] = (H[i, j] + _total([A[k][i] * PA[k][j] for k in range(nd)])
+                                           - _total([Z[i][a] * Y[j][a] for a in range(m)]))
+    K = ca.SX(m, nd)
+    for j in range(nd):
+        for a in range(m):
+            K[a, j] = gains[j][a]
+    return {"A": A, "B": B, "p_entry": p_entry, "pivot": pivot, "upper": upper, "Z": Z, "P_prev": P_prev, "K": K}
+
+
+def _riccati_vectors(matrices: dict[str, Any], p: Any, g: Any, c: Any, r: Any, nd: int, m: int
+                     ) -> tuple[list[Any], list[Any]]:
+    """The vector half of a Riccati stage given its matrix half (:func:`_riccati_matrices`): ``r̃ = r + Bᵀ(Pc +
+    p)``, the feedforward ``k = −gram⁻¹ r̃`` and ``p⁻ = g_δ + Aᵀ(Pc + p) − Zᵀ U⁻ᵀ r̃``."""
+    A, B, p_entry, upper, pivot, Z = (matrices[key] for key in ("A", "B", "p_entry", "upper", "pivot", "Z"))
+    pc = [_total([p_entry(i, k) * c[k] for k in range(nd)]) + p[i] for i in range(nd)]
+    r_tilde = [r[a] + _total([B[k][a] * pc[k] for k in range(nd)]) for a in range(m)]
+    w = _lower_solve(upper, r_tilde)
+    z = [w[a] / pivot[a] for a in range(m)]
+    feedforward = _upper_solve(upper, [-z[a] for a in range(m)])
+    p_prev = [g[i] + _total([A[k][i] * pc[k] for k in range(nd)]) - _total([Z[i][a] * w[a] for a in range(m)])
+              for i in range(nd)]
+    return p_prev, feedforward
+
+
 def riccati_stage_function(nd: int, m: int) -> ca.Function:
     """One backward stage of the Riccati recursion, ``rti_riccati_stage(P, p, H, g, [A B], c, d, r) →
     (P⁻, p⁻, K, k)``: the cost-to-go ``½δᵀPδ + pᵀδ`` at stage ``k+1`` to stage ``k``'s, with the stage's
@@ -258,74 +339,73 @@ def riccati_stage_function(nd: int, m: int) -> ca.Function:
     (symmetric positive definite: ``R`` holds the control weight and the regularization, ``d ≥ 0`` the
     barrier's curvature) is factored once as ``UᵀDU`` (no square roots) and serves both solves and
     ``crossᵀgram⁻¹cross = YᵀD⁻¹Y`` with ``Y = U⁻ᵀ cross``, where ``ca.solve`` on SX expanded a
-    general solve twice. ``tests/test_rti.py`` checks it against the matrix formulas in NumPy."""
+    general solve twice. ``tests/test_rti.py`` checks it against the matrix formulas in NumPy. Its matrix and
+    vector halves are also separate functions (:func:`riccati_factor_function`, :func:`riccati_solve_function`)
+    for an iteration that solves twice with one factorization."""
     size = nd + m
     P, p = ca.SX.sym("P", nd, nd), ca.SX.sym("p", nd)
     H, g = ca.SX.sym("H", size, size), ca.SX.sym("g", size)
     AB, c = ca.SX.sym("AB", nd, size), ca.SX.sym("c", nd)
     d, r = ca.SX.sym("d", m), ca.SX.sym("r", m)
-
-    def total(terms: list[Any]) -> Any:
-        return sum(terms[1:], terms[0])
-
-    def p_entry(i: int, j: int) -> Any:
-        return P[min(i, j), max(i, j)]
-
-    A = [[AB[i, j] for j in range(nd)] for i in range(nd)]
-    B = [[AB[i, nd + a] for a in range(m)] for i in range(nd)]
-    PA = [[total([p_entry(i, k) * A[k][j] for k in range(nd)]) for j in range(nd)] for i in range(nd)]
-    PB = [[total([p_entry(i, k) * B[k][a] for k in range(nd)]) for a in range(m)] for i in range(nd)]
-    pc = [total([p_entry(i, k) * c[k] for k in range(nd)]) + p[i] for i in range(nd)]
-    gram = {(a, b): H[nd + a, nd + b] + total([B[k][a] * PB[k][b] for k in range(nd)]) + (d[a] if a == b else 0.0)
-            for a in range(m) for b in range(a, m)}
-    cross = [[H[nd + a, j] + total([PB[k][a] * A[k][j] for k in range(nd)]) for j in range(nd)] for a in range(m)]
-    r_tilde = [r[a] + total([B[k][a] * pc[k] for k in range(nd)]) for a in range(m)]
-    # gram = Uᵀ D U, U unit upper triangular
-    pivot: list[Any] = []
-    upper: dict[tuple[int, int], Any] = {}
-    for a in range(m):
-        pivot.append(gram[a, a] - sum((upper[e, a] * upper[e, a] * pivot[e] for e in range(a)), 0.0))
-        for b in range(a + 1, m):
-            upper[a, b] = (gram[a, b] - sum((upper[e, a] * upper[e, b] * pivot[e] for e in range(a)), 0.0)) / pivot[a]
-
-    def lower_solve(column: list[Any]) -> list[Any]:  # Uᵀ y = column
-        y: list[Any] = []
-        for a in range(m):
-            y.append(column[a] - sum((upper[e, a] * y[e] for e in range(a)), 0.0))
-        return y
-
-    def upper_solve(column: list[Any]) -> list[Any]:  # U x = column
-        x: list[Any] = [0.0] * m
-        for a in reversed(range(m)):
-            x[a] = column[a] - sum((upper[a, e] * x[e] for e in range(a + 1, m)), 0.0)
-        return x
-
-    Y = [lower_solve([cross[a][j] for a in range(m)]) for j in range(nd)]  # Y[j] = U⁻ᵀ cross[:, j]
-    w = lower_solve(r_tilde)
-    Z = [[Y[j][a] / pivot[a] for a in range(m)] for j in range(nd)]      # D⁻¹ Y
-    z = [w[a] / pivot[a] for a in range(m)]
-    gains = [upper_solve([-Z[j][a] for a in range(m)]) for j in range(nd)]
-    feedforward = upper_solve([-z[a] for a in range(m)])
-    P_prev = ca.SX(nd, nd)
-    for i in range(nd):
-        for j in range(i, nd):
-            P_prev[i, j] = P_prev[j, i] = (H[i, j] + total([A[k][i] * PA[k][j] for k in range(nd)])
-                                           - total([Z[i][a] * Y[j][a] for a in range(m)]))
-    p_prev = [g[i] + total([A[k][i] * pc[k] for k in range(nd)]) - total([Z[i][a] * w[a] for a in range(m)])
-              for i in range(nd)]
-    K = ca.SX(m, nd)
-    for j in range(nd):
-        for a in range(m):
-            K[a, j] = gains[j][a]
+    matrices = _riccati_matrices(P, H, AB, d, nd, m)
+    p_prev, feedforward = _riccati_vectors(matrices, p, g, c, r, nd, m)
     return ca.Function("rti_riccati_stage", [P, p, H, g, AB, c, d, r],
-                       [P_prev, ca.vertcat(*p_prev), K, ca.vertcat(*feedforward)],
+                       [matrices["P_prev"], ca.vertcat(*p_prev), matrices["K"], ca.vertcat(*feedforward)],
                        ["P", "p", "H", "g", "AB", "c", "d", "r"], ["P_prev", "p_prev", "K", "k"],
                        GENERATED_SX_OPTIONS)
 
 
+def _factors_matrix(matrices: dict[str, Any], m: int) -> Any:
+    """The gram matrix's factors in one ``m × m`` matrix: the pivots ``D`` on the diagonal, ``U`` above it."""
+    factors = ca.SX(m, m)
+    for a in range(m):
+        factors[a, a] = matrices["pivot"][a]
+        for b in range(a + 1, m):
+            factors[a, b] = matrices["upper"][a, b]
+    return factors
+
+
+def riccati_factor_function(nd: int, m: int) -> ca.Function:
+    """The matrix half of :func:`riccati_stage_function`, ``rti_riccati_factor(P, H, [A B], d) → (P⁻, K, F, Z)``:
+    ``F`` the gram matrix's ``UᵀDU`` factors (:func:`_factors_matrix`), ``Z = D⁻¹U⁻ᵀ cross`` — what
+    :func:`riccati_solve_function` needs to solve with another right-hand side at a fraction of the cost."""
+    size = nd + m
+    P, H = ca.SX.sym("P", nd, nd), ca.SX.sym("H", size, size)
+    AB, d = ca.SX.sym("AB", nd, size), ca.SX.sym("d", m)
+    matrices = _riccati_matrices(P, H, AB, d, nd, m)
+    Z = ca.SX(nd, m)
+    for i in range(nd):
+        for a in range(m):
+            Z[i, a] = matrices["Z"][i][a]
+    return ca.Function("rti_riccati_factor", [P, H, AB, d],
+                       [matrices["P_prev"], matrices["K"], _factors_matrix(matrices, m), Z],
+                       ["P", "H", "AB", "d"], ["P_prev", "K", "F", "Z"], GENERATED_SX_OPTIONS)
+
+
+def riccati_solve_function(nd: int, m: int) -> ca.Function:
+    """The vector half of :func:`riccati_stage_function` on a factored stage (:func:`riccati_factor_function`),
+    ``rti_riccati_solve(p, P, F, Z, g, [A B], c, r) → (p⁻, k)``, ``P`` the cost-to-go matrix the stage was
+    factored with (that of stage ``k+1``)."""
+    size = nd + m
+    p, P = ca.SX.sym("p", nd), ca.SX.sym("P", nd, nd)
+    F, Zs = ca.SX.sym("F", m, m), ca.SX.sym("Z", nd, m)
+    g, AB = ca.SX.sym("g", size), ca.SX.sym("AB", nd, size)
+    c, r = ca.SX.sym("c", nd), ca.SX.sym("r", m)
+    matrices = {"A": [[AB[i, j] for j in range(nd)] for i in range(nd)],
+                "B": [[AB[i, nd + a] for a in range(m)] for i in range(nd)],
+                "p_entry": lambda i, j: P[min(i, j), max(i, j)],
+                "pivot": [F[a, a] for a in range(m)],
+                "upper": {(a, b): F[a, b] for a in range(m) for b in range(a + 1, m)},
+                "Z": [[Zs[i, a] for a in range(m)] for i in range(nd)]}
+    p_prev, feedforward = _riccati_vectors(matrices, p, g, c, r, nd, m)
+    return ca.Function("rti_riccati_solve", [p, P, F, Zs, g, AB, c, r], [ca.vertcat(*p_prev), ca.vertcat(*feedforward)],
+                       ["p", "P", "F", "Z", "g", "AB", "c", "r"], ["p_prev", "k"], GENERATED_SX_OPTIONS)
+
+
 def riccati_feedback_function(layout: StateLayout, n: int, m: int, low: np.ndarray, high: np.ndarray,
                               limits: np.ndarray, omega_valid: float, iterations: int, centering: float = 0.1,
-                              boundary: float = 0.995, mu_min: float = QP_MU_MIN) -> tuple[ca.Function, ca.Function]:
+                              boundary: float = 0.995, mu_min: float = QP_MU_MIN, method: str = "path"
+                              ) -> tuple[ca.Function, ca.Function]:
     """One feedback iteration as a single CasADi function (compiled with the linearization):
     ``rti_feedback(X̄ (n_x,N+1), Ū (m,N), x0 (n_x), H (s,sN), H_N (n_δ,n_δ), g (s,N), g_N (n_δ),
     [A B] (n_δ,sN), c (n_δ,N)) → (X (n_x,N+1), U (m,N), step, μ, K (m,n_δN), k (m,N))``, ``s = n_δ + m``;
@@ -340,6 +420,10 @@ def riccati_feedback_function(layout: StateLayout, n: int, m: int, low: np.ndarr
     ``iterations``: each solves the barrier-modified LQ problem (``R + diag(λ/s)``) by a Riccati
     recursion (``O(N)``, backward ``mapaccum``), takes the fraction-to-boundary step and reduces
     ``μ`` to ``centering ×`` the mean complementarity, not below ``mu_min`` (:data:`QP_MU_MIN`).
+    ``method="mehrotra"`` (:data:`QP_METHODS`): Mehrotra's predictor–corrector instead — each iteration factors
+    the LQ problem once (:func:`riccati_factor_function`) and solves it twice (:func:`riccati_solve_function`):
+    the affine step (``μ = 0``), whose progress sets the centering ``σ = (μ_aff/μ)³``, then the step to
+    ``σμ`` with the affine step's second-order term.
     Then the trust region (``limits``, per entry of ``δ``: :func:`step_limits`), the update on S³
     and ``|ω|`` within ``omega_valid`` (as :meth:`RealTimeMPC._iterate`). No Python between the
     stages: the whole iteration is one call. ``low``, ``high``: the control bounds, ``(m,)`` for every
@@ -378,12 +462,54 @@ def riccati_feedback_function(layout: StateLayout, n: int, m: int, low: np.ndarr
         deltas, v = forward(delta0, gains, feedforwards, jacobians, gaps)
         return deltas, v, gains, feedforwards
 
+    if method not in QP_METHODS:
+        raise ValueError(f"unknown interior-point method {method!r}; one of {QP_METHODS}")
     # interior start: Δu in the box, 1 % of its width away from a bound; λ = μ₀/s
     v = ca.fmin(ca.fmax(ca.MX.zeros(m, n), lower + 0.01 * width), upper - 0.01 * width)
     slack_low, slack_up = v - lower, upper - v
     mu = ca.MX(0.1)
     dual_low, dual_up = mu / slack_low, mu / slack_up
-    for _ in range(iterations):
+    if method == "mehrotra":
+        factor = riccati_factor_function(nd, m).mapaccum("rti_riccati_factor", n, 1)
+        solve = riccati_solve_function(nd, m).mapaccum("rti_riccati_solve", n, 1)
+
+        def step_to(fraction: float, dv: Any, d_low: Any, d_up: Any) -> Any:
+            ratios = ca.vertcat(ca.vec(slack_low / ca.fmax(-dv, 1e-300)), ca.vec(slack_up / ca.fmax(dv, 1e-300)),
+                                ca.vec(dual_low / ca.fmax(-d_low, 1e-300)), ca.vec(dual_up / ca.fmax(-d_up, 1e-300)))
+            return ca.fmin(1.0, fraction * ca.mmin(ratios))
+
+        for _ in range(iterations):
+            slack_low, slack_up = v - lower, upper - v
+            curvature = dual_low / slack_low + dual_up / slack_up
+            # the cost-to-go matrices per stage, in reverse order: the terminal one, then each factored stage's
+            matrices, gains_rev, factors, crosses = factor(terminal_hessian, hessians_rev, jacobians_rev,
+                                                           reverse(curvature, 1))
+            next_matrices = ca.horzcat(terminal_hessian, matrices[:, :nd * (n - 1)])
+            gains = reverse(gains_rev, nd)
+
+            def solve_targets(low_target: Any, up_target: Any) -> tuple[Any, Any, Any, Any]:
+                linear = gradients[nd:, :] - low_target / slack_low + up_target / slack_up - curvature * v
+                _, feedforwards_rev = solve(terminal_gradient, next_matrices, factors, crosses, gradients_rev,
+                                            jacobians_rev, gaps_rev, reverse(linear, 1))
+                feedforwards = reverse(feedforwards_rev, 1)
+                deltas, target = forward(delta0, gains, feedforwards, jacobians, gaps)
+                dv = target - v
+                return deltas, dv, feedforwards, (low_target / slack_low - dual_low - dual_low / slack_low * dv,
+                                                  up_target / slack_up - dual_up + dual_up / slack_up * dv)
+
+            complementarity = ca.sum1(ca.sum2(dual_low * slack_low)) + ca.sum1(ca.sum2(dual_up * slack_up))
+            mu_now = complementarity / (2 * m * n)
+            _, dv_affine, _, (d_low_affine, d_up_affine) = solve_targets(0.0, 0.0)
+            alpha = step_to(1.0, dv_affine, d_low_affine, d_up_affine)
+            affine = (ca.sum1(ca.sum2((dual_low + alpha * d_low_affine) * (slack_low + alpha * dv_affine)))
+                      + ca.sum1(ca.sum2((dual_up + alpha * d_up_affine) * (slack_up - alpha * dv_affine))))
+            sigma_mu = ca.fmax((affine / complementarity) ** 3 * mu_now, mu_min)
+            deltas, dv, feedforwards, (d_low, d_up) = solve_targets(sigma_mu - dv_affine * d_low_affine,
+                                                                     sigma_mu + dv_affine * d_up_affine)
+            alpha = step_to(boundary, dv, d_low, d_up)
+            v, dual_low, dual_up = v + alpha * dv, dual_low + alpha * d_low, dual_up + alpha * d_up
+            mu = (ca.sum1(ca.sum2(dual_low * (v - lower))) + ca.sum1(ca.sum2(dual_up * (upper - v)))) / (2 * m * n)
+    for _ in range(iterations if method == "path" else 0):
         slack_low, slack_up = v - lower, upper - v
         curvature = dual_low / slack_low + dual_up / slack_up
         linear = gradients[nd:, :] - mu / slack_low + mu / slack_up - curvature * v
@@ -625,7 +751,8 @@ class RealTimeMPC(MPC):
         if riccati:
             linearize = linearize_blocks
             functions = [linearize, predict, *riccati_feedback_function(
-                layout, n, m, *self._control_bounds, self._step_limits, self._omega_valid, s.rti.qp_iterations)]
+                layout, n, m, *self._control_bounds, self._step_limits, self._omega_valid, s.rti.qp_iterations,
+                method=s.rti.qp_method)]
         else:
             functions = [linearize, predict]
         #: the CasADi functions the loop calls (linearize, predict, feedback), before compilation: what
