@@ -322,7 +322,7 @@ def generated_code_flags(compiler: str = "gcc") -> tuple[str, ...]:
     results move in the last bits against a baseline build; both loops (this module's libraries and
     :func:`fvin_mpc.control.c_controller.build_library`) use these flags, so they stay the same to the bit.
     A library built so runs only on CPUs like this one: :func:`compile_functions` puts :func:`host_cpu`
-    in its cache key."""
+    in its cache key. Found once per process and compiler (the environment variable too)."""
     if os.environ.get(PORTABLE_ENV, "") not in ("", "0"):
         return ()
     if shutil.which(compiler) is None:
@@ -349,6 +349,8 @@ def host_cpu() -> str:
     for key in ("model name", "flags", "Features"):  # x86 names its features "flags", Arm "Features"
         described += [line for line in lines if line.split(":")[0].strip() == key][:1]
     return "\n".join(described)
+
+
 #: Options of every scalar (SX) function the real-time loop generates as C. Common subexpression
 #: elimination: a stage built from several calls of the model repeats their shared terms (the step's
 #: learned terms in its value and again in its derivatives), each computed once in the generated code. It
