@@ -469,15 +469,17 @@ def riccati_feedback_function(layout: StateLayout, n: int, m: int, low: np.ndarr
     slack_low, slack_up = v - lower, upper - v
     mu = ca.MX(0.1)
     dual_low, dual_up = mu / slack_low, mu / slack_up
+
+    def step_to(fraction: float, dv: Any, d_low: Any, d_up: Any) -> Any:
+        """The longest step (at most 1, times ``fraction``) along ``(dv, d_low, d_up)`` that keeps the current
+        slacks and duals nonnegative."""
+        ratios = ca.vertcat(ca.vec(slack_low / ca.fmax(-dv, 1e-300)), ca.vec(slack_up / ca.fmax(dv, 1e-300)),
+                            ca.vec(dual_low / ca.fmax(-d_low, 1e-300)), ca.vec(dual_up / ca.fmax(-d_up, 1e-300)))
+        return ca.fmin(1.0, fraction * ca.mmin(ratios))
+
     if method == "mehrotra":
         factor = riccati_factor_function(nd, m).mapaccum("rti_riccati_factor", n, 1)
         solve = riccati_solve_function(nd, m).mapaccum("rti_riccati_solve", n, 1)
-
-        def step_to(fraction: float, dv: Any, d_low: Any, d_up: Any) -> Any:
-            ratios = ca.vertcat(ca.vec(slack_low / ca.fmax(-dv, 1e-300)), ca.vec(slack_up / ca.fmax(dv, 1e-300)),
-                                ca.vec(dual_low / ca.fmax(-d_low, 1e-300)), ca.vec(dual_up / ca.fmax(-d_up, 1e-300)))
-            return ca.fmin(1.0, fraction * ca.mmin(ratios))
-
         for _ in range(iterations):
             slack_low, slack_up = v - lower, upper - v
             curvature = dual_low / slack_low + dual_up / slack_up
@@ -509,20 +511,19 @@ def riccati_feedback_function(layout: StateLayout, n: int, m: int, low: np.ndarr
             alpha = step_to(boundary, dv, d_low, d_up)
             v, dual_low, dual_up = v + alpha * dv, dual_low + alpha * d_low, dual_up + alpha * d_up
             mu = (ca.sum1(ca.sum2(dual_low * (v - lower))) + ca.sum1(ca.sum2(dual_up * (upper - v)))) / (2 * m * n)
-    for _ in range(iterations if method == "path" else 0):
-        slack_low, slack_up = v - lower, upper - v
-        curvature = dual_low / slack_low + dual_up / slack_up
-        linear = gradients[nd:, :] - mu / slack_low + mu / slack_up - curvature * v
-        deltas, target, gains, feedforwards = solve_lq(curvature, linear)
-        dv = target - v
-        d_low = mu / slack_low - dual_low - dual_low / slack_low * dv
-        d_up = mu / slack_up - dual_up + dual_up / slack_up * dv
-        ratios = ca.vertcat(ca.vec(slack_low / ca.fmax(-dv, 1e-300)), ca.vec(slack_up / ca.fmax(dv, 1e-300)),
-                            ca.vec(dual_low / ca.fmax(-d_low, 1e-300)), ca.vec(dual_up / ca.fmax(-d_up, 1e-300)))
-        alpha = ca.fmin(1.0, boundary * ca.mmin(ratios))
-        v, dual_low, dual_up = v + alpha * dv, dual_low + alpha * d_low, dual_up + alpha * d_up
-        mu = ca.fmax(centering * (ca.sum1(ca.sum2(dual_low * (v - lower))) + ca.sum1(ca.sum2(dual_up * (upper - v))))
-                     / (2 * m * n), mu_min)
+    else:
+        for _ in range(iterations):
+            slack_low, slack_up = v - lower, upper - v
+            curvature = dual_low / slack_low + dual_up / slack_up
+            linear = gradients[nd:, :] - mu / slack_low + mu / slack_up - curvature * v
+            deltas, target, gains, feedforwards = solve_lq(curvature, linear)
+            dv = target - v
+            d_low = mu / slack_low - dual_low - dual_low / slack_low * dv
+            d_up = mu / slack_up - dual_up + dual_up / slack_up * dv
+            alpha = step_to(boundary, dv, d_low, d_up)
+            v, dual_low, dual_up = v + alpha * dv, dual_low + alpha * d_low, dual_up + alpha * d_up
+            mu = ca.fmax(centering * (ca.sum1(ca.sum2(dual_low * (v - lower)))
+                                      + ca.sum1(ca.sum2(dual_up * (upper - v)))) / (2 * m * n), mu_min)
     # The states of the last Riccati solve (closed-loop forward pass, consistent with its controls to
     # within (1 − α)|Δu|): propagating the final controls open loop would amplify the interior-point
     # method's inexactness through the unstable upright dynamics (e^{λ·horizon} ≈ 10³–10⁴ here).
