@@ -455,3 +455,23 @@ def test_kept_jacobians_are_the_same_in_both_loops_on_the_learned_ball_joint_and
                            quadrotor_mpc_settings().updated(rti={**UNBOUNDED, **kept}))
     options, seed = recovery_starts(env.unwrapped.goal_state[:3], count=1)[0]
     assert_same_closed_loops(env, python, CRealTimeMPC(python), 3.0, 0.004, seed=seed, reset_options=options)
+
+
+def test_the_library_is_built_for_this_cpu_and_keyed_by_it(closed_form_pendulum, monkeypatch, tmp_path):
+    """The C loop's library is compiled with the Python loop's target flags (``-march=native`` where the compiler
+    takes it), its driver without fused multiply–adds, and its cache entry names the CPU: another CPU sharing the
+    cache builds its own."""
+    from fvin_mpc.control import c_controller
+    from fvin_mpc.control.model_export import generated_code_flags
+
+    _, python, _ = closed_form_pendulum
+    target = generated_code_flags(COMPILER)
+    assert c_controller.library_flags(COMPILER) == (*c_controller.LIBRARY_FLAGS, *target)
+    assert "-ffp-contract=off" in c_controller.DRIVER_FLAGS
+    if not target:
+        pytest.skip("the compiler does not take -march=native: nothing CPU-specific to key")
+    monkeypatch.setenv("FVIN_MPC_CACHE", str(tmp_path))
+    here = c_controller.cached_library(python)
+    monkeypatch.setattr(c_controller, "host_cpu", lambda: "another CPU")
+    elsewhere = c_controller.cached_library(python)
+    assert here != elsewhere and here.is_file() and elsewhere.is_file()
