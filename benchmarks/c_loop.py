@@ -112,7 +112,8 @@ def controllers(scene: str, true_model: bool, seed: int, feedback: str = "qp",
     """``(env, python loop, C loop, reset options, env seed)`` of ``scene``: a random start, or the
     quadrotor's first random recovery start. ``feedback``: ``RTIOptions.feedback`` of both loops
     (``"prepared"`` with one iteration per period); ``rti_options``: more ``RTIOptions`` fields of both loops
-    (``cold_iter``, ``relinearize_every``, ``qp_iterations``, ``qp_method``; the scene's where not given)."""
+    (``cold_iter``, ``relinearize_every``, ``qp_iterations``, ``qp_method``, ``riccati_stage``; the scene's where
+    not given)."""
     rti: dict[str, Any] = {} if feedback == "qp" else {"feedback": feedback, "max_iter": 1}
     rti.update(rti_options or {})
     if resolve_scene(scene).space.pivoted:
@@ -336,13 +337,16 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--qp-method", choices=["path", "mehrotra"], default=None,
                         help="RTIOptions.qp_method of both loops: the Riccati QP's interior-point method (default: "
                              "the scene's, path)")
+    parser.add_argument("--riccati-stage", choices=["auto", "generated", "kernel"], default=None,
+                        help="RTIOptions.riccati_stage of both loops: the QP's Riccati stage as generated code or as "
+                             "the hand-written kernel (default: auto, the kernel for a free body)")
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     given = {"cold_iter": args.cold_iter, "relinearize_every": args.relinearize_every,
-             "qp_iterations": args.qp_iterations, "qp_method": args.qp_method}
+             "qp_iterations": args.qp_iterations, "qp_method": args.qp_method, "riccati_stage": args.riccati_stage}
     rti_options = {name: value for name, value in given.items() if value is not None}
     rows = run(args.scenes, args.true_model, args.load_workers, args.seed, args.feedback, rti_options)
     args.out.parent.mkdir(parents=True, exist_ok=True)

@@ -58,6 +58,9 @@ installed under this name):
 * ``family_filter`` — whether the closed-form controller swings a generated scene up (the family filter).
 * ``rti`` — the real-time iteration MPC (any state layout ``R^a × S³ × R^b``).
 * ``implicit_dynamics`` — the step's own equations as the real-time iteration's dynamics constraint.
+* ``term_expansion`` — a model's terms expanded to first order where a stage is linearized (the same
+  Jacobian in fewer operations).
+* ``riccati_kernel`` — the Riccati stage of the generated QP as hand-written C (``c_kernels/``) for free bodies.
 * ``buffered`` — CasADi calls through preallocated buffers, without per-call conversions.
 * ``c_controller`` — the real-time loop as a self-contained C library (generated functions + C driver),
   and Python driving that library.

@@ -250,6 +250,103 @@ def test_the_generated_qp_reaches_an_active_set_solvers_solution(pendulum):
                                   controller._omega_valid, 3, method="newton")
 
 
+def _stage_models():
+    from fvin_mpc.control.flight import quadrotor_model
+    from fvin_mpc.envs import QuadrotorEnv
+    from fvin_mpc.envs.scenes import resolve_scene
+
+    for scene in ("pendulum", "spherical_pendulum", "quadrotor"):
+        for true_model in (False, True):
+            if scene == "quadrotor":
+                yield scene, true_model, quadrotor_model(QuadrotorEnv(resolve_scene(scene)), true_model=true_model)
+            else:
+                yield scene, true_model, scene_model(scene_env(scene, true_model=true_model), true_model=true_model)
+
+
+def test_first_order_terms_give_a_stage_the_same_derivatives_with_fewer_operations():
+    """``unrolled_stage_function(…, model=)`` differentiates the step on its terms' first-order expansions
+    (:mod:`fvin_mpc.control.term_expansion`): against the step differentiated as written, at random nodes of
+    every built-in scene's learned and closed-form model, with and without the model parameters as an input,
+    the gap is the same to the bit and ``[A B]`` the same to rounding; a learned stage has fewer instructions."""
+    from fvin_mpc.control.rti import unrolled_stage_function
+
+    rng = np.random.default_rng(11)
+    for scene, true_model, model in _stage_models():
+        layout, m = model.space.layout, model.control_dim
+        for parametric in (False, True):
+            step = model.parametric_step if parametric else model.step
+            as_written = unrolled_stage_function(step, layout, m)
+            expanded = unrolled_stage_function(step, layout, m, model=model)
+            if not true_model:
+                assert expanded.n_instructions() < 0.96 * as_written.n_instructions(), scene
+            for _ in range(4):
+                states = []
+                for _ in range(2):
+                    x = 0.7 * rng.standard_normal(layout.state_dim)
+                    x[layout.quaternion] = rng.standard_normal(4)
+                    x[layout.quaternion] /= np.linalg.norm(x[layout.quaternion])
+                    states.append(x)
+                inputs = [states[0], rng.uniform(-0.5, 0.5, m), states[1], rng.uniform(-0.1, 0.1, m)]
+                if parametric:
+                    inputs.append(model.model_parameters.defaults)
+                (gap, jacobian), (gap_expanded, jacobian_expanded) = as_written.call(inputs), expanded.call(inputs)
+                np.testing.assert_array_equal(np.asarray(gap), np.asarray(gap_expanded))
+                jacobian, jacobian_expanded = np.asarray(jacobian), np.asarray(jacobian_expanded)
+                assert np.all(np.isfinite(jacobian))
+                scale = np.abs(jacobian).max()
+                np.testing.assert_allclose(jacobian_expanded, jacobian, rtol=0, atol=1e-11 * scale,
+                                           err_msg=f"{scene} {'true' if true_model else 'learned'}")
+
+
+def test_first_order_terms_are_exact_to_first_order_and_pass_the_rest_through(monkeypatch):
+    """:class:`~fvin_mpc.control.term_expansion.FirstOrderTerms` on toy terms: the value and the slope at the
+    point are the term's own and the second-order part is dropped, for a plain argument and for a unit quaternion
+    ``q`` moving on the sphere (expanded along its tangent); calls that do not depend on the perturbation,
+    attributes, constants and terms cheaper than :data:`MIN_INSTRUCTIONS` are the wrapped object's."""
+    from fvin_mpc.control import term_expansion
+    from fvin_mpc.control.term_expansion import FirstOrderTerms
+
+    class Toy:
+        control_dim = 2
+
+        def square(self, a):
+            return (a[0] * a[0], (a[0] * a[1], 3.0), None)
+
+        def rotated(self, q):
+            return (q[0] * q[1] + q[2] * q[3] * q[3],)
+
+        def constant(self):
+            return ((1.0, 2.0),)
+
+    e, a = ca.SX.sym("e"), ca.SX.sym("a")
+    wrapped = FirstOrderTerms(Toy(), [e])
+    (cheap, _, _) = wrapped.square((a + e, a - e))
+    assert ca.is_equal(cheap, (a + e) * (a + e), 2)  # a few instructions: differentiated as written
+    monkeypatch.setattr(term_expansion, "MIN_INSTRUCTIONS", 0)
+    assert wrapped.control_dim == 2 and wrapped.constant() == ((1.0, 2.0),)
+    (square, (product, three), nothing) = wrapped.square((a + e, a - e))
+    assert three == 3.0 and nothing is None
+    f = ca.Function("f", [a, e], [square, product])
+    # (a + e)² → a² + 2a e; (a + e)(a − e) → a² (its slope in e is 0)
+    for a_value, e_value in ((0.3, 0.0), (0.3, 0.5), (-1.2, 2.0)):
+        s, p = (float(v) for v in f(a_value, e_value))
+        assert s == pytest.approx(a_value ** 2 + 2 * a_value * e_value, abs=1e-15)
+        assert p == pytest.approx(a_value ** 2, abs=1e-15)
+    (untouched, _, _) = wrapped.square((a, a))
+    assert ca.is_equal(untouched, a * a, 2)
+    # a unit quaternion turning about an axis through a: q(e) = q̄ ⊗ exp(e·axis/2)
+    axis = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
+    q_bar = np.array([0.5, 0.1, -0.7, 0.3]) / np.linalg.norm([0.5, 0.1, -0.7, 0.3])
+    from fvin_mpc.core import s3
+    turn = (ca.cos(e / 2), *(ca.sin(e / 2) * float(component) for component in axis))
+    q = s3.multiply(tuple(q_bar), turn)
+    exact, = Toy().rotated(q)
+    expanded, = wrapped.rotated(q)
+    derivatives = ca.Function("d", [e], [exact, expanded, ca.jacobian(exact, e), ca.jacobian(expanded, e)])
+    value, value_expanded, slope, slope_expanded = (float(v) for v in derivatives(0.0))
+    assert value_expanded == pytest.approx(value, abs=1e-15) and slope_expanded == pytest.approx(slope, abs=1e-14)
+
+
 def test_common_subexpression_elimination_changes_no_bit_of_a_learned_stage(monkeypatch):
     """The generated stage functions are built with CSE (``GENERATED_SX_OPTIONS``): fewer operations, and
     outputs identical to the bit to the same function built without it, at random nodes of a learned ball joint

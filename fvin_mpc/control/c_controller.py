@@ -4,7 +4,10 @@
 functions a :class:`~fvin_mpc.control.rti.RealTimeMPC` calls every period —
 ``rti_linearize_blocks``, ``rti_predict``, ``rti_feedback``, ``rti_apply``, taken from its
 :attr:`~fvin_mpc.control.rti.RealTimeMPC.loop_functions`, so the math has one source — generated as C
-(``fvc_model.c``), the settings the Python loop reads as constants (``fvc_config.h``), and a
+(``fvc_model.c``: the very text the Python loop compiles, :data:`~fvin_mpc.control.rti.LOOP_SOURCE`) with the
+hand-written C functions it calls (``fvc_kernels.c``: the Riccati kernel where the controller uses it,
+:attr:`~fvin_mpc.control.rti.RealTimeMPC.loop_kernels`), a free body's generated first guess (``fvc_goal.c``),
+the settings the Python loop reads as constants (``fvc_config.h``), and a
 hand-written driver (``fvin_controller.c``, package data under ``c_template/``) that is the Python
 loop's orchestration: the cold multi-start, feedback, preparation (shift + linearization), fallback to
 the shifted plan, the disturbance estimate, the reference and the model parameters as run-time inputs
@@ -49,9 +52,16 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
-from fvin_mpc.control.model_export import CompileCount, cache_dir, generated_code_flags, host_cpu
+from fvin_mpc.control.model_export import (
+    KERNEL_FLAGS,
+    CompileCount,
+    cache_dir,
+    generated_code_flags,
+    host_cpu,
+    write_generated_source,
+)
 from fvin_mpc.control.problem import ConstantReference, Reference
-from fvin_mpc.control.rti import RTI_COLD_ORDER, RealTimeMPC
+from fvin_mpc.control.rti import LOOP_SOURCE, RTI_COLD_ORDER, RealTimeMPC
 from fvin_mpc.core import s3
 from fvin_mpc.core.backend import get_ops
 from fvin_mpc.core.errors import FvinMpcError
@@ -157,12 +167,13 @@ def goal_guess_function(controller: RealTimeMPC) -> ca.Function:
 
 
 def generated_functions(controller: RealTimeMPC) -> list[ca.Function]:
-    """What ``fvc_model.c`` holds: the loop's functions (dense outputs) and, for a free body that starts
-    from ``"goal"``, :func:`goal_guess_function`."""
-    functions = [dense_outputs(function) for function in controller.loop_functions]
-    if free_goal_guess(controller):
-        functions.append(goal_guess_function(controller))
-    return functions
+    """What ``fvc_model.c`` holds: the loop's functions, as the Python loop compiles them (every output dense
+    already: the driver passes plain arrays between them)."""
+    for function in controller.loop_functions:
+        sparse = [function.name_out(i) for i in range(function.n_out()) if not function.sparsity_out(i).is_dense()]
+        if sparse:
+            raise ValueError(f"{function.name()}: outputs {sparse} are sparse; the loop's functions are built dense")
+    return list(controller.loop_functions)
 
 
 def free_goal_guess(controller: RealTimeMPC) -> bool:
@@ -242,10 +253,14 @@ def write_controller(controller: RealTimeMPC, directory: str | Path, example_sta
     check_exportable(controller)
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
-    generator = ca.CodeGenerator("fvc_model.c", {"with_header": True})
-    for function in generated_functions(controller):
-        generator.add(function)
-    generator.generate(str(directory) + os.sep)
+    # the loop's functions under the Python loop's source name: the same text as its library's
+    write_generated_source(generated_functions(controller), LOOP_SOURCE, directory)
+    if free_goal_guess(controller):
+        write_generated_source([dense_outputs(goal_guess_function(controller))], "fvc_goal", directory)
+    else:
+        (directory / "fvc_goal.c").write_text("/* No generated first guess: the driver's own (a pivoted body). */\n"
+                                              "typedef int fvc_no_goal_guess;\n")
+    (directory / "fvc_kernels.c").write_text(kernels_source(controller))
     if example_state is None:
         example_state = controller.goal_state.copy()
         if controller.rest is not None and controller.model.space.pivoted:
@@ -257,6 +272,19 @@ def write_controller(controller: RealTimeMPC, directory: str | Path, example_sta
     return directory
 
 
+def kernels_source(controller: RealTimeMPC) -> str:
+    """``fvc_kernels.c``: the sources of the controller's kernels, each closed by ``#undef`` of its prelude's
+    macros (a translation unit that is only a comment where it has none)."""
+    parts = ["/* The hand-written C functions fvc_model.c calls (fvin_mpc.control.riccati_kernel); "
+             "compiled with -O3. */\n"]
+    for kernel in controller.loop_kernels:
+        parts.append(kernel.source)
+        parts.append("\n".join(f"#undef {macro}" for macro in ("FVK_NAME", "FVK_ND", "FVK_M")) + "\n")
+    if not controller.loop_kernels:
+        parts.append("typedef int fvc_no_kernels;\n")  # ISO C wants a translation unit to declare something
+    return "".join(parts)
+
+
 def library_flags(compiler: str) -> tuple[str, ...]:
     """The flags :func:`build_library` compiles with on this host: :data:`LIBRARY_FLAGS` and the target flags
     of the Python loop's libraries (``-march=native`` where ``compiler`` takes it)."""
@@ -266,7 +294,8 @@ def library_flags(compiler: str) -> tuple[str, ...]:
 def build_library(directory: str | Path, flags: tuple[str, ...] | None = None) -> Path:
     """Compile ``directory``'s controller into ``libfvin_controller.so`` with ``$CC`` (default ``cc``):
     the generated code with ``flags`` (default :func:`library_flags`), the driver with those and
-    :data:`DRIVER_FLAGS`, as the folder's ``Makefile`` does.
+    :data:`DRIVER_FLAGS`, the kernels with those and :data:`~fvin_mpc.control.model_export.KERNEL_FLAGS`, as
+    the folder's ``Makefile`` does.
 
     Raises:
         RuntimeError: no C compiler, or compilation failed (with the compiler's message).
@@ -279,10 +308,14 @@ def build_library(directory: str | Path, flags: tuple[str, ...] | None = None) -
     flags = library_flags(compiler) if flags is None else flags
     library = directory / "libfvin_controller.so"
     tag = f"{os.getpid()}.tmp"
-    partial, driver, model = (directory / f"{name}.{tag}" for name in ("libfvin_controller", "driver", "model"))
+    partial, driver, model, goal, kernels = (directory / f"{name}.{tag}"
+                                             for name in ("libfvin_controller", "driver", "model", "goal", "kernels"))
     commands = ([compiler, *flags, *DRIVER_FLAGS, "-c", "fvin_controller.c", "-o", driver.name],
-                [compiler, *flags, "-c", "fvc_model.c", "-o", model.name],
-                [compiler, *flags, "-shared", driver.name, model.name, "-o", partial.name, "-lm"])
+                [compiler, *flags, "-c", f"{LOOP_SOURCE}.c", "-o", model.name],
+                [compiler, *flags, "-c", "fvc_goal.c", "-o", goal.name],
+                [compiler, *flags, *KERNEL_FLAGS, "-c", "fvc_kernels.c", "-o", kernels.name],
+                [compiler, *flags, "-shared", driver.name, model.name, goal.name, kernels.name, "-o", partial.name,
+                 "-lm"])
     try:
         for command in commands:
             process = subprocess.run(command, cwd=directory, capture_output=True, text=True)
@@ -290,8 +323,8 @@ def build_library(directory: str | Path, flags: tuple[str, ...] | None = None) -
                 partial.unlink(missing_ok=True)
                 raise RuntimeError(f"compiling the controller in {directory} failed: {process.stderr.strip()[-2000:]}")
     finally:
-        driver.unlink(missing_ok=True)
-        model.unlink(missing_ok=True)
+        for obj in (driver, model, goal, kernels):
+            obj.unlink(missing_ok=True)
     os.replace(partial, library)
     return library
 
@@ -307,7 +340,7 @@ def cached_library(controller: RealTimeMPC) -> Path:
     for path in sorted(staging.iterdir()):
         digest.update(path.name.encode() + path.read_bytes())
     target = generated_code_flags(os.environ.get("CC", "cc"))
-    flags = " ".join((*LIBRARY_FLAGS, *DRIVER_FLAGS, *target))
+    flags = " ".join((*LIBRARY_FLAGS, *DRIVER_FLAGS, *KERNEL_FLAGS, *target))
     digest.update(flags.encode() + (host_cpu().encode() if target else b""))
     final = cache_dir() / "c_controller" / f"{controller.model.name.replace(':', '_')}_{digest.hexdigest()[:20]}"
     if not (final / "libfvin_controller.so").is_file():

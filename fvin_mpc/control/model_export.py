@@ -138,13 +138,23 @@ class ExportedModel:
         (with :attr:`ModelParameters.defaults` it computes what :attr:`step` does)."""
         x, u = ca.SX.sym("x", self.state_dim), ca.SX.sym("u", self.control_dim)
         p = ca.SX.sym("p", self.model_parameters.size)
-        actuated = self.model_parameters.actuated(u, p)
         if self.casadi_terms is None:  # no terms to read p: only the gain scale
-            x_next, residual = self.step(x, actuated)
+            x_next, residual = self.step(x, self.model_parameters.actuated(u, p))
         else:
-            x_next, residual = self.space.step(x, actuated, self.terms_at(p), self.step_size, self.newton_iters, CA,
-                                               **self.step_options)
+            x_next, residual = self.step_on_terms(x, u, p)
         return ca.Function("fvin_step_p", [x, u, p], [x_next, residual], ["x", "u", "p"], ["x_next", "residual"])
+
+    def step_on_terms(self, x: Any, u: Any, p: Any = None, wrap: Callable[[Any], Any] | None = None) -> tuple[Any, Any]:
+        """``(x_next, residual)`` of the space's step on this model's terms, as CasADi expressions of ``x``,
+        ``u`` — the expression :attr:`step` computes, or with the parameters ``p`` :attr:`parametric_step`'s;
+        ``wrap`` (terms → terms) changes how the terms are read, e.g. their first-order expansions
+        (:mod:`fvin_mpc.control.term_expansion`). Needs :attr:`casadi_terms`."""
+        if self.casadi_terms is None:
+            raise ValueError(f"model {self.name!r} has no rigid-body terms to step on")
+        terms = self.casadi_terms if p is None else self.terms_at(p)
+        actuated = u if p is None else self.model_parameters.actuated(u, p)
+        return self.space.step(x, actuated, terms if wrap is None else wrap(terms), self.step_size,
+                               self.newton_iters, CA, **self.step_options)
 
     @functools.cached_property
     def parametric_energy(self) -> ca.Function:
@@ -297,12 +307,15 @@ class CompileReport:
         cached: ``True`` if it was already on disk (no compiler run).
         codegen_s: seconds spent generating C.
         compile_s: seconds spent in the C compiler (0 when cached).
+        source_sha256: the SHA-256 of the generated source (hex): what another build of the same source
+            (the C loop's ``fvc_model.c``) can be compared with.
     """
 
     library: Path
     cached: bool
     codegen_s: float
     compile_s: float
+    source_sha256: str = ""
 
 
 #: How a library of generated code is compiled, beside the target flags (:func:`generated_code_flags`).
@@ -368,8 +381,47 @@ class CompileCount:
     compiler_runs = 0
 
 
+#: Flags of a hand-written kernel's object (its own translation unit; the host's target flags follow, as for
+#: generated code): its loops over short vectors are unrolled at -O3 (:mod:`fvin_mpc.control.riccati_kernel`).
+KERNEL_FLAGS: tuple[str, ...] = ("-O3", "-fPIC")
+
+
+@dataclass(frozen=True)
+class CKernel:
+    """A hand-written C function with CasADi's calling convention that generated code calls (declared there as
+    an external function): its symbol and its whole source."""
+
+    name: str
+    source: str
+
+
+def compile_kernel(kernel: CKernel, compiler: str, flags: Sequence[str], directory: Path) -> Path:
+    """``kernel``'s object file in ``directory``, compiled with ``flags``; ``RuntimeError`` with the compiler's
+    message when it fails."""
+    source = directory / f"{kernel.name}.c"
+    source.write_text(kernel.source)
+    target = directory / f"{kernel.name}.o"
+    process = subprocess.run([compiler, *flags, "-c", str(source), "-o", str(target)], capture_output=True,
+                             text=True)
+    if process.returncode != 0:
+        raise RuntimeError(f"compiling the kernel {kernel.name} failed: {process.stderr.strip()[-2000:]}")
+    return target
+
+
+def write_generated_source(functions: Sequence[ca.Function], name: str, directory: str | Path) -> Path:
+    """Write the C CasADi generates for ``functions`` as ``{name}.c`` and ``{name}.h`` into ``directory``; returns
+    the ``.c``. One function for every library and folder of generated code: the same functions under the same
+    name give the same text."""
+    generator = ca.CodeGenerator(f"{name}.c", {"with_header": True})
+    for function in functions:
+        generator.add(function)
+    return Path(generator.generate(str(directory) + os.sep))
+
+
 def compile_functions(functions: Sequence[ca.Function], prefix: str, flags: Sequence[str] = COMPILER_FLAGS,
-                      external_options: dict[str, Any] | None = None) -> tuple[dict[str, ca.Function], CompileReport]:
+                      external_options: dict[str, Any] | None = None,
+                      kernels: Sequence[CKernel] = (), source_name: str | None = None
+                      ) -> tuple[dict[str, ca.Function], CompileReport]:
     """Generate C for ``functions``, compile it once into a cached shared library, load it.
 
     Returns ``({name: external function}, report)``; ``external_options`` are passed to
@@ -379,21 +431,25 @@ def compile_functions(functions: Sequence[ca.Function], prefix: str, flags: Sequ
     anything that changes the math (weights, ``K``, horizon, cost weights) changes the key, and a cache
     shared by machines of different CPUs never hands one of them another's instructions.
 
+    ``kernels``: the hand-written C functions (:class:`CKernel`) the generated code calls, each compiled as its own
+    object with :data:`KERNEL_FLAGS` and linked in; their sources are part of the key. ``source_name``: the
+    generated source's name (default ``prefix``), which names its static functions: the text, and so the machine
+    code, is that of any other source generated from the same functions under that name
+    (:func:`write_generated_source`).
+
     Raises:
         RuntimeError: no C compiler, or compilation failed (with the compiler's message).
     """
     start = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="fvin_mpc_codegen_") as workdir:
-        generator = ca.CodeGenerator(f"{prefix}.c", {"with_header": False})
-        for function in functions:
-            generator.add(function)
-        source_path = Path(generator.generate(workdir + os.sep))
+        source_path = write_generated_source(functions, source_name or prefix, workdir)
         source = source_path.read_bytes()
         codegen_s = time.perf_counter() - start
         compiler = os.environ.get("CC", "gcc")
         target = generated_code_flags(compiler)
         flags = (*flags, *target)
         key = source + " ".join(flags).encode() + ca.__version__.encode() + (host_cpu().encode() if target else b"")
+        key += b"".join(kernel.source.encode() for kernel in kernels)
         digest = hashlib.sha256(key).hexdigest()[:20]
         library = cache_dir() / f"{prefix}_{digest}.so"
         cached = library.is_file()
@@ -406,7 +462,9 @@ def compile_functions(functions: Sequence[ca.Function], prefix: str, flags: Sequ
             library.parent.mkdir(parents=True, exist_ok=True)
             partial = library.with_suffix(f".{os.getpid()}.tmp")
             start = time.perf_counter()
-            process = subprocess.run([compiler, *flags, str(source_path), "-o", str(partial), "-lm"],
+            objects = [str(compile_kernel(kernel, compiler, (*KERNEL_FLAGS, *target), Path(workdir)))
+                       for kernel in kernels]
+            process = subprocess.run([compiler, *flags, str(source_path), *objects, "-o", str(partial), "-lm"],
                                      capture_output=True, text=True)
             compile_s = time.perf_counter() - start
             if process.returncode != 0:
@@ -415,4 +473,5 @@ def compile_functions(functions: Sequence[ca.Function], prefix: str, flags: Sequ
             os.replace(partial, library)  # atomic: concurrent runs never load a half-written file
     loaded = {function.name(): ca.external(function.name(), str(library), external_options or {})
               for function in functions}
-    return loaded, CompileReport(library=library, cached=cached, codegen_s=codegen_s, compile_s=compile_s)
+    return loaded, CompileReport(library=library, cached=cached, codegen_s=codegen_s, compile_s=compile_s,
+                                 source_sha256=hashlib.sha256(source).hexdigest())

@@ -160,6 +160,11 @@ class RTIOptions:
             predictor–corrector: one factorization and two solves per iteration, about 1.4× an iteration's
             time, and far more accurate per iteration: ``python -m benchmarks.qp_accuracy --methods path
             mehrotra``).
+        riccati_stage: the backward stage of ``qp_method="path"``: ``"generated"`` (CasADi's straight-line
+            code), ``"kernel"`` (hand-written C on the vector units, :mod:`fvin_mpc.control.riccati_kernel`; needs
+            ``compile="cached"``) or ``"auto"`` (the kernel for free bodies, where it is 1.7–2.7× faster a
+            stage, the generated stage for pivoted ones, where that is faster; the generated stage wherever the
+            kernel cannot run: ``python -m benchmarks.riccati_stage``).
         dynamics: the dynamics constraint: ``"unrolled"`` (the exported step ``x_{k+1} = F(x_k, u_k)``, K
             Newton iterations, linearized per stage) or ``"implicit"`` (the step's own equations between
             consecutive plan nodes, the learned terms evaluated once per node; pivoted bodies only;
@@ -205,6 +210,7 @@ class RTIOptions:
     qp_solver: Literal["riccati", "hpipm", "qrqp", "osqp"] = "riccati"
     qp_iterations: int = 10
     qp_method: Literal["path", "mehrotra"] = "path"
+    riccati_stage: Literal["auto", "generated", "kernel"] = "auto"
     dynamics: Literal["unrolled", "implicit"] = "unrolled"
     model_parameters: bool = True
     feedback: Literal["qp", "prepared"] = "qp"
@@ -232,6 +238,8 @@ class RTIOptions:
             raise ValueError(f"unknown qp_solver {self.qp_solver!r}")
         if self.qp_method not in ("path", "mehrotra"):
             raise ValueError(f"unknown qp_method {self.qp_method!r}; expected 'path' or 'mehrotra'")
+        if self.riccati_stage not in ("auto", "generated", "kernel"):
+            raise ValueError(f"unknown riccati_stage {self.riccati_stage!r}; expected 'auto', 'generated' or 'kernel'")
         if self.dynamics not in ("unrolled", "implicit"):
             raise ValueError(f"unknown dynamics {self.dynamics!r}")
         if self.feedback not in ("qp", "prepared"):

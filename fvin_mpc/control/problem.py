@@ -166,7 +166,9 @@ def predict_function(model: Any, name: str = "predict", parameters: str = "none"
         if parameters == "constant":
             inputs.append(ca.SX.sym("p", model.model_parameters.size))
     b = ca.jacobian(stepped[layout.rates], u)
-    return ca.Function(name, inputs, [stepped, b, residual, least_squares_inverse(b)], GENERATED_SX_OPTIONS)
+    # dense outputs (structural zeros as zeros): the C loop passes plain arrays
+    return ca.Function(name, inputs, [stepped, ca.densify(b), residual, ca.densify(least_squares_inverse(b))],
+                       GENERATED_SX_OPTIONS)
 
 
 #: The ridge of :func:`least_squares_inverse`, relative to ``‖B‖_F²``. CasADi's symbolic solve does not

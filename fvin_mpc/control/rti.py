@@ -83,11 +83,12 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
-from fvin_mpc.control import implicit_dynamics
+from fvin_mpc.control import implicit_dynamics, riccati_kernel
 from fvin_mpc.control.buffered import BufferedFunction
-from fvin_mpc.control.model_export import GENERATED_SX_OPTIONS, ExportedModel, compile_functions
+from fvin_mpc.control.model_export import GENERATED_SX_OPTIONS, CKernel, ExportedModel, compile_functions
 from fvin_mpc.control.mpc import MPC, MPCSettings, Plan
 from fvin_mpc.control.problem import control_bounds, predict_function, residual_functions
+from fvin_mpc.control.term_expansion import FirstOrderTerms
 from fvin_mpc.core.backend import get_ops
 from fvin_mpc.core.space import StateLayout, chart_local, chart_retract
 
@@ -114,6 +115,11 @@ QP_METHODS = ("path", "mehrotra")
 #: swing-ups lost, docs/bench/rti.md). At 1e-10 the iterations after the floor re-solve the same
 #: barrier problem.
 QP_MU_MIN = 1e-10
+#: The generated source of the loop's functions (``rti_linearize_blocks``, ``rti_predict``, ``rti_feedback``,
+#: ``rti_apply``), by that name in both loops: the Python loop compiles it into its library, the C loop's folder
+#: holds it as ``fvc_model.c`` (:mod:`fvin_mpc.control.c_controller`) — the same text, so the same machine code
+#: (a different name alone moved a function's time by 4 %: it changes the code's layout).
+LOOP_SOURCE = "fvc_model"
 #: Planned ``|ω_i|`` are kept below this fraction of ``1/h`` (the step's solvability limit).
 OMEGA_VALID_FRACTION = 0.9
 
@@ -158,19 +164,33 @@ def step_limits(layout: StateLayout, omega_step: float) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------- compiled QP + update
-def unrolled_stage_function(step: ca.Function, layout: StateLayout, m: int, jacobian: bool = True) -> ca.Function:
+def unrolled_stage_function(step: ca.Function, layout: StateLayout, m: int, jacobian: bool = True,
+                            model: ExportedModel | None = None) -> ca.Function:
     """``stage(x̄_k, ū_k, x̄_{k+1}, d) -> (c, [A B])`` of the unrolled dynamics: ``c`` the gap between
     ``F(x̄_k, ū_k + d)`` and ``x̄_{k+1}`` in ``x̄_{k+1}``'s chart, ``[A B]`` its derivatives in ``(δ_k, Δu_k)``.
     A ``step`` with a third input (the model parameters ``p``,
     :attr:`~fvin_mpc.control.model_export.ExportedModel.parametric_step`) gives ``stage(…, d, p)``.
-    ``jacobian=False``: ``c`` alone, the same expression (the same to the bit)."""
+    ``jacobian=False``: ``c`` alone, the same expression (the same to the bit). ``model``: the model ``step``
+    was made from; where it has rigid-body terms, ``[A B]`` is taken of the same step on their first-order
+    expansions (:mod:`fvin_mpc.control.term_expansion`: the same derivatives, fewer operations).
+
+    The derivatives are taken in reverse mode (one sweep per entry of ``c``: ``n_δ`` sweeps against ``n_δ + m``
+    directions; 5–15 % fewer instructions than CasADi's forward choice here). What both changes save:
+    :mod:`fvin_mpc.control.term_expansion`."""
     x_bar, x_next_bar = ca.SX.sym("x_bar", layout.state_dim), ca.SX.sym("x_next_bar", layout.state_dim)
     u_bar, d = ca.SX.sym("u_bar", m), ca.SX.sym("d", m)
     delta, du = ca.SX.sym("delta", layout.tangent_dim), ca.SX.sym("du", m)
     parameters = [ca.SX.sym("p", step.size1_in(2))] if step.n_in() == 3 else []
-    gap = local_state(layout, x_next_bar, step(retract_state(layout, x_bar, delta), u_bar + du + d, *parameters)[0])
-    outputs = ca.substitute([gap, ca.jacobian(gap, ca.vertcat(delta, du))] if jacobian else [gap], [delta, du],
-                            [ca.DM.zeros(layout.tangent_dim), ca.DM.zeros(m)])
+    x, u = retract_state(layout, x_bar, delta), u_bar + du + d
+    gap = local_state(layout, x_next_bar, step(x, u, *parameters)[0])
+    outputs = [gap]
+    if jacobian:
+        differentiated = gap
+        if model is not None and model.casadi_terms is not None:
+            x_next, _ = model.step_on_terms(x, u, *parameters, wrap=lambda terms: FirstOrderTerms(terms, [delta, du]))
+            differentiated = local_state(layout, x_next_bar, x_next)
+        outputs.append(ca.jacobian(differentiated, ca.vertcat(delta, du), {"helper_options": {"ad_weight": 1.0}}))
+    outputs = ca.substitute(outputs, [delta, du], [ca.DM.zeros(layout.tangent_dim), ca.DM.zeros(m)])
     return ca.Function("rti_dynamics" if jacobian else "rti_dynamics_value", [x_bar, u_bar, x_next_bar, d, *parameters],
                        outputs, ["x_bar", "u_bar", "x_next_bar", "d", "p"][:4 + len(parameters)],
                        ["c", "AB"][:len(outputs)], GENERATED_SX_OPTIONS)
@@ -404,8 +424,8 @@ def riccati_solve_function(nd: int, m: int) -> ca.Function:
 
 def riccati_feedback_function(layout: StateLayout, n: int, m: int, low: np.ndarray, high: np.ndarray,
                               limits: np.ndarray, omega_valid: float, iterations: int, centering: float = 0.1,
-                              boundary: float = 0.995, mu_min: float = QP_MU_MIN, method: str = "path"
-                              ) -> tuple[ca.Function, ca.Function]:
+                              boundary: float = 0.995, mu_min: float = QP_MU_MIN, method: str = "path",
+                              stage: ca.Function | None = None) -> tuple[ca.Function, ca.Function]:
     """One feedback iteration as a single CasADi function (compiled with the linearization):
     ``rti_feedback(X̄ (n_x,N+1), Ū (m,N), x0 (n_x), H (s,sN), H_N (n_δ,n_δ), g (s,N), g_N (n_δ),
     [A B] (n_δ,sN), c (n_δ,N)) → (X (n_x,N+1), U (m,N), step, μ, K (m,n_δN), k (m,N))``, ``s = n_δ + m``;
@@ -420,6 +440,9 @@ def riccati_feedback_function(layout: StateLayout, n: int, m: int, low: np.ndarr
     ``iterations``: each solves the barrier-modified LQ problem (``R + diag(λ/s)``) by a Riccati
     recursion (``O(N)``, backward ``mapaccum``), takes the fraction-to-boundary step and reduces
     ``μ`` to ``centering ×`` the mean complementarity, not below ``mu_min`` (:data:`QP_MU_MIN`).
+    ``stage``: the backward stage of the path-following method, a function with
+    :func:`riccati_stage_function`'s signature (default: that function; the hand-written kernel,
+    :mod:`fvin_mpc.control.riccati_kernel`, is another).
     ``method="mehrotra"`` (:data:`QP_METHODS`): Mehrotra's predictor–corrector instead — each iteration factors
     the LQ problem once (:func:`riccati_factor_function`) and solves it twice (:func:`riccati_solve_function`):
     the affine step (``μ = 0``), whose progress sets the centering ``σ = (μ_aff/μ)³``, then the step to
@@ -432,7 +455,9 @@ def riccati_feedback_function(layout: StateLayout, n: int, m: int, low: np.ndarr
     ns, nd = layout.state_dim, layout.tangent_dim
     stage_low, stage_high = (np.broadcast_to(np.asarray(bound, dtype=float), (n, m)).T for bound in (low, high))
     size = nd + m
-    backward = riccati_stage_function(nd, m).mapaccum("rti_riccati", n, 2)
+    if stage is not None and method != "path":
+        raise ValueError("a given Riccati stage is the fused stage of method='path'")
+    backward = (riccati_stage_function(nd, m) if stage is None else stage).mapaccum("rti_riccati", n, 2)
     # --- one forward stage
     abk, ck = ca.SX.sym("AB", nd, size), ca.SX.sym("c", nd)
     delta, gain_k, ff_k = ca.SX.sym("delta", nd), ca.SX.sym("K", m, nd), ca.SX.sym("k", m)
@@ -470,12 +495,15 @@ def riccati_feedback_function(layout: StateLayout, n: int, m: int, low: np.ndarr
     mu = ca.MX(0.1)
     dual_low, dual_up = mu / slack_low, mu / slack_up
 
+    # The elementwise work of an iteration runs as SX functions mapped over the stages
+    # (:func:`_interior_point_stage_functions`): one loop per function in the generated code, where each
+    # elementwise MX operation was a loop and a temporary of its own.
+    longest, barrier, direction, update = _interior_point_stage_functions(m, n)
+
     def step_to(fraction: float, dv: Any, d_low: Any, d_up: Any) -> Any:
         """The longest step (at most 1, times ``fraction``) along ``(dv, d_low, d_up)`` that keeps the current
         slacks and duals nonnegative."""
-        ratios = ca.vertcat(ca.vec(slack_low / ca.fmax(-dv, 1e-300)), ca.vec(slack_up / ca.fmax(dv, 1e-300)),
-                            ca.vec(dual_low / ca.fmax(-d_low, 1e-300)), ca.vec(dual_up / ca.fmax(-d_up, 1e-300)))
-        return ca.fmin(1.0, fraction * ca.mmin(ratios))
+        return ca.fmin(1.0, fraction * ca.mmin(longest(slack_low, slack_up, dual_low, dual_up, dv, d_low, d_up)))
 
     if method == "mehrotra":
         factor = riccati_factor_function(nd, m).mapaccum("rti_riccati_factor", n, 1)
@@ -513,17 +541,14 @@ def riccati_feedback_function(layout: StateLayout, n: int, m: int, low: np.ndarr
             mu = (ca.sum1(ca.sum2(dual_low * (v - lower))) + ca.sum1(ca.sum2(dual_up * (upper - v)))) / (2 * m * n)
     else:
         for _ in range(iterations):
-            slack_low, slack_up = v - lower, upper - v
-            curvature = dual_low / slack_low + dual_up / slack_up
-            linear = gradients[nd:, :] - mu / slack_low + mu / slack_up - curvature * v
+            slack_low, slack_up, curvature, linear = barrier(v, lower, upper, dual_low, dual_up, gradients[nd:, :], mu)
             deltas, target, gains, feedforwards = solve_lq(curvature, linear)
-            dv = target - v
-            d_low = mu / slack_low - dual_low - dual_low / slack_low * dv
-            d_up = mu / slack_up - dual_up + dual_up / slack_up * dv
+            dv, d_low, d_up = direction(v, target, slack_low, slack_up, dual_low, dual_up, mu)
             alpha = step_to(boundary, dv, d_low, d_up)
-            v, dual_low, dual_up = v + alpha * dv, dual_low + alpha * d_low, dual_up + alpha * d_up
-            mu = ca.fmax(centering * (ca.sum1(ca.sum2(dual_low * (v - lower)))
-                                      + ca.sum1(ca.sum2(dual_up * (upper - v)))) / (2 * m * n), mu_min)
+            v, dual_low, dual_up, low_complementarity, up_complementarity = update(
+                v, dv, dual_low, d_low, dual_up, d_up, lower, upper, alpha)
+            mu = ca.fmax(centering * (ca.sum1(ca.sum2(low_complementarity))
+                                      + ca.sum1(ca.sum2(up_complementarity))) / (2 * m * n), mu_min)
     # The states of the last Riccati solve (closed-loop forward pass, consistent with its controls to
     # within (1 − α)|Δu|): propagating the final controls open loop would amplify the interior-point
     # method's inexactness through the unstable upright dynamics (e^{λ·horizon} ≈ 10³–10⁴ here).
@@ -543,6 +568,48 @@ def riccati_feedback_function(layout: StateLayout, n: int, m: int, low: np.ndarr
                         [new_states, new_controls, step], ["X", "U", "x0", "K", "k", "AB", "c"],
                         ["X_new", "U_new", "step"])
     return feedback, apply
+
+
+def _interior_point_stage_functions(m: int, n: int) -> tuple[ca.Function, ...]:
+    """The per-stage parts of :func:`riccati_feedback_function`'s interior-point iteration, each an SX function
+    mapped over the ``n`` stages (``m`` controls a stage), computing what the iteration's elementwise MX operations
+    computed, in the same order (the same numbers to the bit):
+
+    * ``longest(s_low, s_up, λ_low, λ_up, Δv, Δλ_low, Δλ_up) → ρ``: per stage the longest step that keeps its slacks
+      and duals nonnegative (``∞`` where nothing binds; ``min(1, fraction · min ρ)`` is the step);
+    * ``barrier(v, low, up, λ_low, λ_up, g_u, μ) → (s_low, s_up, d, r)``: the slacks, the barrier's curvature
+      ``d = λ_low/s_low + λ_up/s_up`` and the LQ problem's control gradient ``r``;
+    * ``direction(v, v⁺, s_low, s_up, λ_low, λ_up, μ) → (Δv, Δλ_low, Δλ_up)``: the step to the LQ solution ``v⁺``;
+    * ``update(v, Δv, λ_low, Δλ_low, λ_up, Δλ_up, low, up, α) → (v, λ_low, λ_up, λ_low s_low, λ_up s_up)``: the step
+      taken and the complementarity products its ``μ`` sums.
+
+    A ratio is selected by a comparison, where ``s / max(−Δ, 1e-300)`` called libm's ``fmax`` per entry (their
+    minimum keeps ``fmin``: a chain of comparisons measured slower)."""
+    v, low, up, target = (ca.SX.sym(name, m) for name in ("v", "low", "up", "v_next"))
+    slack_low, slack_up, dual_low, dual_up = (ca.SX.sym(name, m) for name in ("s_low", "s_up", "dual_low", "dual_up"))
+    dv, d_low, d_up, g_u = (ca.SX.sym(name, m) for name in ("dv", "d_low", "d_up", "g_u"))
+    mu, alpha = ca.SX.sym("mu"), ca.SX.sym("alpha")
+
+    def ratio(room: Any, change: Any) -> Any:
+        return ca.if_else(change < 0, room / -change, ca.inf)
+
+    longest = ca.Function("rti_ipm_longest_step", [slack_low, slack_up, dual_low, dual_up, dv, d_low, d_up],
+                          [ca.mmin(ca.vertcat(ratio(slack_low, dv), ratio(slack_up, -dv), ratio(dual_low, d_low),
+                                              ratio(dual_up, d_up)))], GENERATED_SX_OPTIONS)
+    slack_low_now, slack_up_now = v - low, up - v
+    curvature = dual_low / slack_low_now + dual_up / slack_up_now
+    barrier = ca.Function("rti_ipm_barrier", [v, low, up, dual_low, dual_up, g_u, mu],
+                          [slack_low_now, slack_up_now, curvature,
+                           g_u - mu / slack_low_now + mu / slack_up_now - curvature * v], GENERATED_SX_OPTIONS)
+    step = target - v
+    direction = ca.Function("rti_ipm_direction", [v, target, slack_low, slack_up, dual_low, dual_up, mu],
+                            [step, mu / slack_low - dual_low - dual_low / slack_low * step,
+                             mu / slack_up - dual_up + dual_up / slack_up * step], GENERATED_SX_OPTIONS)
+    v_next, dual_low_next, dual_up_next = v + alpha * dv, dual_low + alpha * d_low, dual_up + alpha * d_up
+    update = ca.Function("rti_ipm_update", [v, dv, dual_low, d_low, dual_up, d_up, low, up, alpha],
+                         [v_next, dual_low_next, dual_up_next, dual_low_next * (v_next - low),
+                          dual_up_next * (up - v_next)], GENERATED_SX_OPTIONS)
+    return tuple(function.map(n) for function in (longest, barrier, direction, update))
 
 
 def _trust_region_update(layout: StateLayout, states: Any, controls: Any, x0: Any, deltas: Any, v: Any,
@@ -637,7 +704,7 @@ class RealTimeMPC(MPC):
                                                                        self.model.step_size, retract, parametrized)
         else:
             step = self.model.parametric_step if parametric else self.model.step
-            stage_dynamics = unrolled_stage_function(step, layout, m)
+            stage_dynamics = unrolled_stage_function(step, layout, m, model=self.model)
         # --- the Jacobians a linearization may keep from the previous one (rti.relinearize_every): each item
         # (a stage; a node of the implicit dynamics, whose derivatives are its terms' slopes) computes its values
         # always and its derivatives where `fresh` says or where it moved more than rti.relinearize_tol from
@@ -728,8 +795,10 @@ class RealTimeMPC(MPC):
                                 ["H", "g", "A", "gaps", "cost", "A0", "S0", "J", "points"])
         linearize_blocks = ca.Function("rti_linearize_blocks",
                                        [states, controls, references, d_mx, u_s_mx, p_mx, kept_mx, points_mx, fresh_mx],
-                                       [hessians, terminal_hessian, gradients, terminal_gradient, jacobians, gaps,
-                                        ca.sum2(costs) + terminal_value, kept_out, points_out],
+                                       # dense where the Jacobians have structural zeros: the C driver passes
+                                       # plain arrays, and a dense wrapper around it copied every output
+                                       [hessians, terminal_hessian, gradients, terminal_gradient, ca.densify(jacobians),
+                                        gaps, ca.sum2(costs) + terminal_value, ca.densify(kept_out), points_out],
                                        ["X", "U", "R", "d", "u_s", "p", "J_kept", "points_kept", "fresh"],
                                        ["H", "HN", "g", "gN", "AB", "gaps", "cost", "J", "points"])
         predict = predict_function(self.model, "rti_predict", "input" if parametric else "constant")
@@ -749,11 +818,17 @@ class RealTimeMPC(MPC):
         self._control_bounds = control_bounds(self.torque_low, self.torque_high, n, s.torque_reserve)
         self._omega_valid = OMEGA_VALID_FRACTION / self.model.step_size
         riccati = s.rti.qp_solver == "riccati"
+        #: the hand-written C functions the generated code calls (:mod:`fvin_mpc.control.riccati_kernel`)
+        self.loop_kernels: tuple[CKernel, ...] = ()
         if riccati:
             linearize = linearize_blocks
+            stage = None
+            if riccati_kernel.uses_kernel(s.rti.riccati_stage, nd, s.compile == "cached", s.rti.qp_method):
+                self.loop_kernels = (riccati_kernel.riccati_stage_kernel(nd, m),)
+                stage = riccati_kernel.kernel_function(self.loop_kernels[0])
             functions = [linearize, predict, *riccati_feedback_function(
                 layout, n, m, *self._control_bounds, self._step_limits, self._omega_valid, s.rti.qp_iterations,
-                method=s.rti.qp_method)]
+                method=s.rti.qp_method, stage=stage)]
         else:
             functions = [linearize, predict]
         #: the CasADi functions the loop calls (linearize, predict, feedback), before compilation: what
@@ -762,7 +837,8 @@ class RealTimeMPC(MPC):
         self.compile_report = None
         if s.compile == "cached":
             compiled, self.compile_report = compile_functions(
-                functions, prefix=re.sub(r"[^0-9A-Za-z_]", "_", f"rti_{self.model.name}"))
+                functions, prefix=re.sub(r"[^0-9A-Za-z_]", "_", f"rti_{self.model.name}"), kernels=self.loop_kernels,
+                source_name=LOOP_SOURCE if riccati else None)
             functions = [compiled[function.name()] for function in functions]
         if riccati:  # every argument of the Riccati path is dense: call through buffers, not DMs
             functions = [BufferedFunction(function) for function in functions]

@@ -11,6 +11,9 @@
 #include "fvin_controller.h"
 #include "fvc_config.h"
 #include "fvc_model.h"
+#if FVC_FREE_GOAL_GUESS
+#include "fvc_goal.h"
+#endif
 
 #define N FVC_N
 #define NS FVC_NS

@@ -1,0 +1,100 @@
+"""The Riccati stage as hand-written C (``c_kernels/riccati_stage.c``): the generated QP's hot loop on the vector units.
+
+The real-time iteration's QP (:func:`fvin_mpc.control.rti.riccati_feedback_function`) runs one backward Riccati
+stage per stage and interior-point iteration — 180 a period on the quadrotor (``N = 30``, six iterations),
+about 60 % of its QP. CasADi generates each stage as straight-line scalar code
+(:func:`~fvin_mpc.control.rti.riccati_stage_function`, the reference). The kernel computes the same stage
+with the two products that dominate it, ``P [A B]`` and ``[A B]ᵀ P [A B]``, as loops over columns of four
+doubles, compiled with ``-O3`` where GCC and Clang turn them into vector instructions. The generated
+feedback calls it through CasADi's external-function convention in place of the generated stage: one
+source for both loops, which compile it alike (the Python loop's library, :func:`compile_functions`; the
+C loop's, :mod:`fvin_mpc.control.c_controller`).
+
+Where it pays (a stage alone in C, alternated with the generated one, ``python -m benchmarks.riccati_stage``,
+this 2-core AMD EPYC with ``-march=native``; ``docs/bench/riccati_stage.json``): ``(n_δ, m)`` = (12, 4)
+1,352 → 612 ns (2.2×), (12, 1) 2.7×, (12, 6) 1.7×; (6, 3) 184 → 218 ns (0.84×) and (6, 1) 0.66×: at a
+pivoted body's size the generated code is faster. ``RTIOptions.riccati_stage="auto"`` therefore takes the
+kernel for free bodies (:data:`KERNEL_MIN_TANGENT_DIM`) and the generated stage for pivoted ones. Inside the
+quadrotor's QP (30 stages, six iterations) it took the generated function from about 300 to 220 µs.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import shutil
+import subprocess
+from importlib import resources
+
+import casadi as ca
+
+from fvin_mpc.control.model_export import (
+    KERNEL_FLAGS,
+    CKernel,
+    CompileCount,
+    cache_dir,
+    compile_kernel,
+    generated_code_flags,
+    host_cpu,
+)
+
+#: ``riccati_stage="auto"`` takes the kernel from this tangent dimension on (free bodies; module docstring).
+KERNEL_MIN_TANGENT_DIM = 12
+#: The choices of ``RTIOptions.riccati_stage``.
+RICCATI_STAGES = ("auto", "generated", "kernel")
+
+
+def riccati_stage_kernel(nd: int, m: int) -> CKernel:
+    """The kernel of a Riccati stage with ``n_δ = nd`` and ``m`` controls: the template's source after a prelude
+    that fixes its sizes and its name (``fvin_riccati_stage_{nd}_{m}``)."""
+    if nd < 1 or m < 1:
+        raise ValueError(f"a Riccati stage needs n_delta >= 1 and m >= 1, got {nd}, {m}")
+    name = f"fvin_riccati_stage_{nd}_{m}"
+    template = (resources.files("fvin_mpc.control") / "c_kernels" / "riccati_stage.c").read_text()
+    prelude = f"#define FVK_NAME {name}\n#define FVK_ND {nd}\n#define FVK_M {m}\n"
+    return CKernel(name, prelude + template)
+
+
+def uses_kernel(choice: str, nd: int, compiled: bool, method: str) -> bool:
+    """Whether a controller's feedback runs the kernel: ``choice`` (``RTIOptions.riccati_stage``) for a tangent
+    dimension ``nd``, compiled functions or not, the QP method. ``ValueError`` where ``"kernel"`` cannot run."""
+    if choice not in RICCATI_STAGES:
+        raise ValueError(f"unknown riccati_stage {choice!r}; one of {RICCATI_STAGES}")
+    if choice == "kernel":
+        if not compiled:
+            raise ValueError("riccati_stage='kernel' is C: it needs compile='cached' (a C compiler)")
+        if method != "path":
+            raise ValueError("riccati_stage='kernel' is the fused stage of qp_method='path'; the predictor-corrector "
+                             "splits the stage in two halves, which are generated (riccati_stage='generated')")
+        return True
+    return choice == "auto" and compiled and method == "path" and nd >= KERNEL_MIN_TANGENT_DIM
+
+
+def kernel_function(kernel: CKernel) -> ca.Function:
+    """``kernel`` as a CasADi function: the symbolic graphs call it (and the generated code calls its symbol);
+    evaluated outside compiled code, from its own shared library, built once into the cache like the
+    generated code's."""
+    compiler = os.environ.get("CC", "gcc")
+    target = generated_code_flags(compiler)
+    flags = (*KERNEL_FLAGS, *target)
+    key = kernel.source.encode() + " ".join(flags).encode() + (host_cpu().encode() if target else b"")
+    library = cache_dir() / f"{kernel.name}_{hashlib.sha256(key).hexdigest()[:20]}.so"
+    if not library.is_file():
+        if shutil.which(compiler) is None:
+            raise RuntimeError(f"no C compiler {compiler!r} on PATH; the Riccati kernel is C (riccati_stage="
+                               "'generated' runs without one)")
+        CompileCount.compiler_runs += 1
+        library.parent.mkdir(parents=True, exist_ok=True)
+        directory = library.parent / f"{kernel.name}.{os.getpid()}.build"
+        directory.mkdir(exist_ok=True)
+        try:
+            obj = compile_kernel(kernel, compiler, flags, directory)
+            partial = directory / "kernel.so"
+            process = subprocess.run([compiler, *flags, "-shared", str(obj), "-o", str(partial)], capture_output=True,
+                                     text=True)
+            if process.returncode != 0:
+                raise RuntimeError(f"linking the kernel {kernel.name} failed: {process.stderr.strip()[-2000:]}")
+            os.replace(partial, library)  # atomic: concurrent runs never load a half-written file
+        finally:
+            shutil.rmtree(directory, ignore_errors=True)
+    return ca.external(kernel.name, str(library))
