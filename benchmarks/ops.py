@@ -9,9 +9,10 @@ evaluation) instead of averaging over ``±q`` (two) — with a configuration-dep
 and with a constant inertia. The prototypes' weights are random: an operation count depends on the
 structure (widths, which terms depend on ``q``), not on the weights' values.
 
-Two further columns count what the real-time iteration evaluates per stage with each of its dynamics
+Further columns count what the real-time iteration evaluates per stage with each of its dynamics
 constraints (``RTIOptions.dynamics``): ``unrolled`` — the gap of ``F`` and its Jacobian in the
-7 chart directions ``(δ_k, Δu_k)`` (:func:`fvin_mpc.control.rti.unrolled_stage_function`);
+7 chart directions ``(δ_k, Δu_k)`` (:func:`fvin_mpc.control.rti.unrolled_stage_function`), differentiated as
+written and, as the RTI builds it, on the terms' first-order expansions (:mod:`fvin_mpc.control.term_expansion`);
 ``implicit`` — the terms and their 3 chart derivatives once per node plus the stage's
 implicit-function solve (:mod:`fvin_mpc.control.implicit_dynamics`).
 """
@@ -36,7 +37,7 @@ from fvin_mpc.core.space import PIVOTED
 #: Shipped planar checkpoints counted, beside the closed form.
 CHECKPOINTS = ("pendulum_sign-invariant", "pendulum_fixed-inertia", "pendulum_plain")
 COLUMNS = ["model", "structure", "step_ops", "step_jacobian_ops", "vs_closed_form", "rti_unrolled_ops",
-           "rti_implicit_ops", "implicit_vs_closed_form"]
+           "rti_unrolled_expanded_ops", "rti_implicit_ops", "implicit_vs_closed_form"]
 #: The prototypes' even features ``q_i q_j``, ``i ≤ j``, and their networks' hidden layers (the shipped models').
 FEATURE_PAIRS = tuple((i, j) for i in range(4) for j in range(i, 4))
 HIDDEN_LAYERS = 2
@@ -102,13 +103,17 @@ def count(step: Any) -> tuple[int, int]:
     return int(ca.Function("f", [x, u], [x_next]).n_instructions()), int(with_jacobian.n_instructions())
 
 
-def rti_stage_counts(step: Any, terms: Any, step_size: float) -> tuple[int, int]:
-    """Instructions per stage of the RTI's unrolled dynamics and of its implicit ones (node + stage)."""
-
-    unrolled = unrolled_stage_function(step, PIVOTED, terms.control_dim)
+def rti_stage_counts(model: Any) -> tuple[int, int, int]:
+    """Instructions per stage of the RTI's unrolled dynamics differentiated as written, the same on the terms'
+    first-order expansions (what the RTI builds, :mod:`fvin_mpc.control.term_expansion`), and of its implicit
+    dynamics (node + stage); ``model`` an :class:`~fvin_mpc.control.model_export.ExportedModel` with terms."""
+    terms = model.casadi_terms
+    unrolled = unrolled_stage_function(model.step, PIVOTED, terms.control_dim)
+    expanded = unrolled_stage_function(model.step, PIVOTED, terms.control_dim, model=model)
     node, layout = implicit_dynamics.node_terms_function(terms, retract)
-    stage = implicit_dynamics.implicit_stage_function(terms, layout, step_size, retract)
-    return int(unrolled.n_instructions()), int(node.n_instructions() + stage.n_instructions())
+    stage = implicit_dynamics.implicit_stage_function(terms, layout, model.step_size, retract)
+    return (int(unrolled.n_instructions()), int(expanded.n_instructions()),
+            int(node.n_instructions() + stage.n_instructions()))
 
 
 def run(quick: bool = False, seed: int = 0, **_: Any) -> StudyResult:
@@ -122,17 +127,20 @@ def run(quick: bool = False, seed: int = 0, **_: Any) -> StudyResult:
     closed = scene_model(env, true_model=True)  # the rod read off the MJCF, as the controllers use it
     env.close()
     rows.append({"model": "closed form", "structure": "the rod's `J`, `U`, `g`",
-                 **_counts(closed.step, closed.casadi_terms, closed.step_size)})
+                 **_counts(closed)})
     for name in CHECKPOINTS[:1] if quick else CHECKPOINTS:
         checkpoint = load_checkpoint(name)
         model = export.from_checkpoint(checkpoint)
         rows.append({"model": name, "structure": structures.get(checkpoint.config.variant, checkpoint.config.variant),
-                     **_counts(model.step, model.casadi_terms, model.step_size)})
+                     **_counts(model)})
     for constant, label in ((False, "`J(q)`, `U`, `g` of `q qᵀ`"), (True, "constant `J`; `U`, `g` of `q qᵀ`")):
         terms = EvenFeatureTerms(constant, seed=seed)
-        step = export.step_function(terms, 0.05, 2)
+        # (no energy: the prototypes' terms have no potential value, which nothing here reads)
+        prototype = export.ExportedModel(step=export.step_function(terms, 0.05, 2), step_size=0.05, newton_iters=2,
+                                         control_dim=terms.control_dim, numpy_terms=None, name="prototype",
+                                         energy_function=None, casadi_terms=terms)
         rows.append({"model": "prototype, even features" + (", constant J" if constant else ""),
-                     "structure": label + " (untrained, random weights)", **_counts(step, terms, 0.05)})
+                     "structure": label + " (untrained, random weights)", **_counts(prototype)})
     for row in rows:
         row["vs_closed_form"] = row["step_jacobian_ops"] / rows[0]["step_jacobian_ops"]
         row["implicit_vs_closed_form"] = row["rti_implicit_ops"] / rows[0]["rti_implicit_ops"]
@@ -143,18 +151,21 @@ def run(quick: bool = False, seed: int = 0, **_: Any) -> StudyResult:
         "The configuration-dependent inertia network is the expensive part (its value and derivatives at both "
         "ends of the step); averaging over `±q` doubles every network.",
         "`rti_unrolled_ops`: the RTI's stage with the unrolled step (its gap and Jacobian in the 7 chart "
-        "directions); `rti_implicit_ops`: with the implicit dynamics, the terms and their 3 chart derivatives "
-        "once per node plus the stage's implicit-function solve; `implicit_vs_closed_form`: its ratio to the "
-        "closed form's. Measured periods of both are in docs/realtime.md.",
+        "directions), differentiated as written; `rti_unrolled_expanded_ops`: the same stage as the RTI "
+        "builds it since 2026-11-27, its Jacobian on the terms' first-order expansions "
+        "(fvin_mpc/control/term_expansion.py; the same derivatives); `rti_implicit_ops`: with the implicit "
+        "dynamics, the terms and their 3 chart derivatives once per node plus the stage's implicit-function "
+        "solve; `implicit_vs_closed_form`: its ratio to the closed form's. Measured periods of both are in "
+        "docs/realtime.md.",
     ]
     return StudyResult("ops", rows, COLUMNS, plot, notes)
 
 
-def _counts(step: Any, terms: Any, step_size: float) -> dict[str, int]:
-    step_ops, jacobian_ops = count(step)
-    unrolled_ops, implicit_ops = rti_stage_counts(step, terms, step_size)
+def _counts(model: Any) -> dict[str, int]:
+    step_ops, jacobian_ops = count(model.step)
+    unrolled_ops, expanded_ops, implicit_ops = rti_stage_counts(model)
     return {"step_ops": step_ops, "step_jacobian_ops": jacobian_ops, "rti_unrolled_ops": unrolled_ops,
-            "rti_implicit_ops": implicit_ops}
+            "rti_unrolled_expanded_ops": expanded_ops, "rti_implicit_ops": implicit_ops}
 
 
 def plot(figure: Any, rows: list[dict[str, Any]]) -> None:
