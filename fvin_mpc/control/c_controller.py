@@ -273,13 +273,10 @@ def write_controller(controller: RealTimeMPC, directory: str | Path, example_sta
 
 
 def kernels_source(controller: RealTimeMPC) -> str:
-    """``fvc_kernels.c``: the sources of the controller's kernels, each closed by ``#undef`` of its prelude's
-    macros (a translation unit that is only a comment where it has none)."""
+    """``fvc_kernels.c``: the sources of the controller's kernels in one translation unit (today at most one, the
+    Riccati stage; a second would have to be written to share the unit), or only a comment where it has none."""
     parts = ["/* The hand-written C functions fvc_model.c calls (fvin_mpc.control.riccati_kernel); "
-             "compiled with -O3. */\n"]
-    for kernel in controller.loop_kernels:
-        parts.append(kernel.source)
-        parts.append("\n".join(f"#undef {macro}" for macro in ("FVK_NAME", "FVK_ND", "FVK_M")) + "\n")
+             "compiled with -O3. */\n", *(kernel.source for kernel in controller.loop_kernels)]
     if not controller.loop_kernels:
         parts.append("typedef int fvc_no_kernels;\n")  # ISO C wants a translation unit to declare something
     return "".join(parts)

@@ -52,7 +52,8 @@ def riccati_stage_kernel(nd: int, m: int) -> CKernel:
     name = f"fvin_riccati_stage_{nd}_{m}"
     template = (resources.files("fvin_mpc.control") / "c_kernels" / "riccati_stage.c").read_text()
     prelude = f"#define FVK_NAME {name}\n#define FVK_ND {nd}\n#define FVK_M {m}\n"
-    return CKernel(name, prelude + template)
+    # its sizes and name undefined again at its end: the macros are this kernel's only
+    return CKernel(name, prelude + template + "#undef FVK_NAME\n#undef FVK_ND\n#undef FVK_M\n")
 
 
 def uses_kernel(choice: str, nd: int, compiled: bool, method: str) -> bool:
