@@ -462,7 +462,9 @@ def compile_functions(functions: Sequence[ca.Function], prefix: str, flags: Sequ
             library.parent.mkdir(parents=True, exist_ok=True)
             partial = library.with_suffix(f".{os.getpid()}.tmp")
             start = time.perf_counter()
-            objects = [str(compile_kernel(kernel, compiler, (*KERNEL_FLAGS, *target), Path(workdir)))
+            kernel_directory = Path(workdir) / "kernels"  # apart from the generated source, whatever its name
+            kernel_directory.mkdir()
+            objects = [str(compile_kernel(kernel, compiler, (*KERNEL_FLAGS, *target), kernel_directory))
                        for kernel in kernels]
             process = subprocess.run([compiler, *flags, str(source_path), *objects, "-o", str(partial), "-lm"],
                                      capture_output=True, text=True)

@@ -20,23 +20,11 @@ quadrotor's QP (30 stages, six iterations) it took the generated function from a
 
 from __future__ import annotations
 
-import hashlib
-import os
-import shutil
-import subprocess
 from importlib import resources
 
 import casadi as ca
 
-from fvin_mpc.control.model_export import (
-    KERNEL_FLAGS,
-    CKernel,
-    CompileCount,
-    cache_dir,
-    compile_kernel,
-    generated_code_flags,
-    host_cpu,
-)
+from fvin_mpc.control.model_export import CKernel, compile_functions
 
 #: ``riccati_stage="auto"`` takes the kernel from this tangent dimension on (free bodies; module docstring).
 KERNEL_MIN_TANGENT_DIM = 12
@@ -73,29 +61,7 @@ def uses_kernel(choice: str, nd: int, compiled: bool, method: str) -> bool:
 
 def kernel_function(kernel: CKernel) -> ca.Function:
     """``kernel`` as a CasADi function: the symbolic graphs call it (and the generated code calls its symbol);
-    evaluated outside compiled code, from its own shared library, built once into the cache like the
-    generated code's."""
-    compiler = os.environ.get("CC", "gcc")
-    target = generated_code_flags(compiler)
-    flags = (*KERNEL_FLAGS, *target)
-    key = kernel.source.encode() + " ".join(flags).encode() + (host_cpu().encode() if target else b"")
-    library = cache_dir() / f"{kernel.name}_{hashlib.sha256(key).hexdigest()[:20]}.so"
-    if not library.is_file():
-        if shutil.which(compiler) is None:
-            raise RuntimeError(f"no C compiler {compiler!r} on PATH; the Riccati kernel is C (riccati_stage="
-                               "'generated' runs without one)")
-        CompileCount.compiler_runs += 1
-        library.parent.mkdir(parents=True, exist_ok=True)
-        directory = library.parent / f"{kernel.name}.{os.getpid()}.build"
-        directory.mkdir(exist_ok=True)
-        try:
-            obj = compile_kernel(kernel, compiler, flags, directory)
-            partial = directory / "kernel.so"
-            process = subprocess.run([compiler, *flags, "-shared", str(obj), "-o", str(partial)], capture_output=True,
-                                     text=True)
-            if process.returncode != 0:
-                raise RuntimeError(f"linking the kernel {kernel.name} failed: {process.stderr.strip()[-2000:]}")
-            os.replace(partial, library)  # atomic: concurrent runs never load a half-written file
-        finally:
-            shutil.rmtree(directory, ignore_errors=True)
-    return ca.external(kernel.name, str(library))
+    evaluated outside compiled code, from a library of its own, compiled and cached as the generated code's
+    (:func:`~fvin_mpc.control.model_export.compile_functions` with no generated function)."""
+    _, report = compile_functions([], prefix=kernel.name, kernels=[kernel])
+    return ca.external(kernel.name, str(report.library))
