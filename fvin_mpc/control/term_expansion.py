@@ -15,7 +15,7 @@ expansion: the stage's gap comes from the model's own step (the same expression,
 
 CasADi instructions of one learned stage (``c`` and ``[A B]``; ``tests/test_rti.py`` checks that they fall
 and that the derivatives agree), CasADi's forward choice on the step as written → reverse mode on the
-expansions: planar pendulum 33,633 → 26,924, ball joint 40,159 → 28,304, quadrotor 86,891 → 51,596. The
+expansions: planar pendulum 33,633 → 26,948, ball joint 40,159 → 28,328, quadrotor 86,891 → 51,610. The
 closed forms' terms are cheaper than their expansions and are left as written (:data:`MIN_INSTRUCTIONS`).
 """
 
@@ -53,9 +53,11 @@ MIN_INSTRUCTIONS = 100
 
 
 def _tangent_basis(q: Sequence[Any]) -> list[tuple[Any, ...]]:
-    """``q ⊗ i``, ``q ⊗ j``, ``q ⊗ k``: orthonormal, orthogonal to a unit ``q`` — the directions a unit quaternion
-    moves in, to first order."""
-    return [s3.multiply(tuple(q), unit) for unit in ((0.0, 1.0, 0.0, 0.0), (0.0, 0.0, 1.0, 0.0), (0.0, 0.0, 0.0, 1.0))]
+    """``(q ⊗ i, q ⊗ j, q ⊗ k) / |q|``: orthonormal and orthogonal to ``q`` — the directions ``q`` moves in, to first
+    order, on its sphere (a measured state's quaternion may be off unit norm by its rounding, or more)."""
+    norm = ca.sqrt(sum(component * component for component in q))
+    units = ((0.0, 1.0, 0.0, 0.0), (0.0, 0.0, 1.0, 0.0), (0.0, 0.0, 0.0, 1.0))
+    return [tuple(component / norm for component in s3.multiply(tuple(q), unit)) for unit in units]
 
 
 def _cost(method: Any, args: tuple[Any, ...]) -> int:
@@ -93,9 +95,9 @@ class FirstOrderTerms:
     methods return their first-order expansion about their arguments at ``perturbations = 0`` (module
     docstring). Attributes that are not methods, calls whose arguments do not depend on the perturbations and
     terms cheaper than :data:`MIN_INSTRUCTIONS` are the wrapped terms' own. An argument named ``q``
-    (:data:`QUATERNION_ARGUMENT`) is a unit quaternion that stays one: it is expanded along its 3 tangent
-    directions, not its 4 components — first-order exact where the call's ``q`` stays on the sphere, as every
-    ``q`` a step passes its terms does."""
+    (:data:`QUATERNION_ARGUMENT`) is a quaternion that keeps its norm: it is expanded along its sphere's 3 tangent
+    directions, not its 4 components — first-order exact where the call's ``q`` stays on that sphere, as every
+    ``q`` a step passes its terms does (the chart's retraction and the step's increment are rotations)."""
 
     def __init__(self, terms: Any, perturbations: Sequence[Any]) -> None:
         self._terms = terms
