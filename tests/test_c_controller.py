@@ -234,13 +234,13 @@ def test_a_free_body_runs_the_riccati_kernel_in_both_loops_and_in_the_exported_f
     assert mpc_overrides(build_parser().parse_args(["--solver", "rti", "--rti-riccati-stage", "generated"]))["rti"] \
         == {"riccati_stage": "generated"}
     env, python, c_loop = quadrotor_pair(true_model=True)
-    assert [kernel.name for kernel in python.loop_kernels] == ["fvin_riccati_stage_12_4"]
+    assert [kernel.name for kernel in python.loop_kernels] == ["fvin_riccati_sweep_12_4_30"]
     options, seed = recovery_starts(env.unwrapped.goal_state[:3], count=3)[0]
     assert_same_closed_loops(env, python, c_loop, 1.0, "none", seed=seed, reset_options=options)
     if shutil.which("make") is None:
         pytest.skip("no make on PATH")
     directory = write_controller(python, tmp_path / "quadrotor")
-    assert "fvin_riccati_stage_12_4" in (directory / "fvc_kernels.c").read_text()
+    assert "fvin_riccati_sweep_12_4_30" in (directory / "fvc_kernels.c").read_text()
     source = (directory / "fvc_model.c").read_bytes()
     assert hashlib.sha256(source).hexdigest() == python.compile_report.source_sha256
     subprocess.run(["make", "-s"], cwd=directory, capture_output=True, text=True, check=True)

@@ -52,23 +52,34 @@ def test_the_kernel_computes_the_generated_stage(nd, m):
                                        err_msg=f"{name}, n_delta={nd}, m={m}")
 
 
-def test_the_generated_code_calls_the_kernel_and_a_mapaccum_runs_it():
-    """The kernel inside a symbolic graph (as the feedback's backward ``mapaccum`` uses it) gives what the generated
-    stage gives there, and the C generated from that graph declares and calls the kernel's symbol."""
-    nd, m, n = 12, 4, 5
-    kernel = riccati_stage_kernel(nd, m)
-    rng = np.random.default_rng(3)
+@pytest.mark.parametrize(("nd", "m", "n"), [(12, 4, 5), (6, 3, 7), (12, 1, 1)])
+def test_the_sweep_kernel_runs_the_generated_stages_backward(nd, m, n):
+    """The whole-sweep kernel (what the feedback calls) gives the gains and feedforwards of the generated stage run
+    backward by a ``mapaccum`` over the reversed stages (as the generated feedback runs it), in the stages' order
+    and to rounding; and the C generated from a graph that calls it declares and calls its symbol."""
+    rng = np.random.default_rng(nd + 10 * m + 100 * n)
     stages = [_stage_inputs(rng, nd, m) for _ in range(n)]
-    terminal = stages[0][0]
-    arguments = [terminal, stages[0][1]] + [np.column_stack([stage[i] for stage in stages]) if stages[0][i].ndim == 1
-                                            else np.hstack([stage[i] for stage in stages]) for i in range(2, 8)]
-    outputs = []
-    for stage in (riccati_stage_function(nd, m), kernel_function(kernel)):
-        outputs.append([np.asarray(x) for x in stage.mapaccum("acc", n, 2).call(arguments)])
-    for expected, got in zip(*outputs):
+    terminal, terminal_gradient = stages[0][0], stages[0][1]
+
+    def stacked(index, order):
+        blocks = [stages[k][index] for k in order]
+        return np.column_stack(blocks) if blocks[0].ndim == 1 else np.hstack(blocks)
+
+    forward, backward = range(n), range(n - 1, -1, -1)
+    _, _, gains, feedforwards = riccati_stage_function(nd, m).mapaccum("acc", n, 2).call(
+        [terminal, terminal_gradient, *(stacked(i, backward) for i in range(2, 8))])
+    gains, feedforwards = np.asarray(gains), np.asarray(feedforwards)
+    gains = np.hstack([gains[:, (n - 1 - k) * nd:(n - k) * nd] for k in range(n)])  # back to the stages' order
+    feedforwards = feedforwards[:, ::-1]
+    kernel = riccati_stage_kernel(nd, m, n)
+    sweep = kernel_function(kernel)
+    got_gains, got_feedforwards = (np.asarray(x) for x in sweep.call(
+        [terminal, terminal_gradient, *(stacked(i, forward) for i in range(2, 8))]))
+    for expected, got in ((gains, got_gains), (feedforwards, got_feedforwards)):
         np.testing.assert_allclose(got, expected, rtol=0, atol=1e-11 * max(1.0, np.abs(expected).max()))
     generator = ca.CodeGenerator("graph.c")
-    generator.add(kernel_function(kernel).mapaccum("acc", n, 2))
+    inputs = [ca.MX.sym(f"i{i}", sweep.sparsity_in(i)) for i in range(sweep.n_in())]
+    generator.add(ca.Function("graph", inputs, sweep.call(inputs)))
     source = generator.dump()
     assert f"int {kernel.name}(const casadi_real** arg" in source and f"{kernel.name}(arg" in source
 
@@ -87,3 +98,5 @@ def test_which_stage_a_controller_runs():
         uses_kernel("fast", 12, True, "path")
     with pytest.raises(ValueError, match="n_delta >= 1"):
         riccati_stage_kernel(0, 2)
+    with pytest.raises(ValueError, match="horizon >= 1"):
+        riccati_stage_kernel(12, 4, 0)

@@ -6,7 +6,8 @@ about 60 % of its QP. CasADi generates each stage as straight-line scalar code
 (:func:`~fvin_mpc.control.rti.riccati_stage_function`, the reference). The kernel computes the same stage
 with the two products that dominate it, ``P [A B]`` and ``[A B]ᵀ P [A B]``, as loops over columns of four
 doubles, compiled with ``-O3`` where GCC and Clang turn them into vector instructions. The generated
-feedback calls it through CasADi's external-function convention in place of the generated stage: one
+feedback calls the whole backward sweep over the stages (:func:`riccati_stage_kernel` with a horizon) through
+CasADi's external-function convention, in place of a ``mapaccum`` of the generated stage: one
 source for both loops, which compile it alike (the Python loop's library, :func:`compile_functions`; the
 C loop's, :mod:`fvin_mpc.control.c_controller`).
 
@@ -15,7 +16,8 @@ this 2-core AMD EPYC with ``-march=native``; ``docs/bench/riccati_stage.json``):
 1,352 → 612 ns (2.2×), (12, 1) 2.7×, (12, 6) 1.7×; (6, 3) 184 → 218 ns (0.84×) and (6, 1) 0.66×: at a
 pivoted body's size the generated code is faster. ``RTIOptions.riccati_stage="auto"`` therefore takes the
 kernel for free bodies (:data:`KERNEL_MIN_TANGENT_DIM`) and the generated stage for pivoted ones. Inside the
-quadrotor's QP (30 stages, six iterations) it took the generated function from about 300 to 220 µs.
+quadrotor's QP (30 stages, six iterations) the stage took the generated function from about 300 to 220 µs, the
+sweep to 148 µs.
 """
 
 from __future__ import annotations
@@ -32,16 +34,21 @@ KERNEL_MIN_TANGENT_DIM = 12
 RICCATI_STAGES = ("auto", "generated", "kernel")
 
 
-def riccati_stage_kernel(nd: int, m: int) -> CKernel:
-    """The kernel of a Riccati stage with ``n_δ = nd`` and ``m`` controls: the template's source after a prelude
-    that fixes its sizes and its name (``fvin_riccati_stage_{nd}_{m}``)."""
-    if nd < 1 or m < 1:
-        raise ValueError(f"a Riccati stage needs n_delta >= 1 and m >= 1, got {nd}, {m}")
-    name = f"fvin_riccati_stage_{nd}_{m}"
+def riccati_stage_kernel(nd: int, m: int, horizon: int | None = None) -> CKernel:
+    """The kernel of a Riccati stage with ``n_δ = nd`` and ``m`` controls (``fvin_riccati_stage_{nd}_{m}``, the
+    signature of :func:`~fvin_mpc.control.rti.riccati_stage_function`) or, with a ``horizon`` ``N``, of the whole
+    backward sweep over ``N`` such stages (``fvin_riccati_sweep_{nd}_{m}_{N}``: ``(P_N, p_N, H, g, [A B], c, d,
+    r) → (K, k)``, every block in the stages' own order): the template's source after a prelude that fixes its
+    sizes and its name. The sweep is what the feedback calls: it runs the stages in place, where a ``mapaccum``
+    of the stage copied the cost-to-go from call to call and the stages' data into reverse order."""
+    if nd < 1 or m < 1 or (horizon is not None and horizon < 1):
+        raise ValueError(f"a Riccati stage needs n_delta >= 1, m >= 1 and a horizon >= 1, got {nd}, {m}, {horizon}")
+    name = f"fvin_riccati_stage_{nd}_{m}" if horizon is None else f"fvin_riccati_sweep_{nd}_{m}_{horizon}"
     template = (resources.files("fvin_mpc.control") / "c_kernels" / "riccati_stage.c").read_text()
-    prelude = f"#define FVK_NAME {name}\n#define FVK_ND {nd}\n#define FVK_M {m}\n"
+    macros = {"FVK_NAME": name, "FVK_ND": nd, "FVK_M": m, **({} if horizon is None else {"FVK_N": horizon})}
+    prelude = "".join(f"#define {macro} {value}\n" for macro, value in macros.items())
     # its sizes and name undefined again at its end: the macros are this kernel's only
-    return CKernel(name, prelude + template + "#undef FVK_NAME\n#undef FVK_ND\n#undef FVK_M\n")
+    return CKernel(name, prelude + template + "".join(f"#undef {macro}\n" for macro in macros))
 
 
 def uses_kernel(choice: str, nd: int, compiled: bool, method: str) -> bool:

@@ -425,7 +425,7 @@ def riccati_solve_function(nd: int, m: int) -> ca.Function:
 def riccati_feedback_function(layout: StateLayout, n: int, m: int, low: np.ndarray, high: np.ndarray,
                               limits: np.ndarray, omega_valid: float, iterations: int, centering: float = 0.1,
                               boundary: float = 0.995, mu_min: float = QP_MU_MIN, method: str = "path",
-                              stage: ca.Function | None = None) -> tuple[ca.Function, ca.Function]:
+                              sweep: ca.Function | None = None) -> tuple[ca.Function, ca.Function]:
     """One feedback iteration as a single CasADi function (compiled with the linearization):
     ``rti_feedback(X̄ (n_x,N+1), Ū (m,N), x0 (n_x), H (s,sN), H_N (n_δ,n_δ), g (s,N), g_N (n_δ),
     [A B] (n_δ,sN), c (n_δ,N)) → (X (n_x,N+1), U (m,N), step, μ, K (m,n_δN), k (m,N))``, ``s = n_δ + m``;
@@ -440,9 +440,9 @@ def riccati_feedback_function(layout: StateLayout, n: int, m: int, low: np.ndarr
     ``iterations``: each solves the barrier-modified LQ problem (``R + diag(λ/s)``) by a Riccati
     recursion (``O(N)``, backward ``mapaccum``), takes the fraction-to-boundary step and reduces
     ``μ`` to ``centering ×`` the mean complementarity, not below ``mu_min`` (:data:`QP_MU_MIN`).
-    ``stage``: the backward stage of the path-following method, a function with
-    :func:`riccati_stage_function`'s signature (default: that function; the hand-written kernel,
-    :mod:`fvin_mpc.control.riccati_kernel`, is another).
+    ``sweep``: the path-following method's whole backward recursion as one function, ``(P_N, p_N, H, g, [A B], c,
+    d, r) → (K, k)`` in the stages' order (the hand-written kernel, :mod:`fvin_mpc.control.riccati_kernel`);
+    default: :func:`riccati_stage_function` run backward by a ``mapaccum``.
     ``method="mehrotra"`` (:data:`QP_METHODS`): Mehrotra's predictor–corrector instead — each iteration factors
     the LQ problem once (:func:`riccati_factor_function`) and solves it twice (:func:`riccati_solve_function`):
     the affine step (``μ = 0``), whose progress sets the centering ``σ = (μ_aff/μ)³``, then the step to
@@ -455,9 +455,9 @@ def riccati_feedback_function(layout: StateLayout, n: int, m: int, low: np.ndarr
     ns, nd = layout.state_dim, layout.tangent_dim
     stage_low, stage_high = (np.broadcast_to(np.asarray(bound, dtype=float), (n, m)).T for bound in (low, high))
     size = nd + m
-    if stage is not None and method != "path":
-        raise ValueError("a given Riccati stage is the fused stage of method='path'")
-    backward = (riccati_stage_function(nd, m) if stage is None else stage).mapaccum("rti_riccati", n, 2)
+    if sweep is not None and method != "path":
+        raise ValueError("a given backward sweep runs the fused stage of method='path'")
+    backward = riccati_stage_function(nd, m).mapaccum("rti_riccati", n, 2)
     # --- one forward stage
     abk, ck = ca.SX.sym("AB", nd, size), ca.SX.sym("c", nd)
     delta, gain_k, ff_k = ca.SX.sym("delta", nd), ca.SX.sym("K", m, nd), ca.SX.sym("k", m)
@@ -481,9 +481,12 @@ def riccati_feedback_function(layout: StateLayout, n: int, m: int, low: np.ndarr
     gradients_rev, gaps_rev = reverse(gradients, 1), reverse(gaps, 1)
 
     def solve_lq(d: Any, r: Any) -> tuple[Any, Any, Any, Any]:
-        _, _, gains, feedforwards = backward(terminal_hessian, terminal_gradient, hessians_rev, gradients_rev,
-                                             jacobians_rev, gaps_rev, reverse(d, 1), reverse(r, 1))
-        gains, feedforwards = reverse(gains, nd), reverse(feedforwards, 1)
+        if sweep is not None:
+            gains, feedforwards = sweep(terminal_hessian, terminal_gradient, hessians, gradients, jacobians, gaps, d, r)
+        else:
+            _, _, gains, feedforwards = backward(terminal_hessian, terminal_gradient, hessians_rev, gradients_rev,
+                                                 jacobians_rev, gaps_rev, reverse(d, 1), reverse(r, 1))
+            gains, feedforwards = reverse(gains, nd), reverse(feedforwards, 1)
         deltas, v = forward(delta0, gains, feedforwards, jacobians, gaps)
         return deltas, v, gains, feedforwards
 
@@ -822,13 +825,13 @@ class RealTimeMPC(MPC):
         self.loop_kernels: tuple[CKernel, ...] = ()
         if riccati:
             linearize = linearize_blocks
-            stage = None
+            sweep = None
             if riccati_kernel.uses_kernel(s.rti.riccati_stage, nd, s.compile == "cached", s.rti.qp_method):
-                self.loop_kernels = (riccati_kernel.riccati_stage_kernel(nd, m),)
-                stage = riccati_kernel.kernel_function(self.loop_kernels[0])
+                self.loop_kernels = (riccati_kernel.riccati_stage_kernel(nd, m, n),)
+                sweep = riccati_kernel.kernel_function(self.loop_kernels[0])
             functions = [linearize, predict, *riccati_feedback_function(
                 layout, n, m, *self._control_bounds, self._step_limits, self._omega_valid, s.rti.qp_iterations,
-                method=s.rti.qp_method, stage=stage)]
+                method=s.rti.qp_method, sweep=sweep)]
         else:
             functions = [linearize, predict]
         #: the CasADi functions the loop calls (linearize, predict, feedback), before compilation: what

@@ -9,7 +9,8 @@
    P read from its upper triangle; H's upper triangle for Q and R and its lower-left block for S. The
    generated stage is straight-line scalar code; here the two products that make most of a stage,
    P [A B] and [A B]^T (P [A B]), run as loops over columns of four doubles. Included after a prelude
-   that defines FVK_NAME, FVK_ND (n_delta) and FVK_M (m); compiled with -O3, where GCC unrolls them. */
+   that defines FVK_NAME, FVK_ND (n_delta) and FVK_M (m), and FVK_N for the whole backward sweep over N stages
+   instead of one stage (what the feedback calls); compiled with -O3, where GCC unrolls the loops. */
 
 #include <stddef.h>
 
@@ -88,18 +89,16 @@ static inline void fvk_combine_pair(double *out0, double *out1, const double *st
 #endif
 }
 
-int FVK_NAME(const casadi_real **arg, casadi_real **res, casadi_int *iw, casadi_real *w, int mem) {
+static void fvk_stage(const double *P, const double *p, const double *H, const double *g, const double *AB,
+                      const double *c, const double *d, const double *r, double *P_prev, double *p_prev, double *K,
+                      double *k) {
   enum { ND = FVK_ND, M = FVK_M, S = FVK_S, NP = FVK_NP, SP = FVK_SP };
-  const double *P = arg[0], *p = arg[1], *H = arg[2], *g = arg[3], *AB = arg[4], *c = arg[5], *d = arg[6],
-               *r = arg[7];
-  double *P_prev = res[0], *p_prev = res[1], *K = res[2], *k = res[3];
   double Pf[ND][NP] FVK_ALIGNED;   /* P, full, by columns (rows padded with zeros) */
   double PAB[S][NP] FVK_ALIGNED;   /* P [A B], by columns */
   double ABr[ND][SP] FVK_ALIGNED;  /* the rows of [A B] (padded) */
   double W[S][SP] FVK_ALIGNED;     /* H + [A B]^T P [A B], by columns */
   double pivot[M], U[M][M], Y[ND][M], Zt[M][NP] FVK_ALIGNED, pc[NP] FVK_ALIGNED, w_u[M];
   int i, j, a, b, e;
-  (void)iw, (void)w, (void)mem;
   /* (the copies in ranges, without conditions: a condition in these loops made GCC emit masked vector code
      that cost as much as the products) */
   for (j = 0; j < ND; ++j) {
@@ -185,20 +184,57 @@ int FVK_NAME(const casadi_real **arg, casadi_real **res, casadi_int *iw, casadi_
   for (a = 0; a < M; ++a) minus_w[a] = -w_u[a];
   fvk_combine(pc, transposed, Zt[0], NP, minus_w, 1, M, NP / 4);
   for (i = 0; i < ND; ++i) p_prev[i] = pc[i];
-  return 0;
 }
 
+#ifndef FVK_N
+/* The stage alone: FVK_NAME(P, p, H, g, [A B], c, d, r) -> (P_prev, p_prev, K, k). */
+int FVK_NAME(const casadi_real **arg, casadi_real **res, casadi_int *iw, casadi_real *w, int mem) {
+  (void)iw, (void)w, (void)mem;
+  fvk_stage(arg[0], arg[1], arg[2], arg[3], arg[4], arg[5], arg[6], arg[7], res[0], res[1], res[2], res[3]);
+  return 0;
+}
+#else
+/* The whole backward sweep over FVK_N stages, in place and in the stages' own order (no reversed copies, no
+   cost-to-go handed from call to call): FVK_NAME(P_N, p_N, H (s x sN), g (s x N), [A B] (nd x sN), c (nd x N),
+   d (m x N), r (m x N)) -> (K (m x nd N), k (m x N)), stage k's blocks at its own columns. */
+int FVK_NAME(const casadi_real **arg, casadi_real **res, casadi_int *iw, casadi_real *w, int mem) {
+  enum { ND = FVK_ND, M = FVK_M, S = FVK_S };
+  double cost_to_go[2][ND * ND + ND];
+  int k, next = 0;
+  (void)iw, (void)w, (void)mem;
+  for (k = 0; k < ND * ND; ++k) cost_to_go[0][k] = arg[0][k];
+  for (k = 0; k < ND; ++k) cost_to_go[0][ND * ND + k] = arg[1][k];
+  for (k = FVK_N - 1; k >= 0; --k, next ^= 1) {
+    const double *later = cost_to_go[next];
+    double *earlier = cost_to_go[next ^ 1];
+    fvk_stage(later, later + ND * ND, arg[2] + S * S * k, arg[3] + S * k, arg[4] + ND * S * k, arg[5] + ND * k,
+              arg[6] + M * k, arg[7] + M * k, earlier, earlier + ND * ND, res[0] + M * ND * k, res[1] + M * k);
+  }
+  return 0;
+}
+#endif
+
 /* What casadi.external reads to call the kernel from a shared library (the generated code calls FVK_NAME
-   directly): eight inputs and four outputs, dense. */
+   directly): eight inputs, four outputs (the sweep: two), dense. */
+#ifndef FVK_N
 static const casadi_int FVK_CAT(FVK_NAME, _sp)[12][3] = {
     {FVK_ND, FVK_ND, 1}, {FVK_ND, 1, 1}, {FVK_S, FVK_S, 1}, {FVK_S, 1, 1}, {FVK_ND, FVK_S, 1}, {FVK_ND, 1, 1},
     {FVK_M, 1, 1}, {FVK_M, 1, 1},
     {FVK_ND, FVK_ND, 1}, {FVK_ND, 1, 1}, {FVK_M, FVK_ND, 1}, {FVK_M, 1, 1}};
+#define FVK_N_OUT 4
+#else
+static const casadi_int FVK_CAT(FVK_NAME, _sp)[10][3] = {
+    {FVK_ND, FVK_ND, 1}, {FVK_ND, 1, 1}, {FVK_S, FVK_S * FVK_N, 1}, {FVK_S, FVK_N, 1}, {FVK_ND, FVK_S * FVK_N, 1},
+    {FVK_ND, FVK_N, 1}, {FVK_M, FVK_N, 1}, {FVK_M, FVK_N, 1},
+    {FVK_M, FVK_ND * FVK_N, 1}, {FVK_M, FVK_N, 1}};
+#define FVK_N_OUT 2
+#endif
 casadi_int FVK_CAT(FVK_NAME, _n_in)(void) { return 8; }
-casadi_int FVK_CAT(FVK_NAME, _n_out)(void) { return 4; }
+casadi_int FVK_CAT(FVK_NAME, _n_out)(void) { return FVK_N_OUT; }
 const casadi_int *FVK_CAT(FVK_NAME, _sparsity_in)(casadi_int i) {
   return i >= 0 && i < 8 ? FVK_CAT(FVK_NAME, _sp)[i] : NULL;
 }
 const casadi_int *FVK_CAT(FVK_NAME, _sparsity_out)(casadi_int i) {
-  return i >= 0 && i < 4 ? FVK_CAT(FVK_NAME, _sp)[8 + i] : NULL;
+  return i >= 0 && i < FVK_N_OUT ? FVK_CAT(FVK_NAME, _sp)[8 + i] : NULL;
 }
+#undef FVK_N_OUT
