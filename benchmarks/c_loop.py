@@ -112,8 +112,8 @@ def controllers(scene: str, true_model: bool, seed: int, feedback: str = "qp",
     """``(env, python loop, C loop, reset options, env seed)`` of ``scene``: a random start, or the
     quadrotor's first random recovery start. ``feedback``: ``RTIOptions.feedback`` of both loops
     (``"prepared"`` with one iteration per period); ``rti_options``: more ``RTIOptions`` fields of both loops
-    (``cold_iter``, ``relinearize_every``, ``qp_iterations``, ``qp_method``, ``riccati_stage``; the scene's where
-    not given)."""
+    (``cold_iter``, ``relinearize_every``, ``qp_iterations``, ``qp_method``, ``riccati_stage``, ``stage_lanes``;
+    the scene's where not given)."""
     rti: dict[str, Any] = {} if feedback == "qp" else {"feedback": feedback, "max_iter": 1}
     rti.update(rti_options or {})
     if resolve_scene(scene).space.pivoted:
@@ -163,7 +163,8 @@ def generated_instructions(python: Any) -> dict[str, int]:
     """CasADi instructions of the functions a warm period calls (each expanded to scalar operations): a
     count, deterministic where the machine's timings are not. The linearization's with every item renewed: the
     most a period runs (with ``rti.relinearize_every`` its kept items run their values alone; the timings say
-    what that saves)."""
+    what that saves). A lane kernel's instructions (:mod:`fvin_mpc.control.lane_kernel`) are its scalar code's,
+    every stage counted: it runs them four stages at a time. The Riccati kernel's are not counted (hand-written)."""
     names = {"rti_linearize_blocks": "linearize", "rti_feedback": "qp", "rti_predict": "predict"}
     counts = {}
     for function in python.loop_functions:
@@ -176,6 +177,7 @@ def generated_instructions(python: Any) -> dict[str, int]:
             kept = [x for i, x in enumerate(function.mx_in()) if function.name_in(i) != "fresh"]
             function = ca.Function("warm", kept, function.call(inputs))
         counts[name] = int((function.expand() if function.is_a("MXFunction") else function).n_instructions())
+    counts["linearize"] += sum(kernel.scalar_instructions or 0 for kernel in python.loop_kernels)
     return counts
 
 
@@ -340,13 +342,17 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--riccati-stage", choices=["auto", "generated", "kernel"], default=None,
                         help="RTIOptions.riccati_stage of both loops: the QP's Riccati stage as generated code or as "
                              "the hand-written kernel (default: auto, the kernel for a free body)")
+    parser.add_argument("--stage-lanes", choices=["auto", "on", "off"], default=None,
+                        help="RTIOptions.stage_lanes of both loops: the linearization four stages at a time on the "
+                             "vector units, or a stage at a time (default: auto, lanes wherever they can run)")
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     given = {"cold_iter": args.cold_iter, "relinearize_every": args.relinearize_every,
-             "qp_iterations": args.qp_iterations, "qp_method": args.qp_method, "riccati_stage": args.riccati_stage}
+             "qp_iterations": args.qp_iterations, "qp_method": args.qp_method, "riccati_stage": args.riccati_stage,
+             "stage_lanes": args.stage_lanes}
     rti_options = {name: value for name, value in given.items() if value is not None}
     rows = run(args.scenes, args.true_model, args.load_workers, args.seed, args.feedback, rti_options)
     args.out.parent.mkdir(parents=True, exist_ok=True)

@@ -61,6 +61,8 @@ installed under this name):
 * ``term_expansion`` — a model's terms expanded to first order where a stage is linearized (the same
   Jacobian in fewer operations).
 * ``riccati_kernel`` — the Riccati stage of the generated QP as hand-written C (``c_kernels/``) for free bodies.
+* ``lane_kernel`` — a stage function mapped over the horizon four stages at a time on the vector units (CasADi's
+  C translated into vector code).
 * ``buffered`` — CasADi calls through preallocated buffers, without per-call conversions.
 * ``c_controller`` — the real-time loop as a self-contained C library (generated functions + C driver),
   and Python driving that library.

@@ -96,6 +96,9 @@ def add_mpc_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--rti-riccati-stage", choices=["auto", "generated", "kernel"], default=None,
                        help="rti only: the QP's Riccati stage — generated code, or the hand-written C kernel (auto, "
                             "the default: the kernel for a free body, where it is faster)")
+    group.add_argument("--rti-stage-lanes", choices=["auto", "on", "off"], default=None,
+                       help="rti only: linearize four stages at a time on the vector units (on), a stage at a time "
+                            "(off), or on wherever it can run (auto, the default: compiled, every Jacobian renewed)")
     add_relinearize_argument(group)
 
 
@@ -147,7 +150,8 @@ def mpc_overrides(args: argparse.Namespace) -> dict[str, Any]:
     given.update({"ipopt.hessian": args.hessian, "solver": args.solver, "rti.dynamics": args.rti_dynamics,
                   "rti.feedback": args.rti_feedback, "rti.cold_iter": args.rti_cold_iter,
                   "rti.qp_iterations": args.rti_qp_iterations, "rti.qp_method": args.rti_qp_method,
-                  "rti.riccati_stage": args.rti_riccati_stage, "rti.relinearize_every": args.rti_relinearize_every})
+                  "rti.riccati_stage": args.rti_riccati_stage, "rti.stage_lanes": args.rti_stage_lanes,
+                  "rti.relinearize_every": args.rti_relinearize_every})
     if args.single_start:
         given["cold_starts"] = ("rollout+",)
     if args.rti_feedback == "prepared":  # it applies one prepared solve: a preset's further iterations go

@@ -83,3 +83,18 @@ def iterated_rti_plan(controller, x0: np.ndarray, iterations: int):
         plan, status = controller._iterate(plan, controller._linearize_at(plan), x0)
         assert plan is not None, status
     return (plan, *controller.plan_cost(plan))
+
+
+def stage_models(scenes=("pendulum", "spherical_pendulum", "quadrotor")):
+    """``(scene, true_model, model)`` for each of ``scenes``' learned (checkpoint) and closed-form models."""
+    from fvin_mpc.control.flight import quadrotor_model
+    from fvin_mpc.control.scene import scene_env, scene_model
+    from fvin_mpc.envs import QuadrotorEnv
+    from fvin_mpc.envs.scenes import resolve_scene
+
+    for scene in scenes:
+        for true_model in (False, True):
+            if scene == "quadrotor":
+                yield scene, true_model, quadrotor_model(QuadrotorEnv(resolve_scene(scene)), true_model=true_model)
+            else:
+                yield scene, true_model, scene_model(scene_env(scene, true_model=true_model), true_model=true_model)

@@ -221,11 +221,12 @@ def test_quadrotor_c_loop_equals_python_loop(true_model):
         assert_same_closed_loops(env, python, c_loop, 3.0, latency, seed=seed, reset_options=options)
 
 
-def test_a_free_body_runs_the_riccati_kernel_in_both_loops_and_in_the_exported_folder(tmp_path):
+def test_a_free_body_runs_its_kernels_in_both_loops_and_in_the_exported_folder(tmp_path):
     """The closed-form quadrotor's feedback calls the hand-written Riccati stage (``riccati_stage="auto"``, a free
-    body): both loops agree over a recovery (1e-9); the exported folder's ``fvc_model.c`` is the very source the
-    Python loop compiled, and the folder builds the kernel with ``make`` and runs (``--rti-riccati-stage``
-    reaches the settings)."""
+    body) and its linearization the lane kernels of its dynamics and cost (``stage_lanes="auto"``): both loops
+    agree over a recovery (1e-9); the exported folder's ``fvc_model.c`` is the very source the Python loop
+    compiled, and the folder builds the three kernels in one unit with ``make`` and runs (``--rti-riccati-stage``
+    and ``--rti-stage-lanes`` reach the settings)."""
     from fvin_mpc._cli import mpc_overrides
     from fvin_mpc.control.c_controller import write_controller
     from fvin_mpc.control.flight import recovery_starts
@@ -233,14 +234,17 @@ def test_a_free_body_runs_the_riccati_kernel_in_both_loops_and_in_the_exported_f
 
     assert mpc_overrides(build_parser().parse_args(["--solver", "rti", "--rti-riccati-stage", "generated"]))["rti"] \
         == {"riccati_stage": "generated"}
+    assert mpc_overrides(build_parser().parse_args(["--solver", "rti", "--rti-stage-lanes", "off"]))["rti"] \
+        == {"stage_lanes": "off"}
     env, python, c_loop = quadrotor_pair(true_model=True)
-    assert [kernel.name for kernel in python.loop_kernels] == ["fvin_riccati_sweep_12_4_30"]
+    kernels = ["fvin_lanes_rti_dynamics_30", "fvin_lanes_rti_stage_cost_30", "fvin_riccati_sweep_12_4_30"]
+    assert [kernel.name for kernel in python.loop_kernels] == kernels
     options, seed = recovery_starts(env.unwrapped.goal_state[:3], count=3)[0]
     assert_same_closed_loops(env, python, c_loop, 1.0, "none", seed=seed, reset_options=options)
     if shutil.which("make") is None:
         pytest.skip("no make on PATH")
     directory = write_controller(python, tmp_path / "quadrotor")
-    assert "fvin_riccati_sweep_12_4_30" in (directory / "fvc_kernels.c").read_text()
+    assert all(kernel in (directory / "fvc_kernels.c").read_text() for kernel in kernels)
     source = (directory / "fvc_model.c").read_bytes()
     assert hashlib.sha256(source).hexdigest() == python.compile_report.source_sha256
     subprocess.run(["make", "-s"], cwd=directory, capture_output=True, text=True, check=True)

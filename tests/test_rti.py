@@ -8,7 +8,7 @@ from __future__ import annotations
 import casadi as ca
 import numpy as np
 import pytest
-from helpers import iterated_rti_plan
+from helpers import iterated_rti_plan, stage_models
 
 from fvin_mpc.control.closed_loop import episode_metrics, run_episode
 from fvin_mpc.control.mpc import MPC
@@ -250,19 +250,6 @@ def test_the_generated_qp_reaches_an_active_set_solvers_solution(pendulum):
                                   controller._omega_valid, 3, method="newton")
 
 
-def _stage_models():
-    from fvin_mpc.control.flight import quadrotor_model
-    from fvin_mpc.envs import QuadrotorEnv
-    from fvin_mpc.envs.scenes import resolve_scene
-
-    for scene in ("pendulum", "spherical_pendulum", "quadrotor"):
-        for true_model in (False, True):
-            if scene == "quadrotor":
-                yield scene, true_model, quadrotor_model(QuadrotorEnv(resolve_scene(scene)), true_model=true_model)
-            else:
-                yield scene, true_model, scene_model(scene_env(scene, true_model=true_model), true_model=true_model)
-
-
 def test_first_order_terms_give_a_stage_the_same_derivatives_with_fewer_operations():
     """``unrolled_stage_function(…, model=)`` differentiates the step on its terms' first-order expansions
     (:mod:`fvin_mpc.control.term_expansion`): against the step differentiated as written, at random nodes of
@@ -272,7 +259,7 @@ def test_first_order_terms_give_a_stage_the_same_derivatives_with_fewer_operatio
     from fvin_mpc.control.rti import unrolled_stage_function
 
     rng = np.random.default_rng(11)
-    for scene, true_model, model in _stage_models():
+    for scene, true_model, model in stage_models():
         layout, m = model.space.layout, model.control_dim
         for parametric in (False, True):
             step = model.parametric_step if parametric else model.step

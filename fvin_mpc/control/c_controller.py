@@ -5,8 +5,9 @@ functions a :class:`~fvin_mpc.control.rti.RealTimeMPC` calls every period —
 ``rti_linearize_blocks``, ``rti_predict``, ``rti_feedback``, ``rti_apply``, taken from its
 :attr:`~fvin_mpc.control.rti.RealTimeMPC.loop_functions`, so the math has one source — generated as C
 (``fvc_model.c``: the very text the Python loop compiles, :data:`~fvin_mpc.control.rti.LOOP_SOURCE`) with the
-hand-written C functions it calls (``fvc_kernels.c``: the Riccati kernel where the controller uses it,
-:attr:`~fvin_mpc.control.rti.RealTimeMPC.loop_kernels`), a free body's generated first guess (``fvc_goal.c``),
+C functions it calls (``fvc_kernels.c``: the lane kernels of its linearization and the Riccati kernel where the
+controller uses them, :attr:`~fvin_mpc.control.rti.RealTimeMPC.loop_kernels`), a free body's generated first
+guess (``fvc_goal.c``),
 the settings the Python loop reads as constants (``fvc_config.h``), and a
 hand-written driver (``fvin_controller.c``, package data under ``c_template/``) that is the Python
 loop's orchestration: the cold multi-start, feedback, preparation (shift + linearization), fallback to
@@ -273,9 +274,10 @@ def write_controller(controller: RealTimeMPC, directory: str | Path, example_sta
 
 
 def kernels_source(controller: RealTimeMPC) -> str:
-    """``fvc_kernels.c``: the sources of the controller's kernels in one translation unit (today at most one, the
-    Riccati stage; a second would have to be written to share the unit), or only a comment where it has none."""
-    parts = ["/* The hand-written C functions fvc_model.c calls (fvin_mpc.control.riccati_kernel); "
+    """``fvc_kernels.c``: the sources of the controller's kernels in one translation unit (the lane kernels share
+    their prelude, included once; the Riccati kernel undefines its macros at its end), or only a comment where it
+    has none."""
+    parts = ["/* The C functions fvc_model.c calls (fvin_mpc.control.lane_kernel, fvin_mpc.control.riccati_kernel); "
              "compiled with -O3. */\n", *(kernel.source for kernel in controller.loop_kernels)]
     if not controller.loop_kernels:
         parts.append("typedef int fvc_no_kernels;\n")  # ISO C wants a translation unit to declare something

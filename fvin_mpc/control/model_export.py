@@ -388,11 +388,13 @@ KERNEL_FLAGS: tuple[str, ...] = ("-O3", "-fPIC")
 
 @dataclass(frozen=True)
 class CKernel:
-    """A hand-written C function with CasADi's calling convention that generated code calls (declared there as
-    an external function): its symbol and its whole source."""
+    """A hand-written or translated C function with CasADi's calling convention that generated code calls
+    (declared there as an external function): its symbol and its whole source; for one translated from generated
+    code (:mod:`fvin_mpc.control.lane_kernel`), the CasADi instructions of the scalar code it computes."""
 
     name: str
     source: str
+    scalar_instructions: int | None = None
 
 
 def compile_kernel(kernel: CKernel, compiler: str, flags: Sequence[str], directory: Path) -> Path:
@@ -406,6 +408,29 @@ def compile_kernel(kernel: CKernel, compiler: str, flags: Sequence[str], directo
     if process.returncode != 0:
         raise RuntimeError(f"compiling the kernel {kernel.name} failed: {process.stderr.strip()[-2000:]}")
     return target
+
+
+def cached_kernel_object(kernel: CKernel, compiler: str, flags: Sequence[str]) -> Path:
+    """``kernel``'s object compiled with ``flags``, kept under :func:`cache_dir` by its source, flags, compiler,
+    CasADi version and :func:`host_cpu`: a kernel is compiled once for every library that links it (a lane
+    kernel's standalone library, :func:`kernel_function`, and the loop's)."""
+    key = "\n".join([kernel.source, " ".join(flags), compiler, ca.__version__, host_cpu()]).encode()
+    target = cache_dir() / "kernels" / f"{kernel.name}_{hashlib.sha256(key).hexdigest()[:20]}.o"
+    if not target.is_file():
+        target.parent.mkdir(parents=True, exist_ok=True)
+        CompileCount.compiler_runs += 1
+        # compiled beside its place, then moved there whole: concurrent runs never link a half-written object
+        with tempfile.TemporaryDirectory(prefix="partial_", dir=target.parent) as workdir:
+            os.replace(compile_kernel(kernel, compiler, flags, Path(workdir)), target)
+    return target
+
+
+def kernel_function(kernel: CKernel) -> ca.Function:
+    """``kernel`` as a CasADi function: the symbolic graphs call it (and the generated code calls its symbol);
+    evaluated outside compiled code, from a library of its own, compiled and cached as the generated code's
+    (:func:`compile_functions` with no generated function)."""
+    _, report = compile_functions([], prefix=kernel.name, kernels=[kernel])
+    return ca.external(kernel.name, str(report.library))
 
 
 def write_generated_source(functions: Sequence[ca.Function], name: str, directory: str | Path) -> Path:
@@ -462,10 +487,7 @@ def compile_functions(functions: Sequence[ca.Function], prefix: str, flags: Sequ
             library.parent.mkdir(parents=True, exist_ok=True)
             partial = library.with_suffix(f".{os.getpid()}.tmp")
             start = time.perf_counter()
-            kernel_directory = Path(workdir) / "kernels"  # apart from the generated source, whatever its name
-            kernel_directory.mkdir()
-            objects = [str(compile_kernel(kernel, compiler, (*KERNEL_FLAGS, *target), kernel_directory))
-                       for kernel in kernels]
+            objects = [str(cached_kernel_object(kernel, compiler, (*KERNEL_FLAGS, *target))) for kernel in kernels]
             process = subprocess.run([compiler, *flags, str(source_path), *objects, "-o", str(partial), "-lm"],
                                      capture_output=True, text=True)
             compile_s = time.perf_counter() - start

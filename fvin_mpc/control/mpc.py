@@ -165,6 +165,12 @@ class RTIOptions:
             ``compile="cached"``) or ``"auto"`` (the kernel for free bodies, where it is 1.7–2.7× faster a
             stage, the generated stage for pivoted ones, where that is faster; the generated stage wherever the
             kernel cannot run: ``python -m benchmarks.riccati_stage``).
+        stage_lanes: how a linearization maps its stages (the dynamics' gaps and Jacobians, the cost's
+            Gauss–Newton model): ``"on"`` four stages at a time on the vector units (CasADi's C translated into
+            vector code, :mod:`fvin_mpc.control.lane_kernel`; needs ``compile="cached"``, ``dynamics="unrolled"``
+            and ``relinearize_every=1``), ``"off"`` CasADi's generated map, a stage at a time, or ``"auto"`` (lanes
+            wherever they can run; the generated map otherwise, with a warning where a stage's code has an
+            operation without a vector version).
         dynamics: the dynamics constraint: ``"unrolled"`` (the exported step ``x_{k+1} = F(x_k, u_k)``, K
             Newton iterations, linearized per stage) or ``"implicit"`` (the step's own equations between
             consecutive plan nodes, the learned terms evaluated once per node; pivoted bodies only;
@@ -211,6 +217,7 @@ class RTIOptions:
     qp_iterations: int = 10
     qp_method: Literal["path", "mehrotra"] = "path"
     riccati_stage: Literal["auto", "generated", "kernel"] = "auto"
+    stage_lanes: Literal["auto", "on", "off"] = "auto"
     dynamics: Literal["unrolled", "implicit"] = "unrolled"
     model_parameters: bool = True
     feedback: Literal["qp", "prepared"] = "qp"
@@ -240,6 +247,8 @@ class RTIOptions:
             raise ValueError(f"unknown qp_method {self.qp_method!r}; expected 'path' or 'mehrotra'")
         if self.riccati_stage not in ("auto", "generated", "kernel"):
             raise ValueError(f"unknown riccati_stage {self.riccati_stage!r}; expected 'auto', 'generated' or 'kernel'")
+        if self.stage_lanes not in ("auto", "on", "off"):
+            raise ValueError(f"unknown stage_lanes {self.stage_lanes!r}; expected 'auto', 'on' or 'off'")
         if self.dynamics not in ("unrolled", "implicit"):
             raise ValueError(f"unknown dynamics {self.dynamics!r}")
         if self.feedback not in ("qp", "prepared"):

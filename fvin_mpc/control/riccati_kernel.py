@@ -24,9 +24,7 @@ from __future__ import annotations
 
 from importlib import resources
 
-import casadi as ca
-
-from fvin_mpc.control.model_export import CKernel, compile_functions
+from fvin_mpc.control.model_export import CKernel
 
 #: ``riccati_stage="auto"`` takes the kernel from this tangent dimension on (free bodies; module docstring).
 KERNEL_MIN_TANGENT_DIM = 12
@@ -64,11 +62,3 @@ def uses_kernel(choice: str, nd: int, compiled: bool, method: str) -> bool:
                              "splits the stage in two halves, which are generated (riccati_stage='generated')")
         return True
     return choice == "auto" and compiled and method == "path" and nd >= KERNEL_MIN_TANGENT_DIM
-
-
-def kernel_function(kernel: CKernel) -> ca.Function:
-    """``kernel`` as a CasADi function: the symbolic graphs call it (and the generated code calls its symbol);
-    evaluated outside compiled code, from a library of its own, compiled and cached as the generated code's
-    (:func:`~fvin_mpc.control.model_export.compile_functions` with no generated function)."""
-    _, report = compile_functions([], prefix=kernel.name, kernels=[kernel])
-    return ca.external(kernel.name, str(report.library))

@@ -33,7 +33,9 @@ an unbiased model). Solved differently (Diehl's real-time iteration, as in acado
   every argument and result, which cost more than the arithmetic here (docs/realtime.md).
   ``"hpipm"`` sends the same QP to HPIPM through ``casadi.conic`` (about 1 ms of interface
   overhead per call here, docs/realtime.md).
-  ``A_k, B_k, c_k``, Hessian blocks and gradients come from one compiled function.
+  ``A_k, B_k, c_k``, Hessian blocks and gradients come from one compiled function, which evaluates its
+  stages four at a time on the vector units where it can (``rti.stage_lanes``,
+  :mod:`fvin_mpc.control.lane_kernel`).
 * **preparation / feedback** — after a torque is sent, :meth:`prepare` shifts the plan by one
   step (the last stage predicted by the model) and linearizes it; the next call only fixes
   ``δ_0`` and solves the QP (feedback), then iterates again only while ``rti.budget_s`` allows.
@@ -83,9 +85,15 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
-from fvin_mpc.control import implicit_dynamics, riccati_kernel
+from fvin_mpc.control import implicit_dynamics, lane_kernel, riccati_kernel
 from fvin_mpc.control.buffered import BufferedFunction
-from fvin_mpc.control.model_export import GENERATED_SX_OPTIONS, CKernel, ExportedModel, compile_functions
+from fvin_mpc.control.model_export import (
+    GENERATED_SX_OPTIONS,
+    CKernel,
+    ExportedModel,
+    compile_functions,
+    kernel_function,
+)
 from fvin_mpc.control.mpc import MPC, MPCSettings, Plan
 from fvin_mpc.control.problem import control_bounds, predict_function, residual_functions
 from fvin_mpc.control.term_expansion import FirstOrderTerms
@@ -731,6 +739,27 @@ class RealTimeMPC(MPC):
                 stage_distance_function(layout, m, self._step_limits, self.torque_high - self.torque_low),
                 tolerance)
             items, kept_rows, kept_width, point_size = n, nd, stage_size, ns + m
+        # --- the stages mapped four at a time on the vector units where they can be (rti.stage_lanes): every
+        # item renewed each time (relinearize_every = 1), so the per-item switch is the full stage always
+        lanes = lane_kernel.uses_lanes(s.rti.stage_lanes, s.compile == "cached", s.rti.relinearize_every, not implicit)
+        #: the hand-written or translated C functions the generated code calls (:mod:`~fvin_mpc.control.lane_kernel`,
+        #: :mod:`~fvin_mpc.control.riccati_kernel`)
+        self.loop_kernels: tuple[CKernel, ...] = ()
+
+        def in_lanes(function: ca.Function) -> ca.Function | None:
+            """``function.map(n)`` as a lane kernel (its outputs dense), or ``None`` where ``lanes`` says no or
+            its code has no vector translation (``auto`` warns)."""
+            if not lanes:
+                return None
+            inputs = function.sx_in()
+            dense = ca.Function(function.name(), inputs, [ca.densify(o) for o in function.call(inputs)],
+                                function.name_in(), function.name_out(), GENERATED_SX_OPTIONS)
+            kernel = lane_kernel.lane_map_or_none(s.rti.stage_lanes, dense, n)
+            if kernel is None:
+                return None
+            self.loop_kernels += (kernel,)
+            return kernel_function(kernel)
+
         kept_mx, fresh_mx = ca.MX.sym("J", kept_rows, kept_width * items), ca.MX.sym("fresh", 1, items)
         points_mx = ca.MX.sym("points", point_size, items)
 
@@ -775,11 +804,16 @@ class RealTimeMPC(MPC):
                                                     values[:, :n], slopes[:, :3 * n], values[:, 1:], slopes[:, 3:],
                                                     *p_stages)
             kept_out = slopes
+        elif (dynamics_lanes := in_lanes(stage_dynamics)) is not None:
+            gaps, jacobians = dynamics_lanes(states[:, :n], controls, states[:, 1:], ca.repmat(d_mx, 1, n), *p_stages)
+            kept_out, points_out = jacobians, ca.vertcat(states[:, :n], controls)  # every stage renewed, here
         else:
             gaps, jacobians, points_out = item_function.map(n)(fresh_mx, states[:, :n], controls, states[:, 1:],
                                                                ca.repmat(d_mx, 1, n), *p_stages, kept_mx, points_mx)
             kept_out = jacobians
-        hessians, gradients, costs = stage_cost.map(n)(states[:, :n], controls, references[:, :n], u_s_mx, *p_stages)
+        stage_costs = in_lanes(stage_cost)
+        stage_costs = stage_cost.map(n) if stage_costs is None else stage_costs
+        hessians, gradients, costs = stage_costs(states[:, :n], controls, references[:, :n], u_s_mx, *p_stages)
         terminal_hessian, terminal_gradient, terminal_value = terminal_cost(states[:, n], references[:, n],
                                                                             *([p_mx] if parametric else []))
         size = stage_size * n
@@ -823,14 +857,12 @@ class RealTimeMPC(MPC):
         self._control_bounds = control_bounds(self.torque_low, self.torque_high, n, s.torque_reserve)
         self._omega_valid = OMEGA_VALID_FRACTION / self.model.step_size
         riccati = s.rti.qp_solver == "riccati"
-        #: the hand-written C functions the generated code calls (:mod:`fvin_mpc.control.riccati_kernel`)
-        self.loop_kernels: tuple[CKernel, ...] = ()
         if riccati:
             linearize = linearize_blocks
             sweep = None
             if riccati_kernel.uses_kernel(s.rti.riccati_stage, nd, s.compile == "cached", s.rti.qp_method):
-                self.loop_kernels = (riccati_kernel.riccati_stage_kernel(nd, m, n),)
-                sweep = riccati_kernel.kernel_function(self.loop_kernels[0])
+                self.loop_kernels += (riccati_kernel.riccati_stage_kernel(nd, m, n),)
+                sweep = kernel_function(self.loop_kernels[-1])
             functions = [linearize, predict, *riccati_feedback_function(
                 layout, n, m, *self._control_bounds, self._step_limits, self._omega_valid, s.rti.qp_iterations,
                 method=s.rti.qp_method, sweep=sweep)]
