@@ -13,7 +13,8 @@ lane by lane), so a lane computes what the scalar function computes, but for ``t
 four calls per vector, took more than half of a learned stage's time in lanes, and the prelude computes it on whole
 vectors instead (within 4 units in the last place of libm's). Fused multiply–adds may be contracted differently in
 the two codes, so the kernel agrees with the scalar function to rounding, not to the bit
-(``tests/test_lane_kernel.py``: within 1e-12 of each output's size on every built-in scene).
+(``tests/test_lane_kernel.py``: within 1e-12 of each output's size on the learned and closed-form ball joint's
+and quadrotor's stages).
 
 Measured (one stage's dynamics alone, 4 stages a call against 4 scalar calls, this 2-core AMD EPYC with
 ``-march=native``): the learned ball joint's stage 6.2–6.8 → 1.35–1.43 µs (4.3–4.8×); with libm's ``tanh``
@@ -46,8 +47,7 @@ _COMPARISONS = {"<": "lt", "<=": "le", "==": "eq", "!=": "ne", "&&": "and", "||"
 #: The scalar functions of CasADi's C a lane kernel has vector versions of (``c_kernels/lanes_prelude.c``).
 FUNCTIONS = frozenset({"sqrt", "exp", "log", "sin", "cos", "tan", "asin", "acos", "atan", "sinh", "cosh", "tanh",
                        "floor", "ceil", "erf", "log1p", "expm1", "casadi_log1p", "casadi_expm1", "casadi_sq",
-                       "casadi_fabs", "casadi_sign",
-                       "casadi_fmax", "casadi_fmin", "atan2", "pow", "fmod"})
+                       "casadi_fabs", "casadi_sign", "casadi_fmax", "casadi_fmin", "atan2", "pow", "fmod"})
 _RULES = (
     (re.compile(rf"({_VARIABLE})=arg\[(\d+)\]\? arg\[\d+\]\[(\d+)\] : 0;"),
      lambda m: f"{m[1]}={_load(int(m[2]), int(m[3]))};"),
@@ -61,7 +61,7 @@ _RULES = (
      lambda m: f"{m[1]}=fvl_{_COMPARISONS[m[3]]}({m[2]},{m[4]});"),
     # arithmetic is the vector extension's own (a number beside a vector is taken in every lane)
     (re.compile(rf"({_VARIABLE})=\(({_OPERAND})([-+*/])({_OPERAND})\);"), lambda m: m[0]),
-    (re.compile(rf"({_VARIABLE})=\(?-({_VARIABLE})\)?;"), lambda m: f"{m[1]}=(-{m[2]});"),
+    (re.compile(rf"({_VARIABLE})=\(-({_VARIABLE})\);"), lambda m: m[0]),
     (re.compile(rf"({_VARIABLE})=({_VARIABLE});"), lambda m: m[0]),
     (re.compile(rf"({_VARIABLE})=([a-z_0-9]+)\(({_VARIABLE})(?:,({_VARIABLE}))?\);"),
      lambda m: f"{m[1]}=fvl_{m[2]}({m[3]}{',' + m[4] if m[4] else ''});" if m[2] in FUNCTIONS else None),
@@ -136,11 +136,12 @@ def lane_map_kernel(function: ca.Function, count: int, name: str | None = None) 
     shapes = [shape(function.sparsity_in(i)) for i in range(n_in)] + [shape(function.sparsity_out(i))
                                                                         for i in range(n_out)]
     declarations = f"  fvl_vec {', '.join(variables)};\n" if variables else ""
+    statements = "\n  ".join(body)
     prelude = (resources.files("fvin_mpc.control") / "c_kernels" / "lanes_prelude.c").read_text()
     return CKernel(name, scalar_instructions=function.n_instructions() * count, source=f"""{prelude}
 /* {name}: {function.name()} of CasADi's C, {count} stages, {LANES} at a time (fvin_mpc.control.lane_kernel). */
 static void {name}_lanes(const casadi_real* const* in, casadi_real* const* out) {{
-{declarations}  {(chr(10) + '  ').join(body)}
+{declarations}  {statements}
 }}
 
 static const casadi_int {name}_in_size[] = {{{', '.join(map(str, sizes_in)) or '0'}}};
