@@ -49,7 +49,9 @@ from fvin_mpc._cli import positive_int, run_command
 from fvin_mpc.control.c_controller import CRealTimeMPC
 from fvin_mpc.control.closed_loop import episode_metrics, run_episode
 from fvin_mpc.control.flight import quadrotor_model, quadrotor_mpc, quadrotor_mpc_settings, recovery_starts
+from fvin_mpc.control.lane_kernel import STAGE_LANES
 from fvin_mpc.control.model_export import COMPILER_FLAGS, generated_code_flags
+from fvin_mpc.control.riccati_kernel import RICCATI_STAGES
 from fvin_mpc.control.scene import scene_env, scene_model, scene_mpc, scene_mpc_settings
 from fvin_mpc.envs import QuadrotorEnv
 from fvin_mpc.envs.scenes import resolve_scene
@@ -339,10 +341,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--qp-method", choices=["path", "mehrotra"], default=None,
                         help="RTIOptions.qp_method of both loops: the Riccati QP's interior-point method (default: "
                              "the scene's, path)")
-    parser.add_argument("--riccati-stage", choices=["auto", "generated", "kernel"], default=None,
+    parser.add_argument("--riccati-stage", choices=RICCATI_STAGES, default=None,
                         help="RTIOptions.riccati_stage of both loops: the QP's Riccati stage as generated code or as "
                              "the hand-written kernel (default: auto, the kernel for a free body)")
-    parser.add_argument("--stage-lanes", choices=["auto", "on", "off"], default=None,
+    parser.add_argument("--stage-lanes", choices=STAGE_LANES, default=None,
                         help="RTIOptions.stage_lanes of both loops: the linearization four stages at a time on the "
                              "vector units, or a stage at a time (default: auto, lanes wherever they can run)")
     return parser
