@@ -118,7 +118,7 @@ def controllers(scene: str, true_model: bool, seed: int, feedback: str = "qp",
     the scene's where not given)."""
     rti: dict[str, Any] = {} if feedback == "qp" else {"feedback": feedback, "max_iter": 1}
     rti.update(rti_options or {})
-    if resolve_scene(scene).space.pivoted:
+    if resolve_scene(scene).goal_set.attitude_at_rest:
         env = scene_env(scene, true_model=true_model)
         python = scene_mpc(env, scene_model(env, true_model=true_model),
                            scene_mpc_settings(env, solver="rti").updated(rti=rti))

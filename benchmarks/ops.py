@@ -26,7 +26,7 @@ import numpy as np
 from benchmarks.study import StudyResult
 from fvin_mpc.control import implicit_dynamics
 from fvin_mpc.control import model_export as export
-from fvin_mpc.control.rti import retract, unrolled_stage_function
+from fvin_mpc.control.rti import unrolled_stage_function
 from fvin_mpc.control.scene import scene_env, scene_model
 from fvin_mpc.core import s3
 from fvin_mpc.core.backend import get_ops
@@ -110,8 +110,8 @@ def rti_stage_counts(model: Any) -> tuple[int, int, int]:
     terms = model.casadi_terms
     unrolled = unrolled_stage_function(model.step, PIVOTED, terms.control_dim)
     expanded = unrolled_stage_function(model.step, PIVOTED, terms.control_dim, model=model)
-    node, layout = implicit_dynamics.node_terms_function(terms, retract)
-    stage = implicit_dynamics.implicit_stage_function(terms, layout, model.step_size, retract)
+    node, layout = implicit_dynamics.node_terms_function(terms)
+    stage = implicit_dynamics.implicit_stage_function(terms, layout, model.step_size)
     return (int(unrolled.n_instructions()), int(expanded.n_instructions()),
             int(node.n_instructions() + stage.n_instructions()))
 

@@ -45,7 +45,7 @@ DURATION_S = {"pendulum": 6.0, "spherical_pendulum": 6.0, "quadrotor": 3.0}
 def controller_pair(scene: str, true_model: bool, seed: int) -> tuple[Any, dict[str, Any], dict[str, Any], int]:
     """``(env, {variant: Python controller}, reset options, env seed)``; variants ``inputs`` and ``constants``."""
     pairs = {}
-    if resolve_scene(scene).space.pivoted:
+    if resolve_scene(scene).goal_set.attitude_at_rest:
         env = scene_env(scene, true_model=true_model)
         model = scene_model(env, true_model=true_model)
         for variant, parametric in (("inputs", True), ("constants", False)):

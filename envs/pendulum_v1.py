@@ -16,6 +16,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from fvin_mpc.core.space import S3
+
+_ATTITUDE = S3.layout.attitude(by=__name__)
+
 
 def scene_angle_from_v1(theta_v1):
     """Hinge angle of the scene (θ = 0 hanging) from Pendulum-v1's θ (0 upright), wrapped to [−π, π)."""
@@ -37,7 +41,7 @@ def state_from_v1_observation(observation) -> np.ndarray:
     zero = np.zeros_like(half)
     q = np.stack([np.cos(half), zero, np.sin(half), zero], axis=-1)
     omega = np.stack([zero, theta_dot, zero], axis=-1)
-    return np.concatenate([q, omega], axis=-1)
+    return S3.layout.join(q, omega)
 
 
 def v1_observation_from_state(x) -> np.ndarray:
@@ -47,9 +51,9 @@ def v1_observation_from_state(x) -> np.ndarray:
     to be a rotation about the hinge axis, ``(cos θ/2, 0, sin θ/2, 0)``.
     """
     x = np.asarray(x, dtype=np.float64)
-    if x.shape[-1:] != (7,):
-        raise ValueError(f"expected states x = (q, ω) of shape (..., 7), got {x.shape}")
-    q, omega = x[..., :4], x[..., 4:]
+    if x.shape[-1:] != (S3.state_dim,):
+        raise ValueError(f"expected states x = (q, ω) of shape (..., {S3.state_dim}), got {x.shape}")
+    q, omega = x[..., _ATTITUDE.quaternion], x[..., _ATTITUDE.omega]
     w, y = q[..., 0], q[..., 2]
     norm2 = w * w + y * y
     cos_scene, sin_scene = (w * w - y * y) / norm2, 2.0 * w * y / norm2

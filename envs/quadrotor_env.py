@@ -32,6 +32,9 @@ COST_WEIGHTS = (1.0, 1.0, 0.1, 0.01, 0.01)
 
 _RESET_OPTIONS = frozenset({"state", "qpos", "qvel", "hover", "max_omega", "max_speed", "max_offset"})
 
+#: Where a free body's parts sit in its states (the free joint block of :data:`~fvin_mpc.core.space.R3S3`).
+_FREE = R3S3.layout.free_body(by=__name__)
+
 
 class QuadrotorEnv(MujocoBodyEnv):
     """Bring a free-flying rotor craft to hover at a point.
@@ -187,11 +190,11 @@ class QuadrotorEnv(MujocoBodyEnv):
 
     def joint_state(self, state: Any) -> tuple[np.ndarray, np.ndarray]:
         """The free joint's ``(qpos (7,), qvel (6,))`` of a state ``(x, q, v, ω)`` of the centre of mass."""
-        state = as_float_array(state, (13,), "state")
-        q = unit_quaternion(state[3:7], "state quaternion")
+        state = as_float_array(state, (R3S3.state_dim,), "state")
+        q = unit_quaternion(state[_FREE.quaternion], "state quaternion")
         offset = _rotate(q, self._com)
-        velocity = state[7:10] - _rotate(q, np.cross(state[10:13], self._com))
-        return np.concatenate([state[:3] - offset, q]), np.concatenate([velocity, state[10:13]])
+        velocity = state[_FREE.velocity] - _rotate(q, np.cross(state[_FREE.omega], self._com))
+        return np.concatenate([state[_FREE.position] - offset, q]), np.concatenate([velocity, state[_FREE.omega]])
 
     def set_state(self, qpos: Any, qvel: Any) -> None:
         """Set the free joint's state exactly and run ``mj_forward``; the quaternion is normalized.
@@ -246,7 +249,8 @@ class QuadrotorEnv(MujocoBodyEnv):
         w_x, w_angle, w_v, w_omega, w_u = COST_WEIGHTS
         du = u - self._hover_thrust
         reward = -(w_x * info["position_error"] ** 2 + w_angle * info["angle_from_goal"] ** 2
-                   + w_v * float(state[7:10] @ state[7:10]) + w_omega * float(state[10:] @ state[10:])
+                   + w_v * float(state[_FREE.velocity] @ state[_FREE.velocity])
+                   + w_omega * float(state[_FREE.omega] @ state[_FREE.omega])
                    + w_u * float(du @ du))
         return self._observation(), reward, False, False, info
 
@@ -260,8 +264,8 @@ class QuadrotorEnv(MujocoBodyEnv):
         noise_std = self._physics.sensor_noise_std
         if noise_std > 0.0:
             observation = observation + self.np_random.normal(0.0, noise_std, size=self.space.state_dim)
-            observation[3:7] /= np.linalg.norm(observation[3:7])
-        observation[3:7] = np.clip(observation[3:7], -1.0, 1.0)
+            observation[_FREE.quaternion] /= np.linalg.norm(observation[_FREE.quaternion])
+        observation[_FREE.quaternion] = np.clip(observation[_FREE.quaternion], -1.0, 1.0)
         return observation
 
     def _info(self) -> dict[str, float]:
@@ -349,8 +353,8 @@ def actuator_wrenches(model: mujoco.MjModel, body_id: int, attitude: Any) -> tup
     mass ``(3, nu)`` each actuator puts on the free body at ``attitude``, at rest — by MuJoCo itself
     (``qfrc_actuator`` per control, less that at zero control), whatever its transmission and gear."""
     data = mujoco.MjData(model)
-    data.qpos[:3] = 0.0
-    data.qpos[3:7] = attitude
+    data.qpos[_FREE.position] = 0.0  # the free joint's qpos: its block's position
+    data.qpos[_FREE.quaternion] = attitude
     saved = int(model.opt.disableflags)
     # a unit control may lie outside a small ctrlrange: the column is a rate, not a feasible control
     model.opt.disableflags = saved | int(mujoco.mjtDisableBit.mjDSBL_CLAMPCTRL)

@@ -20,7 +20,7 @@ from fvin_mpc.core.backend import get_ops
 from fvin_mpc.core.errors import SceneError, UsageError
 from fvin_mpc.core.rigid_body import from_mujoco
 from fvin_mpc.core.space import S3, ConfigurationSpace
-from fvin_mpc.core.state import as_float_array, split_state, unit_quaternion
+from fvin_mpc.core.state import as_float_array, unit_quaternion
 
 from .scenes import (
     IMPULSE_HOLD_S,
@@ -484,7 +484,7 @@ class RigidBodyEnv(MujocoBodyEnv):
         # mjOBJ_XBODY: the body's own frame (xquat's); mjOBJ_BODY would give ω in its inertial frame (ximat),
         # which differs whenever the principal axes are not the body's axes (a composite, an off-axis rod).
         mujoco.mj_objectVelocity(self._model, self._data, mujoco.mjtObj.mjOBJ_XBODY, self._body_id, velocity, 1)
-        return np.concatenate([self._data.xquat[self._body_id], velocity[:3]])
+        return self.space.layout.join(self._data.xquat[self._body_id], velocity[:3])
 
     def set_state(self, qpos: Any, qvel: Any) -> None:
         """Set the joint state exactly (see the class docstring for shapes) and run ``mj_forward``.
@@ -579,7 +579,8 @@ class RigidBodyEnv(MujocoBodyEnv):
         only that many sub-steps (a torque that changes within a period, as a latency-aware closed
         loop delivers it: :func:`fvin_mpc.control.closed_loop.run_episode`)."""
         u = self._advance(action, substeps)
-        q, omega = split_state(self.state())
+        state, attitude = self.state(), self.space.layout.attitude(by=type(self).__name__)
+        q, omega = state[attitude.quaternion], state[attitude.omega]
         angle = geodesic_angle(q, self._goal)
         if self._knock_pending:
             held = angle < IMPULSE_HOLD_TOLERANCE
@@ -620,7 +621,7 @@ class RigidBodyEnv(MujocoBodyEnv):
 
     # ------------------------------------------------------------------ internals
     def _observation(self) -> np.ndarray:
-        observation = self.state()
+        observation, attitude = self.state(), self.space.layout.attitude(by=type(self).__name__)
         bits = self._physics.encoder_bits
         if bits is not None:
             angle = float(self._data.qpos[self._model.jnt_qposadr[self._joint_id]])
@@ -628,18 +629,18 @@ class RigidBodyEnv(MujocoBodyEnv):
             # A hinge turns the body about its axis, fixed in the body frame: a body-frame rotation by the error.
             axis = self.joint_axis
             turn = np.concatenate([[math.cos(0.5 * error)], math.sin(0.5 * error) * axis])
-            observation[:4] = _quaternion_product(observation[:4], turn)
+            observation[attitude.quaternion] = _quaternion_product(observation[attitude.quaternion], turn)
         if self._physics.gyro_noise_std > 0.0:
             noise = self.np_random.normal(0.0, self._physics.gyro_noise_std, size=3)
             if self._physics.gyro_axes == "joint" and self._joint_type == "hinge":
                 noise = float(noise @ self.joint_axis) * self.joint_axis
-            observation[4:] += noise
+            observation[attitude.omega] += noise
         noise_std = self._physics.sensor_noise_std
         if noise_std > 0.0:
-            observation = observation + self.np_random.normal(0.0, noise_std, size=7)
-            observation[:4] /= np.linalg.norm(observation[:4])
+            observation = observation + self.np_random.normal(0.0, noise_std, size=self.space.state_dim)
+            observation[attitude.quaternion] /= np.linalg.norm(observation[attitude.quaternion])
         # Guard the [-1, 1] bounds against a one-ulp excess from normalization.
-        observation[:4] = np.clip(observation[:4], -1.0, 1.0)
+        observation[attitude.quaternion] = np.clip(observation[attitude.quaternion], -1.0, 1.0)
         return observation
 
     def _info(self, angle: float | None = None) -> dict[str, float]:

@@ -32,6 +32,7 @@ import mujoco
 import numpy as np
 
 from fvin_mpc.core.errors import SceneError
+from fvin_mpc.core.goals import GoalSet, default_goal_set
 from fvin_mpc.core.space import R3S3, S3, ConfigurationSpace
 
 SCENE_DIR = Path(__file__).resolve().parent / "scenes"
@@ -172,6 +173,9 @@ class SceneSpec:
             ``python -m fvin_mpc.train`` writes a model of this scene by default.
         space: the configuration space of the observed body's state (:mod:`fvin_mpc.core.space`):
             S³ for a body on a hinge or ball joint, R³ × S³ for a free body.
+        goal_set: what counts as the goal (:mod:`fvin_mpc.core.goals`): a pivot's upright orientation at
+            rest, a craft's hover point; ``None``: :func:`~fvin_mpc.core.goals.default_goal_set` of the
+            space's blocks (a free joint hovers).
     """
 
     name: str
@@ -183,6 +187,11 @@ class SceneSpec:
     rest: tuple[float, float, float, float] | None = None
     checkpoint: str | None = None
     space: ConfigurationSpace = S3
+    goal_set: GoalSet | None = None
+
+    def __post_init__(self) -> None:
+        if self.goal_set is None:
+            object.__setattr__(self, "goal_set", default_goal_set(self.space.layout))
 
     @property
     def default_checkpoint(self) -> str:

@@ -7,6 +7,9 @@ imports and holds the line). Every module, one line each:
 
 * ``space`` — the configuration spaces (S³, SO(3), R³ × S³): one value every layer carries — state
   layout, step, energy, learned terms, closed form, chart, check — and the registry that names them.
+* ``blocks`` — a state as a product of blocks (hinge, slide, ball, free joint): the chart, check and distance
+  written once per block kind for every backend.
+* ``goals`` — what a scene's goal is (a pivot's upright orientation at rest, a craft's hover point).
 * ``backend`` — the leaf operations that differ between NumPy, torch and CasADi (the only backend-specific code).
 * ``s3`` — unit-quaternion algebra on S³ and 3×3 linear algebra.
 * ``so3`` — the rotation group SO(3) on 3×3 matrices (for the SO3FVIN baseline).
@@ -20,7 +23,7 @@ imports and holds the line). Every module, one line each:
   weights or body fields they stand in for.
 * ``rigid_body`` — closed-form bodies on a fixed pivot, read off an MJCF.
 * ``quadrotor`` — the closed-form quadrotor (R³ × S³) and a geometric controller.
-* ``state`` — array checks at numeric boundaries and the pivoted state's split.
+* ``state`` — array checks at numeric boundaries.
 * ``errors`` — the user-facing errors, one root every command reports as one line.
 * ``checkpoint`` — safetensors weights + JSON sidecar; where the shipped checkpoints are.
 * ``data`` — trajectory data sets of any configuration space (``.npz``), one container.
@@ -56,7 +59,7 @@ installed under this name):
 * ``mpc`` — the problem solved to convergence (IPOPT), with multi-start cold solves.
 * ``presets`` — the built-in scenes' controller presets, each with its reason.
 * ``family_filter`` — whether the closed-form controller swings a generated scene up (the family filter).
-* ``rti`` — the real-time iteration MPC (any state layout ``R^a × S³ × R^b``).
+* ``rti`` — the real-time iteration MPC (any product of blocks).
 * ``implicit_dynamics`` — the step's own equations as the real-time iteration's dynamics constraint.
 * ``term_expansion`` — a model's terms expanded to first order where a stage is linearized (the same
   Jacobian in fewer operations).

@@ -241,7 +241,7 @@ def checked_scene_and_checkpoint(scene: Any, checkpoint: Any = None, true_model:
     """
 
     spec = existing_scene(scene)
-    if command is not None and not spec.space.pivoted:
+    if command is not None and not spec.goal_set.attitude_at_rest:
         raise SceneError(f"scene {spec.name!r} is a free body and {command} needs a body on a pivot; "
                          "fly it with python -m fvin_mpc.fly")
     if true_model:

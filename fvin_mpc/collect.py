@@ -92,12 +92,12 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     spec = existing_scene(args.scene)
-    allowed = PIVOT_COLLECTORS if spec.space.pivoted else FREE_BODY_COLLECTORS
+    allowed = PIVOT_COLLECTORS if spec.goal_set.attitude_at_rest else FREE_BODY_COLLECTORS
     collector = args.collector or allowed[0]
     if collector not in allowed:
-        kind = "a pivoted" if spec.space.pivoted else "a free-body"
+        kind = "a pivoted" if spec.goal_set.attitude_at_rest else "a free-body"
         raise UsageError(f"--collector {collector} does not record {kind} scene; use one of {', '.join(allowed)}")
-    if not spec.space.pivoted:
+    if not spec.goal_set.attitude_at_rest:
         max_omega = 10.0 if args.max_omega is None else args.max_omega
         if collector == "bursts":
             free = collect_excitation(args.scene, trajectories=args.trajectories or 750, steps=args.steps or 20,

@@ -97,7 +97,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
-        if not existing_scene(args.scene).space.pivoted:
+        if not existing_scene(args.scene).goal_set.attitude_at_rest:
             return _evaluate_free_body(args, argv)
         config = EvaluationConfig(
             scene=args.scene, checkpoint=args.checkpoint, episodes=args.episodes, duration_s=args.duration,

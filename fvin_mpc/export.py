@@ -46,7 +46,7 @@ def build_parser() -> argparse.ArgumentParser:
 def export_controller(args: argparse.Namespace) -> dict:
     """Write (and with ``--build`` compile) the scene's real-time controller as C."""
     spec, checkpoint = checked_scene_and_checkpoint(args.scene, args.checkpoint, args.true_model)
-    if spec.space.pivoted:
+    if spec.goal_set.attitude_at_rest:
         env = scene_env(spec, checkpoint, args.true_model)
         model = scene_model(env, checkpoint, args.true_model, args.newton_iters)
         # compile="none": the Python loop's own compiled copy is not needed to write the C one

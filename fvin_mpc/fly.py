@@ -63,7 +63,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     # an R3xS3 model of this scene, before any build
     spec, _ = checked_scene_and_checkpoint(args.scene, args.checkpoint,
                                            true_model=args.model == "closed-form" and args.report is None)
-    if spec.space.pivoted:
+    if spec.goal_set.attitude_at_rest:
         raise UsageError(f"scene {spec.name!r} is a body on a pivot; swing it up with python -m fvin_mpc.swingup")
     if args.report is not None:
         if args.loop != "python" or args.rti_relinearize_every is not None:

@@ -74,7 +74,7 @@ def test_the_disturbance_estimate_counts_a_body_turned_about_the_free_axis_as_at
     for free_axis, moves in ((None, False), (tuple(n), True)):
         estimate = DisturbanceEstimate(S3.layout, 0.5, 0.5, 1.0, low, high, free_axis)
         estimate.predicted(state, np.ones((2, 3)))
-        estimate.update(state + np.r_[np.zeros(4), 0.1, 0.0, 0.0], goal)
+        estimate.update(state + np.r_[np.zeros(4), 0.1, 0.0, 0.0], np.r_[goal, np.zeros(3)])
         assert bool(np.any(estimate.value != 0.0)) is moves
 
 

@@ -12,7 +12,6 @@ import pytest
 from fvin_mpc.control import implicit_dynamics
 from fvin_mpc.control import model_export as export
 from fvin_mpc.control.closed_loop import episode_metrics, run_episode
-from fvin_mpc.control.rti import local_state, retract, retract_state
 from fvin_mpc.control.scene import scene_env, scene_model, scene_mpc, scene_mpc_settings
 from fvin_mpc.core.backend import get_ops
 from fvin_mpc.core.networks import LearnedTerms, ModelConfig, init_weights
@@ -28,7 +27,7 @@ def unrolled_stage(terms, step_size, newton_iters):
     step = export.step_function(terms, step_size, newton_iters)
     x_bar, x_next_bar, u_bar, d = ca.SX.sym("x", 7), ca.SX.sym("xn", 7), ca.SX.sym("u", m), ca.SX.sym("d", m)
     delta, du = ca.SX.sym("delta", 6), ca.SX.sym("du", m)
-    gap = local_state(PIVOTED, x_next_bar, step(retract_state(PIVOTED, x_bar, delta), u_bar + du + d)[0])
+    gap = PIVOTED.local(x_next_bar, step(PIVOTED.retract(x_bar, delta, CA), u_bar + du + d)[0], CA)
     zero = ca.DM.zeros(6 + m)
     gap_at, jacobian = ca.substitute([gap, ca.jacobian(gap, ca.vertcat(delta, du))], [ca.vertcat(delta, du)], [zero])
     return ca.Function("unrolled", [x_bar, u_bar, x_next_bar, d], [gap_at, jacobian]), step
@@ -43,8 +42,8 @@ def unrolled_stage(terms, step_size, newton_iters):
 ], ids=["sign-invariant", "fixed-inertia", "closed-form-damped"])
 def test_implicit_stage_is_the_converged_steps_linearization(terms):
     h, m = 0.05, terms.control_dim
-    node, layout = implicit_dynamics.node_terms_function(terms, retract)
-    stage = implicit_dynamics.implicit_stage_function(terms, layout, h, retract)
+    node, layout = implicit_dynamics.node_terms_function(terms)
+    stage = implicit_dynamics.implicit_stage_function(terms, layout, h)
     reference, step = unrolled_stage(terms, h, newton_iters=8)
     rng = np.random.default_rng(3)
     for _ in range(4):
@@ -67,8 +66,8 @@ def test_implicit_stage_is_the_converged_steps_linearization(terms):
 def test_implicit_stage_ignores_the_next_nodes_quaternion_sign_for_a_sign_invariant_model():
     config = ModelConfig(variant="sign-invariant", control_dim=3)
     terms = LearnedTerms(init_weights(config, seed=4), config, CA)
-    node, layout = implicit_dynamics.node_terms_function(terms, retract)
-    stage = implicit_dynamics.implicit_stage_function(terms, layout, 0.05, retract)
+    node, layout = implicit_dynamics.node_terms_function(terms)
+    stage = implicit_dynamics.implicit_stage_function(terms, layout, 0.05)
     step = export.step_function(terms, 0.05, 8)
     x, u, d = np.array([0.5, 0.5, -0.5, 0.5, 1.0, -2.0, 0.5]), np.array([0.3, -0.2, 0.1]), np.zeros(3)
     x_next = np.asarray(step(x, u)[0]).ravel()
@@ -109,8 +108,8 @@ def test_implicit_gap_agrees_with_the_exact_gap_to_second_order_off_the_nodes():
     on the step's equations: it matches the exact gap of the converged step up to O(ε²)."""
     config = ModelConfig(variant="sign-invariant", control_dim=3)
     terms = LearnedTerms(init_weights(config, seed=2), config, CA)
-    node, layout = implicit_dynamics.node_terms_function(terms, retract)
-    stage = implicit_dynamics.implicit_stage_function(terms, layout, 0.05, retract)
+    node, layout = implicit_dynamics.node_terms_function(terms)
+    stage = implicit_dynamics.implicit_stage_function(terms, layout, 0.05)
     reference, step = unrolled_stage(terms, 0.05, newton_iters=8)
     rng = np.random.default_rng(5)
     q = rng.normal(size=4)

@@ -137,7 +137,8 @@ def test_a_stage_in_lanes_is_the_generated_stage_to_rounding():
         for _ in range(2):
             x = 0.7 * rng.standard_normal((layout.state_dim, count))
             q = rng.standard_normal((4, count))
-            x[layout.quaternion] = q * (1.0 + 1e-3 * (np.arange(count) % 2)) / np.linalg.norm(q, axis=0)
+            quaternion = layout.attitude("test").quaternion
+            x[quaternion] = q * (1.0 + 1e-3 * (np.arange(count) % 2)) / np.linalg.norm(q, axis=0)
             nodes.append(x)
         inputs = [nodes[0], rng.uniform(-0.5, 0.5, (m, count)), nodes[1], rng.uniform(-0.1, 0.1, (m, count)),
                   np.repeat(model.model_parameters.defaults.reshape(-1, 1), count, axis=1)]

@@ -23,8 +23,8 @@ def random_states(model, count: int, seed: int = 0) -> list[np.ndarray]:
     states = []
     for _ in range(count):
         x = rng.normal(size=layout.state_dim)
-        x[layout.quaternion] /= np.linalg.norm(x[layout.quaternion])
-        x[layout.omega] *= 2.0
+        x[layout.attitude("test").quaternion] /= np.linalg.norm(x[layout.attitude("test").quaternion])
+        x[layout.attitude("test").omega] *= 2.0
         states.append(x)
     return states
 

@@ -271,9 +271,10 @@ def test_first_order_terms_give_a_stage_the_same_derivatives_with_fewer_operatio
                 states = []
                 for _ in range(2):
                     x = 0.7 * rng.standard_normal(layout.state_dim)
-                    x[layout.quaternion] = rng.standard_normal(4)
+                    quaternion = layout.attitude("test").quaternion
+                    x[quaternion] = rng.standard_normal(4)
                     # unit, or off it by 1e-3 (a measured state the C loop still takes)
-                    x[layout.quaternion] *= (1.0 + 1e-3 * (trial % 2)) / np.linalg.norm(x[layout.quaternion])
+                    x[quaternion] *= (1.0 + 1e-3 * (trial % 2)) / np.linalg.norm(x[quaternion])
                     states.append(x)
                 inputs = [states[0], rng.uniform(-0.5, 0.5, m), states[1], rng.uniform(-0.1, 0.1, m)]
                 if parametric:
@@ -342,13 +343,13 @@ def test_common_subexpression_elimination_changes_no_bit_of_a_learned_stage(monk
     (unrolled step) and of the learned planar pendulum's node terms (implicit dynamics)."""
     from fvin_mpc.control import implicit_dynamics
     from fvin_mpc.control.model_export import GENERATED_SX_OPTIONS
-    from fvin_mpc.control.rti import retract, unrolled_stage_function
+    from fvin_mpc.control.rti import unrolled_stage_function
 
     def built(cse, scene):
         monkeypatch.setitem(GENERATED_SX_OPTIONS, "cse", cse)
         model = scene_model(scene_env(scene), true_model=False)
         if scene == "pendulum":
-            return implicit_dynamics.node_terms_function(model.casadi_terms, retract, None)[0]
+            return implicit_dynamics.node_terms_function(model.casadi_terms, None)[0]
         return unrolled_stage_function(model.step, model.space.layout, model.control_dim)
 
     rng = np.random.default_rng(7)

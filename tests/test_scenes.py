@@ -22,6 +22,7 @@ from fvin_mpc.control.scene import (
     scene_mpc_settings,
     scene_scales,
 )
+from fvin_mpc.core.goals import HOVER, UPRIGHT
 from fvin_mpc.core.space import S3
 from fvin_mpc.envs import SCENES, RigidBodyEnv
 from fvin_mpc.envs.scenes import SCENE_DIR, resolve_scene
@@ -86,10 +87,21 @@ def test_a_user_mjcf_is_declared_by_its_path_alone():
     spec = resolve_scene(str(WEAK_PENDULUM))
     assert (spec.name, spec.xml_path, spec.default_checkpoint) == ("weak_pendulum", WEAK_PENDULUM,
                                                                    "weak_pendulum_sign-invariant")
-    assert all(getattr(spec, f.name) in (None, {}) for f in fields(spec) if f.name not in ("name", "xml_path", "space"))
-    assert spec.space is S3  # read off the file: a hinge, not a free joint
+    derived = ("name", "xml_path", "space", "goal_set")
+    assert all(getattr(spec, f.name) in (None, {}) for f in fields(spec) if f.name not in derived)
+    assert spec.space is S3 and spec.goal_set is UPRIGHT  # read off the file: a hinge, not a free joint
     with pytest.raises(ValueError, match="unknown scene"):
         resolve_scene("no_such_scene")
+
+
+def test_a_scene_declares_its_goal_set_and_a_free_joint_hovers():
+    """The goal's kind is the scene's (never a flag on the space): the built-in pivots hold upright, the
+    quadrotor and any MJCF on a free joint hover, and a declaration may say otherwise."""
+    assert all(resolve_scene(name).goal_set is UPRIGHT for name in SCENES)
+    assert resolve_scene("quadrotor").goal_set is HOVER
+    assert resolve_scene(str(resolve_scene("quadrotor").xml_path)).goal_set is HOVER
+    spec = resolve_scene("pendulum")
+    assert replace(spec, goal_set=HOVER).goal_set is HOVER
 
 
 def test_the_control_period_follows_the_checkpoint_unless_given():

@@ -37,6 +37,7 @@ from fvin_mpc.control.mpc import MPC, MPCSettings, RTIOptions
 from fvin_mpc.core import fvin_so3
 from fvin_mpc.core.backend import get_ops
 from fvin_mpc.core.checkpoint import load_checkpoint, save_checkpoint
+from fvin_mpc.core.goals import HOVER
 from fvin_mpc.core.networks import ModelConfig
 from fvin_mpc.core.networks_r3s3 import R3S3Config
 from fvin_mpc.core.networks_so3 import SO3ModelConfig
@@ -169,11 +170,11 @@ class Case:
         """``(n, state_dim)``: uniform unit quaternions, Gaussian positions and rates."""
         layout, rng = self.space.layout, np.random.default_rng(seed)
         x = np.empty((n, layout.state_dim))
-        x[:, :layout.before] = self.position_scale * rng.normal(size=(n, layout.before))
+        x[:, layout.positions] = self.position_scale * rng.normal(size=(n, layout.positions.stop))
         q = rng.normal(size=(n, 4))
-        x[:, layout.quaternion] = q / np.linalg.norm(q, axis=1, keepdims=True)
-        x[:, layout.rates] = self.velocity_scale * rng.normal(size=(n, layout.after))
-        x[:, layout.omega] = self.omega_scale * rng.normal(size=(n, 3))
+        x[:, layout.attitude("test").quaternion] = q / np.linalg.norm(q, axis=1, keepdims=True)
+        x[:, layout.rates] = self.velocity_scale * rng.normal(size=(n, layout.state_dim - layout.rates.start))
+        x[:, layout.attitude("test").omega] = self.omega_scale * rng.normal(size=(n, 3))
         return x
 
     def controls(self, n: int, seed: int) -> np.ndarray:
@@ -258,7 +259,7 @@ def numpy_step(case: Case, terms: Any, x: np.ndarray, u: np.ndarray, k: int = 3,
 
 def same_state(case: Case, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Max-norm difference per state (rows), the quaternion compared up to sign."""
-    qs = case.space.layout.quaternion
+    qs = case.space.layout.attitude("test").quaternion
     dq = np.minimum(np.max(np.abs(a[..., qs] - b[..., qs]), -1), np.max(np.abs(a[..., qs] + b[..., qs]), -1))
     rest = np.delete(np.arange(a.shape[-1]), np.arange(qs.start, qs.stop))
     return np.maximum(dq, np.max(np.abs(a[..., rest] - b[..., rest]), -1))
@@ -324,7 +325,7 @@ def test_exported_jacobian_matches_finite_differences(case, terms_kind):
 def test_the_step_from_minus_q_is_the_same_rotation(case):
     """Sign-invariant terms (closed form; the learned sign-invariant variant; SO(3) by construction):
     ``q_{k+1}(−q) = −q_{k+1}(q)`` and the same rates and residual. A plain learned model differs."""
-    qs = case.space.layout.quaternion
+    qs = case.space.layout.attitude("test").quaternion
     x, u = case.states(16, seed=5), case.controls(16, seed=5)
     flipped = x.copy()
     flipped[:, qs] *= -1.0
@@ -350,12 +351,12 @@ def test_second_order_against_an_ode_oracle(case):
     """The error at ``duration`` against DOP853 (rtol = atol = 1e-12) falls ≈ 4× per halving of h:
     observed order in [1.7, 2.5] for both halvings; orientations compared up to sign."""
     x0, u = case.states(3, seed=6), case.controls(3, seed=6)
-    x0[:, case.space.layout.omega] *= 0.75
+    x0[:, case.space.layout.attitude("test").omega] *= 0.75
     terms = case.body.terms(NP)
     truth = np.array([solve_ivp(case.ode(ui), (0.0, case.duration), xi, method="DOP853", rtol=1e-12,
                                 atol=1e-12).y[:, -1] for xi, ui in zip(x0, u)])
-    truth[:, case.space.layout.quaternion] /= np.linalg.norm(truth[:, case.space.layout.quaternion], axis=1,
-                                                             keepdims=True)
+    quaternion = case.space.layout.attitude("test").quaternion
+    truth[:, quaternion] /= np.linalg.norm(truth[:, quaternion], axis=1, keepdims=True)
     errors = []
     for halvings in range(3):
         h = case.h / 2**halvings
@@ -388,7 +389,7 @@ def test_energy_bounded_without_drift(case):
     assert np.max(relative) < 0.03, np.max(relative, axis=0)
     assert np.max(relative) > 1e-6  # the energy is computed from the moving state: not trivially constant
     assert np.max(relative[-100:]) < 2.0 * np.max(relative[:100]) + 1e-12  # no secular growth
-    norms = np.linalg.norm(x[:, case.space.layout.quaternion], axis=1)
+    norms = np.linalg.norm(x[:, case.space.layout.attitude("test").quaternion], axis=1)
     np.testing.assert_allclose(norms, 1.0, atol=1e-12)
 
 
@@ -409,16 +410,16 @@ def test_fast_spins_are_finite_and_their_residual_flags_the_limit(case, terms_ki
     layout = case.space.layout
     x = np.repeat(case.states(1, seed=8), len(axes) * len(rates), axis=0)
     x[:, layout.rates] = 0.0
-    x[:, layout.omega] = (rates[None, :, None] * axes[:, None, :]).reshape(-1, 3) / case.h
+    x[:, layout.attitude("test").omega] = (rates[None, :, None] * axes[:, None, :]).reshape(-1, 3) / case.h
     u = np.repeat(case.u_center[None, :], len(x), axis=0)
     x_next, residual = numpy_step(case, terms, x, u, k=8)
     assert np.all(np.isfinite(x_next)) and np.all(np.isfinite(residual))
     residual = residual.reshape(len(axes), len(rates))
-    speeds = np.linalg.norm(x[:, layout.omega], axis=1).reshape(len(axes), len(rates))
+    speeds = np.linalg.norm(x[:, layout.attitude("test").omega], axis=1).reshape(len(axes), len(rates))
     below, past = residual[:, rates < 1.0], residual[:, rates > 1.0] / speeds[:, rates > 1.0]
     assert np.max(below) < 1e-6, residual
     assert np.min(past) > 0.05, residual / speeds  # at least 5 % of |ω| unexplained
-    norms = np.linalg.norm(x_next[:, layout.quaternion], axis=1)
+    norms = np.linalg.norm(x_next[:, layout.attitude("test").quaternion], axis=1)
     np.testing.assert_allclose(norms, 1.0, atol=1e-9)
 
 
@@ -451,41 +452,55 @@ def test_local_inverts_retract_and_ignores_the_sign(case):
     rng = np.random.default_rng(9)
     x_bar = case.states(20, seed=9)
     delta = rng.normal(size=(20, layout.tangent_dim))
-    delta[:, layout.chart] *= 0.7
+    delta[:, layout.attitude("test").chart] *= 0.7
     x = space.retract(x_bar, delta)
     assert x.shape == x_bar.shape
-    np.testing.assert_allclose(np.linalg.norm(x[:, layout.quaternion], axis=1), 1.0, atol=1e-14)
+    np.testing.assert_allclose(np.linalg.norm(x[:, layout.attitude("test").quaternion], axis=1), 1.0, atol=1e-14)
     np.testing.assert_allclose(space.local(x_bar, x), delta, rtol=0, atol=1e-12)
     y = case.states(20, seed=10)
-    y[:, layout.quaternion] *= np.sign(np.sum(y[:, layout.quaternion] * x_bar[:, layout.quaternion], 1))[:, None]
+    qs = layout.attitude("test").quaternion
+    y[:, qs] *= np.sign(np.sum(y[:, qs] * x_bar[:, qs], 1))[:, None]
     back = space.retract(x_bar, space.local(x_bar, y))
     assert np.max(same_state(case, back, y)) < 1e-12
     flipped, bar_flipped = y.copy(), x_bar.copy()
-    flipped[:, layout.quaternion] *= -1.0
-    bar_flipped[:, layout.quaternion] *= -1.0
+    flipped[:, layout.attitude("test").quaternion] *= -1.0
+    bar_flipped[:, layout.attitude("test").quaternion] *= -1.0
     np.testing.assert_allclose(space.local(x_bar, flipped), space.local(x_bar, y), rtol=0, atol=1e-12)
     np.testing.assert_allclose(space.local(bar_flipped, y), space.local(x_bar, y), rtol=0, atol=1e-12)
     # only the chart's entries see the quaternion; the rest is plain subtraction
-    rest = np.delete(np.arange(layout.tangent_dim), np.arange(layout.chart.start, layout.chart.stop))
-    states = np.delete(np.arange(layout.state_dim), np.arange(layout.quaternion.start, layout.quaternion.stop))
+    chart = layout.attitude("test").chart
+    rest = np.delete(np.arange(layout.tangent_dim), np.arange(chart.start, chart.stop))
+    states = np.delete(np.arange(layout.state_dim), np.arange(qs.start, qs.stop))
     np.testing.assert_allclose(space.local(x_bar, y)[:, rest], (y - x_bar)[:, states], atol=1e-15)
-    # the CasADi chart the real-time MPC builds from is the same map
+    # the same chart on CasADi (what the real-time MPC builds from) and on torch
     for i in range(3):
-        np.testing.assert_allclose(np.asarray(rti.retract_state(layout, ca.DM(x_bar[i]), ca.DM(delta[i]))).ravel(),
+        np.testing.assert_allclose(np.asarray(layout.retract(ca.DM(x_bar[i]), ca.DM(delta[i]), CA)).ravel(),
                                    x[i], atol=1e-14)
-        np.testing.assert_allclose(np.asarray(rti.local_state(layout, ca.DM(x_bar[i]), ca.DM(y[i]))).ravel(),
+        np.testing.assert_allclose(np.asarray(layout.local(ca.DM(x_bar[i]), ca.DM(y[i]), CA)).ravel(),
                                    space.local(x_bar[i], y[i]), atol=1e-12)
+    torch_ops = TORCH
+    np.testing.assert_allclose(layout.retract(torch.as_tensor(x_bar), torch.as_tensor(delta), torch_ops).numpy(), x,
+                               rtol=0, atol=1e-14)
+    np.testing.assert_allclose(layout.local(torch.as_tensor(x_bar), torch.as_tensor(y), torch_ops).numpy(),
+                               space.local(x_bar, y), rtol=0, atol=1e-12)
 
 
 def test_distance_to_a_goal_is_sign_invariant_and_sin_squared_of_half_the_angle(case):
-    """``distance`` is ``1 − ⟨q, q_goal⟩² = sin²(angle/2)``: zero on the goal's rotation for either
-    sign of either quaternion, the same whether the goal is a state or its quaternion."""
+    """``distance`` is the attitude's ``1 − ⟨q, q_goal⟩² = sin²(angle/2)`` plus the squared offset of every
+    Euclidean position (rates do not count): zero on the goal's configuration for either sign of either
+    quaternion."""
     x = case.states(8, seed=9)
-    qs = case.space.layout.quaternion
+    layout = case.space.layout
+    qs = layout.attitude("test").quaternion
     goal = x[0].copy()
+    goal[layout.rates] += 1.0
     angle = 2.0 * np.arccos(np.clip(np.abs(x[:, qs] @ goal[qs]), 0.0, 1.0))
-    np.testing.assert_allclose(case.space.distance(x, goal), np.sin(angle / 2) ** 2, atol=1e-12)
-    np.testing.assert_allclose(case.space.distance(x, -goal[qs]), case.space.distance(x, goal), atol=1e-15)
+    positions = np.delete(np.arange(layout.positions.stop), np.arange(qs.start, qs.stop))
+    offset = np.sum((x[:, positions] - goal[positions]) ** 2, axis=1)
+    np.testing.assert_allclose(case.space.distance(x, goal), np.sin(angle / 2) ** 2 + offset, atol=1e-12)
+    other_sign = goal.copy()
+    other_sign[qs] *= -1
+    np.testing.assert_allclose(case.space.distance(x, other_sign), case.space.distance(x, goal), atol=1e-15)
     flipped = x.copy()
     flipped[:, qs] *= -1
     np.testing.assert_allclose(case.space.distance(flipped, goal), case.space.distance(x, goal), atol=1e-15)
@@ -497,16 +512,17 @@ def test_check_normalizes_within_tolerance_and_rejects_the_rest(case):
     layout = case.space.layout
     x = case.states(1, seed=11)[0]
     slightly = x.copy()
-    slightly[layout.quaternion] *= 1.0 + 0.5 * UNIT_NORM_TOLERANCE
+    slightly[layout.attitude("test").quaternion] *= 1.0 + 0.5 * UNIT_NORM_TOLERANCE
     checked = case.space.check(slightly)
     assert checked.dtype == np.float64 and checked is not slightly
-    np.testing.assert_allclose(np.linalg.norm(checked[layout.quaternion]), 1.0, atol=1e-15)
-    np.testing.assert_allclose(np.delete(checked, np.arange(layout.quaternion.start, layout.quaternion.stop)),
-                               np.delete(x, np.arange(layout.quaternion.start, layout.quaternion.stop)), atol=0)
-    np.testing.assert_array_equal(slightly[layout.quaternion], x[layout.quaternion] * (1.0 + 0.5 * UNIT_NORM_TOLERANCE))
+    np.testing.assert_allclose(np.linalg.norm(checked[layout.attitude("test").quaternion]), 1.0, atol=1e-15)
+    qs = layout.attitude("test").quaternion
+    others = np.delete(np.arange(layout.state_dim), np.arange(qs.start, qs.stop))
+    np.testing.assert_allclose(checked[others], x[others], atol=0)
+    np.testing.assert_array_equal(slightly[qs], x[qs] * (1.0 + 0.5 * UNIT_NORM_TOLERANCE))
     for bad_norm in (1.0 + 3.0 * UNIT_NORM_TOLERANCE, 1.0 - 3.0 * UNIT_NORM_TOLERANCE, 0.0):
         wrong = x.copy()
-        wrong[layout.quaternion] *= bad_norm
+        wrong[layout.attitude("test").quaternion] *= bad_norm
         with pytest.raises(ValueError, match="unit quaternion"):
             case.space.check(wrong)
     for shape in ((layout.state_dim - 1,), (layout.state_dim + 1,), (1, layout.state_dim), ()):
@@ -551,7 +567,7 @@ def test_unrolled_stage_linearization_matches_finite_differences(case):
         c, ab = (np.asarray(v) for v in stage(x_bar, u_bar, x_next, np.zeros(m)))
         np.testing.assert_allclose(c.ravel(), 0.0, atol=1e-12)
         shifted = x_next.copy()
-        shifted[layout.quaternion] *= -1.0  # the same node with the other sign: still no gap
+        shifted[layout.attitude("test").quaternion] *= -1.0  # the same node with the other sign: still no gap
         np.testing.assert_allclose(np.asarray(stage(x_bar, u_bar, shifted, np.zeros(m))[0]).ravel(), 0.0, atol=1e-12)
         disturbance = np.full(m, 0.1)
         c_d = np.asarray(stage(x_bar, u_bar, x_next, disturbance)[0]).ravel()
@@ -577,7 +593,7 @@ def test_toy_registers_once_and_is_found_by_name_and_config(toy):
         toy.learned_terms(toy.init_weights(ToyConfig(), 0), ModelConfig(), NP)
     with pytest.raises(NotImplementedError):
         toy.closed_form(None, "bead")
-    assert not toy.pivoted and toy.state_dim == 9 and toy.layout.tangent_dim == 8
+    assert toy.state_dim == 9 and toy.layout.tangent_dim == 8
 
 
 def test_toy_exports_rolls_out_and_its_rail_is_velocity_verlet(toy):
@@ -619,7 +635,7 @@ def test_toy_real_time_mpc_returns_bounded_controls_and_lifts_the_bead(toy):
                            orientation_residual="rotation-vector", rti=RTIOptions(cold_budget_s=60.0, cold_iter=3))
     low, high = np.array([0.0, -2.0, -2.0]), np.array([20.0, 2.0, 2.0])
     goal = np.array([0.5, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
-    controller = rti.RealTimeMPC(model, settings, goal, low, high)
+    controller = rti.RealTimeMPC(model, settings, goal, low, high, goal_set=HOVER)
     assert controller.target_control[0] == pytest.approx(RAIL.stiffness * 0.5 + RAIL.mass * RAIL.gravity, rel=1e-9)
     x = np.array([0.0, np.cos(0.2), np.sin(0.2), 0.0, 0.0, 0.0, 0.5, 0.0, 0.0])
     for k in range(40):
@@ -632,9 +648,9 @@ def test_toy_real_time_mpc_returns_bounded_controls_and_lifts_the_bead(toy):
         controller.prepare()
     assert abs(x[0] - 0.5) < 0.02 and abs(x[5]) < 0.05, x
     # The same problem solved by IPOPT to convergence: the toy is no special case for it either.
-    ipopt = MPC(model, dataclasses.replace(settings, solver="ipopt"), goal, low, high)
+    ipopt = MPC(model, dataclasses.replace(settings, solver="ipopt"), goal, low, high, goal_set=HOVER)
     start = np.array([0.0, np.cos(0.2), np.sin(0.2), 0.0, 0.0, 0.0, 0.5, 0.0, 0.0])
     u, info = ipopt(start)
     assert info["success"] and np.all(u >= low) and np.all(u <= high) and u[0] > ipopt.target_control[0] + 1.0
     with pytest.raises(ValueError, match="step's own equations"):  # the toy has no step_residual
-        rti.RealTimeMPC(model, settings.updated(rti={"dynamics": "implicit"}), goal, low, high)
+        rti.RealTimeMPC(model, settings.updated(rti={"dynamics": "implicit"}), goal, low, high, goal_set=HOVER)

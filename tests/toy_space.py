@@ -1,7 +1,7 @@
 """A toy configuration space R¹ × S³, defined only in the tests: a bead of mass ``m`` on a vertical
 rail (position ``s``, up; a spring of stiffness ``k`` to ``s = 0``, gravity ``g``, a control force
 ``u₀``) carrying a body on a pivot (``q``, ``ω``; torques ``u₁…``). State ``(s, q, ṡ, ω)`` (9
-entries), ``StateLayout(before=1, after=4)``.
+entries): the blocks ``(Slide(), Ball())``.
 
 The step is separable: the rail by Velocity-Verlet under ``u₀ − k s − m g``, the rotation by the
 S³ step (:func:`fvin_mpc.core.fvin.fvin_step`) on S³ terms. Nothing here edits a package module:
@@ -19,11 +19,12 @@ import numpy as np
 
 from fvin_mpc.core import fvin, networks
 from fvin_mpc.core.backend import Ops
+from fvin_mpc.core.blocks import Ball, Slide
 from fvin_mpc.core.rigid_body import PivotedRigidBody
 from fvin_mpc.core.space import ConfigurationSpace, StateLayout
 
-#: ``(s, q, ṡ, ω)``: one Euclidean entry before the quaternion, ``ṡ`` and ``ω`` after it.
-RAIL_LAYOUT = StateLayout(before=1, after=4, name="(s, q, ṡ, ω)")
+#: ``(s, q, ṡ, ω)``: the rail's position and the body's attitude, then their rates.
+RAIL_LAYOUT = StateLayout((Slide(label="rail"), Ball()), name="(s, q, ṡ, ω)")
 #: The toy's model variants: its rotation's S3FVIN variant (the default first).
 TOY_VARIANTS = ("sign-invariant", "plain")
 
@@ -137,6 +138,6 @@ def toy_learned_terms(weights: Mapping[str, Any], config: ToyConfig, ops: Ops) -
 
 TOY = ConfigurationSpace(
     name="R1xS3-toy", description="R¹ × S³ (a toy: a bead on a rail carrying a pivoted body)", layout=RAIL_LAYOUT,
-    config_type=ToyConfig, pivoted=False, variants=TOY_VARIANTS, _step=toy_step, _energy=toy_energy,
+    config_type=ToyConfig, variants=TOY_VARIANTS, _step=toy_step, _energy=toy_energy,
     _learned_terms=toy_learned_terms, _weight_shapes=toy_weight_shapes, _init_weights=toy_init_weights,
 )

@@ -80,11 +80,10 @@ import casadi as ca
 import numpy as np
 
 from fvin_mpc.control.model_export import ExportedModel, compile_functions
-from fvin_mpc.control.rti import local_state
 from fvin_mpc.core import s3
 from fvin_mpc.core.backend import get_ops
 from fvin_mpc.core.model_parameters import GAIN_SCALE, LOW_RANK_PREFIX
-from fvin_mpc.core.space import R3S3, S3, chart_local
+from fvin_mpc.core.space import R3S3, S3
 
 CA = get_ops("casadi")
 #: The smallest value ``mass`` and a gain may take: a tenth of the model's (the largest: ten times).
@@ -153,10 +152,16 @@ def low_rank_names(model: ExportedModel) -> tuple[str, ...]:
                  for name in block.flat_names)
 
 
+def _pivot_estimator(model: ExportedModel) -> bool:
+    """Whether ``model`` takes the pivoted body's estimator (S³ terms: mass, gains, damping) rather than the free
+    body's (its run-time parameter blocks)."""
+    return model.space is S3
+
+
 def nominal_estimate(model: ExportedModel) -> dict[str, float]:
     """The estimate that leaves ``model`` as it is, pivoted (:func:`nominal_parameters`) or free (every scale 1,
     every low-rank correction 0)."""
-    if model.space.pivoted:
+    if _pivot_estimator(model):
         return nominal_parameters(model.control_dim)
     additive = set(low_rank_names(model))
     return {name: 0.0 if name in additive else 1.0 for name in free_body_parameter_names(model)}
@@ -205,9 +210,7 @@ def free_body_residual(model: ExportedModel) -> ca.Function:
     theta = ca.SX.sym("theta", len(free_body_parameter_names(model)))
     p = ca.vertcat(*free_body_vector(model, [theta[i] for i in range(theta.shape[0])]))
     predicted = model.parametric_step(x, u, p)[0]
-    delta = local_state(layout, predicted, x_next)
-    a = layout.before
-    r = ca.vertcat(delta[:a] / h, 2.0 * delta[a:a + 3] / h, delta[a + 3:])
+    r = layout.rates_over_step(layout.local(predicted, x_next, CA), h, CA)
     return ca.Function("free_body_residual", [x, u, x_next, theta], [r, ca.jacobian(r, theta)],
                        ["x", "u", "x_next", "p"], ["r", "dr_dp"])
 
@@ -253,15 +256,12 @@ def prediction_residual(model: ExportedModel) -> ca.Function:
     model.require(S3, by="the parameter estimator")
     if model.casadi_terms is None:
         raise ValueError(f"model {model.name!r} has no rigid-body terms to put parameters on")
-    m = model.control_dim
-    x, x_next = ca.SX.sym("x", 7), ca.SX.sym("x_next", 7)
+    layout, m = S3.layout, model.control_dim
+    x, x_next = ca.SX.sym("x", layout.state_dim), ca.SX.sym("x_next", layout.state_dim)
     u, p = ca.SX.sym("u", m), ca.SX.sym("p", len(parameter_names(m)))
     terms = ScaledTerms(model.casadi_terms, [p[i] for i in range(p.shape[0])])
     predicted, _ = S3.step(x, u, terms, model.step_size, model.newton_iters, CA)
-    q_pred = tuple(predicted[i] for i in range(4))
-    q_meas = tuple(x_next[i] for i in range(4))
-    rotation = chart_local(q_pred, q_meas)
-    r = ca.vertcat(*[2.0 * c / model.step_size for c in rotation], x_next[4:7] - predicted[4:7])
+    r = layout.rates_over_step(layout.local(predicted, x_next, CA), model.step_size, CA)
     return ca.Function("prediction_residual", [x, u, x_next, p], [r, ca.jacobian(r, p)],
                        ["x", "u", "x_next", "p"], ["r", "dr_dp"])
 
@@ -288,7 +288,7 @@ def default_free(model: ExportedModel) -> tuple[str, ...]:
     denser). A free body's ``inertia`` and gains are opt-in: on the quadrotor's payload they track as the mass
     alone does, and four free gains track a worn rotor worse than it (1.62× against 1.20× the unchanged craft's
     figure-eight error, docs/adaptation.md)."""
-    return ("mass", "damping") if model.space.pivoted else ("mass",)
+    return ("mass", "damping") if _pivot_estimator(model) else ("mass",)
 
 
 #: The identity orientation as a one-sample NumPy quaternion, where a model's constant terms are read.
@@ -361,7 +361,7 @@ class ParameterEstimator:
     def __init__(self, model: ExportedModel, free: Sequence[str] | None = None,
                  initial: Mapping[str, float] | None = None, damping: float = 1e-3,
                  min_effect: float | None = None, compiled_window: int | None = None) -> None:
-        pivoted = model.space.pivoted
+        pivoted = _pivot_estimator(model)
         self.names = parameter_names(model.control_dim) if pivoted else free_body_parameter_names(model)
         free = default_free(model) if free is None else expand_free(model, free)
         unknown = [name for name in (*free, *(initial or {})) if name not in self.names]
@@ -531,7 +531,7 @@ def rti_parameters(model: ExportedModel, estimate: Mapping[str, float]) -> np.nd
     the dissipation ``(D + 2·damping·I) / mass`` (module docstring, "In the loop"); every other block at the
     model's own value. ``ValueError`` for a non-zero ``damping`` on a model with no dissipation block. A free
     body's estimate (``mass``, ``inertia``, ``gain<i>``) maps block by block (:func:`free_body_vector`)."""
-    if not model.space.pivoted:
+    if not _pivot_estimator(model):
         names = free_body_parameter_names(model)
         return model.model_parameters.check(free_body_vector(model, [float(estimate[name]) for name in names]))
     parameters = model.model_parameters
@@ -584,9 +584,9 @@ class AdaptiveRTI:
     def __init__(self, controller: Any, window: int = 40, free: Sequence[str] | None = None,
                  min_effect: float | None = None) -> None:
         model = controller.model
-        if free is None and model.space.pivoted:
+        if free is None and _pivot_estimator(model):
             free = ("mass", "damping") if dissipation_block(model) is not None else ("mass",)
-        if model.space.pivoted and "damping" in free and dissipation_block(model) is None:
+        if _pivot_estimator(model) and "damping" in free and dissipation_block(model) is None:
             raise ValueError(f"model {model.name!r} has no dissipation among its run-time parameters; an "
                              f"estimated damping could not reach the controller: leave 'damping' out of free")
         self.controller = controller

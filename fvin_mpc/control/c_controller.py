@@ -65,6 +65,7 @@ from fvin_mpc.control.problem import ConstantReference, Reference
 from fvin_mpc.control.rti import LOOP_SOURCE, RTI_COLD_ORDER, RealTimeMPC
 from fvin_mpc.core import s3
 from fvin_mpc.core.backend import get_ops
+from fvin_mpc.core.blocks import Hinge, single_attitude
 from fvin_mpc.core.errors import FvinMpcError
 
 CA = get_ops("casadi")
@@ -138,6 +139,11 @@ def check_exportable(controller: RealTimeMPC) -> None:
     if s.qp_solver != "riccati":
         raise ControllerNotExportable(f"RTIOptions.qp_solver={s.qp_solver!r}: only the generated Riccati "
                                       "interior-point QP ('riccati') is generated as C")
+    if "goal" in controller.settings.cold_starts and controller.goal_set.attitude_at_rest \
+            and single_attitude(controller.layout) is None:
+        raise ControllerNotExportable(f"the C driver's upright goal guess turns one attitude; the state "
+                                      f"{controller.layout.name} has {len(controller.layout.quaternions)}: leave "
+                                      "'goal' out of cold_starts")
     names = tuple(function.name() for function in controller.loop_functions)
     if names != LOOP_FUNCTION_NAMES:
         raise ControllerNotExportable(f"the controller's loop functions are {names}, the C driver calls "
@@ -150,19 +156,20 @@ def goal_guess_function(controller: RealTimeMPC) -> ca.Function:
     reference states, the attitude turned from the measured one to the reference's along the geodesic
     over the first third of the horizon, at rest in ``ω``; the controls the reference's targets."""
     layout, n, m = controller.layout, controller.horizon, controller.model.control_dim
-    qs, omega = layout.quaternion, layout.omega
+    attitude = layout.attitude(by="the goal first guess")
     x0, references = ca.SX.sym("x0", layout.state_dim), ca.SX.sym("R", layout.state_dim, n + 1)
     targets = ca.SX.sym("u_s", m, n)
-    q0 = tuple(x0[i] for i in range(qs.start, qs.stop))
+    q0 = tuple(ca.vertsplit(x0[attitude.quaternion]))
     columns = [x0]
     for k in range(1, n + 1):
-        q_ref = tuple(references[i, k] for i in range(qs.start, qs.stop))
+        q_ref = tuple(ca.vertsplit(references[attitude.quaternion, k]))
         q_ref = s3.scale(ca.if_else(s3.dot(q_ref, q0) >= 0, 1.0, -1.0), q_ref)  # on q0's side of S³
         turn = s3.log(s3.multiply(s3.conjugate(q0), q_ref), CA)
         weight = min(max(k / max(1, n // 3), 0.0), 1.0)
-        turned = s3.multiply(q0, s3.exp(tuple(weight * t for t in turn), CA))
-        columns.append(ca.vertcat(references[:qs.start, k], *turned, references[qs.stop:omega.start, k],
-                                  ca.SX.zeros(3)))
+        column = list(ca.vertsplit(references[:, k]))
+        column[attitude.quaternion] = s3.multiply(q0, s3.exp(tuple(weight * t for t in turn), CA))
+        column[attitude.omega] = [ca.SX(0)] * 3
+        columns.append(ca.vertcat(*column))
     return ca.Function("rti_goal_guess", [x0, references, targets], [ca.horzcat(*columns), targets],
                        ["x0", "R", "u_s"], ["X", "U"])
 
@@ -178,7 +185,7 @@ def generated_functions(controller: RealTimeMPC) -> list[ca.Function]:
 
 
 def free_goal_guess(controller: RealTimeMPC) -> bool:
-    return "goal" in controller.settings.cold_starts and not controller.model.space.pivoted
+    return "goal" in controller.settings.cold_starts and not controller.goal_set.attitude_at_rest
 
 
 def dense_outputs(function: ca.Function) -> ca.Function:
@@ -200,6 +207,29 @@ def _literal(values: Any) -> str:
     return ", ".join(repr(float(v)) for v in np.ravel(values))
 
 
+def _int_array(name: str, values: list[int]) -> str:
+    """A C array of ints (ISO C has no empty arrays: an unused ``-1`` where there are none)."""
+    return f"static const int {name}[{max(1, len(values))}] = {{{', '.join(map(str, values or [-1]))}}};"
+
+
+def block_table(layout: Any) -> list[str]:
+    """The state's blocks as the C driver reads them (``fvin_controller.c``): where the rates start, every
+    unit quaternion's first entry, the angular rates, the hinge angles, and the one body attitude (``-1`` where
+    the state has none or several)."""
+    quaternions = [quaternion.start for quaternion in layout.quaternions]
+    angular = list(np.arange(layout.state_dim)[layout.angular_rates])
+    hinges = [slot.position.start for slot in layout.slots if isinstance(slot.block, Hinge)]
+    attitude = single_attitude(layout)
+    return [
+        f"#define FVC_NPOS {layout.positions.stop}",
+        f"#define FVC_NQUAT {len(quaternions)}", _int_array("fvc_quaternions", quaternions),
+        f"#define FVC_NANGULAR {len(angular)}", _int_array("fvc_angular", [int(i) for i in angular]),
+        f"#define FVC_NHINGE {len(hinges)}", _int_array("fvc_hinges", hinges),
+        f"#define FVC_ATTITUDE {-1 if attitude is None else attitude.quaternion.start}",
+        f"#define FVC_ATTITUDE_OMEGA {-1 if attitude is None else attitude.omega.start}",
+    ]
+
+
 def config_header(controller: RealTimeMPC, example_state: np.ndarray) -> str:
     """``fvc_config.h``: the dimensions and the settings the driver reads, as C constants."""
     s, layout, m = controller.settings, controller.layout, controller.model.control_dim
@@ -211,7 +241,7 @@ def config_header(controller: RealTimeMPC, example_state: np.ndarray) -> str:
         "/* Generated by fvin_mpc.control.c_controller for model " + repr(controller.model.name) + ". */",
         "#ifndef FVC_CONFIG_H", "#define FVC_CONFIG_H",
         f"#define FVC_N {controller.horizon}", f"#define FVC_NS {layout.state_dim}",
-        f"#define FVC_ND {layout.tangent_dim}", f"#define FVC_M {m}", f"#define FVC_BEFORE {layout.before}",
+        f"#define FVC_ND {layout.tangent_dim}", f"#define FVC_M {m}", *block_table(layout),
         f"#define FVC_IMPLICIT {int(rti.dynamics == 'implicit')}",
         f"#define FVC_FREE_GOAL_GUESS {int(free_goal_guess(controller))}",
         f"#define FVC_MAX_ITER {rti.max_iter}", f"#define FVC_COLD_ITER {rti.cold_iter}",
@@ -264,8 +294,8 @@ def write_controller(controller: RealTimeMPC, directory: str | Path, example_sta
     (directory / "fvc_kernels.c").write_text(kernels_source(controller))
     if example_state is None:
         example_state = controller.goal_state.copy()
-        if controller.rest is not None and controller.model.space.pivoted:
-            example_state[controller.layout.quaternion] = controller.rest
+        if controller.rest_state is not None and controller.goal_set.attitude_at_rest:
+            example_state = controller.rest_state.copy()
     (directory / "fvc_config.h").write_text(config_header(controller, np.asarray(example_state, dtype=float)))
     template = resources.files("fvin_mpc.control") / "c_template"
     for name in TEMPLATE_FILES:

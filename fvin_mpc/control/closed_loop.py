@@ -203,7 +203,7 @@ def run_episode(env: Any, controller: Controller, duration_s: float, reset_optio
     set_time = getattr(controller, "set_time", None)
     observe_applied = getattr(controller, "observe_applied", None)
     frames = [env.render()] if render else []
-    layout = base.space.layout
+    attitude = base.space.layout.attitude(by="an episode's record (q, ω)")
     observations = [observation]
     angle, energy, times = [info["angle_from_goal"]], [info["energy"]], [info["time"]]
     controls, rewards, wall, success, fallback, recorded = [], [], [], [], [], []
@@ -284,8 +284,8 @@ def run_episode(env: Any, controller: Controller, duration_s: float, reset_optio
     states = np.array(observations)
     episode = Episode(
         time=np.asarray(times) - times[0],
-        q=states[:, layout.quaternion],
-        omega=states[:, layout.omega],
+        q=states[:, attitude.quaternion],
+        omega=states[:, attitude.omega],
         u=np.array(controls),
         angle_from_goal=np.array(angle),
         energy=np.array(energy),

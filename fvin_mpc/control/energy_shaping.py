@@ -33,9 +33,15 @@ import scipy.linalg
 from fvin_mpc.core import fvin, s3
 from fvin_mpc.core.backend import get_ops
 from fvin_mpc.core.space import S3
-from fvin_mpc.core.state import split_state, unit_quaternion
+from fvin_mpc.core.state import unit_quaternion
 
 NP = get_ops("numpy")
+#: The law is written on S³ terms: a pivoted body's ``(q, ω)``.
+_ATTITUDE = S3.layout.attitude(by="energy shaping")
+
+
+def _split(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    return x[_ATTITUDE.quaternion], x[_ATTITUDE.omega]
 
 
 class EnergyShapingNotApplicable(ValueError):
@@ -126,7 +132,7 @@ class EnergyShapingController:
     # ------------------------------------------------------------------ model
     def energy(self, x: np.ndarray) -> float:
         """The model's ``½ωᵀJω + U(q)`` of a state ``x = (q, ω)`` ``(7,)``."""
-        q, omega = split_state(np.asarray(x, dtype=float))
+        q, omega = _split(np.asarray(x, dtype=float))
         return float(fvin.total_energy(tuple(q), tuple(omega), self.terms))
 
     def _step(self, q: np.ndarray, omega: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -142,7 +148,7 @@ class EnergyShapingController:
 
     def reduced_state(self, x: np.ndarray) -> np.ndarray:
         """The LQR's coordinates of a state ``x = (q, ω)`` ``(7,)`` (see :class:`LQRDesign`)."""
-        return self._reduced_state(*split_state(S3.check(x)))
+        return self._reduced_state(*_split(S3.check(x)))
 
     def _lqr(self) -> LQRDesign:
         r = self.actuated_basis.shape[1]
@@ -174,7 +180,7 @@ class EnergyShapingController:
         """The control for the measured state ``x = (q, ω)`` ``(7,)`` (validated by
         ``StateLayout.check``, the controllers' shared input policy)."""
         x = S3.check(x)
-        q, omega = split_state(x)
+        q, omega = _split(x)
         angle = float(s3.geodesic_angle(tuple(self.goal), tuple(q), NP))
         threshold = self.settings.release_angle if self.catching else self.settings.catch_angle
         self.catching = angle < threshold

@@ -99,7 +99,8 @@ class StopWhenHeld:
         observation, reward, terminated, truncated, info = self.env.step(action)
         base = self.env.unwrapped
         angle = (
-            info["angle_from_goal"] if self.how == "orientation" else float(tilt_angles(base, [base.state()[:4]])[0])
+            info["angle_from_goal"] if self.how == "orientation"
+            else float(tilt_angles(base, [base.state()[base.space.layout.attitude(by="tilt").quaternion]])[0])
         )
         if angle <= HOLD_TOLERANCE:
             self._since = info["time"] if self._since is None else self._since

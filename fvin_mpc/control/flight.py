@@ -111,7 +111,8 @@ def quadrotor_mpc(env: Any, model: ExportedModel, settings: MPCSettings | None =
     base = env.unwrapped
     settings = quadrotor_mpc_settings() if settings is None else settings
     controller = RealTimeMPC if settings.solver == "rti" else MPC
-    return controller(model, settings, base.goal_state, base.torque_low, base.torque_high)
+    return controller(model, settings, base.goal_state, base.torque_low, base.torque_high,
+                      goal_set=base.scene_spec.goal_set)
 
 
 def hover_reference(env: Any) -> ConstantReference:
@@ -289,10 +290,10 @@ def flight_metrics(episode: Any, reference: Any, settle_s: float = 0.0,
     """
 
     states = episode.states
-    layout = R3S3.layout
+    free = R3S3.layout.free_body(by="a flight's metrics")
     wanted, _ = reference(episode.time)
-    position_error = np.linalg.norm(states[:, :3] - wanted[:, :3], axis=1)
-    cosine = np.clip(np.abs(np.sum(states[:, layout.quaternion] * wanted[:, layout.quaternion], axis=1)), 0.0, 1.0)
+    position_error = np.linalg.norm(states[:, free.position] - wanted[:, free.position], axis=1)
+    cosine = np.clip(np.abs(np.sum(states[:, free.quaternion] * wanted[:, free.quaternion], axis=1)), 0.0, 1.0)
     angle = 2.0 * np.arccos(cosine)
     outside = np.flatnonzero((position_error >= position_tolerance) | (angle >= angle_tolerance))
     if outside.size == 0:
@@ -308,7 +309,7 @@ def flight_metrics(episode: Any, reference: Any, settle_s: float = 0.0,
         "rms_position_m": float(np.sqrt(np.mean(position_error[window] ** 2))),
         "max_position_m": float(position_error[window].max()),
         "final_position_m": float(position_error[-1]), "final_angle_rad": float(angle[-1]),
-        "max_speed_mps": float(np.linalg.norm(states[:, 7:10], axis=1).max()),
+        "max_speed_mps": float(np.linalg.norm(states[:, free.velocity], axis=1).max()),
         **{key: controller[key] for key in ("solve_time_ms", "cpu_time_ms_median", "latency", "deadline_misses",
                                              "first_period_missed", "skipped_observations", "controller_failures",
                                              "control_period_s", "duration_s")},

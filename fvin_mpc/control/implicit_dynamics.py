@@ -45,6 +45,10 @@ import casadi as ca
 from fvin_mpc.control.model_export import GENERATED_SX_OPTIONS
 from fvin_mpc.core import fvin, s3
 from fvin_mpc.core.backend import get_ops
+from fvin_mpc.core.space import PIVOTED
+
+#: The one attitude block of a pivoted state (the implicit dynamics are the S³ step's equations on ``(q, ω)``).
+ATTITUDE = PIVOTED.slots[0].block
 
 CA = get_ops("casadi")
 
@@ -108,10 +112,11 @@ class TermLayout:
         return ca.vertcat(*parts)
 
 
-def node_terms_function(terms: Any, retract: Any, parameters: Any = None,
+def node_terms_function(terms: Any, parameters: Any = None,
                         derivatives: bool = True) -> tuple[ca.Function, TermLayout]:
     """``node(q̄[4]) -> (T[s], ∂T/∂δ[s×3])``: the terms at ``q̄`` and their derivatives along the chart
-    ``q = retract(q̄, δ)`` at ``δ = 0``; ``terms`` on the CasADi backend. With ``parameters`` (an
+    ``q = retract(q̄, δ)`` (:data:`~fvin_mpc.core.space.PIVOTED`'s chart) at ``δ = 0``; ``terms`` on the CasADi
+    backend. With ``parameters`` (an
     :class:`~fvin_mpc.control.model_export.ExportedModel`) the terms are its :meth:`terms_at` the model
     parameters, an input: ``node(q̄, p)``. ``derivatives=False``: ``T`` alone, the same expression (the same
     to the bit)."""
@@ -121,8 +126,7 @@ def node_terms_function(terms: Any, retract: Any, parameters: Any = None,
         p = ca.SX.sym("p", parameters.model_parameters.size)
         terms = parameters.terms_at(p)
         inputs, names = [q_bar, p], ["q_bar", "p"]
-    q = retract(q_bar, delta)
-    q_components = tuple(q[i] for i in range(4))
+    q_components = ATTITUDE.retract(ca.vertsplit(q_bar), ca.vertsplit(delta), CA)
     layout = TermLayout(terms, q_components)
     flat = layout.flatten(terms, q_components)
     outputs = ca.substitute([flat, ca.jacobian(flat, delta)] if derivatives else [flat], [delta], [ca.DM.zeros(3)])
@@ -131,10 +135,10 @@ def node_terms_function(terms: Any, retract: Any, parameters: Any = None,
     return node_terms, layout
 
 
-def implicit_stage_function(terms: Any, layout: TermLayout, step_size: float, retract: Any,
+def implicit_stage_function(terms: Any, layout: TermLayout, step_size: float,
                             parameters: Any = None) -> ca.Function:
     """``stage(x̄_k, ū_k, x̄_{k+1}, d, T_k, dT_k, T_{k+1}, dT_{k+1}) -> (c[6], [A B][6×(6+m)])`` in the
-    charts of :mod:`fvin_mpc.control.rti` (``q = retract(q̄, θ)``, ``ω = ω̄ + ν``); module docstring. With
+    chart of :data:`~fvin_mpc.core.space.PIVOTED` (``q = retract(q̄, θ)``, ``ω = ω̄ + ν``); module docstring. With
     ``parameters`` (as :func:`node_terms_function`) a last input ``p``: the gain scale multiplies the
     controls and a constant inertia is the parametrized one."""
     m = terms.control_dim
@@ -143,7 +147,7 @@ def implicit_stage_function(terms: Any, layout: TermLayout, step_size: float, re
         p = ca.SX.sym("p", parameters.model_parameters.size)
         terms = parameters.terms_at(p)
         extra_inputs, extra_names = [p], ["p"]
-    x_bar, x_next_bar = ca.SX.sym("x_bar", 7), ca.SX.sym("x_next_bar", 7)
+    x_bar, x_next_bar = ca.SX.sym("x_bar", PIVOTED.state_dim), ca.SX.sym("x_next_bar", PIVOTED.state_dim)
     u_bar, d = ca.SX.sym("u_bar", m), ca.SX.sym("d", m)
     values, values_next = ca.SX.sym("T", layout.size), ca.SX.sym("T_next", layout.size)
     slopes, slopes_next = ca.SX.sym("dT", layout.size, 3), ca.SX.sym("dT_next", layout.size, 3)
@@ -151,8 +155,8 @@ def implicit_stage_function(terms: Any, layout: TermLayout, step_size: float, re
     theta_next, nu_next = ca.SX.sym("theta_next", 3), ca.SX.sym("nu_next", 3)
 
     def node(state: Any, chart: Any, velocity: Any) -> tuple[s3.Quat, s3.Vec3]:
-        q = retract(state[:4], chart)
-        return tuple(q[i] for i in range(4)), tuple(state[4 + i] + velocity[i] for i in range(3))  # type: ignore[return-value]
+        x = PIVOTED.retract(state, ca.vertcat(chart, velocity), CA)
+        return tuple(x[i] for i in range(4)), tuple(x[4 + i] for i in range(3))  # type: ignore[return-value]
 
     q, omega = node(x_bar, theta, nu)
     q_next, omega_next = node(x_next_bar, theta_next, nu_next)

@@ -69,6 +69,8 @@ from fvin_mpc.control.problem import (
 )
 from fvin_mpc.core import s3
 from fvin_mpc.core.backend import get_ops
+from fvin_mpc.core.blocks import single_attitude
+from fvin_mpc.core.goals import UPRIGHT, GoalSet, default_goal_set
 from fvin_mpc.core.state import unit_quaternion
 
 NP = get_ops("numpy")
@@ -428,7 +430,8 @@ class MPC:
     Args:
         model: the discrete-time model (``from_checkpoint`` or ``from_rigid_body``).
         settings: see :class:`MPCSettings`.
-        goal: goal orientation ``(4,)`` (either sign).
+        goal: as ``goal_set`` reads it: a goal orientation ``(4,)`` (either sign) for an upright goal, a
+            state for a hover point.
         torque_low, torque_high: control bounds ``(m,)``, e.g. the scene's ``ctrlrange``.
         rest: the orientation of the potential's minimum (hanging), which sets the energy
             scale of the terminal energy cost; needed only when ``terminal_energy_weight > 0``.
@@ -440,6 +443,9 @@ class MPC:
         cold_start_score: optional ``(states (N+1, n), controls (N, m)) -> float``: how a multi-start
             cold call ranks its successful plans (lowest wins), e.g. by an estimate of the whole
             task's cost; ``None`` (default) ranks them by the NLP's own cost, as before.
+        goal_set: what the goal is (:mod:`fvin_mpc.core.goals`; a scene declares it:
+            :func:`fvin_mpc.control.scene.scene_mpc` passes the scene's); ``None``:
+            :func:`~fvin_mpc.core.goals.default_goal_set` of the model's states.
 
     Attributes:
         compile_report: how the compiled functions were obtained (``None`` if not compiled).
@@ -451,7 +457,7 @@ class MPC:
 
     def __init__(self, model: ExportedModel, settings: MPCSettings, goal: Any, torque_low: Any, torque_high: Any,
                  rest: Any = None, terminal_cost: ca.Function | None = None,
-                 cold_start_score: Any = None) -> None:
+                 cold_start_score: Any = None, goal_set: GoalSet | None = None) -> None:
         self.model = model
         self.settings = settings
         if terminal_cost is not None:
@@ -466,20 +472,19 @@ class MPC:
                              "(fvin_mpc.control.scene.scene_mpc picks the class from the settings)")
         self.terminal_cost = terminal_cost
         self.cold_start_score = cold_start_score
-        #: where the quaternion sits in the model's states (pivoted ``(q, ω)`` or free ``(x, q, v, ω)``)
+        #: the blocks of the model's states (pivoted ``(q, ω)``, free ``(x, q, v, ω)``, a mechanism's joints)
         self.layout = model.space.layout
-        if model.space.pivoted:  # the goal is an orientation, at rest
-            goal_state = np.zeros(self.layout.state_dim)
-            goal_state[self.layout.quaternion] = unit_quaternion(goal, "goal")
-        else:  # the goal is a state: hover there
-            goal_state = self.layout.check(goal)
-            if settings.terminal_energy_weight > 0:
-                raise ValueError(f"a {self.layout.name} model takes no terminal energy term (the energy deficit "
-                                 "to an orientation at rest is written for pivoted bodies)")
+        #: what the goal is (the scene's declaration: an orientation at rest or a whole state)
+        self.goal_set = default_goal_set(self.layout) if goal_set is None else goal_set
+        goal_state = self.goal_set.goal_state(self.layout, goal)
+        if not self.goal_set.attitude_at_rest and settings.terminal_energy_weight > 0:
+            raise ValueError(f"a {self.goal_set.description} takes no terminal energy term (the energy deficit "
+                             "to an orientation at rest is written for a pivot's upright goal)")
         #: the goal state; the reference is this state at rest unless :meth:`set_reference` says otherwise
         self.goal_state = goal_state
-        #: the goal orientation (the goal state's quaternion)
-        self.goal = goal_state[self.layout.quaternion].copy()
+        attitude = single_attitude(self.layout)
+        #: the goal orientation (the goal state's attitude), ``None`` for states of several attitudes or none
+        self.goal = None if attitude is None else goal_state[attitude.quaternion].copy()
         self._reference: Reference = ConstantReference(goal_state)
         m = model.control_dim
         self.torque_low = np.broadcast_to(np.asarray(torque_low, dtype=float), (m,)).copy()
@@ -491,12 +496,14 @@ class MPC:
                                             settings.disturbance_region_speed, self.torque_low, self.torque_high,
                                             settings.free_axis)
         self.rest = None if rest is None else unit_quaternion(rest, "rest")
+        #: the rest orientation at rest, as a state (``None`` without ``rest``)
+        self.rest_state = None if rest is None else UPRIGHT.goal_state(self.layout, self.rest)
         if settings.terminal_energy_weight > 0:
             if self.rest is None:
                 raise ValueError("terminal_energy_weight > 0 needs the rest orientation (the potential's minimum), "
                                  "which sets the energy scale: pass rest=... (a scene's task has it)")
-            rest_energy = model.energy(np.concatenate([self.rest, np.zeros(3)]))
-            span = abs(model.energy(np.concatenate([self.goal, np.zeros(3)])) - rest_energy)
+            rest_energy = model.energy(self.rest_state)
+            span = abs(model.energy(goal_state) - rest_energy)
             if not span > 1e-9 * (1.0 + abs(rest_energy)):
                 raise ValueError("terminal_energy_weight > 0 needs different goal and rest energies; "
                                  f"the model gives {span:.3g} between {self.goal} and {self.rest}")
@@ -578,7 +585,7 @@ class MPC:
 
     def _update_estimate(self, x0: np.ndarray) -> None:
         """The disturbance estimate at the measured ``x0``, against the reference's attitude now."""
-        self.estimate.update(x0, self._sample_reference()[1][0, self.layout.quaternion])
+        self.estimate.update(x0, self._sample_reference()[1][0])
 
     def _predicted(self, x0: np.ndarray, u: np.ndarray) -> float:
         """Remember the model's prediction after ``u`` from ``x0`` (with ``d̂``) for the next estimate,
@@ -619,9 +626,7 @@ class MPC:
         # --- objective: the problem's residuals (control/problem.py), the ω bound hard (below)
         energy = None
         if s.terminal_energy_weight > 0:
-            rest_state = np.zeros(nx)
-            rest_state[layout.quaternion] = self.rest
-            energy = (self.model.energy_function, self.model.energy(rest_state))
+            energy = (self.model.energy_function, self.model.energy(self.rest_state))
         stage, terminal = residual_functions(layout, s, m, self.omega_bound, None, energy)
         residuals = ca.vertcat(ca.vec(stage.map(n)(states[:, :n], controls, references[:, :n], targets)),
                                terminal(states[:, n], references[:, n]))
@@ -642,7 +647,8 @@ class MPC:
         upper = np.full(decision.shape[0], np.inf)
         state_lower, control_lower = self._unpack(lower)
         state_upper, control_upper = self._unpack(upper)
-        state_lower[1:, layout.omega], state_upper[1:, layout.omega] = -self.omega_bound, self.omega_bound
+        rates = layout.angular_rates
+        state_lower[1:, rates], state_upper[1:, rates] = -self.omega_bound, self.omega_bound
         control_lower[:], control_upper[:] = control_bounds(self.torque_low, self.torque_high, n, s.torque_reserve)
         self._lower, self._upper = lower, upper
 
@@ -756,26 +762,26 @@ class MPC:
         """The plan a cold solve starts from (see :data:`COLD_STARTS`). A free body's ``"goal"``: the
         reference, the orientation turned from the measured one to the reference's along the geodesic
         over the first third of the horizon, the reference's target controls."""
-        if start == "goal" and not self.model.space.pivoted:
-            n, layout = self.horizon, self.layout
+        if start == "goal" and not self.goal_set.attitude_at_rest:
+            n, attitude = self.horizon, self.layout.attitude(by="the goal first guess")
             references, targets = self.reference_window()
             states = references.copy()
-            q0 = x0[layout.quaternion]
-            q_ref = references[:, layout.quaternion]
+            q0 = x0[attitude.quaternion]
+            q_ref = references[:, attitude.quaternion]
             q_ref = q_ref * np.where(q_ref @ q0 >= 0, 1.0, -1.0)[:, None]  # each on q0's side of S³
             relative = s3.multiply(s3.conjugate(tuple(q0)), tuple(q_ref.T))
             turn = np.array(s3.log(relative, NP))  # (3, N+1): q_ref = q0 ⊗ exp(turn)
             weights = np.clip(np.arange(n + 1) / max(1, n // 3), 0.0, 1.0)
-            states[:, layout.quaternion] = np.array(s3.multiply(tuple(q0), s3.exp(tuple(weights * turn), NP))).T
-            states[:, layout.omega] = 0.0
+            states[:, attitude.quaternion] = np.array(s3.multiply(tuple(q0), s3.exp(tuple(weights * turn), NP))).T
+            states[:, attitude.omega] = 0.0
             states[0] = x0
             return Plan(states, targets.copy(), None, None)
         if start == "goal":
             # Sums in order and libm's sin and acos (math, not NumPy's own SIMD versions): the C driver's
             # goal_guess computes the same, and a cold start from it converged to controls 2e-13 apart
             # that the ball joint's swing-up amplified past 1e-9 (tests/test_c_controller.py).
-            n = self.horizon
-            q0 = [float(value) for value in x0[:4]]
+            n, attitude = self.horizon, self.layout.attitude(by="the goal first guess")
+            q0 = [float(value) for value in x0[attitude.quaternion]]
             sign = 1.0 if float(ordered_matvec(np.array([q0]), self.goal)[0]) >= 0 else -1.0
             goal = [sign * float(value) for value in self.goal]
             angle = math.acos(min(max(float(ordered_matvec(np.array([q0]), goal)[0]), -1.0), 1.0))
@@ -786,7 +792,8 @@ class MPC:
                 quaternions[k] = q0 if angle < 1e-9 else [  # slerp
                     (math.sin((1 - weight) * angle) * a + math.sin(weight * angle) * b) / math.sin(angle)
                     for a, b in zip(q0, goal)]
-            states = np.concatenate([quaternions, np.zeros((n + 1, 3))], axis=1)
+            states = np.zeros((n + 1, self.layout.state_dim))
+            states[:, attitude.quaternion] = quaternions
             states[0] = x0
             return Plan(states, np.zeros((n, self.model.control_dim)), None, None)
         sign = 1.0 if start == "rollout+" else -1.0
@@ -796,8 +803,8 @@ class MPC:
         """The model rolled out under the constant ``torque`` (clipped to the bounds), ω clipped to its bound."""
         controls = np.clip(np.tile(torque, (self.horizon, 1)), self.torque_low, self.torque_high)
         states = self._rollout(x0, controls)
-        omega = self.layout.omega
-        states[1:, omega] = np.clip(states[1:, omega], -self.omega_bound, self.omega_bound)
+        rates = self.layout.angular_rates
+        states[1:, rates] = np.clip(states[1:, rates], -self.omega_bound, self.omega_bound)
         return Plan(states, controls, None, None)
 
     def _rollout(self, x0: np.ndarray, controls: np.ndarray) -> np.ndarray:

@@ -31,6 +31,7 @@ The dynamics ``x_{k+1} = F(x_k, u_k + d̂)`` carry the same input-disturbance es
 
 from __future__ import annotations
 
+import math
 from typing import Any, Callable, Protocol
 
 import casadi as ca
@@ -39,6 +40,7 @@ import numpy as np
 from fvin_mpc.control.model_export import GENERATED_SX_OPTIONS
 from fvin_mpc.core import s3
 from fvin_mpc.core.backend import get_ops
+from fvin_mpc.core.blocks import Ball, BlockSlots, FreeJoint, Hinge, Slide
 from fvin_mpc.core.space import StateLayout
 
 CA = get_ops("casadi")
@@ -75,6 +77,39 @@ def free_axis_projector(free_axis: Any) -> np.ndarray:
     return np.eye(3) - np.outer(n, n)
 
 
+def _position_errors(slot: BlockSlots, x: Any, reference: Any, settings: Any) -> list[tuple[str, Any]]:
+    """A block's configuration residuals against the reference, each with its unit (which weight it takes): a
+    slide's offset, a hinge's ``2 sin(Δθ/2)`` (wrap-free), an attitude's :func:`orientation_error`."""
+    block, part, goal = slot.block, x[slot.position], reference[slot.position]
+    if isinstance(block, Slide):
+        return [("position", part - goal)]
+    if isinstance(block, Hinge):
+        return [("angle", 2.0 * ca.sin(0.5 * (part - goal)))]
+    if isinstance(block, Ball):
+        return [("angle", orientation_error(part, goal, settings.orientation_residual, settings.free_axis))]
+    if isinstance(block, FreeJoint):
+        return [("position", part[:3] - goal[:3]),
+                ("angle", orientation_error(part[3:], goal[3:], settings.orientation_residual, settings.free_axis))]
+    raise ValueError(f"the control problem has no cost for a {block.kind} block")
+
+
+def _rate_errors(slot: BlockSlots, x: Any, reference: Any, free_axis: Any) -> list[tuple[str, Any]]:
+    """A block's rate residuals against the reference, by unit; an attitude's spin about a free axis costs
+    nothing (a body rate ``ω`` is in the body frame, as the axis is)."""
+    units = ["angular rate" if angular else "velocity" for angular in slot.block.angular_rates]
+    errors = []
+    for start in range(len(units)):
+        if start and units[start] == units[start - 1]:
+            continue
+        stop = next((i for i in range(start, len(units)) if units[i] != units[start]), len(units))
+        rows = slice(slot.rate.start + start, slot.rate.start + stop)
+        error = x[rows] - reference[rows]
+        if free_axis is not None and slot.quaternion is not None and units[start] == "angular rate":
+            error = ca.mtimes(ca.DM(free_axis_projector(free_axis)), error)
+        errors.append((units[start], error))
+    return errors
+
+
 def residual_functions(layout: StateLayout, settings: Any, control_dim: int, omega_bound: float,
                        omega_penalty: float | None, energy: tuple[ca.Function, Any] | None, parameter_size: int = 0,
                        control_effect: Callable[[Any], Any] | None = None) -> tuple[ca.Function, ca.Function]:
@@ -82,7 +117,7 @@ def residual_functions(layout: StateLayout, settings: Any, control_dim: int, ome
     functions (module docstring).
 
     Args:
-        layout: where the quaternion sits in the states.
+        layout: the states' blocks (each block's residuals: :func:`_position_errors`, :func:`_rate_errors`).
         settings: the :class:`~fvin_mpc.control.mpc.MPCSettings` (weights, ``orientation_residual``).
         control_dim: ``m``.
         omega_bound: the bound on each ``|ω_i|``.
@@ -97,26 +132,22 @@ def residual_functions(layout: StateLayout, settings: Any, control_dim: int, ome
             (:meth:`~fvin_mpc.core.model_parameters.ModelParameters.control_effect`): the control residual
             becomes ``√w_u ⊙ effect ⊙ (u − u_s)``.
     """
-    s, a = settings, layout.before
-    qs, ws = layout.quaternion, layout.omega
-    velocity = slice(qs.stop, ws.start)
+    s = settings
     x, reference = ca.SX.sym("x", layout.state_dim), ca.SX.sym("x_ref", layout.state_dim)
     u, u_s = ca.SX.sym("u", control_dim), ca.SX.sym("u_s", control_dim)
-    goal, omega = reference[qs], x[ws]
-    attitude = orientation_error(x[qs], goal, s.orientation_residual, s.free_axis)
-    # The spin about a free axis costs nothing either (a pivoted body's ω is in its body frame).
-    spin = omega - reference[ws]
     if s.free_axis is not None:
-        spin = ca.mtimes(ca.DM(free_axis_projector(s.free_axis)), spin)
+        layout.attitude(by="a free axis (MPCSettings.free_axis)")
+    errors = [_position_errors(slot, x, reference, s) for slot in layout.slots]
+    rate_errors = [_rate_errors(slot, x, reference, s.free_axis) for slot in layout.slots]
+    rates = x[layout.angular_rates]
     excess = [] if omega_penalty is None else [
-        np.sqrt(omega_penalty) * (omega - ca.fmin(ca.fmax(omega, -omega_bound), omega_bound))]
+        np.sqrt(omega_penalty) * (rates - ca.fmin(ca.fmax(rates, -omega_bound), omega_bound))]
 
     def tracking(position_weight: float, orientation_weight: float, velocity_weight: float,
                  omega_weight: float) -> list[Any]:
-        translation = [np.sqrt(position_weight) * (x[:a] - reference[:a])] if a else []
-        rate = [np.sqrt(velocity_weight) * (x[velocity] - reference[velocity])] if a else []
-        return [*translation, np.sqrt(orientation_weight) * attitude, *rate,
-                np.sqrt(omega_weight) * spin]
+        weights = {"position": position_weight, "angle": orientation_weight, "velocity": velocity_weight,
+                   "angular rate": omega_weight}
+        return [np.sqrt(weights[unit]) * error for block in (*errors, *rate_errors) for unit, error in block]
 
     p = ca.SX.sym("p", parameter_size)
     control_weights = np.broadcast_to(np.asarray(s.control_weight, dtype=float), (control_dim,))
@@ -136,7 +167,8 @@ def residual_functions(layout: StateLayout, settings: Any, control_dim: int, ome
                 return parametric_energy(state, p)
 
             rest_energy = energy_function(rest_state)
-        goal_energy = energy_function(ca.vertcat(ca.DM.zeros(a), goal, ca.DM.zeros(layout.after)))  # at rest
+        at_rest = ca.vertcat(reference[layout.positions], ca.DM.zeros(layout.rates.stop - layout.rates.start))
+        goal_energy = energy_function(at_rest)
         terminal.append(np.sqrt(s.terminal_energy_weight) * (energy_function(x) - goal_energy)
                         / ca.fabs(goal_energy - rest_energy))
     stage_inputs = [x, u, reference, u_s, p] if parameter_size else [x, u, reference, u_s]
@@ -255,18 +287,27 @@ class DisturbanceEstimate:
         """Remember the model's prediction of the next state (after the torque just sent)."""
         self._last = (np.asarray(state, dtype=float).ravel()[self.layout.rates], np.asarray(rates_inverse, dtype=float))
 
-    def update(self, x0: np.ndarray, goal: np.ndarray) -> None:
-        """``d̂ ← d̂ + α B⁺(rates − rates_pred)`` at the measured ``x0`` (class docstring)."""
+    def update(self, x0: np.ndarray, reference: np.ndarray) -> None:
+        """``d̂ ← d̂ + α B⁺(rates − rates_pred)`` at the measured ``x0`` (class docstring), where ``x0`` is near the
+        ``reference`` state: every attitude and hinge within ``region_rad`` of it, every angular rate within
+        ``region_speed``."""
         if self.gain == 0.0 or self._last is None:
             return
         layout = self.layout
-        q, omega = x0[layout.quaternion], x0[layout.omega]
-        if self.free_axis is None:
-            angle = 2.0 * np.arccos(min(abs(float(np.dot(q, goal))), 1.0))
-        else:
-            angle = s3.axis_angle(tuple(q), tuple(goal), tuple(self.free_axis))
-            omega = free_axis_projector(self.free_axis) @ omega
-        if angle > self.region_rad or np.max(np.abs(omega)) > self.region_speed:
+        angle, speeds = 0.0, x0.copy()
+        for slot in layout.slots:
+            if slot.quaternion is not None:
+                q, goal = x0[slot.quaternion], reference[slot.quaternion]
+                if self.free_axis is None:
+                    angle = max(angle, 2.0 * np.arccos(min(abs(float(np.dot(q, goal))), 1.0)))
+                else:
+                    angle = max(angle, s3.axis_angle(tuple(q), tuple(goal), tuple(self.free_axis)))
+                    speeds[layout.attitude(by="a free axis").omega] = \
+                        free_axis_projector(self.free_axis) @ x0[layout.attitude(by="a free axis").omega]
+            elif isinstance(slot.block, Hinge):
+                turn = float(x0[slot.position][0] - reference[slot.position][0])
+                angle = max(angle, abs(math.atan2(math.sin(turn), math.cos(turn))))
+        if angle > self.region_rad or np.max(np.abs(speeds[layout.angular_rates])) > self.region_speed:
             return
         predicted, inverse = self._last
         step = ordered_matvec(inverse, x0[layout.rates] - predicted)

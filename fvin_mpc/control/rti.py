@@ -98,7 +98,7 @@ from fvin_mpc.control.mpc import MPC, MPCSettings, Plan
 from fvin_mpc.control.problem import control_bounds, predict_function, residual_functions
 from fvin_mpc.control.term_expansion import FirstOrderTerms
 from fvin_mpc.core.backend import get_ops
-from fvin_mpc.core.space import StateLayout, chart_local, chart_retract
+from fvin_mpc.core.space import StateLayout, chart_local
 
 CA, NP = get_ops("casadi"), get_ops("numpy")
 
@@ -132,43 +132,22 @@ LOOP_SOURCE = "fvc_model"
 OMEGA_VALID_FRACTION = 0.9
 
 
-# ----------------------------------------------------------------------------- S³ chart, symbolic
-# The chart itself (and its NumPy form on whole states, ``StateLayout.retract``/``local``) is the
-# configuration space's (:mod:`fvin_mpc.core.space`); these wrap it for CasADi columns.
-def retract(q_bar: Any, theta: Any) -> Any:
-    """:func:`~fvin_mpc.core.space.chart_retract` for CasADi column vectors."""
-    return ca.vertcat(*chart_retract(tuple(q_bar[i] for i in range(4)), tuple(theta[i] for i in range(3)), CA))
-
-
-def local(q_bar: Any, q: Any) -> Any:
-    """:func:`~fvin_mpc.core.space.chart_local` for CasADi column vectors."""
-    return ca.vertcat(*chart_local(tuple(q_bar[i] for i in range(4)), tuple(q[i] for i in range(4))))
-
-
-def retract_state(layout: StateLayout, x_bar: Any, delta: Any) -> Any:
-    """A state from its linearization point ``x̄`` and local coordinates ``δ`` (CasADi columns): the
-    quaternion by :func:`retract`, every other entry by addition (:meth:`StateLayout.retract`)."""
-    a, qs = layout.before, layout.quaternion
-    parts = [x_bar[:a] + delta[:a]] if a else []
-    return ca.vertcat(*parts, retract(x_bar[qs], delta[layout.chart]), x_bar[qs.stop:] + delta[a + 3:])
-
-
-def local_state(layout: StateLayout, x_bar: Any, x: Any) -> Any:
-    """The inverse of :func:`retract_state`: ``δ`` of ``x`` in ``x̄``'s chart (the same for ``±q``)."""
-    a, qs = layout.before, layout.quaternion
-    parts = [x[:a] - x_bar[:a]] if a else []
-    return ca.vertcat(*parts, local(x_bar[qs], x[qs]), x[qs.stop:] - x_bar[qs.stop:])
-
-
+# ----------------------------------------------------------------------------- the trust region
 def step_limits(layout: StateLayout, omega_step: float) -> np.ndarray:
-    """The trust region of one iteration per entry of ``δ``: :data:`STEP_LIMIT_POSITION`,
-    :data:`STEP_LIMIT_ANGLE`, :data:`STEP_LIMIT_VELOCITY`, ``omega_step`` for ``ω``."""
-    limits = np.empty(layout.tangent_dim)
-    limits[:layout.before] = STEP_LIMIT_POSITION
-    limits[layout.chart] = STEP_LIMIT_ANGLE
-    limits[layout.chart.stop:] = STEP_LIMIT_VELOCITY
-    limits[layout.tangent_omega] = omega_step
-    return limits
+    """The trust region of one iteration per entry of ``δ``, by unit (:meth:`StateLayout.tangent_limits`):
+    :data:`STEP_LIMIT_POSITION`, :data:`STEP_LIMIT_ANGLE`, :data:`STEP_LIMIT_VELOCITY`, ``omega_step`` for
+    angular rates."""
+    return layout.tangent_limits(STEP_LIMIT_POSITION, STEP_LIMIT_ANGLE, STEP_LIMIT_VELOCITY, omega_step)
+
+
+def clip_rows(matrix: Any, rows: slice | list[int], bound: float) -> Any:
+    """``matrix`` (CasADi, a state per column) with ``rows`` clipped to ``±bound``."""
+    clipped = ca.fmin(ca.fmax(matrix, -bound), bound)
+    chosen = np.zeros(matrix.shape[0], dtype=bool)
+    chosen[rows] = True
+    if isinstance(rows, slice) and rows.stop == matrix.shape[0]:  # rates last: two blocks
+        return ca.vertcat(matrix[:rows.start, :], clipped[rows.start:, :])
+    return ca.vertcat(*[clipped[i, :] if chosen[i] else matrix[i, :] for i in range(matrix.shape[0])])
 
 
 # ----------------------------------------------------------------------------- compiled QP + update
@@ -191,14 +170,14 @@ def unrolled_stage_function(step: ca.Function, layout: StateLayout, m: int, jaco
     u_bar, d = ca.SX.sym("u_bar", m), ca.SX.sym("d", m)
     delta, du = ca.SX.sym("delta", layout.tangent_dim), ca.SX.sym("du", m)
     parameters = [ca.SX.sym("p", step.size1_in(2))] if step.n_in() == 3 else []
-    x, u = retract_state(layout, x_bar, delta), u_bar + du + d
-    gap = local_state(layout, x_next_bar, step(x, u, *parameters)[0])
+    x, u = layout.retract(x_bar, delta, CA), u_bar + du + d
+    gap = layout.local(x_next_bar, step(x, u, *parameters)[0], CA)
     outputs = [gap]
     if jacobian:
         differentiated = gap
         if model is not None and model.casadi_terms is not None:
             x_next, _ = model.step_on_terms(x, u, *parameters, wrap=lambda terms: FirstOrderTerms(terms, [delta, du]))
-            differentiated = local_state(layout, x_next_bar, x_next)
+            differentiated = layout.local(x_next_bar, x_next, CA)
         outputs.append(ca.jacobian(differentiated, ca.vertcat(delta, du), {"helper_options": {"ad_weight": 1.0}}))
     outputs = ca.substitute(outputs, [delta, du], [ca.DM.zeros(layout.tangent_dim), ca.DM.zeros(m)])
     return ca.Function("rti_dynamics" if jacobian else "rti_dynamics_value", [x_bar, u_bar, x_next_bar, d, *parameters],
@@ -244,7 +223,7 @@ def stage_distance_function(layout: StateLayout, m: int, limits: np.ndarray, con
     change over ``control_range``, whichever is larger; ``here = (x̄, ū)``."""
     ns = layout.state_dim
     x_bar, u_bar, point = ca.SX.sym("x_bar", ns), ca.SX.sym("u_bar", m), ca.SX.sym("point", ns + m)
-    state_far = ca.mmax(ca.fabs(local_state(layout, point[:ns], x_bar)) / ca.DM(limits))
+    state_far = ca.mmax(ca.fabs(layout.local(point[:ns], x_bar, CA)) / ca.DM(limits))
     control_far = ca.mmax(ca.fabs(u_bar - point[ns:]) / ca.DM(control_range))
     return ca.Function("rti_stage_distance", [x_bar, u_bar, point],
                        [ca.fmax(state_far, control_far), ca.vertcat(x_bar, u_bar)], GENERATED_SX_OPTIONS)
@@ -255,7 +234,8 @@ def node_distance_function() -> ca.Function:
     alone: the rotation from the kept point's in its chart over :data:`STEP_LIMIT_ANGLE`; ``here = q̄``."""
     q_bar, point = ca.SX.sym("q_bar", 4), ca.SX.sym("point", 4)
     return ca.Function("rti_node_distance", [q_bar, point],
-                       [ca.mmax(ca.fabs(local(point, q_bar))) / STEP_LIMIT_ANGLE, q_bar], GENERATED_SX_OPTIONS)
+                       [ca.mmax(ca.fabs(ca.vertcat(*chart_local(ca.vertsplit(point), ca.vertsplit(q_bar)))))
+                        / STEP_LIMIT_ANGLE, q_bar], GENERATED_SX_OPTIONS)
 
 
 def relinearized(items: int, every: int, head: int) -> np.ndarray:
@@ -483,7 +463,7 @@ def riccati_feedback_function(layout: StateLayout, n: int, m: int, low: np.ndarr
     x0, hessians, terminal_hessian = ca.MX.sym("x0", ns), ca.MX.sym("H", size, size * n), ca.MX.sym("HN", nd, nd)
     gradients, terminal_gradient = ca.MX.sym("g", size, n), ca.MX.sym("gN", nd)
     jacobians, gaps = ca.MX.sym("AB", nd, size * n), ca.MX.sym("c", nd, n)
-    delta0 = local_state(layout, states[:, 0], x0)
+    delta0 = layout.local(states[:, 0], x0, CA)
     lower = ca.fmax(ca.DM(np.maximum(stage_low, -1e6)) - controls, -1e6)
     upper = ca.fmin(ca.DM(np.minimum(stage_high, 1e6)) - controls, 1e6)
     width = upper - lower
@@ -633,14 +613,12 @@ def _trust_region_update(layout: StateLayout, states: Any, controls: Any, x0: An
     and the step's size (largest ``|Δu|`` over the control range or ``|δ|`` over the trust region)."""
     ns, nd = layout.state_dim, layout.tangent_dim
     x_bar, step_k = ca.SX.sym("x_bar", ns), ca.SX.sym("step", nd)
-    retracted = ca.Function("rti_retract", [x_bar, step_k], [retract_state(layout, x_bar, step_k)],
+    retracted = ca.Function("rti_retract", [x_bar, step_k], [layout.retract(x_bar, step_k, CA)],
                             GENERATED_SX_OPTIONS).map(n)
     bound = ca.repmat(ca.DM(limits), 1, n)
     steps = ca.fmin(ca.fmax(deltas, -bound), bound)
     moved = retracted(states[:, 1:], steps)
-    omega = ns - 3
-    clipped_omega = ca.fmin(ca.fmax(moved[omega:, :], -omega_valid), omega_valid)
-    new_states = ca.horzcat(x0, ca.vertcat(moved[:omega, :], clipped_omega))
+    new_states = ca.horzcat(x0, clip_rows(moved, layout.angular_rates, omega_valid))
     new_controls = ca.fmin(ca.fmax(controls + v, ca.DM(stage_low)), ca.DM(stage_high))
     step = ca.fmax(ca.mmax(ca.fabs(v) / ca.DM(np.minimum(stage_high - stage_low, 1e6))),
                    ca.mmax(ca.fabs(steps) / bound))
@@ -661,7 +639,8 @@ class RealTimeMPC(MPC):
     _solves_rti = True
 
     def __init__(self, model: ExportedModel, settings: MPCSettings, goal: Any, torque_low: Any, torque_high: Any,
-                 rest: Any = None, terminal_cost: Any = None, cold_start_score: Any = None) -> None:
+                 rest: Any = None, terminal_cost: Any = None, cold_start_score: Any = None,
+                 goal_set: Any = None) -> None:
         # Features of the problem the real-time iteration cannot honour are refused, never ignored.
         if terminal_cost is not None:
             raise ValueError("the real-time iteration takes no terminal_cost hook (its QP is the Gauss–Newton "
@@ -671,23 +650,23 @@ class RealTimeMPC(MPC):
                              "cold_start_score needs solver='ipopt', 'sqpmethod' or 'fatrop'")
         if settings.solver != "rti":
             settings = replace(settings, solver="rti")
-        super().__init__(model, settings, goal, torque_low, torque_high, rest)
+        super().__init__(model, settings, goal, torque_low, torque_high, rest, goal_set=goal_set)
         self._cold_mpc = None
         if settings.rti.cold_solver == "ipopt":
             self._cold_mpc = MPC(model, replace(settings, solver="ipopt"), goal, torque_low,
-                                 torque_high, rest)
+                                 torque_high, rest, goal_set=goal_set)
 
     # ------------------------------------------------------------------ problem
     def _build(self) -> None:
         s, n, m, layout = self.settings, self.horizon, self.model.control_dim, self.layout
-        ns, nd, qs = layout.state_dim, layout.tangent_dim, layout.quaternion
+        ns, nd = layout.state_dim, layout.tangent_dim
         stage_size = nd + m
 
         x_bar = ca.SX.sym("x_bar", ns)
         u_bar, u_s = ca.SX.sym("u_bar", m), ca.SX.sym("u_s", m)
         reference = ca.SX.sym("reference", ns)  # the stage's reference state
         delta, du = ca.SX.sym("delta", nd), ca.SX.sym("du", m)
-        x = retract_state(layout, x_bar, delta)
+        x = layout.retract(x_bar, delta, CA)
         u = u_bar + du
         zero = [ca.DM.zeros(nd), ca.DM.zeros(m)]
 
@@ -711,10 +690,10 @@ class RealTimeMPC(MPC):
                                  f"{self.model.space.description} space does not provide, and rigid-body terms "
                                  f"(model {self.model.name!r}); use rti.dynamics='unrolled'")
             parametrized = self.model if parametric else None
-            node_terms, term_layout = implicit_dynamics.node_terms_function(self.model.casadi_terms, retract,
+            node_terms, term_layout = implicit_dynamics.node_terms_function(self.model.casadi_terms,
                                                                             parametrized)
             implicit_stage = implicit_dynamics.implicit_stage_function(self.model.casadi_terms, term_layout,
-                                                                       self.model.step_size, retract, parametrized)
+                                                                       self.model.step_size, parametrized)
         else:
             step = self.model.parametric_step if parametric else self.model.step
             stage_dynamics = unrolled_stage_function(step, layout, m, model=self.model)
@@ -725,7 +704,7 @@ class RealTimeMPC(MPC):
         self._step_limits = step_limits(layout, STEP_LIMIT_OMEGA * self.omega_bound)
         tolerance = s.rti.relinearize_tol
         if implicit:
-            node_values, _ = implicit_dynamics.node_terms_function(self.model.casadi_terms, retract, parametrized,
+            node_values, _ = implicit_dynamics.node_terms_function(self.model.casadi_terms, parametrized,
                                                                    derivatives=False)
             item_function = renewing_item_function(
                 "rti_node_terms_renewing", kept_jacobian_switch("rti_node_terms_select", node_terms, node_values),
@@ -798,6 +777,7 @@ class RealTimeMPC(MPC):
         references, d_mx, u_s_mx = ca.MX.sym("R", ns, n + 1), ca.MX.sym("d", m), ca.MX.sym("u_s", m, n)
         if implicit:  # the terms once per node, each stage reads its two nodes'
             node_parameters = [ca.repmat(p_mx, 1, n + 1)] if parametric else []
+            qs = layout.attitude(by="the implicit dynamics").quaternion
             values, slopes, points_out = item_function.map(n + 1)(fresh_mx, states[qs, :], *node_parameters, kept_mx,
                                                                   points_mx)
             gaps, jacobians = implicit_stage.map(n)(states[:, :n], controls, states[:, 1:], ca.repmat(d_mx, 1, n),
@@ -851,7 +831,9 @@ class RealTimeMPC(MPC):
         # a period's further iterations renew only what moved — unless every item is renewed every time
         self._renewed_further = np.ones(items) if s.rti.relinearize_every == 1 else np.zeros(items)
         no_points = np.zeros((items, point_size))
-        no_points[:, qs.start if not implicit else 0] = 1.0  # unit quaternions: a distance from them is finite
+        # unit quaternions where the points hold them: a distance from them is finite
+        for first in [0] if implicit else [quaternion.start for quaternion in layout.quaternions]:
+            no_points[:, first] = 1.0
         self._nothing_kept = (np.zeros((kept_rows, kept_width * items)), no_points.T.copy())
         self._plan_jacobians: tuple[np.ndarray, np.ndarray] | None = None
         self._control_bounds = control_bounds(self.torque_low, self.torque_high, n, s.torque_reserve)
@@ -910,7 +892,7 @@ class RealTimeMPC(MPC):
             # Both ends of a stage on one sheet of S³, as the exported step continues q_k: a model
             # whose terms are not sign-invariant reads them at each node's own sign (the measured
             # state's sign can differ from the plan's). The same rotations, the same charts.
-            quaternions = plan.states[:, self.layout.quaternion]
+            quaternions = plan.states[:, self.layout.attitude(by="the implicit dynamics").quaternion]
             turns = np.einsum("ij,ij->i", quaternions[:-1], quaternions[1:])
             if turns.min() < 0.0:  # rare (the measured state's sign): flip every node after a sign change
                 quaternions *= np.cumprod(np.concatenate([[1.0], np.where(turns < 0.0, -1.0, 1.0)]))[:, None]
@@ -1019,7 +1001,8 @@ class RealTimeMPC(MPC):
         clipped = np.clip(steps, -self._step_limits, self._step_limits)
         deltas = np.vstack([delta0[None, :], clipped])
         states = layout.retract(plan.states, deltas)
-        states[:, layout.omega] = np.clip(states[:, layout.omega], -self._omega_valid, self._omega_valid)
+        rates = layout.angular_rates
+        states[:, rates] = np.clip(states[:, rates], -self._omega_valid, self._omega_valid)
         states[0] = x0
         controls = np.clip(plan.controls + stages[:, :m], stage_low, stage_high)
         self.step_scale = float(np.mean(clipped == steps))
@@ -1095,8 +1078,8 @@ class RealTimeMPC(MPC):
         plan = self._plan
         last_state = self._predict(plan.states[-1], plan.controls[-1] + self.disturbance)[0]
         states = np.vstack([plan.states[1:], np.asarray(last_state, dtype=float).reshape(1, self.layout.state_dim)])
-        omega = self.layout.omega
-        states[-1, omega] = np.clip(states[-1, omega], -self.omega_bound, self.omega_bound)
+        rates = self.layout.angular_rates
+        states[-1, rates] = np.clip(states[-1, rates], -self.omega_bound, self.omega_bound)
         controls = np.vstack([plan.controls[1:], plan.controls[-1:]])
         self._plan = Plan(states, controls, None, None)
         # relinearize_every = 1 renews every item: nothing kept to shift
@@ -1201,8 +1184,8 @@ class RealTimeMPC(MPC):
             return False
         if self._linearization is None:
             self.prepare()
-        omega = self.layout.omega
-        return bool(np.max(np.abs(x0[omega] - self._plan.states[0][omega])) > limit)
+        rates = self.layout.angular_rates
+        return bool(np.max(np.abs(x0[rates] - self._plan.states[0][rates])) > limit)
 
     def _score(self, plan: Plan) -> float:
         """A cold guess's merit: model cost plus a heavy penalty on its dynamics gaps."""

@@ -222,8 +222,10 @@ def scene_mpc(env: Any, model: ExportedModel, settings: MPCSettings | None = Non
     settings = scene_mpc_settings(env) if settings is None else settings
     if settings.solver == "rti":
 
-        return RealTimeMPC(model, settings, base.goal, base.torque_low, base.torque_high, rest=base.rest)
-    return MPC(model, settings, base.goal, base.torque_low, base.torque_high, rest=base.rest)
+        return RealTimeMPC(model, settings, base.goal, base.torque_low, base.torque_high, rest=base.rest,
+                           goal_set=base.scene_spec.goal_set)
+    return MPC(model, settings, base.goal, base.torque_low, base.torque_high, rest=base.rest,
+               goal_set=base.scene_spec.goal_set)
 
 
 def scene_energy_shaping(env: Any, model: ExportedModel,

@@ -62,17 +62,17 @@ class Trajectories:
 
     @property
     def q(self) -> np.ndarray:
-        """The orientations ``(N, T+1, 4)``."""
-        return self.state[..., self.space.layout.quaternion]
+        """The orientations ``(N, T+1, 4)`` of a single body."""
+        return self.state[..., self.space.layout.attitude(by="Trajectories.q").quaternion]
 
     @property
     def omega(self) -> np.ndarray:
-        """The body angular velocities ``(N, T+1, 3)``."""
-        return self.state[..., self.space.layout.omega]
+        """The body angular velocities ``(N, T+1, 3)`` of a single body."""
+        return self.state[..., self.space.layout.attitude(by="Trajectories.omega").omega]
 
     @property
     def rest(self) -> np.ndarray:
-        """Every entry but the quaternion ``(N, T+1, n − 4)`` (the training layout)."""
+        """Every entry but the quaternions ``(N, T+1, n − 4k)`` (the training layout)."""
         return self.space.layout.split(self.state)[1]
 
     @property

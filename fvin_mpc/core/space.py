@@ -4,14 +4,19 @@ A :class:`ConfigurationSpace` says what a state is and how every layer treats it
 one interface and many groups:
 
 * its ``name``, the tag written into checkpoints and data files (``"S3"``, ``"SO3"``, ``"R3xS3"``);
-* its :class:`StateLayout` (where the quaternion sits in a state ``R^a × S³ × R^b``);
+* its :class:`~fvin_mpc.core.blocks.StateLayout`, a product of blocks (:mod:`fvin_mpc.core.blocks`: a
+  pivoted body's one :class:`~fvin_mpc.core.blocks.Ball`, a free body's one
+  :class:`~fvin_mpc.core.blocks.FreeJoint`, a mechanism's joints);
 * its model config type, and the learned terms, weight shapes and initialization for that config;
 * the step ``(x, u, terms, h, K, ops) → (x_next, residual)`` on stacked states, on any backend, and
   the energy — the math itself stays in the space's step module (:mod:`~fvin_mpc.core.fvin`,
   :mod:`~fvin_mpc.core.fvin_so3`, :mod:`~fvin_mpc.core.fvin_r3s3`);
 * the closed-form body read off an MJCF;
-* ``retract``/``local`` on the manifold (a chart of S³ that is the same for ``±q``), the one state
-  check, and the one sign-invariant distance to a goal.
+* ``retract``/``local`` on the manifold, the one state check and the one distance to a goal — the
+  layout's, written once per block kind for every backend.
+
+What the goal is (a pivot's upright orientation at rest, a craft's hover point) is not the space's: the
+scene declares it (:mod:`fvin_mpc.core.goals`).
 
 :func:`get_space` maps names to spaces and :func:`space_of_config` a model config to its space. Adding
 a space is a registry entry (:func:`register`) and its step — nothing else in the package asks which
@@ -39,107 +44,12 @@ from fvin_mpc.core import (
     so3,
 )
 from fvin_mpc.core.backend import Ops, get_ops
-from fvin_mpc.core.state import UNIT_NORM_TOLERANCE, as_float_array
+from fvin_mpc.core.blocks import Ball, FreeJoint, StateLayout, chart_local, chart_retract
 
 NP = get_ops("numpy")
-
-
-# ----------------------------------------------------------------------------- S³ chart
-def chart_retract(q_bar: s3.Quat, theta: s3.Vec3, ops: Ops) -> s3.Quat:
-    """``q̄ ⊗ (1, θ)/√(1 + |θ|²)`` on components (any backend): the Gibbs-vector chart of S³ at ``q̄``."""
-    return s3.scale(1.0 / ops.sqrt(1.0 + s3.dot(theta, theta)), s3.multiply(q_bar, (1.0, *theta)))
-
-
-def chart_local(q_bar: s3.Quat, q: s3.Quat) -> s3.Vec3:
-    """``Im(p)/Re(p)`` with ``p = q̄* ⊗ q`` — the inverse of :func:`chart_retract`, the same for ``±q``."""
-    p = s3.multiply(s3.conjugate(q_bar), q)
-    return tuple(component / p[0] for component in p[1:])
-
-
-def _components(array: np.ndarray) -> tuple[np.ndarray, ...]:
-    return tuple(np.moveaxis(array, -1, 0))
-
-
-# ----------------------------------------------------------------------------- state layout
-@dataclass(frozen=True)
-class StateLayout:
-    """A state ``(e_before (a), q (4), e_after (b))``; the last three entries of ``e_after`` are ``ω``
-    and everything after the quaternion is a *rate* (what a control changes within one step).
-
-    Attributes:
-        before: ``a``, Euclidean entries before the quaternion (0 pivoted, 3 free: ``x``).
-        after: ``b``, Euclidean entries after it (3 pivoted: ``ω``; 6 free: ``v``, ``ω``).
-        name: a label for messages.
-    """
-
-    before: int
-    after: int
-    name: str
-
-    # Index facts, computed once (a measured state is sliced by them on every controller call).
-    state_dim: int = field(init=False)
-    #: entries of the local coordinates ``δ``: the quaternion's 3 chart coordinates and the rest
-    tangent_dim: int = field(init=False)
-    #: the quaternion's entries in a state
-    quaternion: slice = field(init=False)
-    #: the entries after the quaternion in a state (``ω``, or ``v`` and ``ω``)
-    rates: slice = field(init=False)
-    #: ``ω`` in a state (its last three entries)
-    omega: slice = field(init=False)
-    #: the quaternion's 3 chart coordinates in ``δ``
-    chart: slice = field(init=False)
-    #: ``ω``'s entries in ``δ`` (its last three)
-    tangent_omega: slice = field(init=False)
-
-    def __post_init__(self) -> None:
-        if self.before < 0 or self.after < 3:
-            raise ValueError(f"a state layout needs before ≥ 0 and after ≥ 3 (ω last), got {self.before}, {self.after}")
-        n, a = self.before + 4 + self.after, self.before
-        facts = {"state_dim": n, "tangent_dim": n - 1, "quaternion": slice(a, a + 4), "rates": slice(a + 4, n),
-                 "omega": slice(n - 3, n), "chart": slice(a, a + 3), "tangent_omega": slice(n - 4, n - 1)}
-        for name, value in facts.items():
-            object.__setattr__(self, name, value)
-
-    def check(self, x: Any) -> np.ndarray:
-        """A measured state as a float64 copy with a unit quaternion.
-
-        Policy: a quaternion within ``UNIT_NORM_TOLERANCE`` of unit norm is normalized (float32
-        observations, sensor rounding); anything further is refused — a non-unit ``q`` is not a
-        rotation, and normalizing a wrong one would hide a bug upstream.
-
-        Raises:
-            ValueError: wrong shape, NaN/inf, or a quaternion further than ``UNIT_NORM_TOLERANCE``
-                from unit norm.
-        """
-        x = as_float_array(x, (self.state_dim,), f"state {self.name}")
-        norm = float(np.linalg.norm(x[self.quaternion]))
-        if abs(norm - 1.0) > UNIT_NORM_TOLERANCE:
-            raise ValueError(f"q is not a unit quaternion (|q| = {norm:.6g}; tolerance {UNIT_NORM_TOLERANCE})")
-        x[self.quaternion] /= norm
-        return x
-
-    def split(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """States ``(…, n)`` as ``(q (…, 4), rest (…, n − 4))``, ``rest`` every other entry in state order."""
-        qs = self.quaternion
-        return x[..., qs], np.concatenate([x[..., :qs.start], x[..., qs.stop:]], axis=-1)
-
-    def join(self, q: np.ndarray, rest: np.ndarray) -> np.ndarray:
-        """The inverse of :meth:`split`."""
-        a = self.before
-        return np.concatenate([rest[..., :a], q, rest[..., a:]], axis=-1)
-
-    def retract(self, x_bar: np.ndarray, delta: np.ndarray) -> np.ndarray:
-        """A state from a base point ``x̄ (…, n)`` and local coordinates ``δ (…, n − 1)``: the quaternion
-        by :func:`chart_retract`, every other entry by addition."""
-        a, qs = self.before, self.quaternion
-        q = np.stack(chart_retract(_components(x_bar[..., qs]), _components(delta[..., self.chart]), NP), axis=-1)
-        return np.concatenate([x_bar[..., :a] + delta[..., :a], q, x_bar[..., qs.stop:] + delta[..., a + 3:]], axis=-1)
-
-    def local(self, x_bar: np.ndarray, x: np.ndarray) -> np.ndarray:
-        """The inverse of :meth:`retract`: ``δ`` of ``x`` in ``x̄``'s chart (the same for ``±q``)."""
-        a, qs = self.before, self.quaternion
-        theta = np.stack(chart_local(_components(x_bar[..., qs]), _components(x[..., qs])), axis=-1)
-        return np.concatenate([x[..., :a] - x_bar[..., :a], theta, x[..., qs.stop:] - x_bar[..., qs.stop:]], axis=-1)
+__all__ = ["ConfigurationSpace", "StateLayout", "chart_local", "chart_retract", "get_space", "register", "require",
+           "space_for_variant", "space_of_config", "spaces", "unregister", "PIVOTED", "FREE_BODY", "S3", "SO3",
+           "R3S3"]
 
 
 # ----------------------------------------------------------------------------- spaces
@@ -151,10 +61,8 @@ class ConfigurationSpace:
     Attributes:
         name: the tag in checkpoints and data (``"S3"``, ``"SO3"``, ``"R3xS3"``).
         description: a few words for messages.
-        layout: where the quaternion sits in a state.
+        layout: the state's blocks (:class:`~fvin_mpc.core.blocks.StateLayout`).
         config_type: the model config class of this space's learned models.
-        pivoted: a body on a fixed pivot, whose goal is an orientation at rest (S³, SO(3)); a free
-            body's goal is a whole state (hover there).
         variants: the values of its config's ``variant``, the config's default first.
     """
 
@@ -162,7 +70,6 @@ class ConfigurationSpace:
     description: str
     layout: StateLayout
     config_type: type
-    pivoted: bool
     variants: tuple[str, ...]
     _step: Callable[..., tuple[Any, Any]] = field(repr=False)
     _energy: Callable[[Any, Any, Ops], Any] = field(repr=False)
@@ -179,11 +86,11 @@ class ConfigurationSpace:
     registry: ClassVar[dict[str, "ConfigurationSpace"]] = {}
 
     def __post_init__(self) -> None:
-        # Controllers read a pivoted body's state as (q, ω), and the implicit dynamics are the S³
-        # step's equations on (q, ω): a space claiming either must have that layout.
-        if (self.pivoted or self.step_residual is not None) and self.layout != PIVOTED:
-            raise ValueError(f"space {self.name!r}: a pivoted space or one with step_residual must have the "
-                             f"layout {PIVOTED.name}, got {self.layout.name}")
+        # The implicit dynamics are the S³ step's equations on (q, ω): a space claiming them must have
+        # that layout.
+        if self.step_residual is not None and self.layout != PIVOTED:
+            raise ValueError(f"space {self.name!r}: a space with step_residual must have the layout "
+                             f"{PIVOTED.name}, got {self.layout.name}")
 
     @property
     def state_dim(self) -> int:
@@ -242,22 +149,28 @@ class ConfigurationSpace:
 
     # -------------------------------------------------------------- manifold
     def check(self, x: Any) -> np.ndarray:
-        """The one check of a measured state (:meth:`StateLayout.check`)."""
+        """The one check of a measured state (:meth:`~fvin_mpc.core.blocks.StateLayout.check`)."""
         return self.layout.check(x)
 
-    def retract(self, x: np.ndarray, delta: np.ndarray) -> np.ndarray:
-        return self.layout.retract(np.asarray(x, dtype=float), np.asarray(delta, dtype=float))
+    def retract(self, x: Any, delta: Any, ops: Ops = NP) -> Any:
+        """:meth:`~fvin_mpc.core.blocks.StateLayout.retract` (NumPy arrays by default; any backend)."""
+        if ops is NP:
+            x, delta = np.asarray(x, dtype=float), np.asarray(delta, dtype=float)
+        return self.layout.retract(x, delta, ops)
 
-    def local(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-        return self.layout.local(np.asarray(x, dtype=float), np.asarray(y, dtype=float))
+    def local(self, x: Any, y: Any, ops: Ops = NP) -> Any:
+        """:meth:`~fvin_mpc.core.blocks.StateLayout.local` (NumPy arrays by default; any backend)."""
+        if ops is NP:
+            x, y = np.asarray(x, dtype=float), np.asarray(y, dtype=float)
+        return self.layout.local(x, y, ops)
 
-    def distance(self, x: Any, goal: Any) -> np.ndarray:
-        """The sign-invariant orientation distance ``1 − ⟨q, q_goal⟩²`` (zero on the goal's rotation,
-        for either sign) of states ``x (…, n)`` to a goal state or orientation ``(4,)``."""
-        x = np.asarray(x, dtype=float)
-        goal = np.asarray(goal, dtype=float)
-        q_goal = goal if goal.shape[-1] == 4 else goal[..., self.layout.quaternion]
-        return 1.0 - np.sum(x[..., self.layout.quaternion] * q_goal, axis=-1) ** 2
+    def distance(self, x: Any, goal: Any, ops: Ops = NP) -> Any:
+        """The configuration's distance of states ``x (…, n)`` to a goal state ``(n,)``: zero on the goal's
+        configuration, sign- and wrap-invariant (:meth:`~fvin_mpc.core.blocks.StateLayout.distance`; for one
+        attitude ``1 − ⟨q, q_goal⟩²``)."""
+        if ops is NP:
+            x, goal = np.asarray(x, dtype=float), np.asarray(goal, dtype=float)
+        return self.layout.distance(x, goal, ops)
 
     def _require_own(self, config: Any) -> None:
         if not self.owns(config):
@@ -347,14 +260,14 @@ def _s3_energy(x: Any, terms: Any, ops: Ops) -> Any:
     return fvin.total_energy(*_split_pivoted(x, ops), terms)
 
 
-#: Where the quaternion sits for a body on a fixed pivot: ``(q, ω)``.
-PIVOTED = StateLayout(before=0, after=3, name="(q, ω)")
-#: ... and for a free rigid body: ``(x, q, v, ω)``.
-FREE_BODY = StateLayout(before=3, after=6, name="(x, q, v, ω)")
+#: A body on a fixed pivot, its attitude on S³: ``(q, ω)``.
+PIVOTED = StateLayout((Ball(),), name="(q, ω)")
+#: A free rigid body: ``(x, q, v, ω)``.
+FREE_BODY = StateLayout((FreeJoint(),), name="(x, q, v, ω)")
 
 S3 = register(ConfigurationSpace(
     name="S3", description="S³ (a pivoted body on unit quaternions)", layout=PIVOTED,
-    config_type=networks.ModelConfig, pivoted=True, variants=networks.VARIANTS, _step=_s3_step, _energy=_s3_energy,
+    config_type=networks.ModelConfig, variants=networks.VARIANTS, _step=_s3_step, _energy=_s3_energy,
     _learned_terms=networks.LearnedTerms, _weight_shapes=networks.weight_shapes, _init_weights=networks.init_weights,
     _closed_form=rigid_body.from_mujoco, step_residual=fvin.step_residual,
 ))
@@ -394,7 +307,6 @@ SO3 = register(
         description="SO(3) (the paper's SO3FVIN baseline on a pivoted body)",
         layout=PIVOTED,
         config_type=networks_so3.SO3ModelConfig,
-        pivoted=True,
         variants=networks_so3.SO3_VARIANTS,
         _step=_so3_step,
         _energy=_so3_energy,
@@ -418,7 +330,7 @@ def _r3s3_energy(x: Any, terms: Any, ops: Ops) -> Any:
 
 R3S3 = register(ConfigurationSpace(
     name="R3xS3", description="R³ × S³ (a free body that translates and rotates)", layout=FREE_BODY,
-    config_type=networks_r3s3.R3S3Config, pivoted=False, variants=("fixed-inertia", "sign-invariant", "plain"),
+    config_type=networks_r3s3.R3S3Config, variants=("fixed-inertia", "sign-invariant", "plain"),
     _step=_r3s3_step, _energy=_r3s3_energy,
     _learned_terms=networks_r3s3.LearnedCombinedTerms, _weight_shapes=networks_r3s3.weight_shapes,
     _init_weights=networks_r3s3.init_weights, _closed_form=quadrotor.from_mujoco,

@@ -1,12 +1,12 @@
-"""Array checks at numeric boundaries, and the pivoted body's state split.
+"""Array checks at numeric boundaries.
 
-A pivoted body's state is one float64 array ``x = (q_w, q_x, q_y, q_z, ω_x, ω_y, ω_z)``, the
-orientation quaternion (Hamilton, ``(w, x, y, z)``, MuJoCo's order) followed by the body-frame
-angular velocity (rad/s) — ``DESIGN.md``'s ``x = (q, ω)``; other configuration spaces place the
-quaternion elsewhere (:class:`fvin_mpc.core.space.StateLayout`). Inside the math core the parts
-travel as tuples of components (``fvin_mpc.core.s3``).
+A state is one float64 array whose blocks (:class:`fvin_mpc.core.blocks.StateLayout`) say where each
+part sits: a pivoted body's ``x = (q_w, q_x, q_y, q_z, ω_x, ω_y, ω_z)``, the orientation quaternion
+(Hamilton, ``(w, x, y, z)``, MuJoCo's order) followed by the body-frame angular velocity (rad/s) —
+``DESIGN.md``'s ``x = (q, ω)``. Inside the math core the parts travel as tuples of components
+(``fvin_mpc.core.s3``).
 
-Policy for measured states (:meth:`fvin_mpc.core.space.StateLayout.check`, the one check): a
+Policy for measured states (:meth:`fvin_mpc.core.blocks.StateLayout.check`, the one check): a
 quaternion within :data:`UNIT_NORM_TOLERANCE` of unit norm is normalized (float32 observations,
 sensor rounding); anything further raises ``ValueError`` — a non-unit ``q`` is not a rotation, and
 silently normalizing a wrong one would hide a bug upstream. NaN/inf or a wrong shape raise too.
@@ -41,20 +41,10 @@ def unit_quaternion(value: Any, name: str = "quaternion") -> np.ndarray:
     """A given orientation (goal, rest, a joint's qpos) as a unit quaternion ``(4,)``.
 
     Any finite non-zero 4-vector is accepted and normalized: this is for orientations a user
-    writes down, not for measurements (see :meth:`fvin_mpc.core.space.StateLayout.check`).
+    writes down, not for measurements (see :meth:`fvin_mpc.core.blocks.StateLayout.check`).
     """
     q = as_float_array(value, (4,), name)
     norm = float(np.linalg.norm(q))
     if norm < 1e-12:
         raise ValueError(f"{name} must be a non-zero quaternion (w, x, y, z), got {q}")
     return q / norm
-
-
-def split_state(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``(q (…, 4), ω (…, 3))`` views of states ``x (…, 7)``."""
-    return x[..., :4], x[..., 4:]
-
-
-def join_state(q: Any, omega: Any) -> np.ndarray:
-    """``x (…, 7)`` from ``q (…, 4)`` and ``ω (…, 3)``."""
-    return np.concatenate([np.asarray(q, dtype=np.float64), np.asarray(omega, dtype=np.float64)], axis=-1)

@@ -20,6 +20,7 @@ import numpy as np
 from fvin_mpc.core import s3
 from fvin_mpc.core.data import Trajectories
 from fvin_mpc.core.quadrotor import GeometricController, from_mujoco
+from fvin_mpc.core.space import R3S3
 from fvin_mpc.envs import QuadrotorEnv, RigidBodyEnv
 from fvin_mpc.envs.quadrotor_env import uniform_in_ball
 
@@ -117,6 +118,7 @@ def collect(scene: str = "pendulum", trajectories: int = 320, steps: int = 20, s
                          f"{near_goal_trajectories}, {near_goal_angle}, {near_goal_omega}")
     uniform_trajectories, trajectories = trajectories, trajectories + near_goal_trajectories
     env = RigidBodyEnv(scene=scene, body=body, control_period=control_period)
+    attitude = env.space.layout.attitude(by="collect_trajectories")
     rng = np.random.default_rng(seed)
     low, high = env.action_space.low.astype(np.float64), env.action_space.high.astype(np.float64)
     qs = np.empty((trajectories, steps + 1, 4))
@@ -139,12 +141,12 @@ def collect(scene: str = "pendulum", trajectories: int = 320, steps: int = 20, s
                 qpos, qvel = near_goal_joint_state(env, rng, near_goal_angle, near_goal_omega)
             observation, _ = env.reset(seed=int(rng.integers(2**31)), options={"qpos": qpos, "qvel": qvel})
             controls = control_sequence(rng, low, high, steps, mode, hold_steps)
-            qs[i, 0], omegas[i, 0] = observation[:4], observation[4:]
-            accepted = bool(np.abs(observation[4:]).max() <= limit)
+            qs[i, 0], omegas[i, 0] = observation[attitude.quaternion], observation[attitude.omega]
+            accepted = bool(np.abs(observation[attitude.omega]).max() <= limit)
             for k in range(steps if accepted else 0):
                 observation, *_ = env.step(controls[k])
-                qs[i, k + 1], omegas[i, k + 1] = observation[:4], observation[4:]
-                if np.abs(observation[4:]).max() > limit:
+                qs[i, k + 1], omegas[i, k + 1] = observation[attitude.quaternion], observation[attitude.omega]
+                if np.abs(observation[attitude.omega]).max() > limit:
                     accepted = False
                     break
             if accepted:
@@ -199,7 +201,8 @@ def collect_quadrotor(scene: str = "quadrotor", trajectories: int = 300, steps: 
     rng = np.random.default_rng(seed)
     low, high = env.action_space.low.astype(np.float64), env.action_space.high.astype(np.float64)
     hover = env.hover_point
-    states = np.empty((trajectories, steps + 1, 13))
+    free = R3S3.layout.free_body(by="a free body's data")
+    states = np.empty((trajectories, steps + 1, R3S3.state_dim))
     controls = np.empty((trajectories, steps, low.size))
     redrawn = tumbling = 0
     for i in tqdm(range(trajectories), desc=f"collect {env.scene_spec.name}", disable=not progress):
@@ -229,13 +232,13 @@ def collect_quadrotor(scene: str = "quadrotor", trajectories: int = 300, steps: 
                 u = np.clip(controller(observation, waypoint) + noise, low, high)
                 observation = env.step(u)[0]
                 states[i, k + 1], controls[i, k] = observation, u
-            if np.linalg.norm(states[i, :, :3] - hover, axis=1).max() <= max_distance:
+            if np.linalg.norm(states[i, :, free.position] - hover, axis=1).max() <= max_distance:
                 tumbling += tumble
                 break
             redrawn += 1
-    speeds = np.linalg.norm(states[..., 10:], axis=-1)
+    speeds = np.linalg.norm(states[..., free.omega], axis=-1)
     tilts = np.array([[np.degrees(math.acos(np.clip(s3.rotation_matrix(tuple(q))[2][2], -1.0, 1.0))) for q in traj]
-                      for traj in states[..., 3:7]])
+                      for traj in states[..., free.quaternion]])
     metadata = {
         "scene": str(scene), "body": env.body_name, "control_period": float(env.dt), "seed": seed,
         "trajectories": trajectories, "steps": steps, "transitions": trajectories * steps,
@@ -244,8 +247,8 @@ def collect_quadrotor(scene: str = "quadrotor", trajectories: int = 300, steps: 
         "noise_fraction": noise_fraction, "hold_steps": hold_steps, "max_distance": max_distance,
         "coverage": {
             "max_abs_omega": float(speeds.max()), "median_abs_omega": float(np.median(speeds)),
-            "max_speed": float(np.linalg.norm(states[..., 7:10], axis=-1).max()),
-            "max_distance": float(np.linalg.norm(states[..., :3] - hover, axis=-1).max()),
+            "max_speed": float(np.linalg.norm(states[..., free.velocity], axis=-1).max()),
+            "max_distance": float(np.linalg.norm(states[..., free.position] - hover, axis=-1).max()),
             "upside_down_share": float((tilts > 90.0).mean()), "max_tilt_deg": float(tilts.max()),
             "saturated_share": float(((controls <= low + 1e-12) | (controls >= high - 1e-12)).mean()),
         },

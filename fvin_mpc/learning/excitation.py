@@ -129,6 +129,8 @@ class SwingPhysics:
         # The env's scales are the ones its control period and the controllers' settings come from.
         self.scales = SwingScales(base.energy_span, base.speed_scale, float(base.dt))
         self.directions = actuator_directions(env)
+        #: where the body's attitude and rate sit in the env's states
+        self.attitude = base.space.layout.attitude(by="the swing excitation")
 
     def potential(self, q: Any) -> float:
         return float(self.terms.potential(tuple(float(c) for c in q)))
@@ -137,8 +139,8 @@ class SwingPhysics:
         return np.array(self.terms.inertia(tuple(float(c) for c in q)), dtype=float)
 
     def energy(self, state: np.ndarray) -> float:
-        """Energy above hanging of a ``(7,)`` state ``(q, ω)`` (J)."""
-        q, omega = state[:4], state[4:]
+        """Energy above hanging of a state ``(q, ω)`` (J)."""
+        q, omega = state[self.attitude.quaternion], state[self.attitude.omega]
         return self.potential(q) - self.rest_energy + 0.5 * float(omega @ self.inertia(q) @ omega)
 
     def divergence(self, states: np.ndarray, controls: np.ndarray) -> float:
@@ -154,7 +156,7 @@ class SwingPhysics:
         """
         states = np.asarray(states, dtype=float)
         energy = np.array([self.energy(state) for state in states])
-        along = np.abs(states[:, 4:] @ self.directions.T)
+        along = np.abs(states[:, self.attitude.omega] @ self.directions.T)
         work = self.scales.step_size * np.sum(np.abs(controls) * np.maximum(along[:-1], along[1:]), axis=1)
         bound = energy[0] + np.concatenate([[0.0], np.cumsum(work)])
         return float(np.max(energy - bound) / self.scales.energy_span)
@@ -167,7 +169,7 @@ class SwingPhysics:
         0.6 where its members reach 1e-3)."""
         if self.energy(state) <= MAX_ENERGY * self.scales.energy_span:
             return u
-        return self.pump(state[4:], -1.0, stalled)
+        return self.pump(state[self.attitude.omega], -1.0, stalled)
 
     def pump(self, omega: np.ndarray, sign: float = 1.0, stalled: np.ndarray | None = None) -> np.ndarray:
         """Every actuator at the bound that pushes along the motion (``sign = −1``: against it);
@@ -210,20 +212,21 @@ def energy_spread_state(env: Any, physics: SwingPhysics, rng: np.random.Generato
     for _ in range(20):
         qpos, _ = random_joint_state(env, rng, 0.0)
         observation, _ = env.reset(options={"qpos": qpos})
-        kinetic = target - (physics.potential(observation[:4]) - physics.rest_energy)
+        kinetic = target - (physics.potential(observation[physics.attitude.quaternion]) - physics.rest_energy)
         if kinetic >= 0.0:
             break
     else:
         return qpos, np.zeros(env.unwrapped.model.nv)
     axis = env.unwrapped.joint_axis
     if axis is not None:
-        speed = math.sqrt(2.0 * kinetic / float(axis @ physics.inertia(observation[:4]) @ axis))
+        inertia = physics.inertia(observation[physics.attitude.quaternion])
+        speed = math.sqrt(2.0 * kinetic / float(axis @ inertia @ axis))
         return qpos, np.array([speed if rng.uniform() < 0.5 else -speed])
     # On a ball joint the kinetic energy goes in a random direction, redrawn while it would spin the
     # body faster than START_SPEED_CAP·ω_s: all of it about an axis of small inertia (a long body's
     # own axis, down to 1:50) is a spin no swing-up passes through, at speeds the simulator's
     # integration does not resolve. After 20 draws the last direction at the cap (less energy).
-    inertia = physics.inertia(observation[:4])
+    inertia = physics.inertia(observation[physics.attitude.quaternion])
     cap = START_SPEED_CAP * physics.scales.speed
     for _ in range(20):
         direction = rng.normal(size=3)
@@ -237,7 +240,7 @@ def energy_spread_state(env: Any, physics: SwingPhysics, rng: np.random.Generato
 def switching_controls(env: Any, physics: SwingPhysics, rng: np.random.Generator, steps: int,
                        observation: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict[str, int]]:
     """Roll the env ``steps`` periods from ``observation`` under the switching policy (module
-    docstring); returns ``(states (steps+1, 7), controls (steps, m), steps per segment kind)``."""
+    docstring); returns ``(states (steps+1, n), controls (steps, m), steps per segment kind)``."""
     kinds, weights = list(SEGMENTS), np.array(list(SEGMENTS.values()))
     states, controls = [observation], []
     counts = dict.fromkeys(kinds, 0)
@@ -250,7 +253,7 @@ def switching_controls(env: Any, physics: SwingPhysics, rng: np.random.Generator
             stalled = rng.choice([-1.0, 1.0], size=physics.low.size)
         remaining -= 1
         counts[kind] += 1
-        omega = states[-1][4:]
+        omega = states[-1][physics.attitude.omega]
         if kind == "pump":
             u = physics.pump(omega, 1.0, stalled)
         elif kind == "brake":
@@ -311,7 +314,7 @@ def collect_swings(scene: str = "pendulum", trajectories: int | None = None, ste
     trajectories = trajectories or max(10, math.ceil(TRANSITIONS / steps))
     rng = np.random.default_rng(seed)
     cut = np.cumsum([SHARES["energy"], SHARES["near_goal"]]) * trajectories
-    states = np.empty((trajectories, steps + 1, 7))
+    states = np.empty((trajectories, steps + 1, env.unwrapped.space.state_dim))
     controls = np.empty((trajectories, steps, physics.low.size))
     starts = dict.fromkeys(SHARES, 0)
     segments = dict.fromkeys(SEGMENTS, 0)
@@ -350,4 +353,4 @@ def collect_swings(scene: str = "pendulum", trajectories: int | None = None, ste
                             "p95": float(np.percentile(energies, 95))},
     }
     env.close()
-    return Trajectories.from_parts(states[..., :4], states[..., 4:], controls, metadata)
+    return Trajectories.from_parts(*env.unwrapped.space.layout.split(states), controls, metadata)

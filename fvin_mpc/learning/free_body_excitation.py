@@ -21,6 +21,7 @@ import numpy as np
 
 from fvin_mpc.core import s3
 from fvin_mpc.core.data import Trajectories
+from fvin_mpc.core.space import R3S3
 from fvin_mpc.envs.quadrotor_env import QuadrotorEnv, uniform_in_ball
 
 #: ``metadata["collector"]`` of free-body data from random-excitation bursts.
@@ -55,7 +56,8 @@ def collect_excitation(scene: Any = "quadrotor", trajectories: int = 750, steps:
     gravity = float(np.linalg.norm(env.model.opt.gravity))
     max_speed = 0.1 * max(scales.thrust_to_weight - 1.0, 0.5) * gravity
     radius = 3.0 * scales.arm
-    states = np.empty((trajectories, steps + 1, 13))
+    free = R3S3.layout.free_body(by="a free body's data")
+    states = np.empty((trajectories, steps + 1, R3S3.state_dim))
     controls = np.empty((trajectories, steps, hover.size))
     near_level = 0
     for i in tqdm(range(trajectories), desc=f"excite {env.scene_spec.name}", disable=not progress):
@@ -79,9 +81,9 @@ def collect_excitation(scene: Any = "quadrotor", trajectories: int = 750, steps:
                 u = np.clip(hover + amplitude * spread * rng.uniform(-1.0, 1.0, size=hover.size), low, high)
             observation = env.step(u)[0]
             states[i, k + 1], controls[i, k] = observation, u
-    speeds = np.linalg.norm(states[..., 10:], axis=-1)
+    speeds = np.linalg.norm(states[..., free.omega], axis=-1)
     tilts = np.degrees(np.arccos(np.clip([[s3.rotation_matrix(tuple(q))[2][2] for q in trajectory]
-                                          for trajectory in states[..., 3:7]], -1.0, 1.0)))
+                                          for trajectory in states[..., free.quaternion]], -1.0, 1.0)))
     metadata = {
         "scene": str(scene), "body": env.body_name, "control_period": float(env.dt), "seed": seed,
         "trajectories": trajectories, "steps": steps, "transitions": trajectories * steps, "collector": EXCITATION,
@@ -89,8 +91,8 @@ def collect_excitation(scene: Any = "quadrotor", trajectories: int = 750, steps:
         "hold_steps": hold_steps, "start_radius_m": radius, "start_speed_mps": max_speed,
         "coverage": {
             "max_abs_omega": float(speeds.max()), "median_abs_omega": float(np.median(speeds)),
-            "max_speed": float(np.linalg.norm(states[..., 7:10], axis=-1).max()),
-            "max_distance": float(np.linalg.norm(states[..., :3] - env.hover_point, axis=-1).max()),
+            "max_speed": float(np.linalg.norm(states[..., free.velocity], axis=-1).max()),
+            "max_distance": float(np.linalg.norm(states[..., free.position] - env.hover_point, axis=-1).max()),
             "upside_down_share": float((tilts > 90.0).mean()), "max_tilt_deg": float(tilts.max()),
             "saturated_share": float(((controls <= low + 1e-12) | (controls >= high - 1e-12)).mean()),
         },

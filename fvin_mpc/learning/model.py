@@ -212,15 +212,14 @@ class FVINModel(LearnedModel):
 
     # -- the training layout ------------------------------------------------------
     def pack(self, state: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """``state (..., n)`` → ``(q (..., 4), rest (..., n − 4))``, ``rest`` scaled by ``rest_scale``."""
-        layout, qs = self.space.layout, self.space.layout.quaternion
-        return state[..., qs], torch.cat([state[..., :layout.before], state[..., qs.stop:]], dim=-1) * self.rest_scale
+        """``state (..., n)`` → ``(q (..., 4k), rest (..., n − 4k))`` (:meth:`StateLayout.split
+        <fvin_mpc.core.blocks.StateLayout.split>`), ``rest`` scaled by ``rest_scale``."""
+        quaternion, other, _ = self.space.layout.split_entries
+        return state[..., quaternion], state[..., other] * self.rest_scale
 
     def unpack(self, q: torch.Tensor, rest: torch.Tensor) -> torch.Tensor:
         """Inverse of :meth:`pack`."""
-        rest = rest / self.rest_scale
-        a = self.space.layout.before
-        return torch.cat([rest[..., :a], q, rest[..., a:]], dim=-1)
+        return torch.cat([q, rest / self.rest_scale], dim=-1)[..., self.space.layout.split_entries[2]]
 
     def rollout(self, q0: torch.Tensor, rest0: torch.Tensor, controls: torch.Tensor,
                 step: Callable[..., Any] | None = None) -> tuple[torch.Tensor, torch.Tensor]:

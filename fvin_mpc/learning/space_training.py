@@ -209,19 +209,19 @@ def open_loop_errors(step: Any, data: Trajectories, horizon_steps: int) -> dict[
     for k in range(horizon_steps):
         predicted.append(step(predicted[-1], data.u[:, k]))
     final, truth = predicted[-1], states[:, -1]
-    alignment = np.clip(
-        np.abs(np.sum(final[:, 3:7] * truth[:, 3:7], axis=1) / np.linalg.norm(final[:, 3:7], axis=1)), 0, 1
-    )
+    free = data.space.layout.free_body(by="a free body's rollout errors")
+    q_final, q_truth = final[:, free.quaternion], truth[:, free.quaternion]
+    alignment = np.clip(np.abs(np.sum(q_final * q_truth, axis=1) / np.linalg.norm(q_final, axis=1)), 0, 1)
     errors = {
-        "position_m": np.linalg.norm(final[:, :3] - truth[:, :3], axis=1),
+        "position_m": np.linalg.norm(final[:, free.position] - truth[:, free.position], axis=1),
         "orientation_rad": 2.0 * np.arccos(alignment),
-        "velocity_m_s": np.linalg.norm(final[:, 7:10] - truth[:, 7:10], axis=1),
-        "angular_velocity_rad_s": np.linalg.norm(final[:, 10:] - truth[:, 10:], axis=1),
+        "velocity_m_s": np.linalg.norm(final[:, free.velocity] - truth[:, free.velocity], axis=1),
+        "angular_velocity_rad_s": np.linalg.norm(final[:, free.omega] - truth[:, free.omega], axis=1),
     }
     summary: dict[str, Any] = {name: {"median": float(np.median(e)), "p90": float(np.percentile(e, 90)),
                                       "max": float(np.max(e))} for name, e in errors.items()}
     summary["max_unit_norm_error"] = float(
-        max(np.abs(np.linalg.norm(p[:, 3:7], axis=1) - 1.0).max() for p in predicted)
+        max(np.abs(np.linalg.norm(p[:, free.quaternion], axis=1) - 1.0).max() for p in predicted)
     )
     summary["all_finite"] = bool(all(np.all(np.isfinite(p)) for p in predicted))
     summary["horizon_s"] = horizon_steps * data.control_period

@@ -127,6 +127,7 @@ def swing_probe(scene: str, body: str | None = None, control_period: float | Non
         physics = SwingPhysics(env)
         base = env.unwrapped
         scales = physics.scales
+        quaternion, rate = physics.attitude.quaternion, physics.attitude.omega
         axis = base.joint_axis
         if axis is not None:
             qvels = [np.array([sign * c * scales.speed]) for c in speeds for sign in (1.0, -1.0)]
@@ -134,7 +135,7 @@ def swing_probe(scene: str, body: str | None = None, control_period: float | Non
             # Directions across the plane perpendicular to gravity at hanging (body frame), spread
             # by the golden angle so that any number of starts covers it.
             observation, _ = env.reset()
-            down = _body_frame_down(observation[:4], np.asarray(base.model.opt.gravity, dtype=float))
+            down = _body_frame_down(observation[quaternion], np.asarray(base.model.opt.gravity, dtype=float))
             first = np.cross(down, [1.0, 0.0, 0.0] if abs(down[0]) < 0.9 else [0.0, 1.0, 0.0])
             first /= np.linalg.norm(first)
             second = np.cross(down, first)
@@ -142,7 +143,7 @@ def swing_probe(scene: str, body: str | None = None, control_period: float | Non
             for k, c in enumerate(speeds * 2):
                 angle = k * math.pi * (3.0 - math.sqrt(5.0))
                 direction = math.cos(angle) * first + math.sin(angle) * second
-                inertia = physics.inertia(observation[:4])
+                inertia = physics.inertia(observation[quaternion])
                 # The speed whose kinetic energy equals c²·(energy at ω_s about the stiffest axis).
                 kinetic = c * c * scales.energy_span
                 qvels.append(direction * math.sqrt(2.0 * kinetic / float(direction @ inertia @ direction)))
@@ -154,14 +155,14 @@ def swing_probe(scene: str, body: str | None = None, control_period: float | Non
         q0, omega0, apexes, steps, energies = [], [], [], [], []
         for qvel in qvels:
             observation, _ = env.reset(options={"qpos": base.rest_qpos, "qvel": qvel})
-            q0.append(observation[:4])
-            omega0.append(observation[4:])
+            q0.append(observation[quaternion])
+            omega0.append(observation[rate])
 
             def plant_step(q: np.ndarray, omega: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
                 state = env.step(u[0])[0]
-                return state[None, :4], state[None, 4:]
+                return state[None, quaternion], state[None, rate]
 
-            qs, omegas = _rollout(plant_step, policy, observation[None, :4], observation[None, 4:])
+            qs, omegas = _rollout(plant_step, policy, observation[None, quaternion], observation[None, rate])
             step, apex = _apex(tilts(qs[:, 0], goal, physics.center_of_mass))
             apexes.append(apex)
             steps.append(step)

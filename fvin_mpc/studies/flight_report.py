@@ -116,7 +116,8 @@ def run_recovery(
         metrics = flight_metrics(episode, hover_reference(env))
         state = episode.states[0]
         rows.append({"index": index, "seed": env_seed, "initial_angle_rad": float(episode.angle_from_goal[0]),
-                     "initial_omega_rad_s": float(np.linalg.norm(state[10:])), **metrics})
+                     "initial_omega_rad_s": float(np.linalg.norm(state[env.unwrapped.space.layout.angular_rates])),
+                     **metrics})
         kept.append(episode)
     return rows, kept, frames
 

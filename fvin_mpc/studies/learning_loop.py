@@ -422,14 +422,14 @@ def run_loop(scene: str, settings: LoopSettings, out_dir: Path, progress: bool =
 
     log = log or (lambda message: None)
     spec = existing_scene(scene)
-    settings = settings.for_scene(spec.space.pivoted)
+    settings = settings.for_scene(spec.goal_set.attitude_at_rest)
     out_dir.mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()
 
     # Per-solver options merge field by field: an ``rti`` override from the command line keeps the loop's budget.
     mpc_settings = {**LOOP_MPC, **settings.mpc,
                     "rti": {**LOOP_MPC["rti"], **dict(settings.mpc.get("rti", {}))}}
-    task = (PivotedTask if spec.space.pivoted else FlightTask)(scene, settings, mpc_settings)
+    task = (PivotedTask if spec.goal_set.attitude_at_rest else FlightTask)(scene, settings, mpc_settings)
     key = task.success_key
     closed_env = task.env()
     duration = task.duration(closed_env)
@@ -463,7 +463,7 @@ def run_loop(scene: str, settings: LoopSettings, out_dir: Path, progress: bool =
         return {
             "scene": str(scene), "settings": {**asdict(settings), "mpc": mpc_settings},
             "latency": "none", "evaluation_duration_s": duration,
-            "task": "swing-up" if spec.space.pivoted else "recovery", "success_key": key,
+            "task": "swing-up" if spec.goal_set.attitude_at_rest else "recovery", "success_key": key,
             "closed_form": {"episodes": closed, "wall_s": closed_s,
                             **{k: v for k, v in _verdict(closed, closed, key).items()
                                if k in ("closed_up", "starts", "cost_closed")}},

@@ -18,10 +18,14 @@
 #define N FVC_N
 #define NS FVC_NS
 #define M FVC_M
-#define QS FVC_BEFORE             /* first quaternion entry of a state */
-#define RS (FVC_BEFORE + 4)       /* first rate entry (v, ω or ω) */
+/* The state's blocks (fvin_mpc.core.blocks), as the generated block table gives them (fvc_config.h):
+ * every position first, then every rate; fvc_quaternions[] the first entry of each unit quaternion,
+ * fvc_angular[] the angular rates, fvc_hinges[] each hinge angle, FVC_ATTITUDE the one body attitude's
+ * quaternion (and FVC_ATTITUDE_OMEGA its rate) where the state has exactly one, else -1. */
+#define RS FVC_NPOS               /* first rate entry */
 #define NR (NS - RS)              /* rates */
-#define OM (NS - 3)               /* first ω entry */
+#define QS FVC_ATTITUDE
+#define OM FVC_ATTITUDE_OMEGA
 
 enum { LIN_H, LIN_HN, LIN_G, LIN_GN, LIN_AB, LIN_GAPS, LIN_COST, LIN_J, LIN_POINTS, LIN_COUNT };
 /* Which Jacobians a linearization keeps from the last one (RTIOptions.relinearize_every): none, the last one's
@@ -228,7 +232,10 @@ static void rollout_guess(fvc_controller *c, const double *x0, double sign, doub
     memcpy(X, x0, sizeof(double) * NS);
     for (int k = 0; k < N; k++) call_predict(c, X + k * NS, U + k * M, X + (k + 1) * NS, b, &residual, inverse);
     for (int k = 1; k <= N; k++)
-        for (int i = OM; i < NS; i++) X[k * NS + i] = clip(X[k * NS + i], -FVC_OMEGA_BOUND, FVC_OMEGA_BOUND);
+        for (int a = 0; a < FVC_NANGULAR; a++) {
+            int i = fvc_angular[a];
+            X[k * NS + i] = clip(X[k * NS + i], -FVC_OMEGA_BOUND, FVC_OMEGA_BOUND);
+        }
 }
 
 static double score(fvc_controller *c, double *X, double *U) {
@@ -286,12 +293,25 @@ static void update_estimate(fvc_controller *c, const double *x0) {
             double w = x0[OM + i] - along * fvc_free_axis[i];
             speed = fabs(w) > speed ? fabs(w) : speed;
         }
-    } else {
-        double cosine = 0.0;
-        for (int i = 0; i < 4; i++) cosine += x0[QS + i] * c->ref[QS + i];
-        cosine = fabs(cosine) < 1.0 ? fabs(cosine) : 1.0;
-        angle = 2.0 * acos(cosine);
-        for (int i = OM; i < NS; i++) speed = fabs(x0[i]) > speed ? fabs(x0[i]) : speed;
+    } else { /* DisturbanceEstimate.update: the largest attitude or hinge angle from the reference */
+        angle = 0.0;
+        for (int b = 0; b < FVC_NQUAT; b++) {
+            int first = fvc_quaternions[b];
+            double cosine = 0.0;
+            for (int i = 0; i < 4; i++) cosine += x0[first + i] * c->ref[first + i];
+            cosine = fabs(cosine) < 1.0 ? fabs(cosine) : 1.0;
+            double turn = 2.0 * acos(cosine);
+            angle = turn > angle ? turn : angle;
+        }
+        for (int b = 0; b < FVC_NHINGE; b++) {
+            double difference = x0[fvc_hinges[b]] - c->ref[fvc_hinges[b]];
+            double turn = fabs(atan2(sin(difference), cos(difference)));
+            angle = turn > angle ? turn : angle;
+        }
+        for (int a = 0; a < FVC_NANGULAR; a++) {
+            double w = fabs(x0[fvc_angular[a]]);
+            speed = w > speed ? w : speed;
+        }
     }
     if (angle > FVC_DISTURBANCE_REGION_RAD || speed > FVC_DISTURBANCE_REGION_SPEED) return;
     for (int j = 0; j < M; j++) {
@@ -394,7 +414,10 @@ void fvc_prepare(fvc_controller *c) {
     call_predict(c, c->X + N * NS, applied, last, b, &residual, inverse);
     memmove(c->X, c->X + NS, sizeof(double) * N * NS);
     memcpy(c->X + N * NS, last, sizeof last);
-    for (int i = OM; i < NS; i++) c->X[N * NS + i] = clip(c->X[N * NS + i], -FVC_OMEGA_BOUND, FVC_OMEGA_BOUND);
+    for (int a = 0; a < FVC_NANGULAR; a++) {
+        int i = fvc_angular[a];
+        c->X[N * NS + i] = clip(c->X[N * NS + i], -FVC_OMEGA_BOUND, FVC_OMEGA_BOUND);
+    }
     memmove(c->U, c->U + M, sizeof(double) * (N - 1) * M);
     call_linearize(c, c->X, c->U, KEEP_SHIFTED);
     if (FVC_PREPARED_FEEDBACK) prepare_gains(c);
@@ -403,26 +426,32 @@ void fvc_prepare(fvc_controller *c) {
 }
 
 int fvc_feedback(fvc_controller *c, const double *x, double *u) {
-    double x0[NS], norm = 0.0;
+    double x0[NS], norms[FVC_NQUAT > 0 ? FVC_NQUAT : 1];
+    int bad = !all_finite(x, NS);
     memcpy(x0, x, sizeof x0);
-    for (int i = 0; i < 4; i++) norm += x0[QS + i] * x0[QS + i];
-    norm = sqrt(norm);
-    if (!all_finite(x0, NS) || fabs(norm - 1.0) > 1e-3) {
+    for (int b = 0; b < FVC_NQUAT; b++) {
+        double norm = 0.0;
+        for (int i = 0; i < 4; i++) norm += x0[fvc_quaternions[b] + i] * x0[fvc_quaternions[b] + i];
+        norms[b] = sqrt(norm);
+        bad |= !(fabs(norms[b] - 1.0) <= 1e-3);
+    }
+    if (bad) {
         c->status.bad_states++;
         return FVC_BAD_STATE;
     }
     /* A quaternion already unit to rounding is left as it is: dividing by a norm of 1 ± 1 ulp would
      * only add rounding (and make the C loop differ from a caller that normalized it already). */
-    if (fabs(norm - 1.0) > 4.0 * DBL_EPSILON)
-        for (int i = 0; i < 4; i++) x0[QS + i] /= norm;
+    for (int b = 0; b < FVC_NQUAT; b++)
+        if (fabs(norms[b] - 1.0) > 4.0 * DBL_EPSILON)
+            for (int i = 0; i < 4; i++) x0[fvc_quaternions[b] + i] /= norms[b];
     complete_prediction(c);
     c->status.calls++;
     c->status.cold_guess = -1;
     update_estimate(c, x0);
     if (c->have_plan && !isinf(FVC_RESTART_SPEED)) {  /* RealTimeMPC._leaves_plan: a stale plan starts cold */
         if (!c->prepared) fvc_prepare(c);
-        for (int i = OM; i < NS; i++)
-            if (fabs(x0[i] - c->X[i]) > FVC_RESTART_SPEED) c->have_plan = 0;
+        for (int a = 0; a < FVC_NANGULAR; a++)
+            if (fabs(x0[fvc_angular[a]] - c->X[fvc_angular[a]]) > FVC_RESTART_SPEED) c->have_plan = 0;
         if (!c->have_plan) c->prepared = 0;
     }
     int status, failed = 0;
