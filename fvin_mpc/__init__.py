@@ -36,6 +36,7 @@ installed under this name):
 * ``quadrotor_env`` — a free body with rotors (the ``quadrotor`` scene).
 * ``pendulum_v1`` — conversions between Gymnasium's ``Pendulum-v1`` and the ``pendulum`` scene.
 * ``disturbance`` — a known constant torque disturbance (the offset-free tests' oracle).
+* ``joint_blocks`` — a MuJoCo model's joints as the blocks of a state (its ``qpos``, ``qvel``).
 * ``families`` — seeded random scene families (hinge, ball) and what an MJCF has that the package cannot take.
 * ``flyer_family`` — a seeded random family of free-flying crafts (rotor layouts, wrench actuators, drag).
 

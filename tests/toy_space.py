@@ -5,8 +5,9 @@ entries): the blocks ``(Slide(), Ball())``.
 
 The step is separable: the rail by Velocity-Verlet under ``u₀ − k s − m g``, the rotation by the
 S³ step (:func:`fvin_mpc.core.fvin.fvin_step`) on S³ terms. Nothing here edits a package module:
-:data:`TOY` is a :class:`~fvin_mpc.core.space.ConfigurationSpace` value that a test registers
-(:func:`fvin_mpc.core.space.register`) and takes out again (``unregister``).
+:data:`TOY` is a :class:`~fvin_mpc.core.space.ConfigurationSpace` (a subclass with its math as
+methods) that a test registers (:func:`fvin_mpc.core.space.register`) and takes out again
+(``unregister``).
 """
 
 from __future__ import annotations
@@ -136,8 +137,26 @@ def toy_learned_terms(weights: Mapping[str, Any], config: ToyConfig, ops: Ops) -
                     networks.LearnedTerms(weights, config.rotation_config(), ops))
 
 
-TOY = ConfigurationSpace(
+class ToySpace(ConfigurationSpace):
+    """The toy's math: the functions above as the space's methods."""
+
+    def step(self, x, u, terms, step_size, newton_iters, ops, **options):
+        return toy_step(x, u, terms, step_size, newton_iters, ops)
+
+    def energy(self, x, terms, ops):
+        return toy_energy(x, terms, ops)
+
+    def make_terms(self, weights, config, ops):
+        return toy_learned_terms(weights, config, ops)
+
+    def shapes(self, config):
+        return toy_weight_shapes(config)
+
+    def initial_weights(self, config, seed, **scales):
+        return toy_init_weights(config, seed)
+
+
+TOY = ToySpace(
     name="R1xS3-toy", description="R¹ × S³ (a toy: a bead on a rail carrying a pivoted body)", layout=RAIL_LAYOUT,
-    config_type=ToyConfig, variants=TOY_VARIANTS, _step=toy_step, _energy=toy_energy,
-    _learned_terms=toy_learned_terms, _weight_shapes=toy_weight_shapes, _init_weights=toy_init_weights,
+    config_type=ToyConfig, variants=TOY_VARIANTS,
 )

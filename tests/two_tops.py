@@ -144,9 +144,26 @@ def two_tops_learned_terms(weights: Mapping[str, Any], config: TwoTopsConfig, op
                         ops.softplus(weights["spring"][0]))
 
 
-TWO_TOPS = ConfigurationSpace(
+class TwoTopsSpace(ConfigurationSpace):
+    """The two tops' math: the functions above as the space's methods."""
+
+    def step(self, x, u, terms, step_size, newton_iters, ops, **options):
+        return two_tops_step(x, u, terms, step_size, newton_iters, ops)
+
+    def energy(self, x, terms, ops):
+        return two_tops_energy(x, terms, ops)
+
+    def make_terms(self, weights, config, ops):
+        return two_tops_learned_terms(weights, config, ops)
+
+    def shapes(self, config):
+        return two_tops_weight_shapes(config)
+
+    def initial_weights(self, config, seed, **scales):
+        return two_tops_init_weights(config, seed)
+
+
+TWO_TOPS = TwoTopsSpace(
     name="S3xS3-toy", description="S³ × S³ (a toy: two tops joined by a torsion spring)", layout=TWO_TOPS_LAYOUT,
-    config_type=TwoTopsConfig, variants=TWO_TOPS_VARIANTS, _step=two_tops_step, _energy=two_tops_energy,
-    _learned_terms=two_tops_learned_terms, _weight_shapes=two_tops_weight_shapes,
-    _init_weights=two_tops_init_weights,
+    config_type=TwoTopsConfig, variants=TWO_TOPS_VARIANTS,
 )

@@ -685,7 +685,7 @@ class RealTimeMPC(MPC):
         # --- dynamics: e(δ, Δu) = F(x, u + d) in x̄_{k+1}'s chart
         implicit = s.rti.dynamics == "implicit"
         if implicit:
-            if self.model.space.step_residual is None or self.model.casadi_terms is None:
+            if not self.model.space.has_step_residual or self.model.casadi_terms is None:
                 raise ValueError(f"rti.dynamics='implicit' needs the step's own equations, which the "
                                  f"{self.model.space.description} space does not provide, and rigid-body terms "
                                  f"(model {self.model.name!r}); use rti.dynamics='unrolled'")

@@ -26,8 +26,8 @@ config's class, compare space names or read a space from a state's length.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from typing import Any, Callable, ClassVar, Mapping
+from dataclasses import dataclass
+from typing import Any, ClassVar, Mapping
 
 import numpy as np
 
@@ -55,8 +55,10 @@ __all__ = ["ConfigurationSpace", "StateLayout", "chart_local", "chart_retract", 
 # ----------------------------------------------------------------------------- spaces
 @dataclass(frozen=True, eq=False)
 class ConfigurationSpace:
-    """One configuration space; see the module docstring. Instances are singletons in the registry
-    (compare them with ``is``), each with its step written once in its own core module.
+    """One configuration space; see the module docstring. A space is a subclass that writes its math as
+    methods (:meth:`step`, :meth:`energy`, and the learned model's :meth:`make_terms`, :meth:`shapes`,
+    :meth:`initial_weights`, :meth:`closed_form_body` where it has them); its instances are singletons in
+    the registry (compare them with ``is``), each with its step written once in its own core module.
 
     Attributes:
         name: the tag in checkpoints and data (``"S3"``, ``"SO3"``, ``"R3xS3"``).
@@ -71,16 +73,6 @@ class ConfigurationSpace:
     layout: StateLayout
     config_type: type
     variants: tuple[str, ...]
-    _step: Callable[..., tuple[Any, Any]] = field(repr=False)
-    _energy: Callable[[Any, Any, Ops], Any] = field(repr=False)
-    _learned_terms: Callable[[Mapping[str, Any], Any, Ops], Any] = field(repr=False)
-    _weight_shapes: Callable[[Any], dict[str, tuple[int, ...]]] = field(repr=False)
-    _init_weights: Callable[..., dict[str, np.ndarray]] = field(repr=False)
-    _closed_form: Callable[[Any, str], Any] | None = field(default=None, repr=False)
-    _step_options: Callable[[Any], dict[str, Any]] = field(default=lambda config: {}, repr=False)
-    #: The step's own equations ``G(x_k, u_k, x_{k+1}) = 0`` on components, where the space has them
-    #: in the form the real-time iteration's implicit dynamics imposes (S³: :func:`fvin.step_residual`).
-    step_residual: Callable[..., tuple[Any, ...]] | None = field(default=None, repr=False)
 
     #: Every registered space by name (:func:`register`).
     registry: ClassVar[dict[str, "ConfigurationSpace"]] = {}
@@ -88,30 +80,56 @@ class ConfigurationSpace:
     def __post_init__(self) -> None:
         # The implicit dynamics are the S³ step's equations on (q, ω): a space claiming them must have
         # that layout.
-        if self.step_residual is not None and self.layout != PIVOTED:
+        if self.has_step_residual and self.layout != PIVOTED:
             raise ValueError(f"space {self.name!r}: a space with step_residual must have the layout "
                              f"{PIVOTED.name}, got {self.layout.name}")
+
+    @property
+    def has_step_residual(self) -> bool:
+        """Whether the space has its step's own equations (:meth:`step_residual`)."""
+        return type(self).step_residual is not ConfigurationSpace.step_residual
 
     @property
     def state_dim(self) -> int:
         return self.layout.state_dim
 
-    # -------------------------------------------------------------- math
+    # -------------------------------------------------------------- math (a subclass writes these)
     def step(self, x: Any, u: Any, terms: Any, step_size: float, newton_iters: int, ops: Ops,
              **options: Any) -> tuple[Any, Any]:
         """One step on stacked states: ``x (…, n)`` (CasADi: a column), ``u (…, m)`` →
         ``(x_next, residual)``; ``residual`` is the final Newton residual in rad/s, large past the
         solvability limit where ``x_next`` means nothing. ``options`` are the space's own
         (:meth:`step_options`: R³ × S³'s ``force_rule``)."""
-        return self._step(x, u, terms, step_size, newton_iters, ops, **options)
+        raise NotImplementedError(f"the {self.description} space writes no step")
 
     def energy(self, x: Any, terms: Any, ops: Ops) -> Any:
         """The model's energy of stacked states (kinetic + potential, in the model's own scale)."""
-        return self._energy(x, terms, ops)
+        raise NotImplementedError(f"the {self.description} space writes no energy")
 
     def step_options(self, config: Any) -> dict[str, Any]:
         """The :meth:`step` options a model config fixes (e.g. R³ × S³'s force rule)."""
-        return self._step_options(config)
+        return {}
+
+    def step_residual(self, *args: Any, **kwargs: Any) -> tuple[Any, ...]:
+        """The step's own equations ``G(x_k, u_k, x_{k+1}) = 0`` on components, where the space has them in
+        the form the real-time iteration's implicit dynamics imposes (S³: :func:`fvin.step_residual`)."""
+        raise NotImplementedError(f"the {self.description} space has no step residual")
+
+    def make_terms(self, weights: Mapping[str, Any], config: Any, ops: Ops) -> Any:
+        """The learned terms of ``weights`` (the config already checked: :meth:`learned_terms`)."""
+        raise NotImplementedError(f"the {self.description} space has no learned model")
+
+    def shapes(self, config: Any) -> dict[str, tuple[int, ...]]:
+        """The weights' names and shapes under ``config`` (checked: :meth:`weight_shapes`)."""
+        raise NotImplementedError(f"the {self.description} space has no learned model")
+
+    def initial_weights(self, config: Any, seed: int, **scales: Any) -> dict[str, np.ndarray]:
+        """A fresh initialization under ``config`` (checked: :meth:`init_weights`)."""
+        raise NotImplementedError(f"the {self.description} space has no learned model")
+
+    def closed_form_body(self, model: Any, body: str) -> Any:
+        """The closed-form body of ``body`` in a compiled ``mujoco.MjModel`` (:meth:`closed_form`)."""
+        raise NotImplementedError(f"the {self.description} space has no closed-form body")
 
     # -------------------------------------------------------------- learned models
     def owns(self, config: Any) -> bool:
@@ -121,11 +139,11 @@ class ConfigurationSpace:
     def learned_terms(self, weights: Mapping[str, Any], config: Any, ops: Ops) -> Any:
         """The learned terms of ``weights`` under ``config`` on ``ops``' backend."""
         self._require_own(config)
-        return self._learned_terms(weights, config, ops)
+        return self.make_terms(weights, config, ops)
 
     def weight_shapes(self, config: Any) -> dict[str, tuple[int, ...]]:
         self._require_own(config)
-        return self._weight_shapes(config)
+        return self.shapes(config)
 
     def check_weights(self, weights: Mapping[str, Any], config: Any) -> None:
         """``ValueError`` naming the first weight whose name or shape does not match ``config``."""
@@ -134,7 +152,7 @@ class ConfigurationSpace:
     def init_weights(self, config: Any, seed: int, **scales: Any) -> dict[str, np.ndarray]:
         """A fresh initialization (``scales``: the space's initial physical scales, e.g. ``inertia``)."""
         self._require_own(config)
-        return self._init_weights(config, seed, **scales)
+        return self.initial_weights(config, seed, **scales)
 
     def config_from_dict(self, fields: Mapping[str, Any]) -> Any:
         return self.config_type.from_dict(fields)
@@ -143,9 +161,7 @@ class ConfigurationSpace:
     def closed_form(self, model: Any, body: str) -> Any:
         """The closed-form body of ``body`` in a compiled ``mujoco.MjModel``; it has ``terms(ops)``
         and ``control_dim``. ``NotImplementedError`` for a space with no closed form."""
-        if self._closed_form is None:
-            raise NotImplementedError(f"the {self.description} space has no closed-form body")
-        return self._closed_form(model, body)
+        return self.closed_form_body(model, body)
 
     # -------------------------------------------------------------- manifold
     def check(self, x: Any) -> np.ndarray:
@@ -265,11 +281,34 @@ PIVOTED = StateLayout((Ball(),), name="(q, ω)")
 #: A free rigid body: ``(x, q, v, ω)``.
 FREE_BODY = StateLayout((FreeJoint(),), name="(x, q, v, ω)")
 
-S3 = register(ConfigurationSpace(
+class PivotedSpace(ConfigurationSpace):
+    """S³: a pivoted body's S3FVIN step (:mod:`~fvin_mpc.core.fvin`) on ``(q, ω)``."""
+
+    def step(self, x, u, terms, step_size, newton_iters, ops, **options):
+        return _s3_step(x, u, terms, step_size, newton_iters, ops)
+
+    def energy(self, x, terms, ops):
+        return _s3_energy(x, terms, ops)
+
+    def step_residual(self, *args, **kwargs):
+        return fvin.step_residual(*args, **kwargs)
+
+    def make_terms(self, weights, config, ops):
+        return networks.LearnedTerms(weights, config, ops)
+
+    def shapes(self, config):
+        return networks.weight_shapes(config)
+
+    def initial_weights(self, config, seed, **scales):
+        return networks.init_weights(config, seed, **scales)
+
+    def closed_form_body(self, model, body):
+        return rigid_body.from_mujoco(model, body)
+
+
+S3 = register(PivotedSpace(
     name="S3", description="S³ (a pivoted body on unit quaternions)", layout=PIVOTED,
-    config_type=networks.ModelConfig, variants=networks.VARIANTS, _step=_s3_step, _energy=_s3_energy,
-    _learned_terms=networks.LearnedTerms, _weight_shapes=networks.weight_shapes, _init_weights=networks.init_weights,
-    _closed_form=rigid_body.from_mujoco, step_residual=fvin.step_residual,
+    config_type=networks.ModelConfig, variants=networks.VARIANTS,
 ))
 
 
@@ -301,21 +340,32 @@ class _SO3ClosedForm:
         return fvin_so3.PivotedRigidBodySO3Terms(self.body, ops)
 
 
-SO3 = register(
-    ConfigurationSpace(
-        name="SO3",
-        description="SO(3) (the paper's SO3FVIN baseline on a pivoted body)",
-        layout=PIVOTED,
-        config_type=networks_so3.SO3ModelConfig,
-        variants=networks_so3.SO3_VARIANTS,
-        _step=_so3_step,
-        _energy=_so3_energy,
-        _learned_terms=networks_so3.LearnedSO3Terms,
-        _weight_shapes=networks_so3.weight_shapes,
-        _init_weights=networks_so3.init_weights,
-        _closed_form=lambda model, body: _SO3ClosedForm(rigid_body.from_mujoco(model, body)),
-    )
-)
+class SO3Space(ConfigurationSpace):
+    """SO(3): the paper's SO3FVIN baseline (:mod:`~fvin_mpc.core.fvin_so3`) on a ``(q, ω)`` state."""
+
+    def step(self, x, u, terms, step_size, newton_iters, ops, **options):
+        return _so3_step(x, u, terms, step_size, newton_iters, ops)
+
+    def energy(self, x, terms, ops):
+        return _so3_energy(x, terms, ops)
+
+    def make_terms(self, weights, config, ops):
+        return networks_so3.LearnedSO3Terms(weights, config, ops)
+
+    def shapes(self, config):
+        return networks_so3.weight_shapes(config)
+
+    def initial_weights(self, config, seed, **scales):
+        return networks_so3.init_weights(config, seed, **scales)
+
+    def closed_form_body(self, model, body):
+        return _SO3ClosedForm(rigid_body.from_mujoco(model, body))
+
+
+SO3 = register(SO3Space(
+    name="SO3", description="SO(3) (the paper's SO3FVIN baseline on a pivoted body)", layout=PIVOTED,
+    config_type=networks_so3.SO3ModelConfig, variants=networks_so3.SO3_VARIANTS,
+))
 
 
 # ----------------------------------------------------------------------------- R³ × S³: a free body
@@ -328,11 +378,32 @@ def _r3s3_energy(x: Any, terms: Any, ops: Ops) -> Any:
     return fvin_r3s3.total_energy(*fvin_r3s3.split_free_state(x, ops), terms)
 
 
-R3S3 = register(ConfigurationSpace(
+class FreeBodySpace(ConfigurationSpace):
+    """R³ × S³: a free body's step (:mod:`~fvin_mpc.core.fvin_r3s3`) on ``(x, q, v, ω)``."""
+
+    def step(self, x, u, terms, step_size, newton_iters, ops, **options):
+        return _r3s3_step(x, u, terms, step_size, newton_iters, ops, **options)
+
+    def energy(self, x, terms, ops):
+        return _r3s3_energy(x, terms, ops)
+
+    def step_options(self, config):
+        return {"force_rule": config.force_rule}
+
+    def make_terms(self, weights, config, ops):
+        return networks_r3s3.LearnedCombinedTerms(weights, config, ops)
+
+    def shapes(self, config):
+        return networks_r3s3.weight_shapes(config)
+
+    def initial_weights(self, config, seed, **scales):
+        return networks_r3s3.init_weights(config, seed, **scales)
+
+    def closed_form_body(self, model, body):
+        return quadrotor.from_mujoco(model, body)
+
+
+R3S3 = register(FreeBodySpace(
     name="R3xS3", description="R³ × S³ (a free body that translates and rotates)", layout=FREE_BODY,
     config_type=networks_r3s3.R3S3Config, variants=("fixed-inertia", "sign-invariant", "plain"),
-    _step=_r3s3_step, _energy=_r3s3_energy,
-    _learned_terms=networks_r3s3.LearnedCombinedTerms, _weight_shapes=networks_r3s3.weight_shapes,
-    _init_weights=networks_r3s3.init_weights, _closed_form=quadrotor.from_mujoco,
-    _step_options=lambda config: {"force_rule": config.force_rule},
 ))
