@@ -11,7 +11,7 @@ structure (widths, which terms depend on ``q``), not on the weights' values.
 
 Further columns count what the real-time iteration evaluates per stage with each of its dynamics
 constraints (``RTIOptions.dynamics``): ``unrolled`` — the gap of ``F`` and its Jacobian in the
-7 chart directions ``(δ_k, Δu_k)`` (:func:`fvin_mpc.control.rti.unrolled_stage_function`), differentiated as
+7 chart directions ``(δ_k, Δu_k)`` (:func:`fvin_mpc.control.linearization.unrolled_stage_function`), differentiated as
 written and, as the RTI builds it, on the terms' first-order expansions (:mod:`fvin_mpc.control.term_expansion`);
 ``implicit`` — the terms and their 3 chart derivatives once per node plus the stage's
 implicit-function solve (:mod:`fvin_mpc.control.implicit_dynamics`).
@@ -26,7 +26,7 @@ import numpy as np
 from benchmarks.study import StudyResult
 from fvin_mpc.control import implicit_dynamics
 from fvin_mpc.control import model_export as export
-from fvin_mpc.control.rti import unrolled_stage_function
+from fvin_mpc.control.linearization import unrolled_stage_function
 from fvin_mpc.control.scene import scene_env, scene_model
 from fvin_mpc.core import s3
 from fvin_mpc.core.backend import get_ops

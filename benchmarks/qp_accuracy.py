@@ -30,7 +30,7 @@ from fvin_mpc._cli import run_command
 from fvin_mpc.control.buffered import BufferedFunction
 from fvin_mpc.control.closed_loop import run_episode
 from fvin_mpc.control.model_export import compile_functions
-from fvin_mpc.control.rti import QP_METHODS, riccati_feedback_function
+from fvin_mpc.control.riccati_qp import QP_METHODS, riccati_feedback_function
 
 SCENES = ("pendulum", "spherical_pendulum", "quadrotor")
 DURATION_S = {"pendulum": 6.0, "spherical_pendulum": 6.0, "quadrotor": 3.0}
@@ -130,7 +130,7 @@ def accuracy(controller: Any, records: list[tuple[np.ndarray, ...]], counts: Seq
              method: str = "path") -> list[dict[str, Any]]:
     """One row per count (and the ``reference`` count): the distances of the first control to the exact
     solution's (:func:`exact_controls`), as a fraction of the torque range; ``method``: the interior-point
-    method (:data:`~fvin_mpc.control.rti.QP_METHODS`)."""
+    method (:data:`~fvin_mpc.control.riccati_qp.QP_METHODS`)."""
     n, m = controller.horizon, controller.model.control_dim
     functions = [riccati_feedback_function(controller.layout, n, m, *controller._control_bounds,
                                            controller._step_limits, controller._omega_valid, count,

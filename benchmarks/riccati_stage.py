@@ -1,6 +1,6 @@
 """One Riccati stage, generated against hand-written: ``python -m benchmarks.riccati_stage``.
 
-For each size ``(n_δ, m)`` the generated stage (:func:`fvin_mpc.control.rti.riccati_stage_function`, CasADi's
+For each size ``(n_δ, m)`` the generated stage (:func:`fvin_mpc.control.riccati_qp.riccati_stage_function`, CasADi's
 straight-line C, compiled as the package compiles generated code: ``-O2`` and the host's target flags) and the
 kernel (:func:`fvin_mpc.control.riccati_kernel.riccati_stage_kernel`, ``-O3`` and the target flags, its own
 object as in both loops' libraries) are linked into one C program that calls each on the same random stage
@@ -31,7 +31,7 @@ from fvin_mpc.control.model_export import (
     write_generated_source,
 )
 from fvin_mpc.control.riccati_kernel import riccati_stage_kernel
-from fvin_mpc.control.rti import riccati_stage_function
+from fvin_mpc.control.riccati_qp import riccati_stage_function
 
 SIZES = ((12, 4), (12, 1), (12, 6), (6, 3), (6, 1))
 

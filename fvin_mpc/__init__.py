@@ -60,7 +60,11 @@ installed under this name):
 * ``mpc`` — the problem solved to convergence (IPOPT), with multi-start cold solves.
 * ``presets`` — the built-in scenes' controller presets, each with its reason.
 * ``family_filter`` — whether the closed-form controller swings a generated scene up (the family filter).
-* ``rti`` — the real-time iteration MPC (any product of blocks).
+* ``rti`` — the real-time iteration MPC (any product of blocks): the controller.
+* ``linearization`` — the real-time iteration's linearization: a stage's gap and ``[A B]`` in the blocks' charts,
+  the trust region, the kept Jacobians.
+* ``riccati_qp`` — the real-time iteration's QP solver: interior point on the input boxes, a Riccati recursion per
+  iteration (its method and where it breaks).
 * ``implicit_dynamics`` — the step's own equations as the real-time iteration's dynamics constraint.
 * ``term_expansion`` — a model's terms expanded to first order where a stage is linearized (the same
   Jacobian in fewer operations).

@@ -122,10 +122,10 @@ def test_the_choice_of_lanes():
 
 
 def test_a_stage_in_lanes_is_the_generated_stage_to_rounding():
-    """The dynamics stage the controllers map in lanes (:func:`~fvin_mpc.control.rti.unrolled_stage_function`,
+    """The dynamics stage the controllers map in lanes (:func:`~fvin_mpc.control.linearization.unrolled_stage_function`,
     parametric, with term expansions) of the learned and closed-form ball joint and quadrotor, at 10 random nodes
     (quaternions on and off unit norm): gaps and ``[A B]`` within 1e-12 of their size of the scalar map's."""
-    from fvin_mpc.control.rti import unrolled_stage_function
+    from fvin_mpc.control.linearization import unrolled_stage_function
 
     rng = np.random.default_rng(5)
     count = 10

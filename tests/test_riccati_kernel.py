@@ -10,7 +10,7 @@ import pytest
 
 from fvin_mpc.control.model_export import kernel_function
 from fvin_mpc.control.riccati_kernel import riccati_stage_kernel, uses_kernel
-from fvin_mpc.control.rti import riccati_stage_function
+from fvin_mpc.control.riccati_qp import riccati_stage_function
 
 pytestmark = pytest.mark.skipif(shutil.which("gcc") is None, reason="the kernel is C: it needs a compiler")
 

@@ -12,7 +12,8 @@ from helpers import iterated_rti_plan, stage_models
 
 from fvin_mpc.control.closed_loop import episode_metrics, run_episode
 from fvin_mpc.control.mpc import MPC
-from fvin_mpc.control.rti import RealTimeMPC, riccati_feedback_function
+from fvin_mpc.control.riccati_qp import riccati_feedback_function
+from fvin_mpc.control.rti import RealTimeMPC
 from fvin_mpc.control.scene import scene_env, scene_model, scene_mpc, scene_mpc_settings
 from fvin_mpc.envs.disturbance import ConstantTorqueDisturbance
 
@@ -181,7 +182,7 @@ def test_a_spent_cold_budget_still_scores_every_first_guess(pendulum):
 def test_riccati_stage_matches_the_matrix_formulas(nd, m):
     """The entry-wise Riccati stage (symmetric reads, one UᵀDU factorization) against the textbook
     matrix recursion in NumPy: gains, feedforwards and the cost-to-go, and ``P⁻`` symmetric."""
-    from fvin_mpc.control.rti import riccati_stage_function
+    from fvin_mpc.control.riccati_qp import riccati_stage_function
 
     rng = np.random.default_rng(nd * 10 + m)
     size = nd + m
@@ -208,7 +209,7 @@ def test_riccati_stage_matches_the_matrix_formulas(nd, m):
     np.testing.assert_allclose(out[2], K, atol=1e-12 * max(1.0, np.abs(K).max()))
     np.testing.assert_allclose(out[3].ravel(), k, atol=1e-12 * max(1.0, np.abs(k).max()))
     # its matrix and vector halves (Mehrotra's iteration: one factorization, two solves) give the same bits
-    from fvin_mpc.control.rti import riccati_factor_function, riccati_solve_function
+    from fvin_mpc.control.riccati_qp import riccati_factor_function, riccati_solve_function
 
     P_half, K_half, factors, crosses = riccati_factor_function(nd, m)(P_upper, H, AB, d)
     p_half, k_half = riccati_solve_function(nd, m)(p, P_upper, factors, crosses, g, AB, c, r)
@@ -256,7 +257,7 @@ def test_first_order_terms_give_a_stage_the_same_derivatives_with_fewer_operatio
     every built-in scene's learned and closed-form model, with and without the model parameters as an input, and
     with quaternions on and off unit norm, the gap is the same to the bit and ``[A B]`` the same to rounding; a
     learned stage has fewer instructions."""
-    from fvin_mpc.control.rti import unrolled_stage_function
+    from fvin_mpc.control.linearization import unrolled_stage_function
 
     rng = np.random.default_rng(11)
     for scene, true_model, model in stage_models():
@@ -342,8 +343,8 @@ def test_common_subexpression_elimination_changes_no_bit_of_a_learned_stage(monk
     outputs identical to the bit to the same function built without it, at random nodes of a learned ball joint
     (unrolled step) and of the learned planar pendulum's node terms (implicit dynamics)."""
     from fvin_mpc.control import implicit_dynamics
+    from fvin_mpc.control.linearization import unrolled_stage_function
     from fvin_mpc.control.model_export import GENERATED_SX_OPTIONS
-    from fvin_mpc.control.rti import unrolled_stage_function
 
     def built(cse, scene):
         monkeypatch.setitem(GENERATED_SX_OPTIONS, "cse", cse)
@@ -373,7 +374,7 @@ def test_kept_jacobians_are_never_older_than_the_rule_says(items, every, head):
     """:func:`relinearized` as the shift moves the items: following each node through 3·items periods, its
     Jacobians are renewed at least every ``every`` periods, the first ``head`` items every period, and each
     linearization renews the same number of items."""
-    from fvin_mpc.control.rti import relinearized
+    from fvin_mpc.control.linearization import relinearized
 
     renewed = relinearized(items, every, head).astype(bool)
     assert renewed[:head].all() and renewed[-1] and renewed[0]
@@ -426,7 +427,7 @@ def test_a_linearization_renews_the_jacobians_it_is_told_to_and_keeps_the_rest(s
     if scene == "spherical_pendulum":
         points[-len(shift):, moved] += shift[:, None]  # the stage's control
     else:  # the node's rotation: a chart step (tan of half the angle) of 1.5 tolerances of STEP_LIMIT_ANGLE
-        from fvin_mpc.control.rti import STEP_LIMIT_ANGLE
+        from fvin_mpc.control.linearization import STEP_LIMIT_ANGLE
         from fvin_mpc.core import s3
 
         half = np.arctan(1.5 * controller.settings.rti.relinearize_tol * STEP_LIMIT_ANGLE)

@@ -31,8 +31,8 @@ import torch
 from scipy.integrate import solve_ivp
 from toy_space import TOY, Rail, RailBody, ToyConfig
 
+from fvin_mpc.control import linearization, rti
 from fvin_mpc.control import model_export as export
-from fvin_mpc.control import rti
 from fvin_mpc.control.mpc import MPC, MPCSettings, RTIOptions
 from fvin_mpc.core import fvin_so3
 from fvin_mpc.core.backend import get_ops
@@ -556,11 +556,11 @@ def test_checkpoint_round_trip_exports_the_same_model(case, tmp_path):
 
 # ----------------------------------------------------------------------------- the real-time MPC's linearization
 def test_unrolled_stage_linearization_matches_finite_differences(case):
-    """``rti.unrolled_stage_function``: ``c = 0`` at consistent nodes (``x̄_{k+1} = F(x̄_k, ū)``) and
+    """``linearization.unrolled_stage_function``: ``c = 0`` at consistent nodes (``x̄_{k+1} = F(x̄_k, ū)``) and
     ``[A B]`` equal to central differences of ``local(x̄_{k+1}, F(retract(x̄_k, δ), ū + Δu))``."""
     model = export.from_closed_form(case.space, case.body, case.h, 3, **case.options)
     layout, m = case.space.layout, model.control_dim
-    stage = rti.unrolled_stage_function(model.step, layout, m)
+    stage = linearization.unrolled_stage_function(model.step, layout, m)
     eps = 1e-6
     for x_bar, u_bar in zip(case.states(2, seed=13), case.controls(2, seed=13)):
         x_next = model(x_bar, u_bar)[0]

@@ -1,7 +1,7 @@
 """A stage function mapped over the horizon, four stages at a time on the vector units: CasADi's C, in lanes.
 
 The real-time iteration linearizes every stage of its plan with the same scalar function (the dynamics'
-gap and ``[A B]``, :func:`~fvin_mpc.control.rti.unrolled_stage_function`; the cost's Gauss–Newton model).
+gap and ``[A B]``, :func:`~fvin_mpc.control.linearization.unrolled_stage_function`; the cost's Gauss–Newton model).
 CasADi generates it as straight-line scalar C and maps it with a loop of calls: one double at a time, while
 the CPU's vector units hold four. :func:`lane_map_kernel` translates that C line by line into the same code on
 vectors of four doubles (``c_kernels/lanes_prelude.c``: GCC's and Clang's vector extension), each lane one

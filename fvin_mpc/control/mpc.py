@@ -196,14 +196,15 @@ class RTIOptions:
             of a learned model's period) only for the first ``relinearize_head`` stages, every
             ``relinearize_every``-th, the last, and those whose node moved more than ``relinearize_tol`` since
             their derivatives were computed; it keeps the previous linearization's for the others, shifted with
-            the plan (:func:`~fvin_mpc.control.rti.relinearized`): none is older than ``relinearize_every − 1``
-            periods. The gaps, costs and their derivatives are new every time, so the iterations still close
-            the gaps; what the kept derivatives cost is optimality, measured in docs/c-controller.md. The
+            the plan (:func:`~fvin_mpc.control.linearization.relinearized`): none is older than
+            ``relinearize_every − 1`` periods. The gaps, costs and their derivatives are new every time, so the
+            iterations still close the gaps; what the kept derivatives cost is optimality, measured in
+            docs/c-controller.md. The
             implicit dynamics keep their nodes' term slopes the same way. Cold calls and new model parameters
             renew all. ``1`` (default): every stage every time.
         relinearize_head: the leading stages renewed every time (see ``relinearize_every``).
         relinearize_tol: how far a node may move before its kept derivatives are renewed, as a fraction of the
-            iteration's trust region (:func:`~fvin_mpc.control.rti.step_limits`: a chart step of 0.5, about a
+            iteration's trust region (:func:`~fvin_mpc.control.linearization.step_limits`: a chart step of 0.5, about a
             radian of rotation; half the ``ω`` bound; …) or of the control range, whichever is reached first.
     """
 

@@ -1,9 +1,9 @@
 """The Riccati stage as hand-written C (``c_kernels/riccati_stage.c``): the generated QP's hot loop on the vector units.
 
-The real-time iteration's QP (:func:`fvin_mpc.control.rti.riccati_feedback_function`) runs one backward Riccati
+The real-time iteration's QP (:func:`fvin_mpc.control.riccati_qp.riccati_feedback_function`) runs one backward Riccati
 stage per stage and interior-point iteration — 180 a period on the quadrotor (``N = 30``, six iterations),
 about 60 % of its QP. CasADi generates each stage as straight-line scalar code
-(:func:`~fvin_mpc.control.rti.riccati_stage_function`, the reference). The kernel computes the same stage
+(:func:`~fvin_mpc.control.riccati_qp.riccati_stage_function`, the reference). The kernel computes the same stage
 with the two products that dominate it, ``P [A B]`` and ``[A B]ᵀ P [A B]``, as loops over columns of four
 doubles, compiled with ``-O3`` where GCC and Clang turn them into vector instructions. The generated
 feedback calls the whole backward sweep over the stages (:func:`riccati_stage_kernel` with a horizon) through
@@ -34,7 +34,7 @@ RICCATI_STAGES = ("auto", "generated", "kernel")
 
 def riccati_stage_kernel(nd: int, m: int, horizon: int | None = None) -> CKernel:
     """The kernel of a Riccati stage with ``n_δ = nd`` and ``m`` controls (``fvin_riccati_stage_{nd}_{m}``, the
-    signature of :func:`~fvin_mpc.control.rti.riccati_stage_function`) or, with a ``horizon`` ``N``, of the whole
+    signature of :func:`~fvin_mpc.control.riccati_qp.riccati_stage_function`) or, with a ``horizon`` ``N``, of the whole
     backward sweep over ``N`` such stages (``fvin_riccati_sweep_{nd}_{m}_{N}``: ``(P_N, p_N, H, g, [A B], c, d,
     r) → (K, k)``, every block in the stages' own order): the template's source after a prelude that fixes its
     sizes and its name. The sweep is what the feedback calls: it runs the stages in place, where a ``mapaccum``

@@ -1,6 +1,6 @@
 """Rigid-body terms expanded to first order where a linearization reads them: the same Jacobian, cheaper.
 
-A stage of the real-time iteration (:func:`fvin_mpc.control.rti.unrolled_stage_function`) needs the step
+A stage of the real-time iteration (:func:`fvin_mpc.control.linearization.unrolled_stage_function`) needs the step
 ``F(x, u)`` and its derivatives in all ``n_δ + m`` directions ``(δ, Δu)`` at ``δ = 0``. Differentiated as
 written, every one of those directions runs through every term the step calls — a learned model's
 networks ``J(q)``, ``∇U``, ``g`` at the step's start and again at its end — although each term depends on
