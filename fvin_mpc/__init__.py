@@ -9,6 +9,8 @@ imports and holds the line). Every module, one line each:
   layout, step, energy, learned terms, closed form, chart, check — and the registry that names them.
 * ``blocks`` — a state as a product of blocks (hinge, slide, ball, free joint): the chart, check and distance
   written once per block kind for every backend.
+* ``tree_dynamics`` — a MuJoCo model's kinematic tree in closed form: ``M(q)``, bias, passive forces and actuator
+  moments.
 * ``goals`` — what a scene's goal is (a pivot's upright orientation at rest, a craft's hover point).
 * ``backend`` — the leaf operations that differ between NumPy, torch and CasADi (the only backend-specific code).
 * ``s3`` — unit-quaternion algebra on S³ and 3×3 linear algebra.
@@ -37,6 +39,8 @@ installed under this name):
 * ``pendulum_v1`` — conversions between Gymnasium's ``Pendulum-v1`` and the ``pendulum`` scene.
 * ``disturbance`` — a known constant torque disturbance (the offset-free tests' oracle).
 * ``joint_blocks`` — a MuJoCo model's joints as the blocks of a state (its ``qpos``, ``qvel``).
+* ``mechanism_family`` — a seeded random family of mechanisms (cart-poles, double and rotary pendulums, ball
+  arms) and the closed form's check against MuJoCo.
 * ``families`` — seeded random scene families (hinge, ball) and what an MJCF has that the package cannot take.
 * ``flyer_family`` — a seeded random family of free-flying crafts (rotor layouts, wrench actuators, drag).
 
