@@ -103,7 +103,7 @@ def quadrotor_model(
     return model
 
 
-def quadrotor_mpc(env: Any, model: ExportedModel, settings: MPCSettings | None = None) -> MPC:
+def quadrotor_mpc(env: Any, model: ExportedModel, settings: MPCSettings | None = None) -> MPC | RealTimeMPC:
     """The MPC on the quadrotor ``env``: hover at its hover point, level, the actuators' thrust bounds;
     ``settings`` default to :func:`quadrotor_mpc_settings`. The real-time iteration
     (:class:`~fvin_mpc.control.rti.RealTimeMPC`) with ``solver="rti"`` (the default), else the same

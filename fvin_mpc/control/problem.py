@@ -27,11 +27,17 @@ term is a sum of squares ``|r|²`` of a residual ``r``, so both use the Gauss–
   the whole range.
 
 The dynamics ``x_{k+1} = F(x_k, u_k + d̂)`` carry the same input-disturbance estimate in both.
+
+:class:`ControlProblem` is what the two controllers share of it (they are its subclasses, siblings): the goal,
+the reference over the horizon, the bounds, the disturbance estimate, the control that holds the goal and the
+first guesses.
 """
 
 from __future__ import annotations
 
 import math
+import time
+from dataclasses import dataclass
 from typing import Any, Callable, Protocol
 
 import casadi as ca
@@ -40,10 +46,12 @@ import numpy as np
 from fvin_mpc.control.model_export import GENERATED_SX_OPTIONS
 from fvin_mpc.core import s3
 from fvin_mpc.core.backend import get_ops
-from fvin_mpc.core.blocks import Ball, BlockSlots, FreeJoint, Hinge, Slide
+from fvin_mpc.core.blocks import Ball, BlockSlots, FreeJoint, Hinge, Slide, single_attitude
+from fvin_mpc.core.goals import UPRIGHT, GoalSet, default_goal_set
 from fvin_mpc.core.space import StateLayout
+from fvin_mpc.core.state import unit_quaternion
 
-CA = get_ops("casadi")
+CA, NP = get_ops("casadi"), get_ops("numpy")
 
 
 def orientation_error(q: Any, goal: Any, kind: str, free_axis: Any = None) -> Any:
@@ -336,3 +344,234 @@ class ConstantReference:
 
     def __call__(self, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return np.tile(self.state, (len(times), 1)), np.ones(len(times))
+
+
+@dataclass(frozen=True)
+class Plan:
+    """A solution in array form: states ``(N+1, n)``, controls ``(N, m)`` and the multipliers."""
+
+    states: np.ndarray
+    controls: np.ndarray
+    lam_g: np.ndarray | None
+    lam_x: np.ndarray | None
+
+
+class ControlProblem:
+    """What the two controllers of the one problem share — :class:`~fvin_mpc.control.mpc.MPC` (solved to
+    convergence) and :class:`~fvin_mpc.control.rti.RealTimeMPC` (real-time iterations) are its subclasses,
+    siblings: the model, the goal (as the goal set reads it), the reference over the horizon, the control bounds,
+    the disturbance estimate, the control that holds the goal and the first guesses. A subclass builds its solver
+    in ``_build`` (called last by ``__init__``), and gives ``_predict`` and ``_rollout`` on its compiled model.
+
+    Args:
+        model: the discrete-time model (``from_checkpoint`` or ``from_rigid_body``).
+        settings: the problem and its solvers' options (:class:`~fvin_mpc.control.mpc.MPCSettings`).
+        goal: as ``goal_set`` reads it: a goal orientation ``(4,)`` (either sign) for an upright goal, a
+            state for a hover point.
+        torque_low, torque_high: control bounds ``(m,)``, e.g. the scene's ``ctrlrange``.
+        rest: the orientation of the potential's minimum (hanging), which sets the energy
+            scale of the terminal energy cost; needed only when ``terminal_energy_weight > 0``.
+            :func:`fvin_mpc.control.scene.scene_mpc` passes the scene's.
+        goal_set: what the goal is (:mod:`fvin_mpc.core.goals`; a scene declares it:
+            :func:`fvin_mpc.control.scene.scene_mpc` passes the scene's); ``None``:
+            :func:`~fvin_mpc.core.goals.default_goal_set` of the model's states.
+
+    Attributes:
+        build_s: seconds spent building (and compiling) the solver.
+    """
+
+    def __init__(self, model: Any, settings: Any, goal: Any, torque_low: Any, torque_high: Any,
+                 rest: Any = None, goal_set: GoalSet | None = None) -> None:
+        self.model = model
+        self.settings = settings
+        #: the blocks of the model's states (pivoted ``(q, ω)``, free ``(x, q, v, ω)``, a mechanism's joints)
+        self.layout = model.space.layout
+        #: what the goal is (the scene's declaration: an orientation at rest or a whole state)
+        self.goal_set = default_goal_set(self.layout) if goal_set is None else goal_set
+        goal_state = self.goal_set.goal_state(self.layout, goal)
+        if not self.goal_set.attitude_at_rest and settings.terminal_energy_weight > 0:
+            raise ValueError(f"a {self.goal_set.description} takes no terminal energy term (the energy deficit "
+                             "to an orientation at rest is written for a pivot's upright goal)")
+        #: the goal state; the reference is this state at rest unless :meth:`set_reference` says otherwise
+        self.goal_state = goal_state
+        attitude = single_attitude(self.layout)
+        #: the goal orientation (the goal state's attitude), ``None`` for states of several attitudes or none
+        self.goal = None if attitude is None else goal_state[attitude.quaternion].copy()
+        self._reference: Reference = ConstantReference(goal_state)
+        m = model.control_dim
+        self.torque_low = np.broadcast_to(np.asarray(torque_low, dtype=float), (m,)).copy()
+        self.torque_high = np.broadcast_to(np.asarray(torque_high, dtype=float), (m,)).copy()
+        if not np.all(self.torque_low < self.torque_high):
+            raise ValueError(f"need torque_low < torque_high, got {self.torque_low} and {self.torque_high}")
+        self.omega_bound = settings.omega_bound_fraction / model.step_size
+        self.estimate = DisturbanceEstimate(self.layout, settings.disturbance_gain, settings.disturbance_region_rad,
+                                            settings.disturbance_region_speed, self.torque_low, self.torque_high,
+                                            settings.free_axis)
+        self.rest = None if rest is None else unit_quaternion(rest, "rest")
+        #: the rest orientation at rest, as a state (``None`` without ``rest``)
+        self.rest_state = None if rest is None else UPRIGHT.goal_state(self.layout, self.rest)
+        if settings.terminal_energy_weight > 0:
+            if self.rest is None:
+                raise ValueError("terminal_energy_weight > 0 needs the rest orientation (the potential's minimum), "
+                                 "which sets the energy scale: pass rest=... (a scene's task has it)")
+            rest_energy = model.energy(self.rest_state)
+            span = abs(model.energy(goal_state) - rest_energy)
+            if not span > 1e-9 * (1.0 + abs(rest_energy)):
+                raise ValueError("terminal_energy_weight > 0 needs different goal and rest energies; "
+                                 f"the model gives {span:.3g} between {self.goal} and {self.rest}")
+        start = time.perf_counter()
+        self._build()
+        self.build_s = time.perf_counter() - start
+        self._u_goal = self._goal_control()
+        self.reset()
+
+    # ------------------------------------------------------------------ state of the controller
+    def _goal_control(self) -> np.ndarray:
+        """``u_goal``: the control that holds the goal at rest in the model — its rates (``ω``, or ``v``
+        and ``ω``) stay zero (least squares, Newton). For a quadrotor: the hover thrusts."""
+        x_goal = self.goal_state.copy()
+        x_goal[self.layout.rates] = 0.0
+        u = np.zeros(self.model.control_dim)
+        for _ in range(5):
+            stepped, _, _, inverse = self._predict(x_goal, u)
+            u = u - ordered_matvec(inverse, np.asarray(stepped, dtype=float).ravel()[self.layout.rates])
+        return u
+
+    @property
+    def disturbance(self) -> np.ndarray:
+        """``d̂``, the input-disturbance estimate (control units; :class:`DisturbanceEstimate`)."""
+        return self.estimate.value
+
+    def reset(self) -> None:
+        """Forget the plan and the disturbance estimate (the next call is a cold start); the clock
+        restarts at 0."""
+        self._previous: Plan | None = None
+        self.estimate.reset()
+        self._time = 0.0
+        self._forget_preparation()
+
+    def _forget_preparation(self) -> None:
+        """Drop what was prepared for the next call (a solver that prepares says what)."""
+
+    def set_reference(self, reference: Reference) -> None:
+        """Track ``reference`` (a :class:`~fvin_mpc.control.problem.Reference`: states and control
+        scales over time) from now on."""
+        self._reference = reference
+        self._reference_cache = None
+        self._forget_preparation()
+
+    def set_time(self, t: float) -> None:
+        """The time of the next measurement (s, on the reference's clock). Without it the clock
+        advances by one step per call; :func:`fvin_mpc.control.closed_loop.run_episode` tells it."""
+        if abs(float(t) - self._time) > 1e-9:
+            # Not one step after the last call (a deadline miss skipped observations): the last
+            # one-step prediction says nothing about this measurement, and what was prepared was for
+            # another time.
+            self.estimate.forget_prediction()
+            if not self._reference.constant:
+                self._forget_preparation()
+        self._time = float(t)
+
+    def _sample_reference(self) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
+        """``(time, states (N+1, n), scales (N,), states as the solvers' input (n, N+1))`` of the
+        reference over the horizon from now (cached)."""
+        cache = getattr(self, "_reference_cache", None)
+        if cache is None or not (self._reference.constant or cache[0] == self._time):
+            n = self.horizon
+            states, scales = self._reference(self._time + self.model.step_size * np.arange(n + 1))
+            states = np.asarray(states, dtype=float).reshape(n + 1, self.layout.state_dim)
+            cache = (self._time, states, np.asarray(scales, dtype=float).reshape(n + 1)[:n], states.T)
+            self._reference_cache = cache
+        return cache
+
+    def reference_window(self) -> tuple[np.ndarray, np.ndarray]:
+        """The reference over the horizon from the current time: states ``(N+1, n)`` and target
+        controls ``u_s,k = clip(s_k u_goal − d̂)`` ``(N, m)`` (``s_k`` the reference's control scale)."""
+        _, states, scales, _ = self._sample_reference()
+        return states, np.clip(scales[:, None] * self._u_goal - self.disturbance, self.torque_low, self.torque_high)
+
+    @property
+    def target_control(self) -> np.ndarray:
+        """``u_s = u_goal − d̂`` (times the reference's control scale now), clipped to the bounds."""
+        return self.reference_window()[1][0]
+
+    def _update_estimate(self, x0: np.ndarray) -> None:
+        """The disturbance estimate at the measured ``x0``, against the reference's attitude now."""
+        self.estimate.update(x0, self._sample_reference()[1][0])
+
+    def _predicted(self, x0: np.ndarray, u: np.ndarray) -> float:
+        """Remember the model's prediction after ``u`` from ``x0`` (with ``d̂``) for the next estimate,
+        advance the clock one step; returns the step's Newton residual (rad/s)."""
+        predicted, _, residual, inverse = self._predict(x0, u + self.disturbance)
+        self.estimate.predicted(predicted, inverse)
+        self._time += self.model.step_size  # the next measurement's time unless set_time says otherwise
+        return float(residual)
+
+    # ------------------------------------------------------------------ layout
+    @property
+    def horizon(self) -> int:
+        return self.settings.horizon
+
+    # ------------------------------------------------------------------ what a solver gives
+    def _build(self) -> None:
+        """Build the solver (and the ``_predict`` it plans with)."""
+        raise NotImplementedError(f"{type(self).__name__} builds no solver")
+
+    def _predict(self, x: Any, u: Any) -> tuple[Any, ...]:
+        """``(x⁺, B, residual, B⁺)`` of one step of the solver's model (:func:`predict_function`)."""
+        raise NotImplementedError(f"{type(self).__name__} has no prediction")
+
+    def _rollout(self, x0: np.ndarray, controls: np.ndarray) -> np.ndarray:
+        """The model's states ``(N+1, n)`` from ``x0`` under ``controls`` (the solver's model: a solver
+        with run-time model parameters rolls out with them)."""
+        return self.model.rollout(x0, controls)
+
+    # ------------------------------------------------------------------ guesses
+    def _first_guess(self, x0: np.ndarray, start: str) -> Plan:
+        """The plan a cold solve starts from (see :data:`COLD_STARTS`). A free body's ``"goal"``: the
+        reference, the orientation turned from the measured one to the reference's along the geodesic
+        over the first third of the horizon, the reference's target controls."""
+        if start == "goal" and not self.goal_set.attitude_at_rest:
+            n, attitude = self.horizon, self.layout.attitude(by="the goal first guess")
+            references, targets = self.reference_window()
+            states = references.copy()
+            q0 = x0[attitude.quaternion]
+            q_ref = references[:, attitude.quaternion]
+            q_ref = q_ref * np.where(q_ref @ q0 >= 0, 1.0, -1.0)[:, None]  # each on q0's side of S³
+            relative = s3.multiply(s3.conjugate(tuple(q0)), tuple(q_ref.T))
+            turn = np.array(s3.log(relative, NP))  # (3, N+1): q_ref = q0 ⊗ exp(turn)
+            weights = np.clip(np.arange(n + 1) / max(1, n // 3), 0.0, 1.0)
+            states[:, attitude.quaternion] = np.array(s3.multiply(tuple(q0), s3.exp(tuple(weights * turn), NP))).T
+            states[:, attitude.omega] = 0.0
+            states[0] = x0
+            return Plan(states, targets.copy(), None, None)
+        if start == "goal":
+            # Sums in order and libm's sin and acos (math, not NumPy's own SIMD versions): the C driver's
+            # goal_guess computes the same, and a cold start from it converged to controls 2e-13 apart
+            # that the ball joint's swing-up amplified past 1e-9 (tests/test_c_controller.py).
+            n, attitude = self.horizon, self.layout.attitude(by="the goal first guess")
+            q0 = [float(value) for value in x0[attitude.quaternion]]
+            sign = 1.0 if float(ordered_matvec(np.array([q0]), self.goal)[0]) >= 0 else -1.0
+            goal = [sign * float(value) for value in self.goal]
+            angle = math.acos(min(max(float(ordered_matvec(np.array([q0]), goal)[0]), -1.0), 1.0))
+            third = max(1, n // 3)
+            quaternions = np.empty((n + 1, 4))
+            for k in range(n + 1):
+                weight = min(max(k / third, 0.0), 1.0)
+                quaternions[k] = q0 if angle < 1e-9 else [  # slerp
+                    (math.sin((1 - weight) * angle) * a + math.sin(weight * angle) * b) / math.sin(angle)
+                    for a, b in zip(q0, goal)]
+            states = np.zeros((n + 1, self.layout.state_dim))
+            states[:, attitude.quaternion] = quaternions
+            states[0] = x0
+            return Plan(states, np.zeros((n, self.model.control_dim)), None, None)
+        sign = 1.0 if start == "rollout+" else -1.0
+        return self._rollout_guess(x0, sign * self.settings.initial_torque_fraction * self.torque_high)
+
+    def _rollout_guess(self, x0: np.ndarray, torque: np.ndarray) -> Plan:
+        """The model rolled out under the constant ``torque`` (clipped to the bounds), ω clipped to its bound."""
+        controls = np.clip(np.tile(torque, (self.horizon, 1)), self.torque_low, self.torque_high)
+        states = self._rollout(x0, controls)
+        rates = self.layout.angular_rates
+        states[1:, rates] = np.clip(states[1:, rates], -self.omega_bound, self.omega_bound)
+        return Plan(states, controls, None, None)

@@ -107,8 +107,8 @@ from fvin_mpc.control.model_export import (
     compile_functions,
     kernel_function,
 )
-from fvin_mpc.control.mpc import MPC, MPCSettings, Plan
-from fvin_mpc.control.problem import control_bounds, predict_function, residual_functions
+from fvin_mpc.control.mpc import MPC, MPCSettings
+from fvin_mpc.control.problem import ControlProblem, Plan, control_bounds, predict_function, residual_functions
 from fvin_mpc.control.riccati_qp import riccati_feedback_function
 from fvin_mpc.core.backend import get_ops
 
@@ -127,7 +127,7 @@ LOOP_SOURCE = "fvc_model"
 OMEGA_VALID_FRACTION = 0.9
 
 
-class RealTimeMPC(MPC):
+class RealTimeMPC(ControlProblem):
     """Real-time iteration MPC (module docstring); same constructor and ``controller(x)`` contract as
     :class:`~fvin_mpc.control.mpc.MPC`, plus :meth:`prepare` and :attr:`disturbance`.
 
@@ -137,8 +137,6 @@ class RealTimeMPC(MPC):
     ``states``, ``controls``, ``disturbance`` (``d̂``, control units), ``gap`` (largest dynamics gap
     of the plan, in the charts), and on cold calls ``cold_start`` and ``cold_costs``.
     """
-
-    _solves_rti = True
 
     def __init__(self, model: ExportedModel, settings: MPCSettings, goal: Any, torque_low: Any, torque_high: Any,
                  rest: Any = None, terminal_cost: Any = None, cold_start_score: Any = None,
@@ -151,7 +149,8 @@ class RealTimeMPC(MPC):
             raise ValueError("the real-time iteration ranks its cold guesses by model cost and dynamics gaps; "
                              "cold_start_score needs solver='ipopt', 'sqpmethod' or 'fatrop'")
         if settings.solver != "rti":
-            settings = replace(settings, solver="rti")
+            raise ValueError(f"RealTimeMPC solves settings with solver='rti', got {settings.solver!r} "
+                             "(fvin_mpc.control.scene.scene_mpc picks the class from the settings)")
         super().__init__(model, settings, goal, torque_low, torque_high, rest, goal_set=goal_set)
         self._cold_mpc = None
         if settings.rti.cold_solver == "ipopt":

@@ -214,7 +214,7 @@ def scene_model(env: Any, checkpoint: Any = None, true_model: bool = False,
     return model
 
 
-def scene_mpc(env: Any, model: ExportedModel, settings: MPCSettings | None = None) -> MPC:
+def scene_mpc(env: Any, model: ExportedModel, settings: MPCSettings | None = None) -> MPC | RealTimeMPC:
     """An :class:`MPC` on the scene's task: its goal, rest and torque bounds; ``settings`` default
     to :func:`scene_mpc_settings`. With ``settings.solver == "rti"`` the real-time iteration
     :class:`~fvin_mpc.control.rti.RealTimeMPC` (same problem, bounded compute per call)."""
