@@ -1,15 +1,15 @@
 """The pendulum's bob doubles while held upright: ``python -m benchmarks.adaptation_scenarios``.
 
-Issue 29's scenario with an oracle, on the ``pendulum`` scene: the real-time MPC (the scene's RTI presets)
-holds the pendulum upright from a seeded start near it (angle within ±0.05 rad, rate within ±0.2 rad/s);
-at ``--change-at`` (2 s) every mass and inertia of the plant doubles (``ScenePhysics.mass_change``) and,
-at the same instant, the rod's rate jumps by ``--knock`` rad/s (``impulse_delta_omega`` at ``impulse_at_s``;
-sign drawn per seed). The knock is there because a uniform body held still at upright reveals no mass
-change at all: gravity's torque and the inertia double together, the torque that holds it is zero either
-way, and the only effect — the motor is half as strong relative to the body — shows only when the body
-moves. Without it the scenario measures nothing (docs/adaptation.md: the unknocked hold changes by 1e-5 rad).
-The default knock (0.3 rad/s) is one the doubled bob can be caught from; at 1 rad/s it falls in every arm,
-the oracle's included, and "recovery" is a new swing-up (docs/adaptation.md reports both).
+A change of the plant with an oracle (docs/adaptation.md), on the ``pendulum`` scene: the real-time MPC (the
+scene's RTI presets) holds the pendulum upright from a seeded start near it (angle within ±0.05 rad, rate within
+±0.2 rad/s); at ``--change-at`` (2 s) every mass and inertia of the plant doubles (``ScenePhysics.mass_change``)
+and, at the same instant, the rod's rate jumps by ``--knock`` rad/s (``impulse_delta_omega`` at ``impulse_at_s``;
+sign drawn per seed). The knock is there because a uniform body held still at upright reveals no mass change at
+all: gravity's torque and the inertia double together, the torque that holds it is zero either way, and the only
+effect — the motor is half as strong relative to the body — shows only when the body moves. Without it the scenario
+measures nothing (docs/adaptation.md: the unknocked hold changes by 1e-5 rad). The default knock (0.3 rad/s) is one
+the doubled bob can be caught from; at 1 rad/s it falls in every arm, the oracle's included, and "recovery" is a
+new swing-up (docs/adaptation.md reports both).
 
 Four arms per model (``--models``: the closed form read off the unchanged MJCF, and the shipped learned
 checkpoint), ``--runs`` seeded runs each:

@@ -1,4 +1,4 @@
-"""``data-efficiency``: how much data does control need? (issue 14)
+"""``data-efficiency``: how much data does control need? (docs/data-efficiency.md)
 
 Models are trained on growing numbers of transitions (``--sizes``), several draws each
 (``--seeds``), and every trained model is judged three ways:

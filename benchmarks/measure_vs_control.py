@@ -1,7 +1,7 @@
 """Which model number predicts control: ``python -m benchmarks.measure_vs_control``.
 
-Issue 26 asks for a model measure that predicts closed-loop control where the validation loss does
-not. Once every family member succeeds, a family report has nothing left to predict
+Wanted: a model measure that predicts closed-loop control where the validation loss does not
+(docs/excitation.md). Once every family member succeeds, a family report has nothing left to predict
 (docs/scene-families.md), so this study makes models of different quality on purpose: for each of the
 first ``--scenes`` members of a family (the family filter's, from ``--seed-offset``), one ``collect``
 (defaults), then ``train`` (defaults, one torch thread) stopped after each of ``--iterations``

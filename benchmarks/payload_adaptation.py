@@ -1,11 +1,11 @@
 """The quadrotor picks up a payload (or wears a rotor) mid-flight: ``python -m benchmarks.payload_adaptation``.
 
-Issue 29's free-body scenario with an oracle, on the built-in ``quadrotor`` (0.5 kg, four rotors of 0–2.5 N):
-the real-time MPC (``fly``'s settings) flies the figure-eight (0.5 m, 3 s a loop) from hover; at a seeded time
-``--change-at + U(0, 1) s`` (so that each run meets the change at another point of the loop) every mass and
-inertia of the plant becomes ``--mass-scale`` (1.5) times the craft's and its centre of mass moves by
-``--shift`` (2 cm straight down: a payload hung under the craft) — ``ScenePhysics.mass_change``; nothing
-announces it. The observed state is the plant's centre of mass, which jumps with the payload.
+A free body's plant changed with an oracle (docs/adaptation.md), on the built-in ``quadrotor`` (0.5 kg, four rotors
+of 0–2.5 N): the real-time MPC (``fly``'s settings) flies the figure-eight (0.5 m, 3 s a loop) from hover; at a
+seeded time ``--change-at + U(0, 1) s`` (so that each run meets the change at another point of the loop) every mass
+and inertia of the plant becomes ``--mass-scale`` (1.5) times the craft's and its centre of mass moves by
+``--shift`` (2 cm straight down: a payload hung under the craft) — ``ScenePhysics.mass_change``; nothing announces
+it. The observed state is the plant's centre of mass, which jumps with the payload.
 
 Arms per model (``--models``: the closed form read off the unchanged MJCF, and the shipped learned
 checkpoint), ``--runs`` seeded runs each:

@@ -1,5 +1,5 @@
 """A random family of free-flying crafts: seeded MJCFs of one body on a free joint with rotors, drawn
-over the ranges of descriptions a user could bring (issue 27), beside the pivoted families of
+over the ranges of descriptions a user could bring (docs/flyers.md), beside the pivoted families of
 :mod:`envs.families`.
 
 ``flyer_scene(seed)`` returns ``(mjcf_text, facts)``; everything comes from

@@ -104,7 +104,7 @@ def test_the_c_loop_refuses_a_state_that_is_not_one(closed_form_pendulum):
 
 class ChangesParameters:
     """A controller told new model parameters after its ``at``-th call, between the control and the
-    preparation — where an online adaptation would (issue 29)."""
+    preparation — where an online adaptation would (docs/adaptation.md)."""
 
     def __init__(self, controller, at: int, **blocks):
         self.controller, self.at, self.blocks = controller, at, blocks

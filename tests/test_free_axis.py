@@ -1,4 +1,4 @@
-"""A goal that is a set: the turn about a free axis costs nothing (issue 26's two-motor balls)."""
+"""A goal that is a set: the turn about a free axis costs nothing (the two-motor ball scenes of the family)."""
 
 from __future__ import annotations
 

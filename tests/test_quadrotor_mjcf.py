@@ -1,4 +1,4 @@
-"""Any free-flying craft from its MJCF (issue 27): the env observes the centre of mass, the closed
+"""Any free-flying craft from its MJCF (docs/flyers.md): the env observes the centre of mass, the closed
 form reads any rotor layout or wrench actuators off the model (checked against ``mj_forward`` on
 generated crafts), and data come from the MJCF alone (random-excitation bursts)."""
 

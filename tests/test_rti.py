@@ -165,10 +165,10 @@ def test_many_qp_iterations_stay_finite_and_hold_the_goal(pendulum, qp_iteration
 
 
 def test_a_spent_cold_budget_still_scores_every_first_guess(pendulum):
-    """Regression (issue 26): the cold budget ran out inside the first guess ("goal", whose gaps were
-    still open) and the other guesses were never looked at, so that half-iterated plan was kept. With
-    no budget at all, every guess is scored (un-iterated after the first) and the best one is kept: a
-    rollout, a plan of the model with no gaps, beats the un-converged goal path."""
+    """A cold budget spent inside the first guess ("goal", whose gaps are still open) still leaves every
+    other guess scored, so that half-iterated plan is not kept for want of time. With no budget at all,
+    every guess is scored (un-iterated after the first) and the best one is kept: a rollout, a plan of
+    the model with no gaps, beats the un-converged goal path."""
     env, model = pendulum
     controller = rti(env, model, rti={"cold_budget_s": 1e-12})
     x0, _ = env.reset()

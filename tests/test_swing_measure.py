@@ -1,4 +1,4 @@
-"""The swing measure and the swing excitation (issue 26): checked against independent references."""
+"""The swing measure and the swing excitation (docs/excitation.md): checked against independent references."""
 
 from __future__ import annotations
 
@@ -26,7 +26,7 @@ def test_the_closed_form_swings_as_mujoco_does_and_wrong_damping_does_not():
     assert true["swing_energy_error"] < 0.01
     env = RigidBodyEnv(DAMPED, control_period=0.02)
     body = from_mujoco(env.unwrapped.model, env.unwrapped.body_name)
-    for factor in (0.7, 1.3):  # the issue's learned damping was 20–40 % low
+    for factor in (0.7, 1.3):  # the learned damping of docs/excitation.md's pendulum was 20–40 % low
         wrong = swing_apex_error(rigid_body_step(replace(body, damping=factor * body.damping), env.unwrapped.dt),
                                  probe)
         assert wrong["swing_energy_error"] > 3.0 * true["swing_energy_error"]

@@ -1,5 +1,5 @@
 """Networks of the body-frame vertical: a ball-jointed body's terms cannot tell a turn of the world about
-the vertical (issue 26's two-motor balls), checked against the rotation matrix, finite differences and
+the vertical (what the two-motor ball scenes need), checked against the rotation matrix, finite differences and
 the whole step."""
 
 from __future__ import annotations

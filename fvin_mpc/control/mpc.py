@@ -331,7 +331,7 @@ class MPCSettings:
             nothing. A ball joint whose actuators span two directions cannot act on the spin about
             the centre of mass's direction upright, and gravity is the same at every turn about it:
             penalizing that turn or spin made the plan trade tilt for it, holding the body 0.3–0.8 rad
-            off upright (issue 26's ball family). Set by the scene's defaults
+            off upright (the two-motor ball scenes of ``fvin_mpc.envs.families``). Set by the scene's defaults
             (:func:`~fvin_mpc.control.scene.goal_symmetry_axis`).
         compile: ``"cached"`` compiles the solver's functions to C once (cached on disk); ``"none"``
             evaluates them in CasADi's virtual machine. Every solver.

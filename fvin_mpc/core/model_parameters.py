@@ -17,8 +17,8 @@ otherwise; an exported function that takes ``p`` builds the **same** terms code 
   output layer (:func:`low_rank_blocks`) — ``W → W + C Σ_r V_rᵀ`` with ``W = U Σ Vᵀ`` the layer's own
   singular value decomposition and the block ``C`` (``out × r``, default zeros) the run-time input: linear in
   ``C``, and ``C = α U_r`` scales the layer's ``r`` strongest directions by ``1 + α``. What a black-box
-  adaptation of a network fits (issue 29's "low-rank subset of the networks' last layers"), beside the
-  physical blocks.
+  adaptation of a network fits (a low-rank subset of the networks' last layers, docs/adaptation.md), beside
+  the physical blocks.
 * a closed-form body: the fields its class names in ``PARAMETERS`` (pivoted body: ``inertia``,
   ``center_of_mass``, ``mass_gravity``, ``damping``; quadrotor: ``mass``, ``inertia``, ``gravity``). A
   scalar that is zero (no damping) stays a constant: it switches a term off, and a symbol would put the

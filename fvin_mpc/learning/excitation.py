@@ -4,8 +4,8 @@ Random constant or piecewise-constant controls from random states (:func:`~fvin_
 excite a weak actuator little against gravity: a motor of a fifth of the gravity torque, switched at
 random, moves the body's energy by a few percent of the swing-up's span, so the data say little
 about the damping at swing speed, the saturated motor, or the last climb to upright — the states
-and controls an MPC's swing-up passes through (issue 26: a model fitted to such data learned a
-dissipation 20–40 % low and its MPC never swung the body up).
+and controls an MPC's swing-up passes through (on the weak, damped point pendulum of docs/excitation.md a
+model fitted to such data learned a dissipation 20–40 % low and its MPC never swung the body up).
 
 :func:`collect_swings` collects instead, per trajectory, from a start drawn by one of three kinds:
 
@@ -96,8 +96,8 @@ class SwingScales:
     def training_window(self) -> int:
         """Rollout steps per training window: half a natural period, within [MIN_WINDOW, MAX_WINDOW].
         A window of a few steps sees the damping act for a few percent of a swing, where its effect
-        on the rollout is below the fit's noise; half a swing lets a wrong damping (issue 26's
-        20–40 % low) show as the energy it wrongly keeps."""
+        on the rollout is below the fit's noise; half a swing lets a wrong damping (the damped
+        point pendulum's 20–40 % low, docs/excitation.md) show as the energy it wrongly keeps."""
         return int(min(MAX_WINDOW, max(MIN_WINDOW, round(0.5 * self.natural_period / self.step_size))))
 
     @property
@@ -151,8 +151,9 @@ class SwingPhysics:
         ``d_i`` lies between them up to the integrator's error), and damping only takes energy
         away. A trajectory whose energy rises above the start's plus that cumulative bound was not
         moved by its controls but by the integrator: MuJoCo's semi-implicit steps diverge on a body
-        whose inertia about one axis is tiny next to the others once it spins fast (issue 26: ball
-        scenes at 1:30 whose data reached 680 rad/s, and whose models trained on them never fitted).
+        whose inertia about one axis is tiny next to the others once it spins fast (ball scenes
+        at 1:30 whose data reached 680 rad/s, and whose models trained on them never fitted:
+        docs/scene-families.md).
         """
         states = np.asarray(states, dtype=float)
         energy = np.array([self.energy(state) for state in states])
@@ -164,9 +165,9 @@ class SwingPhysics:
     def within_band(self, state: np.ndarray, u: np.ndarray, stalled: np.ndarray | None = None) -> np.ndarray:
         """``u``, or braking (:meth:`pump` against the motion) once the state's energy is above
         ``MAX_ENERGY·ΔE``: all a swing-up passes through. Random levels and pumping kept on a strong
-        motor tumble the body at many times the span (issue 26: a two-motor ball at 13 spans at the
-        95th percentile, 44 % of its states past the speed the model's step resolves, validation loss
-        0.6 where its members reach 1e-3)."""
+        motor tumble the body at many times the span (a two-motor ball scene at 13 spans at the 95th
+        percentile, 44 % of its states past the speed the model's step resolves, validation loss 0.6
+        where the family's other members reach 1e-3: docs/scene-families.md)."""
         if self.energy(state) <= MAX_ENERGY * self.scales.energy_span:
             return u
         return self.pump(state[self.attitude.omega], -1.0, stalled)

@@ -2,9 +2,10 @@
 
 A swing-up ends with a climb under a saturated motor: whether the body arrives upright depends on
 the energy the motor puts in against gravity and the damping takes out over that climb. The
-rollout loss weighs every transition of the data alike and barely sees it (issue 26: training
-longer lowered the validation loss and made the learned damping worse; the MPC of a model whose
-last climb ends 1° from upright, where the plant's ends 15° short, never swings the body up).
+rollout loss weighs every transition of the data alike and barely sees it (on the weak, damped point
+pendulum of docs/excitation.md, training longer lowered the validation loss and made the learned damping
+worse; the MPC of a model whose last climb ends 1° from upright, where the plant's ends 15° short, never
+swings the body up).
 
 :func:`swing_probe` rolls the plant (MuJoCo) once from hanging at speeds of 0.6–1.3 ``ω_s`` (the
 speed that carries the body over the energy span ``ΔE``; both directions on a hinge, directions
