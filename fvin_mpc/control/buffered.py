@@ -1,8 +1,8 @@
 """Calling a CasADi function from Python without its per-call conversions.
 
 ``Function.__call__`` converts every NumPy argument to a ``DM`` and every result back; for the
-small compiled functions of the real-time MPC that costs far more than the arithmetic (about 50 µs
-per call here against under 1 µs through ``Function.buffer``; docs/realtime.md). A
+small compiled functions of the real-time MPC that costs far more than the arithmetic (docs/realtime.md
+measures both ways). A
 :class:`BufferedFunction` keeps one preallocated NumPy array per argument and per result, registered
 once with CasADi's buffer interface, so a call is a few array copies and one C call.
 """

@@ -10,15 +10,14 @@ a :class:`~fvin_mpc.control.model_export.CKernel` the generated linearization ca
 
 What stays the same: every operation is the scalar one in each lane (IEEE ``+ − × ÷ √`` and libm's functions
 lane by lane), so a lane computes what the scalar function computes, but for ``tanh``: libm's scalar ``tanh``,
-four calls per vector, took more than half of a learned stage's time in lanes, and the prelude computes it on whole
+four calls per vector, takes more than half of a learned stage's time in lanes, and the prelude computes it on whole
 vectors instead (within 4 units in the last place of libm's). Fused multiply–adds may be contracted differently in
 the two codes, so the kernel agrees with the scalar function to rounding, not to the bit
 (``tests/test_lane_kernel.py``: within 1e-12 of each output's size on the learned and closed-form ball joint's
 and quadrotor's stages).
 
-Measured (one stage's dynamics alone, 4 stages a call against 4 scalar calls, this 2-core AMD EPYC with
-``-march=native``): the learned ball joint's stage 6.2–6.8 → 1.35–1.43 µs (4.3–4.8×); with libm's ``tanh``
-lane by lane, 3.1–3.4 µs. Inside the loop: ``python -m benchmarks.c_loop`` (docs/c-controller.md).
+The timings, a stage alone and inside the loop (``python -m benchmarks.c_loop``): docs/c-controller.md, "Four
+stages at a time".
 
 Where it runs: ``RTIOptions.stage_lanes`` (:func:`uses_lanes`): compiled loops that renew every stage's
 Jacobians each period (``relinearize_every = 1``, the default) and whose stage CasADi writes in the operations

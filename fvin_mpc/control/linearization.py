@@ -66,10 +66,8 @@ def unrolled_stage_function(step: ca.Function, layout: StateLayout, m: int, jaco
     expansions (:mod:`fvin_mpc.control.term_expansion`: the same derivatives, fewer operations).
 
     The derivatives are taken in reverse mode (one sweep per entry of ``c``: ``n_δ`` sweeps against ``n_δ + m``
-    directions). Against CasADi's forward choice on the expanded stages: learned ball joint 29,724 → 28,328
-    instructions, quadrotor 53,786 → 51,610, planar pendulum 26,774 → 26,948; closed forms pendulum 724 → 582,
-    ball joint 6,786 → 4,475, quadrotor 5,556 → 5,910. What the expansions save:
-    :mod:`fvin_mpc.control.term_expansion`."""
+    directions; the instruction counts against CasADi's forward choice, by scene: docs/c-controller.md, "Fewer
+    operations, again"). What the expansions save: :mod:`fvin_mpc.control.term_expansion`."""
     x_bar, x_next_bar = ca.SX.sym("x_bar", layout.state_dim), ca.SX.sym("x_next_bar", layout.state_dim)
     u_bar, d = ca.SX.sym("u_bar", m), ca.SX.sym("d", m)
     delta, du = ca.SX.sym("delta", layout.tangent_dim), ca.SX.sym("du", m)

@@ -2,7 +2,7 @@
 
 The real-time iteration's QP (:func:`fvin_mpc.control.riccati_qp.riccati_feedback_function`) runs one backward Riccati
 stage per stage and interior-point iteration — 180 a period on the quadrotor (``N = 30``, six iterations),
-about 60 % of its QP. CasADi generates each stage as straight-line scalar code
+most of its QP's time. CasADi generates each stage as straight-line scalar code
 (:func:`~fvin_mpc.control.riccati_qp.riccati_stage_function`, the reference). The kernel computes the same stage
 with the two products that dominate it, ``P [A B]`` and ``[A B]ᵀ P [A B]``, as loops over columns of four
 doubles, compiled with ``-O3`` where GCC and Clang turn them into vector instructions. The generated
@@ -11,13 +11,11 @@ CasADi's external-function convention, in place of a ``mapaccum`` of the generat
 source for both loops, which compile it alike (the Python loop's library, :func:`compile_functions`; the
 C loop's, :mod:`fvin_mpc.control.c_controller`).
 
-Where it pays (a stage alone in C, alternated with the generated one, ``python -m benchmarks.riccati_stage``,
-this 2-core AMD EPYC with ``-march=native``; ``docs/bench/riccati_stage.json``): ``(n_δ, m)`` = (12, 4)
-1,352 → 612 ns (2.2×), (12, 1) 2.7×, (12, 6) 1.7×; (6, 3) 184 → 218 ns (0.84×) and (6, 1) 0.66×: at a
-pivoted body's size the generated code is faster. ``RTIOptions.riccati_stage="auto"`` therefore takes the
-kernel for free bodies (:data:`KERNEL_MIN_TANGENT_DIM`) and the generated stage for pivoted ones. Inside the
-quadrotor's QP (30 stages, six iterations) the stage took the generated function from about 300 to 220 µs, the
-sweep to 148 µs.
+Where it pays: a stage alone, the kernel is faster than the generated code at a free body's size
+(``n_δ = 12``) and slower at a pivoted body's (``n_δ = 6``); ``RTIOptions.riccati_stage="auto"`` therefore takes the
+kernel for free bodies (:data:`KERNEL_MIN_TANGENT_DIM`) and the generated stage for pivoted ones. The timings, a
+stage alone (``python -m benchmarks.riccati_stage``) and inside the quadrotor's QP: docs/c-controller.md, "Fewer
+operations, again".
 """
 
 from __future__ import annotations

@@ -13,9 +13,8 @@ other order. Each term is then differentiated along its own arguments, once; the
 only through the step's algebra and the linear expansions. The step's value is never taken from the
 expansion: the stage's gap comes from the model's own step (the same expression, the same bits).
 
-CasADi instructions of one learned stage (``c`` and ``[A B]``; ``tests/test_rti.py`` checks that they fall
-and that the derivatives agree), CasADi's forward choice on the step as written → reverse mode on the
-expansions: planar pendulum 33,633 → 26,948, ball joint 40,159 → 28,328, quadrotor 86,891 → 51,610. The
+So a learned stage (``c`` and ``[A B]``) takes fewer CasADi instructions (``tests/test_rti.py`` checks that they
+fall and that the derivatives agree; the counts by scene: docs/c-controller.md, "Fewer operations, again"). The
 closed forms' terms are cheaper than their expansions and are left as written (:data:`MIN_INSTRUCTIONS`).
 """
 

@@ -19,8 +19,8 @@ from fvin_mpc.core.backend import get_ops
 def torch_threads(threads: int) -> Iterator[None]:
     """Run torch with ``threads`` intra-op threads, restoring the previous setting afterwards.
 
-    The studies use one thread: on a shared, oversubscribed 2-core machine two torch threads
-    were measured ≈ 20× slower than one (they spin waiting for each other)."""
+    The studies use one thread: on a busy machine two torch threads spin waiting for each other and
+    run many times slower than one (docs/training.md)."""
     import torch
 
     previous = torch.get_num_threads()
