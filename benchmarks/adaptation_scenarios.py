@@ -51,7 +51,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from fvin_mpc.control.adaptation import AdaptiveRTI, nominal_estimate, rti_parameters
-from fvin_mpc.control.closed_loop import run_episode
+from fvin_mpc.control.closed_loop import run_episode, time_inside_for_good
 from fvin_mpc.control.model_export import CompileCount, cache_dir
 from fvin_mpc.control.scene import scene_env, scene_model, scene_mpc, scene_mpc_settings
 from fvin_mpc.core.errors import run_command
@@ -190,11 +190,11 @@ def rms(t: np.ndarray, angle: np.ndarray, low: float, high: float) -> float:
 
 def recovery_time(t: np.ndarray, angle: np.ndarray, change_at: float, threshold: float) -> float:
     """From the change until the angle stays within ``threshold``; ∞ if it is outside at the end."""
-    outside = np.flatnonzero((t >= change_at - 1e-9) & (angle > threshold))
-    if outside.size == 0:
+    outside = (t >= change_at - 1e-9) & (angle > threshold)
+    if not outside.any():
         return 0.0
-    last = outside[-1]
-    return math.inf if last == t.size - 1 else float(t[last + 1] - change_at)
+    inside_from = time_inside_for_good(t, outside)
+    return math.inf if inside_from is None else inside_from - change_at
 
 
 def mass_at(run: dict[str, Any], time_s: float) -> float | None:

@@ -55,6 +55,7 @@ from benchmarks.study import StudyResult
 from fvin_mpc.control.closed_loop import episode_metrics, run_episode
 from fvin_mpc.control.model_export import CA, NP, ExportedModel, energy_function, from_checkpoint
 from fvin_mpc.control.scene import scene_env, scene_model, scene_mpc, scene_mpc_settings
+from fvin_mpc.core import s3
 from fvin_mpc.core.checkpoint import save_checkpoint
 from fvin_mpc.core.data import load_data, save_data
 from fvin_mpc.core.networks import ModelConfig
@@ -249,8 +250,7 @@ def rollout_errors(model: Any, test: Any) -> dict[str, float]:
     states = np.concatenate([test.q, test.omega], axis=-1)
     for x_true, controls in zip(states, test.u):
         predicted = model.rollout(x_true[0], controls)
-        alignment = np.clip(np.abs(np.sum(predicted[:, :4] * x_true[:, :4], axis=-1)), 0.0, 1.0)
-        finals.append(2.0 * math.acos(alignment[-1]))
+        finals.append(float(s3.geodesic_angles(predicted[-1, :4], x_true[-1, :4])))
         speeds.append(float(np.sum((predicted[-1, 4:] - x_true[-1, 4:]) ** 2)))
         # the training loss on the windows of 8 steps starting every 4 periods
         for start in range(0, controls.shape[0] - 8 + 1, 4):

@@ -36,6 +36,8 @@ from typing import Any, Iterable
 import mujoco
 import numpy as np
 
+from fvin_mpc.core import s3
+
 #: The ranges of a draw (see the module docstring).
 FLYER_RANGES: dict[str, Any] = {
     "mass_kg": (0.02, 5.0),
@@ -161,7 +163,7 @@ def flyer_scene(seed: int) -> tuple[str, dict[str, Any]]:
         "com_offset_m": float(np.linalg.norm(model.body_ipos[1])),
         "com_offset_arm_fraction": float(np.linalg.norm(model.body_ipos[1]) / arm),
         "inertia_kgm2": [float(v) for v in model.body_inertia[1]],
-        "inertial_frame_rotation_deg": float(np.degrees(2.0 * math.acos(min(1.0, abs(model.body_iquat[1][0]))))),
+        "inertial_frame_rotation_deg": float(np.degrees(s3.geodesic_angles(model.body_iquat[1], (1.0, 0.0, 0.0, 0.0)))),
     }
     return mjcf, facts
 

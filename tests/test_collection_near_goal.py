@@ -3,12 +3,13 @@
 import numpy as np
 import pytest
 
+from fvin_mpc.core import s3
 from fvin_mpc.envs import RigidBodyEnv
 from fvin_mpc.learning.collection import collect, near_goal_joint_state
 
 
 def _angle(a: np.ndarray, b: np.ndarray) -> float:
-    return float(2.0 * np.arccos(min(1.0, abs(float(a @ b)))))
+    return float(s3.geodesic_angles(a, b))
 
 
 @pytest.mark.parametrize("scene", ["pendulum", "spherical_pendulum"])

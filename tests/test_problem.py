@@ -15,6 +15,7 @@ from fvin_mpc.control.mpc import MPC, MPCSettings
 from fvin_mpc.control.problem import ConstantReference, control_bounds
 from fvin_mpc.control.rti import RealTimeMPC
 from fvin_mpc.control.scene import scene_env, scene_model, scene_mpc, scene_mpc_settings
+from fvin_mpc.core import s3
 from fvin_mpc.core.quadrotor import QUADROTOR
 from fvin_mpc.core.space import R3S3
 
@@ -83,7 +84,7 @@ def test_the_disturbance_estimate_removes_the_ipopt_hold_error():
         for _ in range(60):
             u, info = controller(x)
             x = model(x, u + 0.2)[0]  # the plant: 0.2 units of torque the model lacks
-        errors[gain] = 2.0 * np.arccos(min(1.0, abs(float(x[:4] @ controller.goal))))
+        errors[gain] = float(s3.geodesic_angles(x[:4], controller.goal))
         if gain > 0:
             assert info["disturbance"][0] == pytest.approx(0.2, rel=0.05)
     env.close()

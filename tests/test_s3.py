@@ -102,6 +102,19 @@ def test_sign_invariant_distance_and_geodesic_angle():
     )
 
 
+def test_geodesic_angles_of_arrays_are_geodesic_angle():
+    """The NumPy form over ``(..., 4)`` arrays: the backend form's angle (to the arccos form's resolution near 0),
+    the same for ``±q``, one angle per row, broadcast against one goal, and 0 and π where they must be."""
+    q, p = random_unit_quaternions(40, 7), random_unit_quaternions(40, 8)
+    angles = s3.geodesic_angles(q, p)
+    assert angles.shape == (40,)
+    np.testing.assert_allclose(angles, s3.geodesic_angle(components(q), components(p), NP), atol=1e-7)
+    np.testing.assert_array_equal(angles, s3.geodesic_angles(-q, p))
+    np.testing.assert_array_equal(s3.geodesic_angles(q, p[0]), [s3.geodesic_angles(row, p[0]) for row in q])
+    assert s3.geodesic_angles(q[0], q[0]) < 3e-8 and s3.geodesic_angles(q[0], -q[0]) < 3e-8
+    assert s3.geodesic_angles((1.0, 0.0, 0.0, 0.0), (0.0, 1.0, 0.0, 0.0)) == pytest.approx(np.pi)
+
+
 def test_solve3_inverts_random_matrices():
     rng = np.random.default_rng(9)
     m = rng.normal(size=(25, 3, 3)) + 3 * np.eye(3)

@@ -34,7 +34,7 @@ from toy_space import TOY, Rail, RailBody, ToyConfig
 from fvin_mpc.control import linearization, rti
 from fvin_mpc.control import model_export as export
 from fvin_mpc.control.mpc import MPC, MPCSettings, RTIOptions
-from fvin_mpc.core import fvin_so3
+from fvin_mpc.core import fvin_so3, s3
 from fvin_mpc.core.backend import get_ops
 from fvin_mpc.core.checkpoint import load_checkpoint, save_checkpoint
 from fvin_mpc.core.goals import HOVER
@@ -494,7 +494,7 @@ def test_distance_to_a_goal_is_sign_invariant_and_sin_squared_of_half_the_angle(
     qs = layout.attitude("test").quaternion
     goal = x[0].copy()
     goal[layout.rates] += 1.0
-    angle = 2.0 * np.arccos(np.clip(np.abs(x[:, qs] @ goal[qs]), 0.0, 1.0))
+    angle = s3.geodesic_angles(x[:, qs], goal[qs])
     positions = np.delete(np.arange(layout.positions.stop), np.arange(qs.start, qs.stop))
     offset = np.sum((x[:, positions] - goal[positions]) ** 2, axis=1)
     np.testing.assert_allclose(case.space.distance(x, goal), np.sin(angle / 2) ** 2 + offset, atol=1e-12)

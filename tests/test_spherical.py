@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from fvin_mpc.control.model_export import from_rigid_body
-from fvin_mpc.core import fvin
+from fvin_mpc.core import fvin, s3
 from fvin_mpc.core.backend import get_ops
 from fvin_mpc.core.rigid_body import from_mujoco
 from fvin_mpc.envs import RigidBodyEnv
@@ -26,7 +26,7 @@ def _random_state(rng: np.random.Generator, max_omega: float) -> tuple[np.ndarra
 
 
 def _angle(q: np.ndarray, p: np.ndarray) -> float:
-    return 2.0 * float(np.arccos(min(1.0, abs(float(np.dot(q, p))))))
+    return float(s3.geodesic_angles(q, p))
 
 
 @pytest.fixture(scope="module")
@@ -160,8 +160,6 @@ def test_inertia_recovery_of_an_exact_scaled_model(env, body):
     weights["inertia_cholesky"] = np.array(
         [lower[0, 0], lower[1, 1], lower[2, 2], lower[1, 0], lower[2, 0], lower[2, 1]]
     )
-    from fvin_mpc.core import s3
-
     rebuilt = np.array(s3.symmetric_from_cholesky(tuple(weights["inertia_cholesky"]), config.inertia_epsilon))
     if not np.allclose(rebuilt, scale * np.array(body.inertia)):
         pytest.skip("Cholesky packing order differs from this test's assumption")

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from fvin_mpc.core import s3
 from fvin_mpc.core.rigid_body import from_mujoco
 from fvin_mpc.envs import RigidBodyEnv
 from fvin_mpc.learning.excitation import SwingPhysics, collect_swings
@@ -49,7 +50,7 @@ def test_the_swing_excitation_reaches_the_energy_span_under_saturated_controls()
                        for a, b in zip(q, omega)]) / physics.scales.energy_span
     assert energy.max() == pytest.approx(coverage["max"])
     # Near upright (within 0.3 rad) and at every height in between.
-    angles = np.array([2 * np.arccos(min(1.0, abs(float(a @ env.unwrapped.goal)))) for a in q])
+    angles = s3.geodesic_angles(q, env.unwrapped.goal)
     assert (angles < 0.3).mean() > 0.02
     assert np.histogram(angles, bins=6, range=(0, np.pi))[0].min() > 0
 

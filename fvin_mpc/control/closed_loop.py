@@ -343,15 +343,22 @@ def _step_segments(env: Any, segments: list[tuple[int, np.ndarray]], frame_skip:
     return observation, total, terminated, info
 
 
+def time_inside_for_good(times: np.ndarray, outside: np.ndarray) -> float | None:
+    """"Within tolerance from some time on", the rule every success criterion here is judged by: the first of
+    ``times`` from which no sample is ``outside`` (a boolean per time) to the end; ``times[0]`` when none is,
+    ``None`` when the last one is."""
+    late = np.flatnonzero(outside)
+    if late.size == 0:
+        return float(times[0])
+    first_inside_for_good = int(late[-1]) + 1
+    if first_inside_for_good >= len(times):
+        return None
+    return float(times[first_inside_for_good])
+
+
 def time_to_upright(episode: Episode, tolerance: float = UPRIGHT_TOLERANCE) -> float | None:
     """First time the angle to the goal is below ``tolerance`` and stays below it to the end."""
-    outside = np.flatnonzero(episode.angle_from_goal >= tolerance)
-    if outside.size == 0:
-        return float(episode.time[0])
-    first_inside_for_good = int(outside[-1]) + 1
-    if first_inside_for_good >= episode.time.size:
-        return None
-    return float(episode.time[first_inside_for_good])
+    return time_inside_for_good(episode.time, episode.angle_from_goal >= tolerance)
 
 
 def episode_metrics(episode: Episode, upright_tolerance: float = UPRIGHT_TOLERANCE,

@@ -31,6 +31,7 @@ from fvin_mpc.control.closed_loop import (
     Episode,
     episode_metrics,
     run_episode,
+    time_inside_for_good,
 )
 from fvin_mpc.control.scene import goal_symmetry_axis
 from fvin_mpc.core.rigid_body import from_mujoco
@@ -62,12 +63,7 @@ def judged_angles(env: Any, episode: Episode, how: str | None = None) -> np.ndar
 def judge(times: np.ndarray, angles: np.ndarray) -> dict[str, Any]:
     """The evaluation's criterion on an angle series: upright (within :data:`UPRIGHT_TOLERANCE`) from
     some time on to the end, and within :data:`HOLD_TOLERANCE` over the last :data:`HOLD_WINDOW_S`."""
-    outside = np.flatnonzero(angles >= UPRIGHT_TOLERANCE)
-    reached = None
-    if outside.size == 0:
-        reached = float(times[0])
-    elif int(outside[-1]) + 1 < times.size:
-        reached = float(times[int(outside[-1]) + 1])
+    reached = time_inside_for_good(times, angles >= UPRIGHT_TOLERANCE)
     hold = float(angles[times >= times[-1] - HOLD_WINDOW_S].max())
     return {
         "swung_up": reached is not None and hold <= HOLD_TOLERANCE,

@@ -29,11 +29,12 @@ from typing import Any
 import numpy as np
 
 from fvin_mpc.control import model_export as export
-from fvin_mpc.control.closed_loop import episode_metrics
+from fvin_mpc.control.closed_loop import episode_metrics, time_inside_for_good
 from fvin_mpc.control.model_export import ExportedModel
 from fvin_mpc.control.mpc import MPC, MPCSettings, RTIOptions
 from fvin_mpc.control.problem import ConstantReference
 from fvin_mpc.control.rti import RealTimeMPC
+from fvin_mpc.core import s3
 from fvin_mpc.core.space import R3S3
 
 #: Recovered: within this distance of the hover point (m) …
@@ -286,22 +287,16 @@ def flight_metrics(episode: Any, reference: Any, settle_s: float = 0.0,
     of its attitude from some time on to the end; ``time_to_recover_s`` that time; ``rms_position_m``
     — RMS of ``|x − x_ref|`` over ``t ≥ settle_s``; ``max_position_m`` likewise; plus the controller
     figures of :func:`fvin_mpc.control.closed_loop.episode_metrics` (time per call, CPU time, deadline
-    misses, failures). Angles are sign-invariant (``2 acos |⟨q, q_ref⟩|``).
+    misses, failures). Angles are :func:`~fvin_mpc.core.s3.geodesic_angles` (sign invariant).
     """
 
     states = episode.states
     free = R3S3.layout.free_body(by="a flight's metrics")
     wanted, _ = reference(episode.time)
     position_error = np.linalg.norm(states[:, free.position] - wanted[:, free.position], axis=1)
-    cosine = np.clip(np.abs(np.sum(states[:, free.quaternion] * wanted[:, free.quaternion], axis=1)), 0.0, 1.0)
-    angle = 2.0 * np.arccos(cosine)
-    outside = np.flatnonzero((position_error >= position_tolerance) | (angle >= angle_tolerance))
-    if outside.size == 0:
-        recovered_at: float | None = float(episode.time[0])
-    elif outside[-1] + 1 < episode.time.size:
-        recovered_at = float(episode.time[outside[-1] + 1])
-    else:
-        recovered_at = None
+    angle = s3.geodesic_angles(states[:, free.quaternion], wanted[:, free.quaternion])
+    recovered_at = time_inside_for_good(episode.time,
+                                        (position_error >= position_tolerance) | (angle >= angle_tolerance))
     window = episode.time >= settle_s
     controller = episode_metrics(episode)
     return {

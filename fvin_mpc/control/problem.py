@@ -307,7 +307,7 @@ class DisturbanceEstimate:
             if slot.quaternion is not None:
                 q, goal = x0[slot.quaternion], reference[slot.quaternion]
                 if self.free_axis is None:
-                    angle = max(angle, 2.0 * np.arccos(min(abs(float(np.dot(q, goal))), 1.0)))
+                    angle = max(angle, float(s3.geodesic_angles(q, goal)))
                 else:
                     angle = max(angle, s3.axis_angle(tuple(q), tuple(goal), tuple(self.free_axis)))
                     speeds[layout.attitude(by="a free axis").omega] = \
