@@ -24,8 +24,8 @@ Python's cyclic garbage collector is kept out of the controller's time, as a rea
 must keep it: automatic collection is off from the observation until the preparation returns and runs,
 if due, while the plant steps (the period's spare time); the objects that exist when the episode
 starts are frozen (``gc.freeze``), so those collections scan only what the episode made. A full
-collection of a benchmark's heap took 16–49 ms, longer than the quadrotor's 20 ms period: inside a
-controller call it was a deadline miss about once in 10,000 periods (docs/adaptation.md).
+collection of a large heap can take longer than a control period, and inside a controller call it is a
+deadline miss (docs/adaptation.md measures both).
 """
 
 from __future__ import annotations
