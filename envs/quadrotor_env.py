@@ -22,7 +22,7 @@ from fvin_mpc.core.errors import SceneError
 from fvin_mpc.core.space import R3S3, ConfigurationSpace
 from fvin_mpc.core.state import as_float_array, unit_quaternion
 
-from .rigid_body_env import MujocoBodyEnv, geodesic_angle
+from .rigid_body_env import MAX_PERIOD_ANGLE, MAX_STEP_ANGLE, MujocoBodyEnv, geodesic_angle
 from .scenes import ScenePhysics, SceneSpec, build_model, resolve_scene
 
 #: Largest initial |ω| (rad/s) of a default reset: a tumbling craft (the recovery task of ``python -m fvin_mpc.fly``).
@@ -148,6 +148,7 @@ class QuadrotorEnv(MujocoBodyEnv):
         self._hover_point = (qpos0[:3] + _rotate(self._goal, self._com) if hover_point is None
                              else as_float_array(hover_point, (3,), "hover_point"))
         self._scales = craft_scales(model, self._physics, self._body_name)
+        check_craft_scales(self._scales, self._physics, float(model.opt.timestep), self._dt, spec.name)
         self._hover_thrust = hover_control(model, self._body_id, self._goal, self._physics.gravity)
 
         obs_high = np.array([np.inf] * 3 + [1.0] * 4 + [np.inf] * 6)
@@ -465,6 +466,37 @@ def craft_scales(model: mujoco.MjModel, physics: ScenePhysics, body: str) -> Cra
                        moment_actuators=tuple(bool(np.linalg.norm(force[:, a]) == 0.0) for a in range(model.nu)))
 
 
+#: The least thrust-to-weight a craft may have: at hover its actuators spend 1/(thrust-to-weight) of their
+#: upward range on the weight, and what is left is all they have to turn it (differential thrust) and to
+#: climb; at 1.2 a sixth remains. Below 1 it cannot lift itself at all. The flyer family draws 1.5–4, the
+#: built-in quadrotor has 2.04.
+MIN_THRUST_TO_WEIGHT = 1.2
+
+
+def check_craft_scales(scales: CraftScales, physics: ScenePhysics, timestep: float, period: float, name: str) -> None:
+    """``SceneError`` for a craft that cannot hover (:data:`MIN_THRUST_TO_WEIGHT`), or whose timestep or
+    control period does not resolve its rates: the faster of ``1/attitude_time`` and the tumble a
+    recovery starts from (:data:`DEFAULT_RESET_MAX_OMEGA`), with the pivoted bodies' bounds
+    (:data:`~envs.rigid_body_env.MAX_STEP_ANGLE` per timestep, :data:`~envs.rigid_body_env.MAX_PERIOD_ANGLE`
+    per period: the same reasons)."""
+    if physics.gravity and scales.thrust_to_weight < MIN_THRUST_TO_WEIGHT:
+        raise SceneError(
+            f"scene {name!r}: the craft cannot hover: its actuators lift {scales.thrust_to_weight:.3g} times its "
+            f"weight ({scales.mass:.3g} kg), and it needs at least {MIN_THRUST_TO_WEIGHT:g} to hold its attitude "
+            "while it hovers; raise the thrust bounds (ctrlrange) or the gear, or check the mass")
+    rate = max(1.0 / scales.attitude_time, DEFAULT_RESET_MAX_OMEGA)
+    if timestep * rate > MAX_STEP_ANGLE:
+        raise SceneError(
+            f"scene {name!r}: the timestep {timestep:g} s does not resolve the craft's rates of {rate:.3g} rad/s (it "
+            f"turns {timestep * rate:.3g} rad per step, at most {MAX_STEP_ANGLE:g}): use a timestep of at most "
+            f"{MAX_STEP_ANGLE / rate:.2g} s, or check the mass and inertia and the actuators' gear")
+    if period * rate > MAX_PERIOD_ANGLE:
+        raise SceneError(
+            f"scene {name!r}: a control period of {period:g} s turns the craft {period * rate:.3g} rad per step at "
+            f"{rate:.3g} rad/s, past the {MAX_PERIOD_ANGLE:g} rad a model's step can take: use a control period of at "
+            f"most {MAX_PERIOD_ANGLE / rate:.2g} s")
+
+
 def craft_control_period(model: mujoco.MjModel, physics: ScenePhysics, body: str) -> float:
     """The control period of a craft whose scene names none: :data:`CONTROL_PERIOD_SHARE` of its attitude
     time scale, down to a whole number of MJCF timesteps (at least one); the pivoted scenes' 20 ms
@@ -486,18 +518,18 @@ def _free_body(model: mujoco.MjModel, body: str) -> tuple[int, int]:
     body_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, body)
     if body_id < 0:
         names = [mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, b) for b in range(1, model.nbody)]
-        raise ValueError(f"no body named {body!r} in the MJCF; bodies: {names}")
+        raise SceneError(f"no body named {body!r} in the MJCF; bodies: {names}")
     if model.body_jntnum[body_id] != 1 or int(model.jnt_type[model.body_jntadr[body_id]]) != int(
         mujoco.mjtJoint.mjJNT_FREE
     ):
-        raise ValueError(f"body {body!r} must have exactly one joint, a free joint")
+        raise SceneError(f"body {body!r} must have exactly one joint, a free joint")
     if model.nv != 6 or model.body_parentid[body_id] != 0:
-        raise ValueError(f"the free joint of body {body!r} (a child of the world) must be the model's only "
+        raise SceneError(f"the free joint of body {body!r} (a child of the world) must be the model's only "
                          f"degree of freedom; the model has nv={model.nv}")
     if model.nu == 0:
-        raise ValueError("the MJCF has no actuators")
+        raise SceneError("the MJCF has no actuators")
     if model.na > 0:
-        raise ValueError("actuators with internal state (dyntype != none) are not supported")
+        raise SceneError("actuators with internal state (dyntype != none) are not supported")
     return body_id, int(model.body_jntadr[body_id])
 
 

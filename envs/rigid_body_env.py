@@ -47,6 +47,26 @@ STEP_ANGLE = 0.05 * math.sqrt(60.0)
 #: Weights of the quadratic cost (Pendulum-v1's): angle², |ω|², |u|².
 COST_WEIGHTS = (1.0, 0.1, 0.001)
 
+# What an MJCF's scales must allow (:meth:`RigidBodyEnv._check_scales`; the crafts' alike in
+# envs.quadrotor_env). A body's speed scale is the faster of ω_s (the speed that carries it over its
+# energy span, :attr:`RigidBodyEnv.speed_scale`) and the motor's ω_u = √(2π τ_max / J_max) (the speed its
+# largest torque gives it from rest over half a turn): the speeds its task and its data reach.
+#: The most a MuJoCo timestep may turn the body at its speed scale (rad). Data reach 1.2× the speed
+#: scale (the excitation's 1.4× energy span); at 0.5 rad per step they turn at most 0.6 rad per step, so
+#: even a period of one timestep stays inside the variational step's solvable region h|ω| ≲ 1
+#: (DESIGN.md) and RK4's error per step (∝ (hω)⁵) stays below 1e-3. The families drawn over the ranges
+#: a user brings reach 0.3; a 1 s step on the pendulum is 7.7, a 1e-9 kg rod under a 2 N·m motor 1e3.
+MAX_STEP_ANGLE = 0.5
+#: The most a control period (the model's step) may turn the body at its speed scale (rad): the
+#: variational step's solvable region h|ω| ≲ 1 (DESIGN.md; singular at π/2). Past it unrolled Newton
+#: returns silently wrong numbers. The default periods give 0.39 (``STEP_ANGLE``), the families ≤ 0.65.
+MAX_PERIOD_ANGLE = 1.0
+#: The weakest motor, as a share of the peak gravity torque, that can swing the body up: pumping gains
+#: about 2τ/τ_g rad of amplitude per half swing (fvin_mpc.swingup.default_duration), so below 0.05 the
+#: swing-up takes more than 16 natural periods and any damping may eat the gain; the families draw
+#: 0.15–1.5, the weak pendulum of docs/custom_scene.md is 0.2. A 1e30 kg rod under 2 N·m is 4e-31.
+MIN_MOTOR_SHARE = 0.05
+
 _JOINT_TYPES = {int(mujoco.mjtJoint.mjJNT_HINGE): "hinge", int(mujoco.mjtJoint.mjJNT_BALL): "ball"}
 _RESET_OPTIONS = frozenset({"qpos", "qvel", "random", "max_omega"})
 
@@ -415,6 +435,7 @@ class RigidBodyEnv(MujocoBodyEnv):
                 self._set_control_period(scale_control_period(self.speed_scale, float(model.opt.timestep)))
             except ValueError:
                 pass  # a body the closed form cannot read keeps the timestep rule (the scales say why when asked)
+        self._check_scales()
 
         obs_high = np.array([1.0] * 4 + [np.inf] * 3)
         self.observation_space = spaces.Box(low=-obs_high, high=obs_high, dtype=np.float64)
@@ -448,6 +469,46 @@ class RigidBodyEnv(MujocoBodyEnv):
             inertia = np.array(terms.inertia(tuple(self._rest)), dtype=float)
             self._scales = (span, math.sqrt(2.0 * span / float(np.linalg.eigvalsh(inertia).max())))
         return self._scales
+
+    def _check_scales(self) -> None:
+        """``SceneError`` for a body whose motor cannot move it (:data:`MIN_MOTOR_SHARE`), whose timestep does
+        not resolve its speed scale (:data:`MAX_STEP_ANGLE`) or whose control period the model's step cannot
+        take (:data:`MAX_PERIOD_ANGLE`). A body the closed form cannot read, or with nothing to swing up, is
+        not judged here (its scales say why when a controller asks for them); an unbounded motor has no
+        torque to judge (the commands refuse it: :func:`~fvin_mpc.envs.scenes.check_bounded_controls`)."""
+        try:
+            span, speed = self._energy_and_speed()
+            axes = np.asarray(from_mujoco(self._model, self._body_name).actuator_axes, dtype=float)
+        except ValueError:
+            return
+        name = self.scene_spec.name
+        inertia = 2.0 * span / speed**2  # the largest principal inertia about the pivot (speed_scale)
+        bounds = np.maximum(np.abs(self.action_space.low), np.abs(self.action_space.high))
+        bounded = np.isfinite(bounds)
+        fastest = speed
+        if np.any(bounded):
+            torque = float(np.max(bounds[bounded] * np.linalg.norm(axes[:, bounded], axis=0)))
+            gravity_torque = span / 2.0
+            if torque < MIN_MOTOR_SHARE * gravity_torque:
+                mass = float(self._model.body_subtreemass[self._body_id])
+                raise SceneError(
+                    f"scene {name!r}: the motor cannot move the body: its largest torque {torque:.3g} N·m is "
+                    f"{torque / gravity_torque:.3g} of the peak gravity torque {gravity_torque:.3g} N·m (a swing-up "
+                    f"needs at least {MIN_MOTOR_SHARE:g}); check the body's mass ({mass:.3g} kg) and the actuators' "
+                    "gear and ctrlrange")
+            fastest = max(speed, math.sqrt(2.0 * math.pi * torque / inertia))
+        timestep = float(self._model.opt.timestep)
+        if timestep * fastest > MAX_STEP_ANGLE:
+            raise SceneError(
+                f"scene {name!r}: the timestep {timestep:g} s does not resolve the body's speed scale "
+                f"{fastest:.3g} rad/s (it turns {timestep * fastest:.3g} rad per step, at most {MAX_STEP_ANGLE:g}): "
+                f"use a timestep of at most {MAX_STEP_ANGLE / fastest:.2g} s, or check the body's mass and inertia "
+                "and the actuators' gear")
+        if self._dt * fastest > MAX_PERIOD_ANGLE:
+            raise SceneError(
+                f"scene {name!r}: a control period of {self._dt:g} s turns the body {self._dt * fastest:.3g} rad "
+                f"per step at its speed scale {fastest:.3g} rad/s, past the {MAX_PERIOD_ANGLE:g} rad a model's step "
+                f"can take: use a control period of at most {MAX_PERIOD_ANGLE / fastest:.2g} s")
 
     @property
     def joint_type(self) -> str:
@@ -703,6 +764,9 @@ def _validate_body_and_joint(model: mujoco.MjModel, body: str) -> tuple[int, int
         name = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_ACTUATOR, a) or f"#{a}"
         if model.actuator_trntype[a] != mujoco.mjtTrn.mjTRN_JOINT or model.actuator_trnid[a, 0] != joint_id:
             raise SceneError(f"actuator {name!r} must drive the joint of body {body!r} directly")
+        if model.actuator_gainprm[a, 0] != 1.0:  # from_mujoco reads a torque as gear × control
+            raise SceneError(f"actuator {name!r} has gain {model.actuator_gainprm[a, 0]:g}: the package reads a "
+                             "motor's torque as gear × control; fold the gain into the gear")
     if model.na > 0:
         raise SceneError(
             "actuators with internal state (dyntype != none) are not supported: (q, ω) would not be the whole state"

@@ -24,6 +24,7 @@ simulate it, including its own ``<flag>`` settings); callers override fields wit
 from __future__ import annotations
 
 import math
+import sys
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -324,7 +325,7 @@ def _space_of_mjcf(path: Path) -> ConfigurationSpace:
     """The configuration space of the body an MJCF file describes: a free joint makes it a free body.
     A file that is missing or does not load is S³ here: :func:`build_model` reports it."""
     try:
-        model = mujoco.MjModel.from_xml_path(str(path))
+        model, _ = _compiled(path)
     except (ValueError, OSError):
         return S3
     return R3S3 if np.any(model.jnt_type == mujoco.mjtJoint.mjJNT_FREE) else S3
@@ -341,7 +342,88 @@ def existing_scene(scene: str | Path | SceneSpec) -> SceneSpec:
     if not spec.xml_path.is_file():
         raise SceneError(f"scene file does not exist: {str(spec.xml_path)!r}; expected one of the built-in scenes "
                          f"{sorted(_all_scenes())} or a path to an existing MJCF (.xml) file")
+    model, physics = build_model(spec.xml_path, spec.physics)  # the MJCF's physics, checked (check_physics)
+    check_bounded_controls(model, physics, spec.name)
     return spec
+
+
+def check_bounded_controls(model: mujoco.MjModel, physics: ScenePhysics, name: str) -> None:
+    """``SceneError`` unless every actuator's control is clamped to a finite ``ctrlrange``: the commands'
+    controllers plan within the bounds, and the data collectors draw controls from them (an env itself
+    may run unbounded, :class:`~fvin_mpc.envs.RigidBodyEnv`, but nothing a command runs can)."""
+    unbounded = [_actuator_name(model, a) for a in range(model.nu)
+                 if not (physics.actuator_limits and model.actuator_ctrllimited[a])]
+    if unbounded:
+        off = (" (control clamping is switched off: <flag clampctrl> or the declaration)"
+               if np.any(model.actuator_ctrllimited) and not physics.actuator_limits else "")
+        raise SceneError(f"scene {name!r}: actuator {unbounded[0]!r} has no control bounds{off}; the controllers and "
+                         'data collectors need them: give every actuator a finite ctrlrange="low high"')
+
+
+#: A gear no component of which is this large is zero: the actuator delivers nothing.
+_NONZERO = 1e-12
+
+
+def _numbers(values: Any) -> str:
+    return "[" + ", ".join(f"{float(v):g}" for v in np.ravel(values)) + "]"
+
+
+def _actuator_name(model: mujoco.MjModel, index: int) -> str:
+    return mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_ACTUATOR, index) or f"#{index}"
+
+
+def check_physics(model: mujoco.MjModel, name: str) -> None:
+    """Refuse, before any work, an MJCF whose physics no simulation or model of the package can take
+    (``SceneError``, one line naming the element and what to change):
+
+    * a timestep that is not a finite number of seconds above zero (MuJoCo accepts 0, and a 0 s step
+      divides every period by zero);
+    * gravity, a body's mass or its inertia that is not finite, or a moving body without mass;
+    * an actuator whose gear is not finite or is zero (a motor that delivers nothing, whatever its
+      control), whose ``ctrlrange`` is not finite, or whose kind the package does not model: a control
+      with internal state (``dyntype``), a bias (a position or velocity servo: its force depends on the
+      state, not on the control alone) or a gain that is not fixed — every model here takes a control as
+      a force or torque, gear times control.
+
+    What a scale decides — whether the timestep resolves the body's speed, whether the motor can move
+    the body, whether a craft can hover — needs the body read off the file and is the envs' check
+    (:class:`~fvin_mpc.envs.RigidBodyEnv`, :class:`~fvin_mpc.envs.QuadrotorEnv`).
+    """
+    where = f"scene {name!r}"
+    timestep = float(model.opt.timestep)
+    if not (math.isfinite(timestep) and timestep > 0.0):
+        raise SceneError(f"{where}: the MJCF's timestep must be a finite number of seconds > 0, got {timestep:g} "
+                         '(<option timestep="0.005"/>, say)')
+    if not np.all(np.isfinite(model.opt.gravity)):
+        raise SceneError(f"{where}: gravity must be finite, got {_numbers(model.opt.gravity)}")
+    for body in range(1, model.nbody):
+        body_name = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, body) or f"#{body}"
+        mass, inertia = float(model.body_mass[body]), model.body_inertia[body]
+        if not (math.isfinite(mass) and mass >= 0.0 and np.all(np.isfinite(inertia)) and np.all(inertia >= 0.0)):
+            raise SceneError(f"{where}: body {body_name!r} has mass {mass:g} kg and inertia {_numbers(inertia)}; "
+                             "both must be finite and >= 0")
+    none_dyn, none_bias = int(mujoco.mjtDyn.mjDYN_NONE), int(mujoco.mjtBias.mjBIAS_NONE)
+    for a in range(model.nu):
+        actuator = f"{where}: actuator {_actuator_name(model, a)!r}"
+        gear = np.asarray(model.actuator_gear[a], dtype=float)
+        if not np.all(np.isfinite(gear)):
+            raise SceneError(f"{actuator} has gear {_numbers(gear)}: it must be finite")
+        if float(np.abs(gear).max()) < _NONZERO:
+            raise SceneError(f"{actuator} has gear 0: it delivers no force or torque whatever its control; give it "
+                             'a nonzero gear (gear="1": the control is the torque)')
+        if model.actuator_ctrllimited[a] and not np.all(np.isfinite(model.actuator_ctrlrange[a])):
+            raise SceneError(f"{actuator} has ctrlrange {_numbers(model.actuator_ctrlrange[a])}: a bound must be "
+                             'finite (ctrlrange="-2 2", say)')
+        if int(model.actuator_dyntype[a]) != none_dyn:
+            raise SceneError(f"{actuator} has dynamics (dyntype {mujoco.mjtDyn(int(model.actuator_dyntype[a])).name}):"
+                             " the package models actuators without internal state; use a <motor>")
+        if int(model.actuator_biastype[a]) != none_bias:
+            raise SceneError(f"{actuator} has a bias (a <position> or <velocity> servo, biastype "
+                             f"{mujoco.mjtBias(int(model.actuator_biastype[a])).name}): the package models force and "
+                             "torque motors, whose force is gear × control; use a <motor>")
+        if int(model.actuator_gaintype[a]) != int(mujoco.mjtGain.mjGAIN_FIXED):
+            raise SceneError(f"{actuator} has a gain of type {mujoco.mjtGain(int(model.actuator_gaintype[a])).name}: "
+                             "the package models a fixed gain (force = gear × control); use a <motor>")
 
 
 def _disabled(model: mujoco.MjModel, bit: int) -> bool:
@@ -439,15 +521,34 @@ def apply_physics(model: mujoco.MjModel, physics: ScenePhysics) -> None:
     model.opt.disableflags = (int(model.opt.disableflags) & ~managed) | physics.disable_flags()
 
 
+def _compiled(path: Path) -> tuple[mujoco.MjModel, list[str]]:
+    """``path`` compiled, and the warnings MuJoCo raised meanwhile: collected rather than printed (MuJoCo's
+    own handler prints them and writes ``MUJOCO_LOG.TXT`` into the working directory)."""
+    warnings: list[str] = []
+    previous = mujoco.get_mju_user_warning()
+    mujoco.set_mju_user_warning(warnings.append)
+    try:
+        return mujoco.MjModel.from_xml_path(str(path)), warnings
+    finally:
+        mujoco.set_mju_user_warning(previous)
+
+
 def load_model(xml_path: str | Path) -> mujoco.MjModel:
-    """Compile an MJCF file; ``SceneError`` (a ``ValueError``) naming the file if it is missing or invalid."""
+    """Compile an MJCF file; ``SceneError`` (a ``ValueError``) naming the file if it is missing, invalid or
+    holds a NaN (which MuJoCo only warns about). MuJoCo's other warnings are notes on stderr."""
     path = Path(xml_path)
     if not path.is_file():
         raise SceneError(f"MJCF file not found: {str(path)!r}")
     try:
-        return mujoco.MjModel.from_xml_path(str(path))
+        model, warnings = _compiled(path)
     except ValueError as error:
         raise SceneError(f"could not compile MJCF {str(path)!r}: {error}") from error
+    if any("nan" in warning.lower() for warning in warnings):
+        raise SceneError(f"MJCF {str(path)!r} holds a NaN where a number belongs (MuJoCo: {warnings[0].strip()}); "
+                         "every value of the physics must be a finite number")
+    for warning in warnings:
+        print(f"note: MuJoCo, compiling {str(path)!r}: {warning.strip()}", file=sys.stderr)
+    return model
 
 
 def build_model(xml_path: str | Path, physics: ScenePhysics | None = None) -> tuple[mujoco.MjModel, ScenePhysics]:
@@ -460,8 +561,13 @@ def build_model(xml_path: str | Path, physics: ScenePhysics | None = None) -> tu
     Returns:
         ``(model, physics)``: the model with ``opt.disableflags`` set (and energy
         computation enabled), and the declaration actually used.
+
+    Raises:
+        SceneError: the file is missing or does not compile, its physics is broken (:func:`check_physics`),
+            or it contradicts the declaration (:func:`apply_physics`).
     """
     model = load_model(xml_path)
+    check_physics(model, Path(xml_path).stem)
     if physics is None:
         physics = infer_physics(model)
     if physics.mass_change is not None and len(physics.mass_change) == 3:

@@ -1,31 +1,92 @@
-"""Command-line options the commands share: the scene, its model, the MPC's settings and the execution backend."""
+"""Command-line options the commands share: the scene, its model, the MPC's settings and the execution backend,
+and the checks every command makes at its edge, before any work (docs/bad-inputs.md): each option's value
+while parsing (a ``type=`` validator; a 0 is a value or an error, never "the default"), the scene's physics
+(:func:`check_scene_env`) and the output paths (:func:`check_output_file`, :func:`check_output_folder`:
+creatable, of a kind the writer knows, nothing replaced without ``--force``, nothing written into the
+package's own ``docs/`` unless the user named it)."""
 
 from __future__ import annotations
 
 import argparse
+import math
+import os
 import sys
-from typing import Any
+from pathlib import Path
+from typing import Any, Callable
 
 from fvin_mpc.core.checkpoint import CheckpointError, checkpoint_exists, load_checkpoint
-from fvin_mpc.core.errors import SceneError, UsageError, run_command  # noqa: F401 (every command's wrapper)
-from fvin_mpc.envs.scenes import FREE_BODY_SCENES, SCENES, existing_scene, resolve_scene
+from fvin_mpc.core.errors import INSTALL_TRAIN, SceneError, UsageError, run_command  # noqa: F401 (every command's wrapper)
+from fvin_mpc.core.networks import MAX_NEWTON_ITERS
+from fvin_mpc.envs import QuadrotorEnv, RigidBodyEnv
+from fvin_mpc.envs.scenes import FREE_BODY_SCENES, SCENES, built_in_scene, existing_scene, resolve_scene
 from fvin_mpc.studies.pool import TasksFailed
 
+#: The longest MPC horizon (steps) a command line may ask for: 16× the longest default
+#: (:data:`~fvin_mpc.control.scene.MAX_DEFAULT_HORIZON`, 60), past which the terminal cost does the
+#: look-ahead anyway; a plan of 100,000 stages builds for hours and prints nothing meanwhile.
+MAX_HORIZON = 1000
+#: The longest closed loop a command runs (s): an hour of simulated time (72,000 periods at 50 ms);
+#: ``--duration 1e12`` would run, silently, forever.
+MAX_DURATION_S = 3600.0
+
+
+def _number(text: str, kind: type) -> Any:
+    try:
+        value = kind(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected {'a whole number' if kind is int else 'a number'}, got {text!r}") from None
+    if kind is float and not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"must be a finite number, got {text!r}")
+    return value
+
+
+def number_in(kind: type, low: float | None = None, high: float | None = None, low_open: bool = False,
+              high_open: bool = False) -> Callable[[str], Any]:
+    """An argparse ``type=``: a finite ``kind`` (``int`` or ``float``) within the bounds, refused while
+    parsing (``low_open``/``high_open``: the bound itself is excluded)."""
+
+    def parse(text: str) -> Any:
+        value = _number(text, kind)
+        if low is not None and (value <= low if low_open else value < low):
+            raise argparse.ArgumentTypeError(f"must be {'>' if low_open else '>='} {low:g}, got {text!r}")
+        if high is not None and (value >= high if high_open else value > high):
+            raise argparse.ArgumentTypeError(f"must be {'<' if high_open else '<='} {high:g}, got {text!r}")
+        return value
+
+    parse.__name__ = kind.__name__
+    return parse
+
+
+#: A finite number >= 0 (a cost weight, an angular speed, a noise level).
+nonnegative_float = number_in(float, 0.0)
+#: A whole number >= 0 (a seed: NumPy's generators take no negative one).
+nonnegative_int = number_in(int, 0)
+#: A seed: a whole number >= 0.
+seed_value = nonnegative_int
+#: ``--newton-iters``: K in 1 … :data:`MAX_NEWTON_ITERS`.
+newton_iters_type = number_in(int, 1, MAX_NEWTON_ITERS)
+#: ``--horizon``: 1 … :data:`MAX_HORIZON` steps.
+horizon_steps = number_in(int, 1, MAX_HORIZON)
+
 #: ``--option`` → :class:`~fvin_mpc.control.mpc.MPCSettings` field (``ipopt.…`` / ``rti.…``: a field of that
-#: solver's options), for the settings a user may need to change on a new scene (every one defaults to the
-#: scene's value).
-MPC_OPTIONS: dict[str, tuple[str, type, str]] = {
-    "--horizon": ("horizon", int, "MPC steps"),
-    "--energy-weight": ("terminal_energy_weight", float, "terminal energy-deficit weight W_E"),
-    "--orientation-weight": ("orientation_weight", float, "stage weight on sin²(angle/2)"),
-    "--omega-weight": ("omega_weight", float, "stage weight on |ω|²"),
-    "--control-weight": ("control_weight", float, "stage weight on |u|²"),
-    "--terminal-orientation-weight": ("terminal_orientation_weight", float, "terminal weight on sin²(angle/2)"),
-    "--terminal-omega-weight": ("terminal_omega_weight", float, "terminal weight on |ω|²"),
-    "--max-iter": ("ipopt.max_iter", int, "solver iterations per warm-started solve (ipopt, sqpmethod, fatrop)"),
-    "--cold-max-iter": ("ipopt.cold_max_iter", int, "solver iterations per cold solve (ipopt, sqpmethod, fatrop)"),
-    "--torque-reserve": ("torque_reserve", float,
-                         "fraction of the torque range the plan keeps in reserve after its first control "
+#: solver's options), its parser and help, for the settings a user may need to change on a new scene (every
+#: one defaults to the scene's value).
+MPC_OPTIONS: dict[str, tuple[str, Callable[[str], Any], str]] = {
+    "--horizon": ("horizon", horizon_steps, f"MPC steps (1 … {MAX_HORIZON})"),
+    "--energy-weight": ("terminal_energy_weight", nonnegative_float, "terminal energy-deficit weight W_E"),
+    "--orientation-weight": ("orientation_weight", nonnegative_float, "stage weight on sin²(angle/2)"),
+    "--omega-weight": ("omega_weight", nonnegative_float, "stage weight on |ω|²"),
+    "--control-weight": ("control_weight", nonnegative_float, "stage weight on |u|²"),
+    "--terminal-orientation-weight": ("terminal_orientation_weight", nonnegative_float,
+                                      "terminal weight on sin²(angle/2)"),
+    "--terminal-omega-weight": ("terminal_omega_weight", nonnegative_float, "terminal weight on |ω|²"),
+    "--max-iter": ("ipopt.max_iter", number_in(int, 1),
+                   "solver iterations per warm-started solve (ipopt, sqpmethod, fatrop)"),
+    "--cold-max-iter": ("ipopt.cold_max_iter", number_in(int, 1),
+                        "solver iterations per cold solve (ipopt, sqpmethod, fatrop)"),
+    "--torque-reserve": ("torque_reserve", number_in(float, 0.0, 1.0, high_open=True),
+                         "fraction of the torque range the plan keeps in reserve after its first control, in [0, 1) "
                          "(every solver)"),
 }
 
@@ -38,6 +99,14 @@ def positive_float(text: str) -> float:
         raise argparse.ArgumentTypeError(f"expected a number > 0, got {text!r}") from None
     if not 0.0 < value < float("inf"):
         raise argparse.ArgumentTypeError(f"must be > 0, got {text!r}")
+    return value
+
+
+def duration_s(text: str) -> float:
+    """``--duration``: seconds in (0, :data:`MAX_DURATION_S`], refused while parsing."""
+    value = positive_float(text)
+    if value > MAX_DURATION_S:
+        raise argparse.ArgumentTypeError(f"must be <= {MAX_DURATION_S:g} s (an hour of closed loop), got {text!r}")
     return value
 
 
@@ -57,10 +126,11 @@ def add_scene_arguments(parser: argparse.ArgumentParser, newton_iters: bool = Tr
     parser.add_argument("--scene", default="pendulum", help="built-in scene name or MJCF path")
     parser.add_argument("--checkpoint", default=None,
                         help="shipped name or path (default: the scene's, <scene>_sign-invariant)")
-    parser.add_argument("--control-period", type=float, default=None,
+    parser.add_argument("--control-period", type=positive_float, default=None,
                         help="seconds per control step (default: the checkpoint's step, else the scene's)")
     if newton_iters:
-        parser.add_argument("--newton-iters", type=int, default=None, help="K (default: the model's)")
+        parser.add_argument("--newton-iters", type=newton_iters_type, default=None,
+                            help=f"K, 1 … {MAX_NEWTON_ITERS} (default: the model's)")
 
 
 def add_mpc_arguments(parser: argparse.ArgumentParser) -> None:
@@ -125,8 +195,8 @@ def parse_latency(text: str) -> Any:
         value = float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected none, measured or seconds, got {text!r}") from None
-    if not value >= 0.0:
-        raise argparse.ArgumentTypeError(f"a fixed latency must be >= 0 s, got {text!r}")
+    if not 0.0 <= value < math.inf:
+        raise argparse.ArgumentTypeError(f"a fixed latency must be finite seconds >= 0, got {text!r}")
     return value
 
 
@@ -202,7 +272,7 @@ def exit_status(error: Exception) -> int:
     (:class:`~fvin_mpc.studies.pool.TasksFailed`, their inputs listed), 2 for input the command refused."""
     import sys
 
-    print(f"error: {error}", file=sys.stderr)
+    print("error: " + " ".join(str(error).split()), file=sys.stderr)
     return 1 if isinstance(error, TasksFailed) else 2
 
 
@@ -269,3 +339,133 @@ def checked_scene_and_checkpoint(scene: Any, checkpoint: Any = None, true_model:
                 "this scene, or pass --checkpoint to plan with it anyway")
         print(f"note: checkpoint {name!r} was trained on scene {loaded.scene!r}, not {str(scene)!r}", file=sys.stderr)
     return spec, loaded
+
+
+# ---------------------------------------------------------------------- output paths, checked before any work
+#: What a ``--plot`` path may end in: the formats matplotlib writes (without a suffix it would append
+#: ``.png`` and write beside the path the user gave).
+PLOT_SUFFIXES = (".png", ".pdf", ".svg", ".jpg", ".jpeg", ".eps", ".tif", ".tiff", ".webp")
+#: What a ``--video`` path may end in: the containers imageio's ffmpeg writes.
+VIDEO_SUFFIXES = (".mp4", ".mov", ".mkv", ".avi", ".webm")
+
+
+def _creatable(path: Path, option: str) -> None:
+    """The nearest existing folder above ``path`` is a folder this process may write into (the folders
+    between are created when the output is written)."""
+    ancestor = Path(os.path.abspath(path)).parent
+    while not ancestor.exists():
+        ancestor = ancestor.parent
+    if not ancestor.is_dir():
+        raise UsageError(f"{option} {path}: {ancestor} is a file, not a folder")
+    if not os.access(ancestor, os.W_OK | os.X_OK):
+        raise UsageError(f"{option} {path}: cannot write into {ancestor} (permission denied)")
+
+
+def given_path(path: Any) -> Path | None:
+    """``None`` for an output the user switched off (``--plot ''``), else the path."""
+    return None if path is None or str(path) in ("", ".") else Path(path)
+
+
+def check_output_file(path: Any, option: str, suffixes: tuple[str, ...] | None = None,
+                      force: bool | None = None) -> Path | None:
+    """An output file a command will write, checked before any work: not a folder, ending in one of
+    ``suffixes`` (when given), its folder creatable, and — with ``force`` given — not an existing file
+    unless ``force`` (``None``: the command's own view of one run, a plot or a summary, is replaced).
+    Returns the path, or ``None`` for an output switched off (:func:`given_path`).
+
+    Raises:
+        UsageError: naming the option and what to change.
+    """
+    path = given_path(path)
+    if path is None:
+        return None
+    if path.is_dir():
+        raise UsageError(f"{option} {path} is a folder; give a file path"
+                         + (f" ending in {suffixes[0]}" if suffixes else ""))
+    if suffixes and path.suffix.lower() not in suffixes:
+        raise UsageError(f"{option} {path}: expected a file ending in {', '.join(suffixes)}")
+    if force is False and path.exists():
+        raise UsageError(f"{option} {path} exists; pass --force to replace it, or give another path")
+    if path.exists() and not os.access(path, os.W_OK):
+        raise UsageError(f"{option} {path}: the file is not writable (permission denied)")
+    _creatable(path, option)
+    return path
+
+
+def check_output_folder(path: Any, option: str, force: bool, products: tuple[str, ...] = ()) -> Path:
+    """A folder a command writes its files into, checked before any work: not a file, creatable, and —
+    unless ``force`` — holding none of the files it would replace (``products``: names or glob patterns;
+    none given: any file at all)."""
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise UsageError(f"{option} {path} is a file, not a folder")
+    if path.is_dir() and not force:
+        present = sorted({found.name for pattern in (products or ("*",)) for found in path.glob(pattern)})
+        if present:
+            raise UsageError(f"{option} {path} already holds {', '.join(present[:3])}"
+                             f"{' …' if len(present) > 3 else ''}; pass --force to replace them, or "
+                             f"give another folder")
+    _creatable(path / "_", option)
+    return path
+
+
+def check_video_writer(path: Path | None, option: str = "--video") -> None:
+    """A ``--video`` needs imageio's ffmpeg (the ``imageio[ffmpeg]`` package): checked before the episode."""
+    import importlib.util
+
+    if path is not None and (importlib.util.find_spec("imageio") is None
+                             or importlib.util.find_spec("imageio_ffmpeg") is None):
+        raise UsageError(f"{option} needs imageio with ffmpeg: pip install 'imageio[ffmpeg]'")
+
+
+def check_craft_period(spec: Any, checkpoint: Any) -> None:
+    """A free body flies at its scene's control period (its env's, :class:`~fvin_mpc.envs.QuadrotorEnv`), so a
+    checkpoint that plans with it must step at that period: ``CheckpointError`` otherwise, before any build
+    (a pivoted scene's env takes the checkpoint's step instead: :func:`~fvin_mpc.control.scene.scene_env`)."""
+    if checkpoint is None or spec.goal_set.attitude_at_rest:
+        return
+    period = QuadrotorEnv(spec).dt
+    step = float(checkpoint.config.step_size)
+    if abs(step - period) > 1e-9:
+        name = repr(str(checkpoint.path)) if checkpoint.path is not None else "the checkpoint"
+        scene = spec.name if built_in_scene(spec) else spec.xml_path
+        raise CheckpointError(f"checkpoint {name} steps at {step:g} s and scene {spec.name!r} is flown at "
+                              f"{period:g} s: train a model on data collected from this scene (python -m "
+                              f"fvin_mpc.collect --scene {scene}), or pass a checkpoint of that period")
+
+
+def require_torch(command: str) -> None:
+    """``UsageError`` naming the train extra when torch is missing: ``command`` trains models (the runtime
+    needs no torch, so a plain install has none), checked before any work."""
+    import importlib.util
+
+    try:
+        found = importlib.util.find_spec("torch") is not None
+    except ValueError:  # sys.modules["torch"] is None: imports of it are blocked
+        found = False
+    if not found:
+        raise UsageError(f"{command} trains models and needs torch, which is not installed: {INSTALL_TRAIN}")
+
+
+def check_scene_env(spec: Any, body: str | None = None) -> None:
+    """Build (and close) the scene's env once: every check of the physics it reads — the MJCF's
+    (:func:`~fvin_mpc.envs.scenes.check_physics`) and its scales' (the envs') — before a command starts
+    work that would otherwise meet them later."""
+    env = RigidBodyEnv(spec, body=body) if spec.goal_set.attitude_at_rest else QuadrotorEnv(spec)
+    env.close()
+
+
+
+def check_rendering(env: Any, option: str = "--video") -> None:
+    """Render one frame of ``env`` (made with ``render_mode="rgb_array"``) before the episode, so that a
+    machine without an OpenGL context refuses ``--video`` at once instead of failing after the work."""
+    import warnings
+
+    try:
+        with warnings.catch_warnings():  # GLFW warns before MuJoCo fails: the one line below says it all
+            warnings.simplefilter("ignore")
+            env.render()
+    except Exception as error:  # MuJoCo's FatalError and the GL platforms' own errors: the reason, in one line
+        reason = str(error).splitlines()[0] if str(error) else type(error).__name__
+        raise UsageError(f"{option}: MuJoCo cannot render here ({reason[:160]}); headless, set MUJOCO_GL=egl "
+                         "(or osmesa)") from None

@@ -30,7 +30,15 @@ import argparse
 import json
 from pathlib import Path
 
-from fvin_mpc._cli import run_command
+from fvin_mpc._cli import (
+    check_output_file,
+    nonnegative_float,
+    number_in,
+    positive_float,
+    positive_int,
+    run_command,
+    seed_value,
+)
 from fvin_mpc.core.data import save_data
 from fvin_mpc.core.errors import UsageError
 from fvin_mpc.envs.scenes import existing_scene
@@ -39,7 +47,10 @@ from fvin_mpc.learning.excitation import collect_swings
 from fvin_mpc.learning.free_body_excitation import collect_excitation
 
 #: Options of the former random collector only (``--collector random``).
-RANDOM_ONLY = ("max_omega", "near_goal_trajectories", "near_goal_angle", "near_goal_omega", "max_speed")
+RANDOM_ONLY = ("max_omega", "hold_steps", "near_goal_trajectories", "near_goal_angle", "near_goal_omega", "max_speed")
+#: Options a free body's collectors do not take (they record the craft at its own period, from its MJCF).
+PIVOT_ONLY = ("body", "control_period", "hold_steps", "near_goal_trajectories", "near_goal_angle", "near_goal_omega",
+              "max_speed")
 #: ``--collector`` choices per kind of scene, the first the default.
 PIVOT_COLLECTORS = ("swings", "random")
 FREE_BODY_COLLECTORS = ("bursts", "stabilized-flight")
@@ -55,36 +66,39 @@ def build_parser() -> argparse.ArgumentParser:
                              "random (the former uniform states and random constant/piecewise controls); free bodies: "
                              "bursts (random-excitation bursts from the MJCF alone; default) or stabilized-flight "
                              "(a closed-form pilot, for crafts the closed form represents)")
-    parser.add_argument("--trajectories", type=int, default=None,
+    parser.add_argument("--trajectories", type=positive_int, default=None,
                         help="default: swings ≈ 8,000 transitions / steps; random 320; bursts 750; "
                              "stabilized flight 300")
     parser.add_argument(
-        "--steps", type=int, default=None,
+        "--steps", type=positive_int, default=None,
         help="control periods per trajectory (default: swings two natural periods, 20–200; random and bursts 20; "
              "stabilized flight 50)"
     )
     parser.add_argument(
-        "--max-omega", type=float, default=None, help="largest initial |ω| (rad/s; default: 6; free body: 10)"
+        "--max-omega", type=nonnegative_float, default=None,
+        help="largest initial |ω| (rad/s; default: 6; free body: 10)"
     )
-    parser.add_argument("--hold-steps", type=int, default=4,
-                        help="random: periods per level of piecewise-constant controls (default: %(default)s)")
-    parser.add_argument("--control-period", type=float, default=None,
+    parser.add_argument("--hold-steps", type=positive_int, default=None,
+                        help="random: periods per level of piecewise-constant controls (default: 4)")
+    parser.add_argument("--control-period", type=positive_float, default=None,
                         help="seconds per step (default: the scene's; a whole multiple of its MJCF timestep)")
-    parser.add_argument("--max-speed", type=float, default=None,
+    parser.add_argument("--max-speed", type=positive_float, default=None,
                         help="keep only trajectories with every |ω_i| ≤ this (rad/s) at every step (default: keep all)")
-    parser.add_argument("--near-goal-trajectories", type=int, default=None,
+    parser.add_argument("--near-goal-trajectories", type=number_in(int, 0), default=None,
                         help="random: this many more trajectories started near the goal (default: 0)")
-    parser.add_argument("--near-goal-angle", type=float, default=None,
+    parser.add_argument("--near-goal-angle", type=number_in(float, 0.0, 3.141592653589793, low_open=True), default=None,
                         help="their largest initial angle from the goal (rad; default: 1)")
-    parser.add_argument("--near-goal-omega", type=float, default=None,
+    parser.add_argument("--near-goal-omega", type=nonnegative_float, default=None,
                         help="their largest initial |ω_i| (rad/s; default: 2)")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=seed_value, default=0)
     parser.add_argument(
         "--out",
         type=Path,
         default=None,
-        help="output .npz (default: data/<scene name>.npz, the MJCF's stem for a path)",
+        help="output .npz (default: data/<scene name>.npz, the MJCF's stem for a path); an existing file is "
+             "replaced only with --force",
     )
+    parser.add_argument("--force", action="store_true", help="replace an existing output file")
     parser.add_argument("--quiet", action="store_true")
     return parser
 
@@ -97,6 +111,13 @@ def main(argv: list[str] | None = None) -> int:
     if collector not in allowed:
         kind = "a pivoted" if spec.goal_set.attitude_at_rest else "a free-body"
         raise UsageError(f"--collector {collector} does not record {kind} scene; use one of {', '.join(allowed)}")
+    # an option the collector would ignore is refused: a value given and silently not used is a wrong result
+    ignored = (PIVOT_ONLY if not spec.goal_set.attitude_at_rest else RANDOM_ONLY if collector == "swings" else ())
+    given = [name for name in ignored if getattr(args, name) is not None]
+    if given:
+        takes = "a pivoted scene only" if not spec.goal_set.attitude_at_rest else "--collector random only"
+        raise UsageError(f"--{given[0].replace('_', '-')} applies to {takes}")
+    out = check_output_file(args.out or Path("data") / f"{spec.name}.npz", "--out", (".npz",), force=args.force)
     if not spec.goal_set.attitude_at_rest:
         max_omega = 10.0 if args.max_omega is None else args.max_omega
         if collector == "bursts":
@@ -105,18 +126,13 @@ def main(argv: list[str] | None = None) -> int:
         else:
             free = collect_quadrotor(args.scene, trajectories=args.trajectories or 300, steps=args.steps or 50,
                                      seed=args.seed, max_omega=max_omega, progress=not args.quiet)
-        out = args.out or Path("data") / f"{spec.name}.npz"
         save_data(out, free)
         print(json.dumps({"out": str(out), **{k: free.metadata[k] for k in ("scene", "trajectories", "transitions",
                                                                            "control_period", "coverage")}}))
         return 0
     if collector == "swings":
-        given = [name for name in RANDOM_ONLY if getattr(args, name) not in (None, 0)]
-        if given:
-            raise UsageError(f"--{given[0].replace('_', '-')} applies to --collector random only")
         data = collect_swings(args.scene, args.trajectories, args.steps, args.seed, args.body,
                               control_period=args.control_period, progress=not args.quiet)
-        out = args.out or Path("data") / f"{spec.name}.npz"
         save_data(out, data)
         print(json.dumps({"out": str(out), **{k: data.metadata[k] for k in (
             "scene", "collector", "trajectories", "steps", "transitions", "control_period", "saturated_share",
@@ -128,10 +144,10 @@ def main(argv: list[str] | None = None) -> int:
     near_goal = {"near_goal_trajectories": args.near_goal_trajectories or 0,
                  "near_goal_angle": 1.0 if args.near_goal_angle is None else args.near_goal_angle,
                  "near_goal_omega": 2.0 if args.near_goal_omega is None else args.near_goal_omega}
-    data = collect(args.scene, args.trajectories, args.steps, args.seed, args.max_omega, args.hold_steps,
+    data = collect(args.scene, args.trajectories, args.steps, args.seed, args.max_omega,
+                   4 if args.hold_steps is None else args.hold_steps,
                    args.body, progress=not args.quiet, control_period=args.control_period, max_speed=args.max_speed,
                    **near_goal)
-    out = args.out or Path("data") / f"{spec.name}.npz"
     save_data(out, data)
     print(
         json.dumps(

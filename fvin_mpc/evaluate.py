@@ -6,7 +6,6 @@ The command line of :mod:`fvin_mpc.studies.evaluation`, whose docstring (the met
 from __future__ import annotations
 
 import argparse
-import json
 import shlex
 import sys
 from pathlib import Path
@@ -19,11 +18,16 @@ from fvin_mpc._cli import (
     add_loop_argument,
     add_scene_arguments,
     backend_options,
+    check_craft_period,
+    check_output_file,
+    check_output_folder,
     checked_scene_and_checkpoint,
+    duration_s,
     exit_status,
     mpc_overrides,
-    positive_float,
+    nonnegative_float,
     run_command,
+    seed_value,
 )
 from fvin_mpc.control.c_controller import check_c_loop
 from fvin_mpc.core.checkpoint import checkpoint_exists
@@ -39,6 +43,12 @@ from fvin_mpc.studies.evaluation import (
     write_report,
 )
 from fvin_mpc.studies.pool import TasksFailed
+from fvin_mpc.studies.report import json_text
+
+#: The files a report writes into ``--out-dir`` (a pivot's evaluation, a free body's flight report): replaced
+#: only with ``--force``.
+REPORT_FILES = ("evaluation.json", "evaluation.md", "time_to_upright.png", "phase_portraits.png", "quadrotor.json",
+                "quadrotor.md", "recovery.png", "figure_eight.png")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -47,16 +57,19 @@ def build_parser() -> argparse.ArgumentParser:
     add_scene_arguments(parser, newton_iters=False)
     parser.add_argument("--episodes", type=int, default=50, help="episodes per controller (default: %(default)s)")
     parser.add_argument(
-        "--duration", type=positive_float, default=10.0, help="seconds per episode (default: %(default)s)"
+        "--duration", type=duration_s, default=10.0, help="seconds per episode (default: %(default)s)"
     )
     parser.add_argument("--controllers", default=",".join(CONTROLLERS),
                         help="comma-separated subset of: %(default)s")
-    parser.add_argument("--seed", type=int, default=0, help="base seed of the initial states (default: %(default)s)")
-    parser.add_argument("--max-omega", type=float, default=DEFAULT_MAX_OMEGA,
+    parser.add_argument("--seed", type=seed_value, default=0,
+                        help="base seed of the initial states (default: %(default)s)")
+    parser.add_argument("--max-omega", type=nonnegative_float, default=DEFAULT_MAX_OMEGA,
                         help="largest |ω| of the random initial states, rad/s (default: %(default)s)")
     add_backend_arguments(parser)
-    parser.add_argument("--out-dir", type=Path, default=Path("docs/evaluation"),
-                        help="where evaluation.{json,md} and the plots go (default: %(default)s)")
+    parser.add_argument("--out-dir", type=Path, default=Path("evaluation"),
+                        help="where evaluation.{json,md} and the plots go (default: %(default)s; the study shipped in "
+                             "docs/evaluation is rewritten only when named, with --force)")
+    parser.add_argument("--force", action="store_true", help="replace the report files already in --out-dir")
     parser.add_argument("--json", type=Path, default=None, help="also write the JSON result here")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     add_closed_loop_arguments(parser)
@@ -76,13 +89,21 @@ def _check_scene_and_checkpoint(config: EvaluationConfig) -> None:
         checked_scene_and_checkpoint(config.scene, true_model=True, command="evaluate")
 
 
+def _check_outputs(args: argparse.Namespace) -> Path | None:
+    """``--out-dir`` and ``--json``, checked after the inputs and before any episode; the ``--json`` path."""
+    check_output_folder(args.out_dir, "--out-dir", args.force, REPORT_FILES)
+    return check_output_file(args.json, "--json")
+
+
 def _evaluate_free_body(args: argparse.Namespace, argv: list[str]) -> int:
     """A free body's evaluation is fly's report (the study's docstring): both models where a checkpoint is."""
     import fvin_mpc.studies.flight_report as flight
 
     spec = existing_scene(args.scene)
     learned = args.checkpoint is not None or checkpoint_exists(spec.default_checkpoint)
-    checked_scene_and_checkpoint(args.scene, args.checkpoint, true_model=not learned)
+    _, checkpoint = checked_scene_and_checkpoint(args.scene, args.checkpoint, true_model=not learned)
+    check_craft_period(spec, checkpoint)
+    _check_outputs(args)
     models = flight.MODELS if learned else ("closed-form",)
     results = flight.side_by_side(args.out_dir, argv, args.episodes, args.seed, args.latency, args.checkpoint,
                                   models=models, progress=not args.quiet, scene=args.scene,
@@ -110,6 +131,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         make_env(config).close()  # fails early on a scene the env cannot simulate
         if args.loop == "c" and any(name.startswith("mpc-") for name in config.controllers):
             check_c_loop(mpc_settings(config).solver)  # before any worker builds one
+        json_path = _check_outputs(args)
         result = evaluate(config, workers=args.workers, progress=not args.quiet, **backend)
     except (ValueError, FileNotFoundError, TasksFailed) as error:
         return exit_status(error)
@@ -118,10 +140,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     command = "python -m fvin_mpc.evaluate " + " ".join(shlex.quote(a) for a in argv)
     written = write_report(result, args.out_dir, command.strip())
-    if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(result.to_json(), indent=1) + "\n")
-        written.append(args.json)
+    if json_path is not None:
+        json_path.parent.mkdir(parents=True, exist_ok=True)
+        json_path.write_text(json_text(result.to_json(), indent=1) + "\n")
+        written.append(json_path)
     print(summary_table(result))
     print("wrote " + ", ".join(str(p) for p in written), file=sys.stderr)
     return 0

@@ -17,7 +17,17 @@ import subprocess
 from pathlib import Path
 from typing import Sequence
 
-from fvin_mpc._cli import UsageError, checked_scene_and_checkpoint, run_command
+from fvin_mpc._cli import (
+    MAX_NEWTON_ITERS,
+    UsageError,
+    check_craft_period,
+    check_output_file,
+    check_output_folder,
+    checked_scene_and_checkpoint,
+    newton_iters_type,
+    run_command,
+    seed_value,
+)
 from fvin_mpc.control.c_controller import write_controller
 from fvin_mpc.control.flight import quadrotor_model, quadrotor_mpc, quadrotor_mpc_settings
 from fvin_mpc.control.model_export import from_checkpoint, save_function
@@ -25,13 +35,18 @@ from fvin_mpc.control.scene import scene_env, scene_model, scene_mpc, scene_mpc_
 from fvin_mpc.envs import QuadrotorEnv
 from fvin_mpc.envs.scenes import resolve_scene
 
+#: What ``--controller DIR`` writes (:func:`~fvin_mpc.control.c_controller.write_controller`): replaced only
+#: with ``--force``.
+CONTROLLER_FILES = ("*.c", "*.h", "Makefile", "*.so", "example")
+
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m fvin_mpc.export", description=__doc__,
                                      formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     parser.add_argument("--scene", default="pendulum", help="built-in scene name or MJCF path")
     parser.add_argument("--checkpoint", default=None, help="shipped name or path (default: the scene's)")
-    parser.add_argument("--newton-iters", type=int, default=None, help="K unrolled (default: the checkpoint's)")
+    parser.add_argument("--newton-iters", type=newton_iters_type, default=None,
+                        help=f"K unrolled, 1 … {MAX_NEWTON_ITERS} (default: the checkpoint's)")
     parser.add_argument("--out", type=Path, default=None,
                         help="the step's output file (default: <checkpoint>_K<K>.casadi)")
     parser.add_argument("--controller", type=Path, default=None, metavar="DIR",
@@ -39,13 +54,19 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--true-model", action="store_true",
                         help="with --controller: plan with the closed-form body read off the scene's MJCF")
     parser.add_argument("--build", action="store_true", help="with --controller: run make in DIR")
-    parser.add_argument("--seed", type=int, default=0, help="unused (the export is deterministic); for CLI uniformity")
+    parser.add_argument("--force", action="store_true", help="replace an existing --out file or --controller files")
+    parser.add_argument("--seed", type=seed_value, default=0,
+                        help="unused (the export is deterministic); for CLI uniformity")
     return parser
 
 
 def export_controller(args: argparse.Namespace) -> dict:
     """Write (and with ``--build`` compile) the scene's real-time controller as C."""
+    check_output_folder(args.controller, "--controller", args.force, CONTROLLER_FILES)
+    if args.build and shutil.which("make") is None:
+        raise UsageError("--build needs make on PATH (or compile by hand: see the Makefile)")
     spec, checkpoint = checked_scene_and_checkpoint(args.scene, args.checkpoint, args.true_model)
+    check_craft_period(spec, checkpoint)
     if spec.goal_set.attitude_at_rest:
         env = scene_env(spec, checkpoint, args.true_model)
         model = scene_model(env, checkpoint, args.true_model, args.newton_iters)
@@ -59,8 +80,6 @@ def export_controller(args: argparse.Namespace) -> dict:
     summary = {"controller": str(directory), "scene": spec.name, "model": model.name,
                "horizon": controller.horizon, "files": sorted(path.name for path in directory.iterdir())}
     if args.build:
-        if shutil.which("make") is None:
-            raise UsageError("--build needs make on PATH (or compile by hand: see the Makefile)")
         process = subprocess.run(["make"], cwd=directory, capture_output=True, text=True)
         if process.returncode != 0:
             raise RuntimeError(f"make in {directory} failed: {process.stderr.strip()[-2000:]}")
@@ -76,8 +95,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 0
     if args.true_model or args.build:
         raise UsageError("--true-model and --build go with --controller DIR")
+    if args.out is not None:
+        check_output_file(args.out, "--out", (".casadi",), force=args.force)
     model = from_checkpoint(args.checkpoint or resolve_scene(args.scene).default_checkpoint, args.newton_iters)
-    out = args.out or Path(f"{model.name}_K{model.newton_iters}.casadi")
+    out = check_output_file(args.out or Path(f"{model.name}_K{model.newton_iters}.casadi"), "--out", (".casadi",),
+                            force=args.force)
     save_function(model.step, out)
     print(json.dumps({"out": str(out), "function": str(model.step), "newton_iters": model.newton_iters,
                       "step_size": model.step_size, "instructions": int(model.step.n_instructions())}))

@@ -6,22 +6,30 @@ The command line of :mod:`fvin_mpc.studies.flight_report`, whose docstring is th
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 from typing import Sequence
 
 import fvin_mpc.studies.flight_report as study
 from fvin_mpc._cli import (
+    PLOT_SUFFIXES,
+    VIDEO_SUFFIXES,
     add_latency_argument,
     add_loop_argument,
     add_relinearize_argument,
+    check_craft_period,
+    check_output_file,
+    check_output_folder,
+    check_rendering,
+    check_video_writer,
     checked_scene_and_checkpoint,
     run_command,
+    seed_value,
 )
 from fvin_mpc.control.c_controller import on_loop
 from fvin_mpc.control.closed_loop import write_video
 from fvin_mpc.core.errors import UsageError
+from fvin_mpc.studies.report import json_text
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -40,7 +48,7 @@ def build_parser() -> argparse.ArgumentParser:
                              "convergence every period")
     add_relinearize_argument(parser)
     parser.add_argument("--episodes", type=int, default=20, help="recovery starts (default: 20)")
-    parser.add_argument("--seed", type=int, default=0, help="seeds the recovery starts (default: 0)")
+    parser.add_argument("--seed", type=seed_value, default=0, help="seeds the recovery starts (default: 0)")
     add_latency_argument(parser, default="measured")
     add_loop_argument(parser)
     parser.add_argument("--json", type=Path, default=None, help="write the per-episode results as JSON")
@@ -51,6 +59,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--report", type=Path, default=None,
                         help="run both tasks with both models side by side and write the study into this folder "
                              "(e.g. docs/quadrotor); --task and --model are then ignored")
+    parser.add_argument("--force", action="store_true", help="with --report: replace the report files in the folder")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
     return parser
 
@@ -60,11 +69,21 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     if args.episodes < 1:
         raise UsageError(f"--episodes must be >= 1, got {args.episodes}")
+    if args.report is not None:
+        check_output_folder(args.report, "--report", args.force, study.REPORT_FILES)
+    json_path = check_output_file(args.json, "--json")
+    plot = check_output_file(args.plot, "--plot", PLOT_SUFFIXES)
+    video = check_output_file(args.video, "--video", VIDEO_SUFFIXES)
+    still = check_output_file(args.still, "--still", PLOT_SUFFIXES)
+    check_video_writer(video)
+    if still is not None and video is None:
+        raise UsageError("--still is a strip of the video's frames: give --video too")
     # an R3xS3 model of this scene, before any build
-    spec, _ = checked_scene_and_checkpoint(args.scene, args.checkpoint,
-                                           true_model=args.model == "closed-form" and args.report is None)
+    spec, checkpoint = checked_scene_and_checkpoint(args.scene, args.checkpoint,
+                                                    true_model=args.model == "closed-form" and args.report is None)
     if spec.goal_set.attitude_at_rest:
         raise UsageError(f"scene {spec.name!r} is a body on a pivot; swing it up with python -m fvin_mpc.swingup")
+    check_craft_period(spec, checkpoint)
     if args.report is not None:
         if args.loop != "python" or args.rti_relinearize_every is not None:
             raise UsageError("--report runs the studies' own controllers in Python; leave out --loop c and "
@@ -74,7 +93,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         study.print_rows([model["summary"] for model in results["models"].values()])
         print(f"report: {args.report / 'quadrotor.md'}", file=sys.stderr)
         return 0
-    env = study.make_env(render=args.video is not None, scene=args.scene)
+    env = study.make_env(render=video is not None, scene=args.scene)
+    if video is not None:
+        check_rendering(env)
     rti = None if args.rti_relinearize_every is None else {"relinearize_every": args.rti_relinearize_every}
     controller = on_loop(study.make_controller(env, args.model, args.checkpoint, solver=args.solver, rti=rti),
                          args.loop)
@@ -86,30 +107,32 @@ def main(argv: Sequence[str] | None = None) -> int:
           f"solver {args.solver}, {args.loop} loop, latency {args.latency}", file=sys.stderr)
     if args.task == "recovery":
         rows, episodes, frames = study.run_recovery(env, controller, args.episodes, args.seed, args.latency,
-                                                    progress=not args.quiet, render_first=args.video is not None)
+                                                    progress=not args.quiet, render_first=video is not None)
         summary = study.summarize(args.model, rows, None, episodes)
         data = {"summary": summary, "episodes": rows}
-        if args.plot:
-            study.plot_recovery({args.model: (episodes, None)}, args.plot)
+        if plot is not None:
+            plot.parent.mkdir(parents=True, exist_ok=True)
+            study.plot_recovery({args.model: (episodes, None)}, plot)
     else:
         tracking, episode, frames = study.run_figure_eight(env, controller, args.latency, progress=not args.quiet,
-                                                           render=args.video is not None)
+                                                           render=video is not None)
         summary = study.summarize(args.model, None, tracking, [episode])
         data = {"summary": summary, "figure_eight": tracking}
-        if args.plot:
-            study.plot_figure_eight({args.model: ([], episode)}, study.figure_eight(env), args.plot)
+        if plot is not None:
+            plot.parent.mkdir(parents=True, exist_ok=True)
+            study.plot_figure_eight({args.model: ([], episode)}, study.figure_eight(env), plot)
     study.print_rows([summary])
-    if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps({"command": "python -m fvin_mpc.fly " + " ".join(argv), **data}, indent=1,
-                                        default=float) + "\n")
-    if args.video:
-
-        args.video.parent.mkdir(parents=True, exist_ok=True)
-        write_video(frames, args.video, fps=1.0 / env.dt)
-        print(f"video: {args.video}", file=sys.stderr)
-        if args.still:
-            study.write_still(frames, args.still)
+    if json_path is not None:
+        json_path.parent.mkdir(parents=True, exist_ok=True)
+        json_path.write_text(json_text({"command": "python -m fvin_mpc.fly " + " ".join(argv), **data}, indent=1)
+                             + "\n")
+    if video is not None:
+        video.parent.mkdir(parents=True, exist_ok=True)
+        write_video(frames, video, fps=1.0 / env.dt)
+        print(f"video: {video}", file=sys.stderr)
+        if still is not None:
+            still.parent.mkdir(parents=True, exist_ok=True)
+            study.write_still(frames, still)
     env.close()
     return 0
 

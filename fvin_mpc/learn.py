@@ -34,7 +34,20 @@ import sys
 from pathlib import Path
 from typing import Sequence
 
-from fvin_mpc._cli import add_mpc_arguments, mpc_overrides, run_command
+from fvin_mpc._cli import (
+    add_mpc_arguments,
+    check_output_folder,
+    check_scene_env,
+    duration_s,
+    mpc_overrides,
+    nonnegative_float,
+    nonnegative_int,
+    positive_float,
+    positive_int,
+    require_torch,
+    run_command,
+    seed_value,
+)
 from fvin_mpc.envs.scenes import existing_scene
 from fvin_mpc.studies.learning_loop import (
     EXCITATIONS,
@@ -46,6 +59,9 @@ from fvin_mpc.studies.learning_loop import (
     write_loop_report,
 )
 
+#: What the loop writes into its folder: replaced only with ``--force``.
+LOOP_FILES = ("data.npz", "round_*", "final.*", "learn.json", "learn.md", "learn.png")
+
 
 def build_parser() -> argparse.ArgumentParser:
     defaults = LoopSettings()
@@ -53,46 +69,50 @@ def build_parser() -> argparse.ArgumentParser:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--scene", default="pendulum", help="built-in scene name or MJCF path (default: %(default)s)")
     pivoted, free = PIVOTED_DEFAULTS, FREE_BODY_DEFAULTS
-    parser.add_argument("--budget", type=int, default=None,
+    parser.add_argument("--budget", type=positive_int, default=None,
                         help=f"most training transitions from the plant (default: pivoted bodies {pivoted['budget']}, "
                              f"free bodies {free['budget']})")
     parser.add_argument("--excitation", choices=(*EXCITATIONS, FREE_BODY_EXCITATION), default=None,
                         help="collector of the first batch: a pivoted body's swings (collect's default) or random "
                              "torques; a free body's bursts (random-excitation bursts from the MJCF alone, "
                              f"collect's default) (default: {pivoted['excitation']}, or {free['excitation']})")
-    parser.add_argument("--excitation-trajectories", type=int, default=None,
+    parser.add_argument("--excitation-trajectories", type=positive_int, default=None,
                         help=f"trajectories of the first batch (default: pivoted bodies "
                              f"{pivoted['excitation_trajectories']}, free bodies {free['excitation_trajectories']})")
-    parser.add_argument("--segment-steps", type=int, default=defaults.segment_steps,
+    parser.add_argument("--segment-steps", type=positive_int, default=defaults.segment_steps,
                         help="control periods per stored trajectory (default: %(default)s)")
-    parser.add_argument("--explore-episodes", type=int, default=defaults.explore_episodes,
+    parser.add_argument("--explore-episodes", type=positive_int, default=defaults.explore_episodes,
                         help="exploration episodes per round (default: %(default)s)")
-    parser.add_argument("--explore-segments", type=int, default=defaults.explore_segments,
+    parser.add_argument("--explore-segments", type=positive_int, default=defaults.explore_segments,
                         help="length of an exploration episode in trajectories of --segment-steps "
                              "(default: %(default)s)")
-    parser.add_argument("--exploration-noise", type=float, default=defaults.exploration_noise,
+    parser.add_argument("--exploration-noise", type=nonnegative_float, default=defaults.exploration_noise,
                         help="exploration noise as a share of the torque bound (default: %(default)s)")
-    parser.add_argument("--evaluation-starts", type=int, default=defaults.evaluation_starts,
+    parser.add_argument("--evaluation-starts", type=positive_int, default=defaults.evaluation_starts,
                         help="fixed evaluation starts: hanging at rest, then random; a free body: fly's recovery "
                              "starts (default: %(default)s)")
-    parser.add_argument("--evaluation-duration", type=float, default=None,
+    parser.add_argument("--evaluation-duration", type=duration_s, default=None,
                         help="seconds per evaluation episode (default: the swing-up command's for the scene; a free "
                              "body: fly's recovery episode for the craft)")
-    parser.add_argument("--max-rounds", type=int, default=defaults.max_rounds,
+    parser.add_argument("--max-rounds", type=nonnegative_int, default=defaults.max_rounds,
                         help="most rounds after the first (default: %(default)s)")
-    parser.add_argument("--train-iterations", type=int, default=None,
+    parser.add_argument("--train-iterations", type=positive_int, default=None,
                         help="most training iterations per round (default: the training command's)")
     parser.add_argument("--cost-tolerance", type=_tolerance, default=defaults.cost_tolerance,
                         help="stop only once the learned cost summed over the starts is also at most this times "
                              "the closed form's; 'none': success alone stops (default: %(default)s)")
-    parser.add_argument("--min-cost-gain", type=float, default=defaults.min_cost_gain,
+    parser.add_argument("--min-cost-gain", type=nonnegative_float, default=defaults.min_cost_gain,
                         help="once successful, also stop when a round lowers the summed cost by less than this "
                              "share of the best successful round's (default: %(default)s)")
-    parser.add_argument("--time-limit", type=float, default=None,
+    parser.add_argument("--time-limit", type=positive_float, default=None,
                         help="seconds: end (before exploring) when another round as long as the last would "
                              "end past this (default: none)")
-    parser.add_argument("--seed", type=int, default=0, help="seeds excitation, exploration, training (default: 0)")
-    parser.add_argument("--out-dir", type=Path, default=None, help="default: learn/<scene name>")
+    parser.add_argument("--seed", type=seed_value, default=0,
+                        help="seeds excitation, exploration, training (default: 0)")
+    parser.add_argument("--out-dir", type=Path, default=None,
+                        help="default: learn/<scene name>; a folder holding a loop's files is replaced only with "
+                             "--force")
+    parser.add_argument("--force", action="store_true", help="replace the files of an earlier loop in --out-dir")
     parser.add_argument("--quiet", action="store_true", help="no progress display")
     add_mpc_arguments(parser)
     return parser
@@ -102,13 +122,17 @@ def _tolerance(text: str) -> float | None:
     if text.strip().lower() == "none":
         return None
     try:
-        return float(text)
+        value = float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"a number >= 1 or 'none', got {text!r}") from None
+    if not 1.0 <= value < float("inf"):
+        raise argparse.ArgumentTypeError(f"a number >= 1 or 'none', got {text!r}")
+    return value
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    require_torch("learn")
     spec = existing_scene(args.scene)
     settings = LoopSettings(
         budget=args.budget, excitation=args.excitation, excitation_trajectories=args.excitation_trajectories,
@@ -120,7 +144,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         cost_tolerance=args.cost_tolerance, min_cost_gain=args.min_cost_gain,
         mpc={k: v for k, v in mpc_overrides(args).items() if v is not None},
     )
-    out_dir = args.out_dir or Path("learn") / spec.name
+    out_dir = check_output_folder(args.out_dir or Path("learn") / spec.name, "--out-dir", args.force, LOOP_FILES)
+    check_scene_env(spec)  # the physics the loop will simulate, before the closed form runs
     log = (lambda message: None) if args.quiet else (lambda message: print(message, file=sys.stderr))
     result = run_loop(args.scene, settings, out_dir, progress=not args.quiet, log=log)
     command = "python -m fvin_mpc.learn " + " ".join(shlex.quote(a) for a in (argv if argv is not None

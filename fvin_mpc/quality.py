@@ -8,20 +8,33 @@ side by side) the 3-D report with the recovered inertia.
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 import numpy as np
 
 import fvin_mpc.studies.model_quality as quality_module
-from fvin_mpc._cli import checked_scene_and_checkpoint, run_command
+from fvin_mpc._cli import (
+    check_output_file,
+    checked_scene_and_checkpoint,
+    positive_int,
+    run_command,
+    seed_value,
+)
 from fvin_mpc.control.scene import scene_env
 from fvin_mpc.core.checkpoint import CheckpointError, load_checkpoint
 from fvin_mpc.core.data import load_data, save_data
 from fvin_mpc.core.rigid_body import from_mujoco
 from fvin_mpc.envs.scenes import resolve_scene
 from fvin_mpc.learning.collection import collect
-from fvin_mpc.studies.model_quality import NP, compare_components, energy_behaviour, report, rollout_error
+from fvin_mpc.studies.model_quality import (
+    NP,
+    check_held_out,
+    compare_components,
+    energy_behaviour,
+    report,
+    rollout_error,
+)
+from fvin_mpc.studies.report import json_text
 
 #: Defaults that differ between the planar (hinge) and the 3-D (ball-joint) report: rollout steps
 #: (2 s and 1 s at h = 0.05) and the unforced energy rollout's steps.
@@ -38,15 +51,16 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--data", type=Path, default=None,
                         help="held-out trajectories (default: data/<scene>_heldout.npz; for a hinge collected with "
                              "seed 1 — unseen by training, which uses seed 0 — if missing)")
-    parser.add_argument("--horizon", type=int, default=None,
+    parser.add_argument("--horizon", type=positive_int, default=None,
                         help=f"rollout steps (default: {HINGE_DEFAULTS['horizon']} on a hinge = 2 s at h = 0.05, "
                              f"{BALL_JOINT_DEFAULTS['horizon']} on a ball joint)")
-    parser.add_argument("--energy-steps", type=int, default=None,
+    parser.add_argument("--energy-steps", type=positive_int, default=None,
                         help=f"steps of the unforced energy rollouts (default: {HINGE_DEFAULTS['energy_steps']} on a "
                              f"hinge, {BALL_JOINT_DEFAULTS['energy_steps']} on a ball joint)")
-    parser.add_argument("--samples", type=int, default=512,
+    parser.add_argument("--samples", type=positive_int, default=512,
                         help="ball joint: orientations for the component comparison (default: %(default)s)")
-    parser.add_argument("--seed", type=int, default=0, help="seeds the sampled states of the component comparison")
+    parser.add_argument("--seed", type=seed_value, default=0,
+                        help="seeds the sampled states of the component comparison")
     parser.add_argument("--json", type=Path, default=None,
                         help="write the report as JSON (ball joints: a list, one report per checkpoint)")
     return parser
@@ -56,8 +70,8 @@ def hinge_report(args: argparse.Namespace, name: str) -> str:
     """The planar report of one hinge checkpoint, as JSON text."""
     checkpoint = load_checkpoint(name)
     env = scene_env(checkpoint.scene, checkpoint)
-    horizon = args.horizon or HINGE_DEFAULTS["horizon"]
-    energy_steps = args.energy_steps or HINGE_DEFAULTS["energy_steps"]
+    horizon = HINGE_DEFAULTS["horizon"] if args.horizon is None else args.horizon
+    energy_steps = HINGE_DEFAULTS["energy_steps"] if args.energy_steps is None else args.energy_steps
     # The scene's own closed-form body (read off its MJCF), not a planar rod assumed for every checkpoint.
     body, axis = from_mujoco(env.model, env.body_name), env.joint_axis
     angles = np.random.default_rng(args.seed).uniform(-np.pi, np.pi, 256)
@@ -66,7 +80,7 @@ def hinge_report(args: argparse.Namespace, name: str) -> str:
     if not data_path.exists() and args.data is None:
 
         save_data(data_path, collect(checkpoint.scene, trajectories=64, steps=horizon, seed=1))
-    held_out = load_data(data_path)
+    held_out = check_held_out(load_data(data_path), checkpoint, data_path, args.horizon)
     result = {
         "checkpoint": str(checkpoint.path), "variant": checkpoint.config.variant, "data": str(data_path),
         "rollout": rollout_error(checkpoint, held_out, horizon),
@@ -82,16 +96,22 @@ def hinge_report(args: argparse.Namespace, name: str) -> str:
     result["rollout_true_model"].pop("angle_error_per_step_mean")
     result["energy"].pop("true_energy")
     result["energy_on_hinge"].pop("true_energy")
-    return json.dumps(result, indent=2)
+    return json_text(result, indent=2)
 
 
 def ball_joint_reports(args: argparse.Namespace, names: list[str], scene: str) -> list[dict]:
     """The 3-D report of each ball-joint checkpoint."""
-    data = load_data(args.data or Path("data") / f"{scene}_heldout.npz")
+    path = args.data or Path("data") / f"{scene}_heldout.npz"
+    data = load_data(path)
+    horizon = BALL_JOINT_DEFAULTS["horizon"] if args.horizon is None else args.horizon
+    for name in names:  # each report checks the data against its model; an explicit horizon is checked here
+        if args.horizon is not None:
+            check_held_out(data, load_checkpoint(name), path, args.horizon)
     reports = []
     for name in names:
-        result = report(name, data, args.horizon or BALL_JOINT_DEFAULTS["horizon"], args.samples,
-                        args.energy_steps or BALL_JOINT_DEFAULTS["energy_steps"], args.seed)
+        result = report(name, data, horizon, args.samples,
+                        BALL_JOINT_DEFAULTS["energy_steps"] if args.energy_steps is None else args.energy_steps,
+                        args.seed)
         for part in result["rollout"].values():
             part.pop("angle_error_per_step_mean", None)
         reports.append(result)
@@ -101,6 +121,7 @@ def ball_joint_reports(args: argparse.Namespace, names: list[str], scene: str) -
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    json_path = check_output_file(args.json, "--json")
     scenes = []
     for name in args.checkpoint:
         recorded_scene = load_checkpoint(name).scene
@@ -118,18 +139,18 @@ def main(argv: list[str] | None = None) -> int:
             parser.error("the planar (hinge) report takes one --checkpoint; several are compared on ball joints only")
         text = hinge_report(args, args.checkpoint[0])
         print(text)
-        if args.json:
-            args.json.parent.mkdir(parents=True, exist_ok=True)
-            args.json.write_text(text + "\n")
+        if json_path is not None:
+            json_path.parent.mkdir(parents=True, exist_ok=True)
+            json_path.write_text(text + "\n")
         return 0
     if len(set(scenes)) > 1:
         parser.error(f"the ball-joint checkpoints model different scenes {sorted(set(scenes))}: one held-out set "
                      "serves them all")
     reports = ball_joint_reports(args, args.checkpoint, scenes[0])
-    print(json.dumps(reports if len(reports) > 1 else reports[0], indent=2))
-    if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(reports, indent=2) + "\n")
+    print(json_text(reports if len(reports) > 1 else reports[0], indent=2))
+    if json_path is not None:
+        json_path.parent.mkdir(parents=True, exist_ok=True)
+        json_path.write_text(json_text(reports, indent=2) + "\n")
     return 0
 
 

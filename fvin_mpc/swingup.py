@@ -11,7 +11,6 @@ comparison. The controller is the one the evaluation reports
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 from pathlib import Path
@@ -20,18 +19,26 @@ from typing import Any, Sequence
 import numpy as np
 
 from fvin_mpc._cli import (
+    PLOT_SUFFIXES,
+    VIDEO_SUFFIXES,
     add_closed_loop_arguments,
     add_loop_argument,
     add_scene_arguments,
+    check_output_file,
+    check_rendering,
+    check_video_writer,
     checked_scene_and_checkpoint,
+    duration_s,
     mpc_overrides,
-    positive_float,
+    number_in,
     run_command,
+    seed_value,
 )
 from fvin_mpc.control.c_controller import on_loop
 from fvin_mpc.control.closed_loop import HOLD_WINDOW_S, episode_metrics, plot_episode, run_episode, write_video
 from fvin_mpc.control.scene import SceneScales, scene_env, scene_model, scene_mpc, scene_mpc_settings, scene_scales
 from fvin_mpc.core.errors import UsageError
+from fvin_mpc.studies.report import json_text
 
 #: The shortest default episode: the former fixed default, which the built-in scenes keep.
 MIN_DEFAULT_DURATION_S = 10.0
@@ -66,6 +73,8 @@ def parse_init(text: str, joint_type: str) -> dict[str, Any] | None:
         values = np.array([float(v) for v in text.split(",")])
     except ValueError:
         raise UsageError(f"--init: expected rest, random or comma-separated numbers, got {text!r}") from None
+    if not np.all(np.isfinite(values)):
+        raise UsageError(f"--init: every number must be finite, got {text!r}")
     nq, nv = (1, 1) if joint_type == "hinge" else (4, 3)
     if values.size != nq + nv:
         raise UsageError(f"--init needs {nq} qpos and {nv} qvel numbers for a {joint_type} joint, got {values.size}")
@@ -77,16 +86,16 @@ def build_parser() -> argparse.ArgumentParser:
                                      formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     add_scene_arguments(parser)
     parser.add_argument("--body", default=None, help="observed body (default: the scene's)")
-    parser.add_argument("--goal", type=float, nargs=4, default=None, metavar=("W", "X", "Y", "Z"),
+    parser.add_argument("--goal", type=number_in(float), nargs=4, default=None, metavar=("W", "X", "Y", "Z"),
                         help="goal quaternion (default: the scene's, the potential's maximum)")
     parser.add_argument("--init", default="rest",
                         help="initial state: rest (the potential's minimum) | random | comma-separated qpos,qvel")
-    parser.add_argument("--duration", type=positive_float, default=None,
+    parser.add_argument("--duration", type=duration_s, default=None,
                         help=f"seconds of closed loop; {DURATION_RULE}")
-    parser.add_argument("--seed", type=int, default=0, help="seeds the env (random init, sensor noise)")
+    parser.add_argument("--seed", type=seed_value, default=0, help="seeds the env (random init, sensor noise)")
     parser.add_argument("--true-model", action="store_true", help="plan with the closed-form rigid body instead")
     parser.add_argument("--json", type=Path, default=None, help="write the summary as JSON")
-    parser.add_argument("--plot", type=Path, default=Path("swingup.png"), help="plot path ('' for none)")
+    parser.add_argument("--plot", type=Path, default=Path("swingup.png"), help="plot path, a .png ('' for none)")
     parser.add_argument("--video", type=Path, default=None, help="render an MP4 (headless: MUJOCO_GL=egl)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     add_closed_loop_arguments(parser)
@@ -96,9 +105,17 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    json_path = check_output_file(args.json, "--json")
+    plot = check_output_file(args.plot, "--plot", PLOT_SUFFIXES)
+    video = check_output_file(args.video, "--video", VIDEO_SUFFIXES)
+    check_video_writer(video)
+    if args.goal is not None and not np.linalg.norm(args.goal) > 0.0:
+        raise UsageError("--goal must be a nonzero quaternion W X Y Z (it is normalized), got 0 0 0 0")
     spec, checkpoint = checked_scene_and_checkpoint(args.scene, args.checkpoint, args.true_model, "swingup")
     env = scene_env(spec, checkpoint, args.true_model, args.control_period, body=args.body, goal=args.goal,
-                    render_mode="rgb_array" if args.video else None)
+                    render_mode="rgb_array" if video is not None else None)
+    if video is not None:
+        check_rendering(env)
     reset_options = parse_init(args.init, env.joint_type)
     duration = args.duration if args.duration is not None else default_duration(scene_scales(env))
     model = scene_model(env, checkpoint, args.true_model, args.newton_iters)
@@ -112,7 +129,7 @@ def main(argv: Sequence[str] | None = None) -> int:
           file=sys.stderr)
     loop = on_loop(controller, args.loop)
     episode, frames = run_episode(env, loop, duration, reset_options,
-                                  seed=args.seed, render=args.video is not None, progress=not args.quiet,
+                                  seed=args.seed, render=video is not None, progress=not args.quiet,
                                   description=f"swing-up {model.name}", latency=args.latency)
     metrics = episode_metrics(episode)
     summary = {
@@ -143,22 +160,24 @@ def main(argv: Sequence[str] | None = None) -> int:
         "build_s": controller.build_s,
         "compiled_from_cache": report.cached if report else None,
     }
-    text = json.dumps(summary, indent=2)
+    text = json_text(summary, indent=2)
     print(text)
-    if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(text + "\n")
-    if str(args.plot) not in ("", "."):
+    if json_path is not None:
+        json_path.parent.mkdir(parents=True, exist_ok=True)
+        json_path.write_text(text + "\n")
+    if plot is not None:
+        plot.parent.mkdir(parents=True, exist_ok=True)
         plot_episode(
             episode,
-            args.plot,
+            plot,
             title=f"{model.name} on {env.scene_spec.name}: swung up = {summary['swung_up']}",
             torque_bound=float(np.max(np.abs(env.torque_high))),
         )
-        print(f"plot: {args.plot}", file=sys.stderr)
-    if args.video:
-        write_video(frames, args.video, fps=1.0 / episode.control_period)
-        print(f"video: {args.video}", file=sys.stderr)
+        print(f"plot: {plot}", file=sys.stderr)
+    if video is not None:
+        video.parent.mkdir(parents=True, exist_ok=True)
+        write_video(frames, video, fps=1.0 / episode.control_period)
+        print(f"video: {video}", file=sys.stderr)
     env.close()
     return 0
 

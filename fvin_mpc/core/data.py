@@ -12,6 +12,9 @@ Files written before states were stored whole hold a pivoted body's ``q (N, T+1,
 from __future__ import annotations
 
 import json
+import math
+import os
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping
@@ -104,31 +107,96 @@ class Trajectories:
 
 
 def save_data(path: str | Path, data: Trajectories) -> Path:
-    """Write ``data`` to a compressed ``.npz`` (the metadata as a JSON string, naming the space)."""
+    """Write ``data`` to a compressed ``.npz`` (the metadata as a JSON string, naming the space), whole or not
+    at all: written beside the target and renamed onto it, so an interrupted write leaves no partial file."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     metadata = {**data.metadata, "configuration_space": data.space.name}
-    np.savez_compressed(path, state=data.state, u=data.u, metadata=json.dumps(metadata))
+    partial = path.with_name(f".{path.name}.partial.npz")
+    try:
+        np.savez_compressed(partial, state=data.state, u=data.u, metadata=json.dumps(metadata))
+        os.replace(partial, path)
+    finally:
+        partial.unlink(missing_ok=True)
     return path
 
 
+#: How far from unit norm a recorded quaternion may be: data are MuJoCo's normalized quaternions (unit to
+#: 1e-12; a float32 copy to 1e-7). A file past it was not recorded by the package, or was edited.
+DATA_UNIT_NORM_TOLERANCE = 1e-6
+#: The suffixes of a checkpoint's two files, which a data option is sometimes given by mistake.
+_CHECKPOINT_SUFFIXES = (".safetensors", ".json")
+
+
+def _refused(path: Path, reason: str) -> DataFileError:
+    return DataFileError(f"{path}: {reason} (a data file is an .npz written by `{HOW_TO_MAKE}`)")
+
+
 def load_data(path: str | Path) -> Trajectories:
-    """Read a file written by :func:`save_data` (or an older pivoted ``q``/``omega`` file).
+    """Read a file written by :func:`save_data` (or an older pivoted ``q``/``omega`` file), checked whole
+    before anyone uses it: an archive of the package's arrays, metadata that names a known configuration
+    space and a control period (finite, > 0), at least one trajectory of at least one step, consistent
+    shapes, finite states and controls, unit quaternions (:data:`DATA_UNIT_NORM_TOLERANCE`).
 
     Raises:
         DataFileNotFound: (a ``FileNotFoundError``) no such file (the message says how to make one).
-        DataFileError: (a ``ValueError``) not a data file.
-        ValueError: arrays inconsistent with the named space.
+        DataFileError: (a ``ValueError``) a folder, an empty or unreadable file, a checkpoint, or data that
+            fail one of the checks above (the message names the first entry that does).
     """
     path = Path(path)
     if not path.exists():
         raise DataFileNotFound(f"data file not found: {path} (make one with `{HOW_TO_MAKE}`)")
-    with np.load(path, allow_pickle=False) as archive:
-        files = set(archive.files)
-        if "metadata" not in files or "u" not in files or not ("state" in files or {"q", "omega"} <= files):
-            raise DataFileError(f"{path}: not an fvin_mpc data file (arrays {sorted(files)})")
-        metadata = json.loads(str(archive["metadata"]))
-        u = archive["u"].astype(np.float64)
-        if "state" in files:
-            return Trajectories(archive["state"].astype(np.float64), u, metadata)
-        return Trajectories.from_parts(archive["q"], archive["omega"], u, metadata)
+    if path.is_dir():
+        raise _refused(path, "a folder, not a data file")
+    if path.suffix.lower() in _CHECKPOINT_SUFFIXES:
+        raise _refused(path, "a checkpoint's file, not data (give it as --checkpoint)")
+    if path.stat().st_size == 0:
+        raise _refused(path, "the file is empty")
+    try:
+        with np.load(path, allow_pickle=False) as archive:
+            files = set(archive.files)
+            if "metadata" not in files or "u" not in files or not ("state" in files or {"q", "omega"} <= files):
+                raise _refused(path, f"not an fvin_mpc data file (arrays {sorted(files)})")
+            metadata = json.loads(str(archive["metadata"]))
+            u = archive["u"].astype(np.float64)
+            arrays = ((archive["state"].astype(np.float64),) if "state" in files
+                      else (archive["q"].astype(np.float64), archive["omega"].astype(np.float64)))
+    except DataFileError:
+        raise
+    except (ValueError, OSError, EOFError, zipfile.BadZipFile, KeyError, TypeError) as error:
+        reason = str(error).splitlines()[0] if str(error) else type(error).__name__
+        if "pickle" in reason:  # NumPy's guess for bytes that are no archive: what it suggests would run them
+            reason = "its bytes are no .npz archive"
+        raise _refused(path, f"not a NumPy archive of trajectories ({reason[:120]})") from None
+    if not isinstance(metadata, dict):
+        raise _refused(path, "its metadata is not a JSON object")
+    try:
+        data = (Trajectories(arrays[0], u, metadata) if len(arrays) == 1
+                else Trajectories.from_parts(arrays[0], arrays[1], u, metadata))
+    except ValueError as error:
+        raise _refused(path, str(error)) from None
+    check_trajectories(data, str(path))
+    return data
+
+
+def check_trajectories(data: Trajectories, name: str = "the data") -> None:
+    """``DataFileError`` unless ``data`` hold trajectories every consumer can use (:func:`load_data`'s checks)."""
+    period = data.metadata.get("control_period")
+    if not isinstance(period, (int, float)) or isinstance(period, bool) or not (math.isfinite(period) and period > 0):
+        raise DataFileError(f"{name}: the metadata's control_period must be finite seconds > 0, got {period!r}")
+    if data.u.shape[0] < 1 or data.u.shape[1] < 1 or data.u.shape[2] < 1:
+        raise DataFileError(f"{name}: no transitions (u has shape {data.u.shape}: trajectories, steps, controls)")
+    for label, values in (("state", data.state), ("u", data.u)):
+        bad = np.argwhere(~np.isfinite(values))
+        if bad.size:
+            where = tuple(int(i) for i in bad[0])
+            count = f"{len(bad)} entries are" if len(bad) > 1 else "the only entry that is"
+            raise DataFileError(f"{name}: {label}{list(where)} is {values[where]} ({count} NaN or infinite); every "
+                                "state and control must be finite")
+    for entries in data.space.layout.quaternions:
+        error = np.abs(np.linalg.norm(data.state[..., entries], axis=-1) - 1.0)
+        if float(error.max()) > DATA_UNIT_NORM_TOLERANCE:
+            where = tuple(int(i) for i in np.unravel_index(int(np.argmax(error)), error.shape))
+            raise DataFileError(f"{name}: the quaternion of trajectory {where[0]}, step {where[1]} has norm "
+                                f"{1.0 + float(error[where]):.6g} (unit quaternions to {DATA_UNIT_NORM_TOLERANCE:g} "
+                                "expected): not data the package recorded")

@@ -14,6 +14,7 @@ parts: ``inertia_cholesky`` (6,) for the fixed-inertia variant, ``dissipation_ch
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass
 from typing import Any, Literal, Mapping
 
@@ -75,6 +76,12 @@ def check_weight_shapes(weights: Mapping[str, Any], expected: Mapping[str, tuple
             raise ValueError(f"weight {name!r} has shape {actual}, expected {shape}")
 
 
+#: The most unrolled Newton iterations a model may carry: K = 5 already solves the step to 1e-15
+#: (DESIGN.md), and every iteration adds a copy of the implicit solve to the exported step (a sidecar's
+#: K = 10⁶ would build for hours).
+MAX_NEWTON_ITERS = 20
+
+
 @dataclass(frozen=True)
 class ModelFields(DictConfig):
     """The fields every configuration space's model config starts with, in this order (a checkpoint's
@@ -86,6 +93,21 @@ class ModelFields(DictConfig):
     hidden_layers: int = 2
     step_size: float = 0.05
     newton_iters: int = 2
+
+    def check_fields(self) -> None:
+        """``ValueError`` unless the counts are whole numbers, ``K`` at most :data:`MAX_NEWTON_ITERS` and the
+        step finite seconds: what a hand-edited sidecar may get wrong (``step_size: Infinity``,
+        ``newton_iters: 1.5``), refused when the config is built rather than when the step runs."""
+        for name in ("control_dim", "hidden_width", "hidden_layers", "newton_iters"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+                raise ValueError(f"{name} must be a whole number, got {value!r}")
+        if self.newton_iters > MAX_NEWTON_ITERS:
+            raise ValueError(f"newton_iters must be at most {MAX_NEWTON_ITERS}, got {self.newton_iters}")
+        step = self.step_size
+        if isinstance(step, bool) or not isinstance(step, (int, float, np.floating)) or not (
+                math.isfinite(step) and step > 0):
+            raise ValueError(f"step_size must be finite seconds > 0, got {step!r}")
 
 
 @dataclass(frozen=True)
@@ -131,6 +153,7 @@ class ModelConfig(ModelFields):
     vertical: tuple[float, float, float] | None = None
 
     def __post_init__(self) -> None:
+        self.check_fields()
         if self.hinge_axis is not None:
             object.__setattr__(self, "hinge_axis", unit_axis(self.hinge_axis, "hinge_axis"))
         if self.vertical is not None:

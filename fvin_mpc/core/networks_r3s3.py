@@ -70,6 +70,7 @@ class R3S3Config(networks.ModelFields):
     inertia_epsilon: float = 1e-8
 
     def __post_init__(self) -> None:
+        self.check_fields()
         if self.variant not in VARIANTS:
             raise ValueError(f"unknown variant {self.variant!r}; expected one of {VARIANTS}")
         if self.force_frame not in ("body", "world"):

@@ -22,10 +22,12 @@ import numpy as np
 from fvin_mpc.core import fvin_r3s3
 from fvin_mpc.core.backend import get_ops
 from fvin_mpc.core.data import Trajectories
+from fvin_mpc.core.errors import DataFileError
 from fvin_mpc.core.networks_r3s3 import LearnedCombinedTerms, R3S3Config, physical_scale
 from fvin_mpc.core.quadrotor import from_mujoco
 from fvin_mpc.core.space import R3S3, ConfigurationSpace, space_for_variant, space_of_config
 from fvin_mpc.envs import QuadrotorEnv
+from fvin_mpc.envs.scenes import load_model, resolve_scene
 from fvin_mpc.learning.training import scene_has_joint_damping, scene_hinge_axis, scene_vertical, train
 
 #: Position and velocity scales of the free body's loss (1/m, s/m): 1 mm of position error weighs as 0.03 rad/s.
@@ -124,6 +126,28 @@ def default_model_config(data: Trajectories, space: ConfigurationSpace | None = 
     return space.config_type(**chosen)
 
 
+def check_training_data(data: Trajectories, config: Any) -> None:
+    """``DataFileError`` for data no model can be trained on, before any training: fewer than two trajectories
+    (one is held out for validation, at least one trained on), controls of another width than the model's,
+    or than the actuators of the scene the data name (a 2-control model of a 1-motor scene)."""
+    if data.num_trajectories < 2:
+        raise DataFileError(f"the data hold {data.num_trajectories} trajectory: training holds at least one out for "
+                            "validation and trains on the rest; collect at least 2 (--trajectories)")
+    width = int(data.u.shape[2])
+    if int(getattr(config, "control_dim", width)) != width:
+        raise DataFileError(f"the data have {width} controls per step and the model {config.control_dim}")
+    scene = data.metadata.get("scene")
+    if not scene:
+        return
+    try:
+        actuators = load_model(resolve_scene(str(scene)).xml_path).nu
+    except (ValueError, OSError):
+        return  # a scene not on this machine (or no longer compiling): nothing to compare with
+    if actuators != width:
+        raise DataFileError(f"the data have {width} controls per step, and their scene {str(scene)!r} has {actuators} "
+                            "actuators: the file was not recorded from it (or was edited); collect it again")
+
+
 def training_for(space: ConfigurationSpace) -> SpaceTraining:
     """What the training command does differently for ``space`` (generic defaults if nothing)."""
     return TRAINING.get(space) or SpaceTraining()
@@ -137,6 +161,7 @@ def train_model(data: Trajectories, config: Any, settings: Any, progress: bool =
     or the seeded initialization; the report records the scales. ``measure``: :func:`train`'s."""
     from fvin_mpc.learning.model import model_for
 
+    check_training_data(data, config)
     space = space_of_config(config)
     preset = training_for(space)
     if preset.optimizers is not None and settings.optimizer not in preset.optimizers:

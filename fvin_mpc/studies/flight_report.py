@@ -60,6 +60,8 @@ SCENE = "quadrotor"
 FIGURE_EIGHT_LOOPS = 3
 FIGURE_EIGHT_SETTLE_LOOPS = 1
 MODELS = ("learned", "closed-form")
+#: The files :func:`side_by_side` writes into its folder.
+REPORT_FILES = ("quadrotor.json", "quadrotor.md", "recovery.png", "figure_eight.png")
 
 
 def make_env(render: bool = False, scene: Any = SCENE) -> Any:

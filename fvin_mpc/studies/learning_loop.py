@@ -65,7 +65,7 @@ from fvin_mpc.learning.space_training import default_model_config, train_model, 
 from fvin_mpc.learning.swing_measure import swing_apex_error, swing_probe, torch_model_step
 from fvin_mpc.learning.training import TrainSettings, package_versions
 from fvin_mpc.studies.flight_report import make_controller, make_env, run_recovery
-from fvin_mpc.studies.report import write_report
+from fvin_mpc.studies.report import json_text, write_report
 
 #: Seeds of the evaluation starts: far from the collector's (``seed``) and the exploration's, so
 #: that no evaluation start is a training start.
@@ -572,7 +572,7 @@ def best_round(rounds: list[dict[str, Any]]) -> dict[str, Any]:
 
 
 def _write_record(out_dir: Path, result: dict[str, Any]) -> None:
-    (out_dir / "learn.json").write_text(json.dumps(result, indent=1, default=float) + "\n")
+    (out_dir / "learn.json").write_text(json_text(result, indent=1) + "\n")
 
 
 def _sidecar(out_dir: Path, stem: str) -> dict[str, Any]:

@@ -41,6 +41,7 @@ from fvin_mpc.core import fvin, s3
 from fvin_mpc.core.backend import get_ops
 from fvin_mpc.core.checkpoint import Checkpoint, load_checkpoint
 from fvin_mpc.core.data import Trajectories
+from fvin_mpc.core.errors import DataFileError, UsageError
 from fvin_mpc.core.networks import LearnedTerms
 from fvin_mpc.core.rigid_body import from_mujoco
 from fvin_mpc.core.space import S3
@@ -378,11 +379,41 @@ def true_rollout_error(
     }
 
 
+def check_held_out(data: Trajectories, checkpoint: Checkpoint, path: Any, horizon: int | None = None) -> Trajectories:
+    """Held-out data a checkpoint is measured against, checked before any rollout: states of the model's
+    configuration space, as many controls, recorded at the model's step (a rollout compares them step by
+    step: data of another period would measure nothing, silently), and — with ``horizon`` — trajectories at
+    least that many steps long. Returns ``data``.
+
+    Raises:
+        DataFileError: naming the file, what differs and how to get matching data.
+    """
+    config = checkpoint.config
+    if data.space.layout != checkpoint.space.layout:
+        raise DataFileError(f"{path}: states of {data.space.description}; the checkpoint is a model on "
+                            f"{checkpoint.space.description}")
+    if int(data.u.shape[2]) != int(config.control_dim):
+        raise DataFileError(f"{path}: {data.u.shape[2]} controls per step; the checkpoint's model has "
+                            f"{config.control_dim}")
+    step = float(config.step_size)
+    if abs(data.control_period - step) > 1e-9 * max(1.0, step):
+        raise DataFileError(f"{path} was recorded every {data.control_period:g} s and the "
+                            f"checkpoint steps at {step:g} s: "
+                            f"collect held-out data at its period (python -m fvin_mpc.collect "
+                            f"--control-period {step:g} "
+                            "--seed 1 --out …)")
+    if horizon is not None and horizon > data.u.shape[1]:
+        raise UsageError(f"--horizon {horizon} is longer than the held-out trajectories of {path} "
+                         f"({data.u.shape[1]} steps)")
+    return data
+
+
 def report(checkpoint: Checkpoint | str | Path, data: Trajectories, horizon: int = 20, samples: int = 512,
            energy_steps: int = 400, seed: int = 0) -> dict[str, Any]:
     """Everything in the module docstring for one checkpoint, as a JSON-ready dict."""
     if not isinstance(checkpoint, Checkpoint):
         checkpoint = load_checkpoint(checkpoint)
+    check_held_out(data, checkpoint, "the held-out data")
     scene = checkpoint.scene or "spherical_pendulum"
     body, rest = scene_body(scene)
     horizon = min(horizon, data.u.shape[1])

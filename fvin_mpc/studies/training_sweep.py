@@ -15,7 +15,6 @@ A run that fails is listed with its error; the others are written all the same.
 
 from __future__ import annotations
 
-import json
 import math
 import time
 from dataclasses import asdict, dataclass, field
@@ -27,8 +26,10 @@ import numpy as np
 from fvin_mpc.core.checkpoint import save_checkpoint
 from fvin_mpc.core.data import load_data
 from fvin_mpc.core.networks import VARIANTS, ModelConfig
+from fvin_mpc.learning.space_training import check_training_data
 from fvin_mpc.learning.training import TrainSettings, package_versions, scene_has_joint_damping, scene_stem, train
 from fvin_mpc.studies.pool import TasksFailed, run_tasks
+from fvin_mpc.studies.report import json_text
 
 #: Keys of :class:`~fvin_mpc.learning.training.TrainSettings` a sweep may set for all its runs.
 TRAIN_OPTIONS: tuple[str, ...] = ("optimizer", "iterations", "patience", "window", "omega_weight", "learning_rate",
@@ -142,6 +143,7 @@ def run_sweep(config: SweepConfig, out_dir: Path, workers: int = 1, progress: bo
     :attr:`SweepResult.failures` and their rows carry the error (the others are written)."""
 
     data = load_data(config.data)
+    check_training_data(data, None)
     sizes = [size for size in config.sizes if size is not None]
     if sizes and max(sizes) > data.num_trajectories:
         raise ValueError(f"{config.data} has {data.num_trajectories} trajectories, a run asks for {max(sizes)}")
@@ -243,7 +245,7 @@ def write_report(result: SweepResult, out_dir: Path, command: str) -> list[Path]
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     md, js = out_dir / "sweep.md", out_dir / "sweep.json"
-    js.write_text(json.dumps(result.to_json(), indent=1) + "\n")
+    js.write_text(json_text(result.to_json(), indent=1) + "\n")
     settings = ", ".join(f"{k} = {v}" for k, v in result.config.train) or "the defaults"
     failed = "".join(f"\n- {line}" for line in result.failures)
     md.write_text(f"""# Training sweep: `{result.config.data}`
