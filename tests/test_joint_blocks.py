@@ -105,3 +105,27 @@ def test_a_retraction_along_qvel_is_mujocos_integration_to_second_order(tree):
 def test_a_model_without_joints_is_refused():
     with pytest.raises(ValueError, match="no joints"):
         joint_layout(mujoco.MjModel.from_xml_string("<mujoco><worldbody/></mujoco>"))
+
+
+def test_a_hinge_block_is_wrap_free_on_every_backend():
+    """A hinge's chart is the difference on the circle and its distance ``sin²(Δθ/2)``: a turn apart is no
+    apart, across ±π the short way round; NumPy, torch and CasADi give the same numbers."""
+    import casadi as ca
+    import torch
+
+    from fvin_mpc.core.backend import get_ops
+    from fvin_mpc.core.blocks import StateLayout
+
+    layout = StateLayout((Hinge(label="a"), Slide(label="b")), name="(θ, s, θ̇, ṡ)")
+    assert (layout.state_dim, layout.tangent_dim, layout.angular_rates) == (4, 4, slice(2, 3))
+    base = np.array([np.pi - 0.1, 0.3, 1.0, -2.0])
+    there = np.array([-np.pi + 0.1 + 4 * np.pi, 0.5, 1.5, -2.5])  # two turns on and across ±π
+    delta = layout.local(base, there)
+    np.testing.assert_allclose(delta, [0.2, 0.2, 0.5, -0.5], atol=1e-12)
+    np.testing.assert_allclose(layout.local(base, layout.retract(base, delta)), delta, atol=1e-12)
+    assert layout.distance(there, base) == pytest.approx(np.sin(0.1) ** 2 + 0.04, abs=1e-12)
+    for ops, convert, back in ((get_ops("torch"), torch.as_tensor, lambda t: t.numpy()),
+                               (get_ops("casadi"), ca.DM, lambda d: np.asarray(ca.evalf(d)).ravel())):
+        np.testing.assert_allclose(back(layout.local(convert(base), convert(there), ops)), delta, atol=1e-14)
+        assert np.asarray(back(layout.distance(convert(there), convert(base), ops))).reshape(-1)[0] == \
+            pytest.approx(float(layout.distance(there, base)), abs=1e-14)
