@@ -10,7 +10,10 @@ orientation error ``4(1 − ⟨q̂, q⟩²)`` (≈ squared angle error in rad²)
 scaled), averaged over windows and steps. Trajectories are split into train/validation sets before
 windowing. Default optimizer: Levenberg–Marquardt on the stacked residuals (tens of iterations,
 seconds); ``--optimizer adam`` is full-batch Adam. Training stops early once the validation loss
-stops improving. See docs/training.md (free bodies: docs/quadrotor.md).
+stops improving, unless it stops far above the data's floor (more than ``--poor-loss-ratio`` of the loss
+of a model that predicts no motion): such a plateau starts a fresh run from a new initialization
+(``--restarts``), and a model that still ends there is reported poor in one line on stderr and in the
+checkpoint's ``training.quality``. See docs/training.md (free bodies: docs/quadrotor.md).
 
 A body on a pivot is also measured where its controller needs it (docs/excitation.md): from
 hanging at 0.6–1.3× the scene's speed scale, the plant (the data's MJCF, MuJoCo) and the model swing
@@ -50,6 +53,7 @@ from fvin_mpc.learning.training import (
     TrainSettings,
     default_output_stem,
     package_versions,
+    quality_line,
     refuse_to_overwrite,
     safe_thread_count,
 )
@@ -117,7 +121,8 @@ def build_parser() -> argparse.ArgumentParser:
         type=int,
         default=None,
         help="stop after this many validation evaluations without a relative improvement of "
-        f"--min-improvement; 0: never stop early (default: {TrainSettings.patience}; free bodies 6)",
+        "--min-improvement (far above the data's floor: start a fresh run, see --poor-loss-ratio); 0: never "
+        f"stop early (default: {TrainSettings.patience}; free bodies 6)",
     )
     parser.add_argument(
         "--min-improvement",
@@ -164,6 +169,14 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--selection-tolerance", type=float, default=None,
                         help="how far above the best validation loss (relative) a selected iteration may be "
                              f"(default: {TrainSettings.selection_tolerance})")
+    parser.add_argument("--poor-loss-ratio", type=_ratio_or_none, default=None, metavar="RATIO|none",
+                        help="the validation loss, as a share of the data's hold loss (a model predicting no "
+                             "motion), above which a model is poor: a plateau there starts a fresh run, and a "
+                             "poor model is reported (a warning; the checkpoint's training.quality); none: every "
+                             f"plateau is convergence and no verdict (default: {TrainSettings.poor_loss_ratio})")
+    parser.add_argument("--restarts", type=int, default=None,
+                        help="most fresh runs after a plateau above --poor-loss-ratio, within --iterations and "
+                             f"--time-limit (default: {TrainSettings.restarts})")
     parser.add_argument(
         "--compile",
         action="store_true",
@@ -181,7 +194,20 @@ _SETTINGS_OPTIONS = {"optimizer": "optimizer", "iterations": "iterations", "lr":
                      "omega_weight": "omega_weight", "eval_every": "eval_every", "patience": "patience",
                      "min_improvement": "min_improvement", "target_loss": "target_loss",
                      "jacobian_windows": "jacobian_windows", "threads": "threads", "time_limit": "time_limit_s",
-                     "select": "selection", "selection_tolerance": "selection_tolerance"}
+                     "select": "selection", "selection_tolerance": "selection_tolerance",
+                     "poor_loss_ratio": "poor_loss_ratio", "restarts": "restarts"}
+
+#: ``--poor-loss-ratio none``: no verdict (the option's ``None`` already means "not given").
+_NO_VERDICT = "none"
+
+
+def _ratio_or_none(text: str) -> float | str:
+    if text.strip().lower() == _NO_VERDICT:
+        return _NO_VERDICT
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"a number or {_NO_VERDICT!r}, not {text!r}") from None
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -223,6 +249,8 @@ def main(argv: list[str] | None = None) -> int:
     given = {
         field: getattr(args, option) for option, field in _SETTINGS_OPTIONS.items() if getattr(args, option) is not None
     }
+    if given.get("poor_loss_ratio") == _NO_VERDICT:
+        given["poor_loss_ratio"] = None
     probe, measure = _swing_measure(data, space)
     if probe is not None and "window" not in given:
         given["window"] = min(probe.physics.scales.training_window, int(data.u.shape[1]))
@@ -238,6 +266,8 @@ def main(argv: list[str] | None = None) -> int:
         refuse_to_overwrite(out, args.force)
     model, report = train_model(data, config, settings, progress=not args.quiet, initial_weights=initial,
                                 measure=measure)
+    if report["quality"]["verdict"] == "poor":
+        print(f"train: warning: {quality_line(report['quality'])}", file=sys.stderr)
     if probe is not None:
         report["swing"] = swing_apex_error(torch_model_step(model), probe)
         report["window_chosen"] = "given" if args.window is not None else "scene scales: half a natural period"
@@ -267,6 +297,8 @@ def main(argv: list[str] | None = None) -> int:
         "optimizer": report["optimizer"],
         "iterations": report["iterations"],
         "stopped": report["stopped"],
+        "restarts": report["restarts"],
+        "quality": report["quality"]["verdict"],
         "threads": report["threads"],
         "final_train_loss": report["final_train_loss"],
         "final_validation_loss": report["final_validation_loss"],

@@ -140,9 +140,10 @@ def test_lbfgs_reduces_the_loss(data):
 
 
 def test_early_stopping_stops_and_keeps_the_best_weights(data):
-    # A 50 % improvement per evaluation is never met: stop after `patience` stale evaluations.
+    # A 50 % improvement per evaluation is never met: stop after `patience` stale evaluations (the bare
+    # patience rule: no verdict, so no fresh run however poor the plateau).
     settings = TrainSettings(optimizer="adam", iterations=200, eval_every=1, patience=2, min_improvement=0.5,
-                             window=3, threads=1)
+                             window=3, threads=1, poor_loss_ratio=None)
     _, report = train(data, SMALL, settings, progress=False)
     assert report["iterations"] == 3, report["history"]
     assert "did not improve" in report["stopped"]

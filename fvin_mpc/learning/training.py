@@ -8,7 +8,10 @@ Loss: multi-step rollout over windows of ``window`` steps, the sign-invariant
 orientation error ``4(1 − ⟨q̂, q⟩²)`` (≈ squared angle error in rad²) plus
 ``omega_weight``·‖ω̂ − ω‖², averaged over windows and steps. Trajectories are split
 into train/validation sets before windowing; training stops early once the
-validation loss stops improving and returns the best weights seen.
+validation loss stops improving and returns the best weights seen. A plateau far above the
+data's floor (the validation loss over :func:`hold_loss`, above ``poor_loss_ratio``) is not
+convergence: it starts a fresh run from a new initialization (``restarts``, within the same
+iteration and time limits), and a model that ends there is reported poor (``report["quality"]``).
 
 Optimizers (``docs/training.md`` has measurements):
 
@@ -30,7 +33,7 @@ from __future__ import annotations
 import math
 import os
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any, Callable, Literal, Mapping
 
@@ -86,6 +89,16 @@ class TrainSettings:
             validation loss (the measure is only recorded). Without a measure, the lowest validation loss.
         selection_tolerance: how much above the best validation loss a selected iteration may be
             (``1.0``: up to twice it).
+        poor_loss_ratio: the validation loss, as a share of the data's hold loss (:func:`hold_loss`: the
+            loss of a model that predicts no motion at all), above which a model is poor: far from
+            the floor the data's noise and the model class leave. A plateau there is not convergence:
+            it starts a fresh run (``restarts``), and once none are left the last run goes on
+            without patience until it comes within the ratio or reaches a limit. A model returned
+            above the ratio is reported poor (``report["quality"]``; the command says so on stderr).
+            ``None``: every plateau is convergence (the former rule) and no verdict is given.
+        restarts: most fresh runs (new initialization and Jacobian samples, the same split) after a
+            plateau above ``poor_loss_ratio``; every run shares ``iterations`` and ``time_limit_s``,
+            and the returned weights are the best of all runs'.
     """
 
     optimizer: Optimizer = "lm"
@@ -106,6 +119,8 @@ class TrainSettings:
     time_limit_s: float | None = None
     selection: Literal["measure", "validation"] = "measure"
     selection_tolerance: float = 1.0
+    poor_loss_ratio: float | None = 5e-3
+    restarts: int = 2
 
     def __post_init__(self) -> None:
         if self.optimizer not in OPTIMIZERS:
@@ -118,6 +133,10 @@ class TrainSettings:
             raise ValueError("patience must be >= 0, jacobian_windows and curvature_reuse >= 1")
         if self.threads is not None and self.threads < 1:
             raise ValueError(f"threads must be >= 1, got {self.threads}")
+        if self.restarts < 0 or (self.poor_loss_ratio is not None
+                                 and not (self.poor_loss_ratio > 0.0 and math.isfinite(self.poor_loss_ratio))):
+            raise ValueError(f"restarts must be >= 0 and poor_loss_ratio a finite number > 0 (or None), got "
+                             f"{self.restarts}, {self.poor_loss_ratio!r}")
         if self.selection not in ("measure", "validation") or not self.selection_tolerance >= 0.0:
             raise ValueError(f"selection must be 'measure' or 'validation' and selection_tolerance >= 0, got "
                              f"{self.selection!r}, {self.selection_tolerance!r}")
@@ -283,14 +302,26 @@ def split_data(data: Any, validation_fraction: float, seed: int) -> tuple[Any, A
 
 # ---------------------------------------------------------------------------- training
 class _EarlyStopping:
-    """Keeps the best validation loss and weights; says when to stop."""
+    """Keeps a run's best validation loss and weights; says when to stop the run.
 
-    def __init__(self, settings: TrainSettings) -> None:
+    ``poor_above``: the validation loss above which the run is far from the floor (``None``: never).
+    A plateau there still stops the run (``plateau`` set: the caller may start a fresh one) unless
+    ``persist``, when patience waits until the best loss comes below it."""
+
+    def __init__(self, settings: TrainSettings, poor_above: float | None = None, persist: bool = False) -> None:
         self.settings = settings
+        self.poor_above = poor_above
+        self.persist = persist
         self.best = math.inf
         self.best_weights: dict[str, Any] | None = None
         self.stale = 0
+        self.plateau = False
         self.reason = "iteration limit"
+
+    @property
+    def far(self) -> bool:
+        """Whether the best loss so far is above ``poor_above``."""
+        return self.poor_above is not None and self.best > self.poor_above
 
     def update(self, validation: float, model: Any) -> bool:
         """Record a validation loss; ``True`` when training should stop."""
@@ -305,20 +336,13 @@ class _EarlyStopping:
         if target is not None and validation <= target:
             self.reason = f"validation loss reached the target {target:.3g}"
             return True
-        if self.settings.patience and self.stale >= self.settings.patience:
+        if self.settings.patience and self.stale >= self.settings.patience and not (self.persist and self.far):
+            self.plateau = True
             self.reason = (
                 f"validation loss did not improve by {self.settings.min_improvement:.1%} in {self.stale} evaluations"
             )
             return True
         return False
-
-    def restore(self, model: Any) -> None:
-        import torch
-
-        if self.best_weights is not None:
-            with torch.no_grad():
-                for name, p in model.weights.items():
-                    p.copy_(self.best_weights[name])
 
 
 class _LevenbergMarquardt:
@@ -495,6 +519,23 @@ def trajectory_windows(model: Any, data: Trajectories, window: int) -> tuple[Any
     return q, rest if scale is None else rest * scale, u
 
 
+def hold_loss(q: Any, rest: Any, omega_weight: float) -> float:
+    """The loss :func:`rollout_loss` gives a model that predicts no motion (every step equal to the
+    window's first state) on windows ``q (W, T+1, 4)``, ``rest (W, T+1, n)``: the size of what the data
+    ask a model to predict, in the loss's own units. A model's loss over it is the share of the
+    data's motion it leaves unexplained (a scale-free yardstick for any scene and space)."""
+    alignment = (q[:, 1:] * q[:, :1]).sum(-1)
+    velocity = ((rest[:, 1:] - rest[:, :1]) ** 2).sum(-1)
+    return float((4.0 * (1.0 - alignment**2)).mean() + omega_weight * velocity.mean())
+
+
+def restart_seed(seed: int, run: int) -> int:
+    """The seed of fresh run ``run`` (0: ``seed`` itself) of a training seeded ``seed``."""
+    if run == 0:
+        return seed
+    return int(np.random.SeedSequence([seed, run]).generate_state(1)[0] % (2**31 - 1))
+
+
 def _train(data: Any, config: Any, settings: TrainSettings, progress: bool, model_factory: Callable[..., Any] | None,
            window_tensors: Callable[[Any, Any, int], tuple[Any, ...]],
            measure: Callable[[Any], float] | None = None) -> tuple[Any, dict[str, Any]]:
@@ -507,13 +548,115 @@ def _train(data: Any, config: Any, settings: TrainSettings, progress: bool, mode
         raise ValueError(f"model step {config.step_size} differs from the data's control period {data.control_period}")
     if data.u.shape[2] != config.control_dim:
         raise ValueError(f"data has {data.u.shape[2]} controls, the model config {config.control_dim}")
+    factory = model_factory or model_for
     torch.manual_seed(settings.seed)
-    model = (model_factory or model_for)(config, seed=settings.seed)
+    model = factory(config, seed=settings.seed)
+    first_weights = {name: p.detach().clone() for name, p in model.weights.items()}
+    # One split for every run: their validation losses are then comparable.
     train_set, validation_set = split_data(data, settings.validation_fraction, settings.seed)
     train_windows = window_tensors(model, train_set, settings.window)
     validation_windows = window_tensors(model, validation_set, settings.window)
+    hold = (hold_loss(validation_windows[0], validation_windows[1], settings.omega_weight)
+            if validation_windows[0].shape[-1] == 4 else None)
+    poor_above = None if settings.poor_loss_ratio is None or hold is None else settings.poor_loss_ratio * hold
 
     iterations, eval_every = settings.max_iterations, settings.evaluation_interval
+    history: list[dict[str, float]] = []
+    candidates: list[tuple[dict[str, float], dict[str, Any]]] = []
+    runs: list[dict[str, Any]] = []
+    best: tuple[float, dict[str, Any] | None] = (math.inf, None)
+    start, cpu_start = time.perf_counter(), time.process_time()
+    completed = 0
+    reason = "iteration limit"
+    bar = tqdm(total=iterations, desc=f"train {config.variant} ({settings.optimizer})", disable=not progress)
+    for run in range(settings.restarts + 1):
+        seed = restart_seed(settings.seed, run)
+        if run > 0:
+            torch.manual_seed(seed)
+            model = factory(config, seed=seed)
+            if all(torch.equal(p, first_weights[name]) for name, p in model.weights.items()):
+                break  # the factory starts every run alike (continued training): nothing fresh to try
+        run_settings = replace(settings, seed=seed)
+        last_run = run == settings.restarts
+        stopping = _EarlyStopping(run_settings, poor_above, persist=last_run)
+        advance, damping = _optimizer(model, run_settings, train_windows, iterations)
+        first_iteration = completed
+        while completed < iterations:
+            loss = advance()
+            completed += 1
+            bar.update(1)
+            if math.isnan(loss):  # LM: no damping made a step that lowers the loss
+                stopping.reason = "no Levenberg–Marquardt step lowers the training loss (converged)"
+                stopping.plateau = True
+                break
+            if not math.isfinite(loss):
+                raise FloatingPointError(f"training loss became {loss} at iteration {completed}")
+            if (completed - first_iteration) % eval_every == 0 or completed == iterations:
+                with torch.no_grad():
+                    validation_loss = rollout_loss(model, *validation_windows, settings.omega_weight).item()
+                entry = {"iteration": completed, "train": loss, "validation": validation_loss,
+                         "elapsed_s": time.perf_counter() - start, "cpu_s": time.process_time() - cpu_start,
+                         "run": run}
+                if damping is not None:
+                    entry["damping"] = damping()
+                if measure is not None:
+                    entry["measure"] = float(measure(model))
+                    candidates.append((entry, {name: p.detach().clone() for name, p in model.weights.items()}))
+                history.append(entry)
+                bar.set_postfix(train=f"{loss:.2e}", val=f"{validation_loss:.2e}", run=run)
+                if stopping.update(validation_loss, model):
+                    break
+            if settings.time_limit_s is not None and time.perf_counter() - start > settings.time_limit_s:
+                stopping.reason = f"time limit of {settings.time_limit_s:g} s"
+                break
+        runs.append({"run": run, "seed": seed, "iterations": completed - first_iteration,
+                     "best_validation": stopping.best, "stopped": stopping.reason})
+        reason = stopping.reason
+        if stopping.best < best[0]:
+            best = (stopping.best, stopping.best_weights)
+        out_of_budget = completed >= iterations or stopping.reason.startswith("time limit")
+        if not (stopping.plateau and stopping.far) or out_of_budget:
+            break
+    bar.close()
+    if best[1] is not None:
+        _assign_weights(model, best[1])
+    selected = _select(candidates, best[0], settings, model) if candidates else None
+    seconds, cpu_seconds = time.perf_counter() - start, time.process_time() - cpu_start
+    with torch.no_grad():
+        final_train = rollout_loss(model, *train_windows, settings.omega_weight).item()
+        final_validation = rollout_loss(model, *validation_windows, settings.omega_weight).item()
+    restarts = len(runs) - 1
+    if restarts:
+        reason = f"{reason} (run {len(runs)}, after {restarts} restart{'s' * (restarts > 1)})"
+    quality = _quality(final_validation, hold, settings, selected, runs)
+    report = {
+        "optimizer": settings.optimizer,
+        "iterations": completed,
+        "stopped": reason,
+        "settings": asdict(settings),
+        "train_windows": int(train_windows[0].shape[0]),
+        "validation_windows": int(validation_windows[0].shape[0]),
+        "final_train_loss": final_train,
+        "final_validation_loss": final_validation,
+        "wall_clock_s": seconds,
+        "cpu_s": cpu_seconds,
+        "seconds_per_iteration": seconds / max(completed, 1),
+        "history": history,
+        "restarts": restarts,
+        "runs": runs,
+        "quality": quality,
+    }
+    if selected is not None:
+        report["selected"] = selected
+    return model, report
+
+
+def _optimizer(model: Any, settings: TrainSettings, train_windows: tuple[Any, ...],
+               iterations: int) -> tuple[Callable[[], float], Callable[[], float] | None]:
+    """``(advance, damping)`` of ``settings.optimizer`` on ``model``: one iteration, returning the
+    training loss before it, and LM's current ``λ`` (``None`` for the others)."""
+    import torch
+
     # One step is compiled (not the whole rollout): compile time grows steeply with graph size.
     step = torch.compile(model.step, dynamic=False) if settings.compile else None
 
@@ -522,8 +665,8 @@ def _train(data: Any, config: Any, settings: TrainSettings, progress: bool, mode
 
     if settings.optimizer == "lm":
         lm = _LevenbergMarquardt(model, train_windows, settings)
-        advance = lm.step
-    elif settings.optimizer == "lbfgs":
+        return lm.step, lambda: lm.damping
+    if settings.optimizer == "lbfgs":
         lbfgs = torch.optim.LBFGS(
             model.parameters(), lr=1.0, max_iter=4, history_size=50, line_search_fn="strong_wolfe"
         )
@@ -534,74 +677,61 @@ def _train(data: Any, config: Any, settings: TrainSettings, progress: bool, mode
             loss.backward()
             return loss
 
-        def advance() -> float:
-            return lbfgs.step(closure).detach().item()
-    else:
-        adam = torch.optim.Adam(model.parameters(), lr=settings.learning_rate)
-        schedule = torch.optim.lr_scheduler.CosineAnnealingLR(adam, iterations, eta_min=0.05 * settings.learning_rate)
+        return lambda: lbfgs.step(closure).detach().item(), None
+    adam = torch.optim.Adam(model.parameters(), lr=settings.learning_rate)
+    schedule = torch.optim.lr_scheduler.CosineAnnealingLR(adam, iterations, eta_min=0.05 * settings.learning_rate)
 
-        def advance() -> float:
-            adam.zero_grad()
-            loss = train_loss()
-            loss.backward()
-            adam.step()
-            schedule.step()
-            return loss.item()
+    def advance() -> float:
+        adam.zero_grad()
+        loss = train_loss()
+        loss.backward()
+        adam.step()
+        schedule.step()
+        return loss.item()
 
-    stopping = _EarlyStopping(settings)
-    history: list[dict[str, float]] = []
-    candidates: list[tuple[dict[str, float], dict[str, Any]]] = []
-    validation_loss = float("nan")
-    start, cpu_start = time.perf_counter(), time.process_time()
-    completed = 0
-    bar = tqdm(range(iterations), desc=f"train {config.variant} ({settings.optimizer})", disable=not progress)
-    for iteration in bar:
-        loss = advance()
-        completed = iteration + 1
-        if math.isnan(loss):  # LM: no damping made a step that lowers the loss
-            stopping.reason = "no Levenberg–Marquardt step lowers the training loss (converged)"
-            break
-        if not math.isfinite(loss):
-            raise FloatingPointError(f"training loss became {loss} at iteration {iteration}")
-        if completed % eval_every == 0 or completed == iterations:
-            with torch.no_grad():
-                validation_loss = rollout_loss(model, *validation_windows, settings.omega_weight).item()
-            entry = {"iteration": completed, "train": loss, "validation": validation_loss,
-                     "elapsed_s": time.perf_counter() - start, "cpu_s": time.process_time() - cpu_start}
-            if measure is not None:
-                entry["measure"] = float(measure(model))
-                candidates.append((entry, {name: p.detach().clone() for name, p in model.weights.items()}))
-            history.append(entry)
-            bar.set_postfix(train=f"{loss:.2e}", val=f"{validation_loss:.2e}")
-            if stopping.update(validation_loss, model):
-                break
-        if settings.time_limit_s is not None and time.perf_counter() - start > settings.time_limit_s:
-            stopping.reason = f"time limit of {settings.time_limit_s:g} s"
-            break
-    stopping.restore(model)
-    selected = _select(candidates, stopping.best, settings, model) if candidates else None
-    seconds, cpu_seconds = time.perf_counter() - start, time.process_time() - cpu_start
-    bar.close()
+    return advance, None
+
+
+def _assign_weights(model: Any, weights: Mapping[str, Any]) -> None:
+    import torch
+
     with torch.no_grad():
-        final_train = rollout_loss(model, *train_windows, settings.omega_weight).item()
-        final_validation = rollout_loss(model, *validation_windows, settings.omega_weight).item()
-    report = {
-        "optimizer": settings.optimizer,
-        "iterations": completed,
-        "stopped": stopping.reason,
-        "settings": asdict(settings),
-        "train_windows": int(train_windows[0].shape[0]),
-        "validation_windows": int(validation_windows[0].shape[0]),
-        "final_train_loss": final_train,
-        "final_validation_loss": final_validation,
-        "wall_clock_s": seconds,
-        "cpu_s": cpu_seconds,
-        "seconds_per_iteration": seconds / max(completed, 1),
-        "history": history,
-    }
+        for name, p in model.weights.items():
+            p.copy_(weights[name])
+
+
+def _quality(validation: float, hold: float | None, settings: TrainSettings, selected: dict[str, Any] | None,
+             runs: list[dict[str, Any]]) -> dict[str, Any]:
+    """The verdict on the returned model: ``"poor"`` when its validation loss is above
+    ``poor_loss_ratio`` of the data's hold loss, ``"good"`` below, ``"unknown"`` without a yardstick."""
+    ratio = None if hold is None or not hold > 0.0 else validation / hold
+    limit = settings.poor_loss_ratio
+    verdict = "unknown" if ratio is None or limit is None else ("poor" if ratio > limit else "good")
+    quality: dict[str, Any] = {"verdict": verdict, "validation_loss": validation, "hold_loss": hold,
+                               "loss_ratio": ratio, "poor_loss_ratio": limit, "runs": len(runs)}
     if selected is not None:
-        report["selected"] = selected
-    return model, report
+        quality["measure"] = selected.get("measure")
+    return quality
+
+
+def quality_line(quality: Mapping[str, Any]) -> str:
+    """One line saying why a model is poor (``report["quality"]`` of :func:`train`)."""
+    measure = quality.get("measure")
+    runs = quality.get("runs", 1)
+    return (f"the trained model is poor: its validation loss {quality['validation_loss']:.3g} is "
+            f"{quality['loss_ratio']:.1%} of the data's hold loss {quality['hold_loss']:.3g} (poor above "
+            f"{quality['poor_loss_ratio']:.1%})"
+            + (f", swing measure {measure:.3g} energy spans" if measure is not None else "")
+            + f", best of {runs} run{'s' * (runs > 1)}; it is unlikely to control — try more --iterations, "
+              "another --seed or more data")
+
+
+def checkpoint_quality(metadata: Mapping[str, Any]) -> dict[str, Any] | None:
+    """The training's verdict recorded in a checkpoint's metadata (``training.quality``); ``None`` for
+    a checkpoint trained before verdicts were recorded, or not by :func:`train`."""
+    training = metadata.get("training")
+    quality = training.get("quality") if isinstance(training, Mapping) else None
+    return dict(quality) if isinstance(quality, Mapping) else None
 
 
 def _select(candidates: list[tuple[dict[str, float], dict[str, Any]]], best_validation: float,
@@ -615,14 +745,14 @@ def _select(candidates: list[tuple[dict[str, float], dict[str, Any]]], best_vali
                "best_validation_measure": by_validation["measure"]}
     if settings.selection == "validation":
         return {**summary, "iteration": by_validation["iteration"], "validation": by_validation["validation"],
-                "measure": by_validation["measure"]}
+                "measure": by_validation["measure"], "run": by_validation.get("run", 0)}
     limit = best_validation * (1.0 + settings.selection_tolerance)
     entry, weights = min((c for c in candidates if c[0]["validation"] <= limit), key=lambda c: c[0]["measure"])
     with torch.no_grad():
         for name, p in model.weights.items():
             p.copy_(weights[name])
     return {**summary, "iteration": entry["iteration"], "validation": entry["validation"], "measure": entry["measure"],
-            "validation_limit": limit}
+            "validation_limit": limit, "run": entry.get("run", 0)}
 
 
 def split_losses(weights: Mapping[str, Any], config: ModelConfig, data: Trajectories,
