@@ -1,8 +1,8 @@
 """Default training over seeds: ``python -m benchmarks.training_seeds``.
 
 For each scene and seed: ``python -m fvin_mpc.collect --scene S --seed N`` and ``python -m fvin_mpc.train
---seed N`` with their defaults (plus ``--train-args``, e.g. ``"--patience 2 --restarts 0"`` to replay an
-earlier rule), each a fresh process, then optionally the scene's own task with its defaults: ``python -m
+--seed N`` with their defaults (plus ``--train-args``, e.g. ``"--poor-loss-ratio none"`` for the former
+stop rule), each a fresh process, then optionally the scene's own task with its defaults: ``python -m
 fvin_mpc.swingup`` on a body on a pivot, ``python -m fvin_mpc.fly`` (recovery) on a free body
 (``--control``). One JSON row per run in ``<out>/rows.jsonl`` (validation loss, swing measure,
 iterations, stop reason, restarts, the training's verdict, wall times, the control check), appended as
