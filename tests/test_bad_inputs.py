@@ -1,4 +1,4 @@
-"""The bad-input suite (issue 52): every command, given what a new user gets wrong, refuses it at its edge
+"""The bad-input suite: every command, given what a new user gets wrong, refuses it at its edge
 in one line — exit status 2, exactly one line on stderr, ``error: …``, no traceback — before any work, and
 leaves every file in its folder as it was.
 

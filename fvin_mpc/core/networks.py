@@ -137,8 +137,8 @@ class ModelConfig(ModelFields):
             the world is turned about the vertical, so its terms depend on ``q`` only through that
             direction. Without it a network of ``q`` fitted a different potential at every turn about
             the vertical, and a body held upright while spinning about its long axis met a model error
-            that turned with it (issue 26's two-motor balls, held 0.05–0.1 rad off upright). The input
-            is even in ``q`` already: no ``±q`` average.
+            that turned with it (the two-motor ball scenes, held 0.05–0.1 rad off upright:
+            docs/scene-families.md). The input is even in ``q`` already: no ``±q`` average.
         control_scale: per control, the size of a full control (the data's largest ``|u|``), or
             ``None`` (1). The gain network learns the force of a *full* control, ``g(q) = ĝ(q) / scale``:
             an actuator whose control range is ±0.05 with a gear of 35 would otherwise need the

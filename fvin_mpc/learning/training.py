@@ -168,7 +168,7 @@ def safe_thread_count(cores: int | None = None, load: float | None = None) -> in
     1-minute load average (a core counts as busy once the load claims half of it), at least 1.
 
     Two threads on a 2-core machine already running one job collapse (40–170× slower than
-    idle, issue 16); one thread never does. At this model's sizes (tensors of a few thousand
+    idle, ``docs/training.md``); one thread never does. At this model's sizes (tensors of a few thousand
     elements) extra threads gain little anyway (``docs/training.md``)."""
     cores = available_cores() if cores is None else cores
     load = os.getloadavg()[0] if load is None else load
