@@ -274,9 +274,30 @@ class FreeBody:
     omega: slice
 
 
+def _attitude_of(slots: Sequence[BlockSlots]) -> Attitude | None:
+    """The attitude of the one block with a quaternion, ``None`` where there are none or several."""
+    found = [slot for slot in slots if slot.quaternion is not None]
+    if len(found) != 1:
+        return None
+    slot = found[0]
+    offset = slot.quaternion.start - slot.position.start  # the chart's and the rate's offset alike
+    return Attitude(slot.quaternion, slice(slot.rate.start + offset, slot.rate.start + offset + 3),
+                    slice(slot.chart.start + offset, slot.chart.start + offset + 3),
+                    slice(slot.tangent_rate.start + offset, slot.tangent_rate.start + offset + 3))
+
+
+def _free_body_of(slots: Sequence[BlockSlots]) -> FreeBody | None:
+    """The parts of the one :class:`FreeJoint` block, ``None`` where there are none or several."""
+    found = [slot for slot in slots if isinstance(slot.block, FreeJoint)]
+    if len(found) != 1:
+        return None
+    p, r = found[0].position.start, found[0].rate.start
+    return FreeBody(slice(p, p + 3), slice(p + 3, p + 7), slice(r, r + 3), slice(r + 3, r + 6))
+
+
 def single_attitude(layout: "StateLayout") -> Attitude | None:
     """``layout``'s one attitude (:meth:`StateLayout.attitude`), ``None`` where it has none or several."""
-    return layout.attitude(by="") if len(layout.quaternions) == 1 else None
+    return layout._attitude
 
 
 @dataclass(frozen=True)
@@ -310,6 +331,9 @@ class StateLayout:
     #: ``(quaternion entries, other entries, join order)``: index lists (NumPy and torch index by them) for
     #: :meth:`split` and its inverse, ``concatenate([q, rest])[..., join order]``
     split_entries: tuple[list[int], list[int], list[int]] = field(init=False, repr=False)
+    # The one attitude and the one free body where the state has exactly one (read on every controller call).
+    _attitude: Attitude | None = field(init=False, repr=False)
+    _free_body: FreeBody | None = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         if not self.blocks or not all(isinstance(block, Block) for block in self.blocks):
@@ -337,6 +361,7 @@ class StateLayout:
                  "positions": slice(0, n_position), "rates": slice(n_position, rate),
                  "tangent_rates": slice(n_chart, 2 * n_chart), "angular_rates": _slice_of(angular),
                  "tangent_units": tuple(units)}
+        facts.update(_attitude=_attitude_of(slots), _free_body=_free_body_of(slots))
         for name, value in facts.items():
             object.__setattr__(self, name, value)
 
@@ -356,25 +381,18 @@ class StateLayout:
         """The one body attitude of a single-body state (a :class:`Ball` or :class:`FreeJoint` block):
         what code written for one rotating body reads. ``ValueError`` naming ``by`` (the code that asked)
         for a layout with no attitude or several."""
-        found = [slot for slot in self.slots if slot.quaternion is not None]
-        if len(found) != 1:
-            raise ValueError(f"{by} is written for one body's attitude; the state {self.name} has {len(found)} "
-                             f"({', '.join(slot.block.kind for slot in self.slots)})")
-        slot = found[0]
-        offset = slot.quaternion.start - slot.position.start  # the chart's and the rate's offset alike
-        omega = slice(slot.rate.start + offset, slot.rate.start + offset + 3)
-        return Attitude(slot.quaternion, omega, slice(slot.chart.start + offset, slot.chart.start + offset + 3),
-                        slice(slot.tangent_rate.start + offset, slot.tangent_rate.start + offset + 3))
+        if self._attitude is None:
+            raise ValueError(f"{by} is written for one body's attitude; the state {self.name} has "
+                             f"{len(self.quaternions)} ({', '.join(slot.block.kind for slot in self.slots)})")
+        return self._attitude
 
     def free_body(self, by: str) -> FreeBody:
         """The one :class:`FreeJoint` block's parts: what code written for a free-flying craft reads.
         ``ValueError`` naming ``by`` for a layout with no free joint or several."""
-        found = [slot for slot in self.slots if isinstance(slot.block, FreeJoint)]
-        if len(found) != 1:
-            raise ValueError(f"{by} is written for one free body; the state {self.name} has {len(found)} free joints")
-        slot = found[0]
-        p, r = slot.position.start, slot.rate.start
-        return FreeBody(slice(p, p + 3), slice(p + 3, p + 7), slice(r, r + 3), slice(r + 3, r + 6))
+        if self._free_body is None:
+            free = sum(isinstance(block, FreeJoint) for block in self.blocks)
+            raise ValueError(f"{by} is written for one free body; the state {self.name} has {free} free joints")
+        return self._free_body
 
     def check(self, x: Any) -> np.ndarray:
         """A measured state as a float64 copy, each block's position made exact (a quaternion within
