@@ -39,6 +39,8 @@ from typing import Any, Iterator, Literal, Protocol, Union
 
 import numpy as np
 
+from fvin_mpc.core.errors import raise_if_interrupted
+
 #: Upright means within this angle of the goal (rad) …
 UPRIGHT_TOLERANCE = 0.1
 #: … and holding means staying within this angle over the last :data:`HOLD_WINDOW_S` seconds.
@@ -215,6 +217,7 @@ def run_episode(env: Any, controller: Controller, duration_s: float, reset_optio
     bar = tqdm(range(periods), desc=description, disable=not progress, leave=False)
     with _setup_frozen():
         for k in bar:
+            raise_if_interrupted()
             first = k * frame_skip
             if first >= free_at:
                 if set_time is not None:

@@ -48,6 +48,18 @@ INTERRUPTED_STATUS = 130
 INSTALL_TRAIN = 'pip install torch==2.13.0 && pip install -e ".[train]"'
 
 
+#: Whether a Ctrl-C is pending in the command that runs (:func:`run_command`): set by its handler.
+_PENDING = {"interrupted": False}
+
+
+def raise_if_interrupted() -> None:
+    """``KeyboardInterrupt`` if a Ctrl-C is pending: what a long loop (a closed-loop episode) calls once per
+    step, so that an interrupt a callee swallowed as an error of its own (``except Exception`` around a
+    solve) still stops the command there."""
+    if _PENDING["interrupted"]:
+        raise KeyboardInterrupt
+
+
 @contextlib.contextmanager
 def _interrupts_that_stick() -> Iterator[dict[str, bool]]:
     """Ctrl-C that stops the command wherever it lands. CasADi's solvers poll for an interrupt from inside
@@ -55,7 +67,8 @@ def _interrupts_that_stick() -> Iterator[dict[str, bool]]:
     warning and swallows it, and the MPC reports a failed solve while the episode runs on. So Ctrl-C only
     marks the interrupt here, and a trace function raises it at the next line of Python code the command
     runs (once the solve has returned). Only in the main thread, where the default handler is installed."""
-    state = {"interrupted": False}
+    state = _PENDING
+    state["interrupted"] = False
     if threading.current_thread() is not threading.main_thread() \
             or signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
         yield state
@@ -101,7 +114,14 @@ def run_command(main: Callable[[Sequence[str] | None], int], argv: Sequence[str]
     argparse.ArgumentParser.error = _one_line_parse_error  # type: ignore[method-assign, assignment]
     try:
         with _interrupts_that_stick() as interrupt:
-            status = main(argv)
+            try:
+                status = main(argv)
+            except Exception:
+                # Raised from a frame that C code called (NumPy converting a CasADi matrix), the interrupt
+                # reaches Python as that caller's error (a SystemError): while one is pending, any error is it.
+                if interrupt["interrupted"]:
+                    raise KeyboardInterrupt from None
+                raise
         if interrupt["interrupted"]:  # swallowed to the end: the work may be whole, but it was not wanted
             raise KeyboardInterrupt
         return status
