@@ -310,8 +310,8 @@ class DisturbanceEstimate:
                     angle = max(angle, float(s3.geodesic_angles(q, goal)))
                 else:
                     angle = max(angle, s3.axis_angle(tuple(q), tuple(goal), tuple(self.free_axis)))
-                    speeds[layout.attitude(by="a free axis").omega] = \
-                        free_axis_projector(self.free_axis) @ x0[layout.attitude(by="a free axis").omega]
+                    omega = layout.attitude(by="a free axis").omega
+                    speeds[omega] = free_axis_projector(self.free_axis) @ x0[omega]
             elif isinstance(slot.block, Hinge):
                 turn = float(x0[slot.position][0] - reference[slot.position][0])
                 angle = max(angle, abs(math.atan2(math.sin(turn), math.cos(turn))))
