@@ -18,6 +18,7 @@ imports and holds the line). Every module, one line each:
 * ``fvin`` — the forced S³ variational integrator step and its residual.
 * ``fvin_r3s3`` — the R³ × S³ step: translation and rotation together.
 * ``fvin_so3`` — the forced LieFVIN step on SO(3), the paper's baseline.
+* ``mechanism_step`` — the forced variational step of a mechanism (a tree of joints) on the product of its blocks.
 * ``networks`` — the learned S3FVIN terms ``J``, ``U``, ``g`` (and ``D``) from weights.
 * ``networks_r3s3`` — the learned R³ × S³ terms ``M``, ``J``, ``U``, force and torque gains.
 * ``networks_so3`` — the learned SO3FVIN terms.

@@ -38,6 +38,10 @@ class Ops(Protocol):
     def linear_transpose(self, vector: Any, weight: Any) -> Any:
         """``weightᵀ @ v`` — backpropagation through :meth:`linear`."""
         ...
+    def jacobian(self, function: Any, point: Sequence[Any]) -> tuple[tuple[Any, ...], tuple[tuple[Any, ...], ...]]:
+        """``function``'s value and Jacobian (rows: outputs, columns: inputs) at ``point``, exact, where the
+        backend differentiates: ``function`` maps a tuple of components to a tuple of components."""
+        ...
 
 
 class NumpyOps:
@@ -82,6 +86,9 @@ class NumpyOps:
 
     def linear_transpose(self, vector, weight):
         return vector @ weight
+
+    def jacobian(self, function, point):
+        raise NotImplementedError("the NumPy backend has no derivatives: evaluate the CasADi form numerically")
 
 
 class TorchOps:
@@ -129,6 +136,23 @@ class TorchOps:
     def linear_transpose(self, vector, weight):
         return vector @ weight
 
+    def jacobian(self, function, point):
+        # Reverse mode per output on the batch's sum: the samples are independent, so each row is per sample.
+        # create_graph keeps the derivatives differentiable (a Newton step inside a training loss).
+        torch = self._torch
+        z = self.stack(point)
+        if not z.requires_grad:
+            z = z.detach().requires_grad_(True)
+        value = tuple(function(self.unstack(z)))
+        rows = []
+        for entry in value:
+            entry = entry if isinstance(entry, torch.Tensor) else torch.as_tensor(entry, dtype=z.dtype)
+            gradient = None
+            if entry.requires_grad:
+                gradient = torch.autograd.grad(entry.sum(), z, create_graph=True, allow_unused=True)[0]
+            rows.append(self.unstack(torch.zeros_like(z) if gradient is None else gradient))
+        return value, tuple(rows)
+
 
 class CasadiOps:
     """CasADi ``SX``/``MX`` scalars as components, columns as vectors."""
@@ -174,6 +198,16 @@ class CasadiOps:
 
     def linear_transpose(self, vector, weight):
         return self._ca.mtimes(self._matrix(weight).T, vector)
+
+    def jacobian(self, function, point):
+        # Symbolic: differentiate at a fresh symbol, then put the point in (SX or MX, as the point is).
+        ca = self._ca
+        kind = ca.MX if any(isinstance(p, ca.MX) for p in point) else ca.SX
+        z = kind.sym("z", len(point))
+        value = ca.vertcat(*function(self.unstack(z)))
+        value, jacobian = ca.substitute([value, ca.jacobian(value, z)], [z], [kind(ca.vertcat(*point))])
+        return self.unstack(value), tuple(tuple(jacobian[i, j] for j in range(len(point)))
+                                          for i in range(value.shape[0]))
 
     def _matrix(self, value):
         # Weights are numbers, or symbols where a model parameter stands in for them (model_parameters).
