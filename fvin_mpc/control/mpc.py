@@ -103,6 +103,16 @@ class IpoptOptions:
             (state units; IPOPT's own ``constr_viol_tol`` by default) and its cost is below that of the
             previous plan shifted — the plan the controller would otherwise fly (acados returns the iterate
             at its limit with a status; the RTI always keeps its best plan). ``None``: never.
+        exact_retry: with ``hessian="gauss-newton"`` and IPOPT, a solve that ends unconverged is solved again
+            from the same guess (and multipliers) with the exact Hessian before any fallback
+            (``info["hessian"]`` says which Hessian the returned solve used, ``iterations`` counts both). The
+            Gauss–Newton Hessian leaves out the dynamics' curvature weighted by the multipliers; on a learned
+            model whose potential curves several times more sharply than the body's, that term outweighs
+            the cost's Hessian and Gauss–Newton's iterates cycle to the iteration limit (docs/training.md).
+            The exact Hessian is compiled only when a retry first needs it. Once a retry converges, the
+            controller solves with the exact Hessian from then on (:attr:`MPC.exact_hessian`): the model's
+            curvature does not change, and each further Gauss–Newton attempt would spend its iteration limit
+            first.
     """
 
     hessian: Literal["gauss-newton", "exact", "limited-memory"] = "gauss-newton"
@@ -113,6 +123,7 @@ class IpoptOptions:
     warm_mu_init: float = 1e-4
     extra: tuple[tuple[str, Any], ...] = field(default_factory=tuple)
     last_iterate_max_defect: float | None = 1e-4
+    exact_retry: bool = True
 
     def __post_init__(self) -> None:
         if self.hessian not in ("gauss-newton", "exact", "limited-memory"):
@@ -429,6 +440,8 @@ class MPC(ControlProblem):
     Attributes:
         compile_report: how the compiled functions were obtained (``None`` if not compiled).
         build_s: seconds spent building (and compiling) the solver.
+        exact_retries: unconverged Gauss–Newton solves retried with the exact Hessian (``IpoptOptions.exact_retry``).
+        exact_hessian: whether this controller now solves with the exact Hessian (a retry converged).
     """
 
     def __init__(self, model: ExportedModel, settings: MPCSettings, goal: Any, torque_low: Any, torque_high: Any,
@@ -502,6 +515,7 @@ class MPC(ControlProblem):
 
         self.compile_report: CompileReport | None = None
         self._order = None
+        self._exact_source = None
         if s.solver == "fatrop":
             self._predict = predict
             self._build_fatrop(states, controls, parameters, objective, defects)
@@ -553,6 +567,33 @@ class MPC(ControlProblem):
         warm = s.ipopt.warm_start == "primal-dual" and s.solver == "ipopt"
         self._warm = self._cold if not warm else ca.nlpsol(
             "mpc_warm", s.solver, self._nlp, {**self._oracle_options, **self._ipopt_options(warm=warm)})
+        # The exact-Hessian solvers an unconverged Gauss–Newton solve retries with, built on first need.
+        self._exact_source = nlp if s.solver == "ipopt" and s.ipopt.hessian == "gauss-newton" and s.ipopt.exact_retry \
+            else None
+        self._exact_solvers: dict[bool, Any] | None = None
+        self.exact_retries = 0
+        # Set once an exact retry converged where Gauss–Newton did not: the model's curvature does not change.
+        self.exact_hessian = False
+
+    def _exact_solver(self, warm: bool) -> Any:
+        """The IPOPT solver with the exact Lagrangian Hessian (the dynamics' second derivatives weighted by
+        the multipliers, which the Gauss–Newton Hessian leaves out), ``warm`` or cold; its Hessian is
+        generated and compiled the first time a retry needs it, so a model that never needs one never
+        pays for it."""
+        if self._exact_solvers is None:
+            s = self.settings
+            oracles = {key: value for key, value in self._oracle_options.items() if key != "hess_lag"}
+            if s.compile != "none":
+                symbolic = ca.nlpsol("mpc_exact_symbolic", "ipopt", self._exact_source, self._ipopt_options(warm=False))
+                compiled, _ = compile_functions(
+                    [symbolic.get_function("nlp_hess_l")],
+                    prefix=re.sub(r"[^0-9A-Za-z_]", "_", f"mpc_{self.model.name}_exact_hessian"),
+                    external_options={"enable_fd": True})
+                oracles["hess_lag"] = compiled["nlp_hess_l"]
+            self._exact_solvers = {
+                kind: ca.nlpsol(f"mpc_exact_{'warm' if kind else 'cold'}", "ipopt", self._nlp,
+                                {**oracles, **self._ipopt_options(warm=kind)}) for kind in (False, True)}
+        return self._exact_solvers[warm]
 
     def _build_fatrop(self, states: ca.MX, controls: ca.MX, parameters: ca.MX, objective: ca.MX,
                       defects: ca.MX) -> None:
@@ -686,7 +727,24 @@ class MPC(ControlProblem):
             if "lam_g0" in arguments:
                 arguments["lam_g0"] = -arguments["lam_g0"]
         start = time.perf_counter()
+        hessian = self.settings.ipopt.hessian
+        if self.exact_hessian:
+            solver, hessian = self._exact_solver(use_duals), "exact"
         solution = solver(**arguments)
+        stats = solver.stats()
+        iterations = int(stats.get("iter_count", -1))
+        if self._exact_source is not None and not self.exact_hessian \
+                and str(stats.get("return_status")) not in SUCCESS_STATUSES:
+            # Where the dynamics curve sharply (a learned potential whose U'' is several times the body's) the
+            # multiplier-weighted curvature that Gauss–Newton leaves out outweighs the cost's Hessian and its
+            # iterates cycle; Newton's method with the exact Lagrangian Hessian converges from the same guess.
+            solver = self._exact_solver(use_duals)
+            solution = solver(**arguments)
+            stats = solver.stats()
+            iterations += int(stats.get("iter_count", -1))
+            hessian = "exact"
+            self.exact_retries += 1
+            self.exact_hessian = str(stats.get("return_status")) in SUCCESS_STATUSES
         solve_time = time.perf_counter() - start
         solver_x = np.asarray(solution["x"], dtype=float).ravel()  # in the solver's order, for _last_iterate_wins
         if self._order is not None:
@@ -696,7 +754,6 @@ class MPC(ControlProblem):
                 solution[key] = np.empty_like(stage_wise)
                 solution[key][self._order] = stage_wise
             solution["lam_g"] = -np.asarray(solution["lam_g"], dtype=float)
-        stats = solver.stats()
         status = str(stats.get("return_status", "unknown"))
         w = np.asarray(solution["x"], dtype=float).ravel()
         finite = bool(np.all(np.isfinite(w)))
@@ -721,7 +778,7 @@ class MPC(ControlProblem):
             u, fallback = np.zeros(self.model.control_dim), "zero"
         u = np.clip(u, self.torque_low, self.torque_high)
         info = {
-            "status": status, "success": success, "iterations": int(stats.get("iter_count", -1)),
+            "status": status, "success": success, "iterations": iterations, "hessian": hessian,
             "solve_time_s": solve_time, "fallback": fallback,
             "cost": float(solution["f"]) if success or last_iterate else float("nan"),
             "states": states, "controls": controls,

@@ -320,8 +320,8 @@ class _EarlyStopping:
 
     @property
     def far(self) -> bool:
-        """Whether the best loss so far is above ``poor_above``."""
-        return self.poor_above is not None and self.best > self.poor_above
+        """Whether the best loss so far is poor (:func:`is_poor`)."""
+        return is_poor(self.best, self.poor_above)
 
     def update(self, validation: float, model: Any) -> bool:
         """Record a validation loss; ``True`` when training should stop."""
@@ -620,7 +620,7 @@ def _train(data: Any, config: Any, settings: TrainSettings, progress: bool, mode
     bar.close()
     if best[1] is not None:
         _assign_weights(model, best[1])
-    selected = _select(candidates, best[0], settings, model) if candidates else None
+    selected = _select(candidates, best[0], settings, model, poor_above) if candidates else None
     seconds, cpu_seconds = time.perf_counter() - start, time.process_time() - cpu_start
     with torch.no_grad():
         final_train = rollout_loss(model, *train_windows, settings.omega_weight).item()
@@ -628,7 +628,7 @@ def _train(data: Any, config: Any, settings: TrainSettings, progress: bool, mode
     restarts = len(runs) - 1
     if restarts:
         reason = f"{reason} (run {len(runs)}, after {restarts} restart{'s' * (restarts > 1)})"
-    quality = _quality(final_validation, hold, settings, selected, runs)
+    quality = _quality(final_validation, hold, poor_above, settings, selected, runs)
     report = {
         "optimizer": settings.optimizer,
         "iterations": completed,
@@ -700,17 +700,24 @@ def _assign_weights(model: Any, weights: Mapping[str, Any]) -> None:
             p.copy_(weights[name])
 
 
-def _quality(validation: float, hold: float | None, settings: TrainSettings, selected: dict[str, Any] | None,
-             runs: list[dict[str, Any]]) -> dict[str, Any]:
-    """The verdict on the returned model: ``"poor"`` when its validation loss is above
-    ``poor_loss_ratio`` of the data's hold loss, ``"good"`` below, ``"unknown"`` without a yardstick."""
+def is_poor(validation: float, poor_above: float | None) -> bool:
+    """Whether a validation loss is poor: above ``poor_above`` (``poor_loss_ratio`` × the hold loss; ``None``:
+    nothing is). The one test the stop rule, the selection and the verdict share, so that a run the stop rule
+    calls converged returns a model the verdict calls good."""
+    return poor_above is not None and validation > poor_above
+
+
+def _quality(validation: float, hold: float | None, poor_above: float | None, settings: TrainSettings,
+             selected: dict[str, Any] | None, runs: list[dict[str, Any]]) -> dict[str, Any]:
+    """The verdict on the returned model (the selected iterate, whose validation loss is ``validation``):
+    ``"poor"`` when :func:`is_poor`, ``"good"`` otherwise, ``"unknown"`` without a yardstick."""
     ratio = None if hold is None or not hold > 0.0 else validation / hold
     limit = settings.poor_loss_ratio
-    verdict = "unknown" if ratio is None or limit is None else ("poor" if ratio > limit else "good")
+    verdict = "unknown" if ratio is None or limit is None else ("poor" if is_poor(validation, poor_above) else "good")
     quality: dict[str, Any] = {"verdict": verdict, "validation_loss": validation, "hold_loss": hold,
                                "loss_ratio": ratio, "poor_loss_ratio": limit, "runs": len(runs)}
     if selected is not None:
-        quality["measure"] = selected.get("measure")
+        quality.update(measure=selected.get("measure"), iteration=selected["iteration"], run=selected["run"])
     return quality
 
 
@@ -735,9 +742,13 @@ def checkpoint_quality(metadata: Mapping[str, Any]) -> dict[str, Any] | None:
 
 
 def _select(candidates: list[tuple[dict[str, float], dict[str, Any]]], best_validation: float,
-            settings: TrainSettings, model: Any) -> dict[str, Any]:
+            settings: TrainSettings, model: Any, poor_above: float | None = None) -> dict[str, Any]:
     """Load the weights ``settings.selection`` picks among the evaluated ``candidates`` into ``model``
-    (already holding the best validation loss's); what was picked and why."""
+    (already holding the best validation loss's); what was picked and why.
+
+    When the best validation loss is not poor (:func:`is_poor`), neither is the pick: the measure chooses only
+    among iterations below ``poor_above`` too. Otherwise the stop rule, which judged the best loss good and so
+    made no fresh run, would return a model the verdict calls poor."""
     import torch
 
     by_validation = min(candidates, key=lambda c: c[0]["validation"])[0]
@@ -747,6 +758,8 @@ def _select(candidates: list[tuple[dict[str, float], dict[str, Any]]], best_vali
         return {**summary, "iteration": by_validation["iteration"], "validation": by_validation["validation"],
                 "measure": by_validation["measure"], "run": by_validation.get("run", 0)}
     limit = best_validation * (1.0 + settings.selection_tolerance)
+    if not is_poor(best_validation, poor_above) and poor_above is not None:
+        limit = min(limit, poor_above)
     entry, weights = min((c for c in candidates if c[0]["validation"] <= limit), key=lambda c: c[0]["measure"])
     with torch.no_grad():
         for name, p in model.weights.items():
