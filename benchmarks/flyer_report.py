@@ -42,7 +42,6 @@ import numpy as np
 
 from fvin_mpc import collect, train
 from fvin_mpc._cli import add_relinearize_argument, run_command
-from fvin_mpc.control.c_controller import LOOPS, on_loop
 from fvin_mpc.control.flight import recovery_duration
 from fvin_mpc.core.quadrotor import from_mujoco
 from fvin_mpc.envs.flyer_family import write_flyers
@@ -61,10 +60,6 @@ def build_parser() -> argparse.ArgumentParser:
                         help="first seed (default: %(default)s)")
     parser.add_argument("--max-draws", type=int, default=None, help="seeds to try at most (default: 3 × --scenes)")
     parser.add_argument("--latency", choices=["none", "measured"], default="none", help="(default: %(default)s)")
-    parser.add_argument("--loop", choices=LOOPS, default="python",
-                        help="fly the members' real-time MPC in Python or on its generated C library (the "
-                             "deployable controller; built once per model and cached). The filter always flies the "
-                             "Python loop (default: %(default)s)")
     add_relinearize_argument(parser)  # its own flights in the cache; the filter, data and checkpoints shared
     parser.add_argument("--cache-dir", type=Path, default=Path("build/flyer-family-cache"),
                         help="per-scene JSON and the data and checkpoints (default: %(default)s)")
@@ -107,18 +102,18 @@ def hover_margin(scales: Any, low: np.ndarray, high: np.ndarray) -> float:
 
 
 #: In waiting mode the RTI's wall-clock budgets are lifted: the cold call runs its counted iterations
-#: (``cold_iter`` per first guess), as the generated C loop does. With the 8 ms cold budget the filter's
+#: (``cold_iter`` per first guess). With the 8 ms cold budget the filter's
 #: verdict on a draw depended on the machine's load (7013: 5/5, then 4/5 on a busier afternoon).
 WAITING_RTI = {"cold_budget_s": float("inf"), "budget_s": float("inf")}
 
 
-def _controller(env: Any, model: str, latency: str, checkpoint: str | None = None, loop: str = "python",
+def _controller(env: Any, model: str, latency: str, checkpoint: str | None = None,
                 relinearize_every: int | None = None) -> Any:
-    """``fly``'s controller of ``model`` on ``loop``; in waiting mode bounded by counts only (:data:`WAITING_RTI`);
+    """``fly``'s controller of ``model``; in waiting mode bounded by counts only (:data:`WAITING_RTI`);
     ``relinearize_every``: ``RTIOptions.relinearize_every`` (``None``: the default)."""
     rti = {**(WAITING_RTI if latency == "none" else {}),
            **({} if relinearize_every is None else {"relinearize_every": relinearize_every})}
-    return on_loop(make_controller(env, model, checkpoint, **({"rti": rti} if rti else {})), loop)
+    return make_controller(env, model, checkpoint, **({"rti": rti} if rti else {}))
 
 
 def filter_verdict(path: Path, starts: int, seed: int) -> dict[str, Any]:
@@ -166,19 +161,19 @@ def _pipeline(seed: int, path: Path, work: Path, time_limit: float | None = None
 
 
 def run_scene(seed: int, path: Path, work: Path, verdict: dict[str, Any], starts: int, seed_starts: int,
-              latency: str, train_time_limit: float | None = None, loop: str = "python",
+              latency: str, train_time_limit: float | None = None,
               relinearize_every: int | None = None) -> dict[str, Any]:
     """Collect → train → build → fly one member; the record cached for it. In measured latency the closed
     form flies again in that mode (the filter's flights wait for the controller)."""
     stem, times = _pipeline(seed, path, work, train_time_limit)
     t2 = time.perf_counter()
     env = make_env(scene=path)
-    learned = _controller(env, "learned", latency, str(stem), loop, relinearize_every)
+    learned = _controller(env, "learned", latency, str(stem), relinearize_every)
     t3 = time.perf_counter()
     sidecar = json.loads(Path(f"{stem}.json").read_text()) if Path(f"{stem}.json").exists() else {}
     training = sidecar.get("training", {})
     record = {
-        "seed": seed, "scene": str(path), "latency": latency, "loop": loop,
+        "seed": seed, "scene": str(path), "latency": latency,
         "facts": json.loads(path.with_suffix(".json").read_text()),
         "collect_s": times["collect_s"], "train_s": times["train_s"], "build_s": t3 - t2,
         "pipeline_s": times["collect_s"] + times["train_s"] + t3 - t2, "train_load_average": times.get("load_average"),
@@ -188,10 +183,10 @@ def run_scene(seed: int, path: Path, work: Path, verdict: dict[str, Any], starts
                     "figure_eight": _figure_eight(env, learned, latency)},
         "unmodelled": verdict["unmodelled"], "recovery_duration_s": verdict["recovery_duration_s"],
     }
-    if latency == "none" and loop == "python" and relinearize_every is None:
+    if latency == "none" and relinearize_every is None:
         record["closed_form"] = {"recovery": verdict["recovery"], "figure_eight": verdict["figure_eight"]}
     else:
-        closed = _controller(env, "closed-form", latency, loop=loop, relinearize_every=relinearize_every)
+        closed = _controller(env, "closed-form", latency, relinearize_every=relinearize_every)
         record["closed_form"] = {"recovery": _recovery(env, closed, starts, seed_starts, latency),
                                  "figure_eight": _figure_eight(env, closed, latency)}
     env.close()
@@ -199,8 +194,7 @@ def run_scene(seed: int, path: Path, work: Path, verdict: dict[str, Any], starts
 
 
 def run(args: argparse.Namespace) -> tuple[list[dict[str, Any]], dict[int, dict[str, Any]]]:
-    cache = args.cache_dir / ((args.latency if args.loop == "python" else f"{args.latency}-{args.loop}")
-                              + ("" if args.rti_relinearize_every is None else
+    cache = args.cache_dir / (args.latency + ("" if args.rti_relinearize_every is None else
                                  f"-relinearize{args.rti_relinearize_every}"))
     scenes_dir, work = args.cache_dir / "scenes", args.cache_dir / "work"
     work.mkdir(parents=True, exist_ok=True)
@@ -233,7 +227,7 @@ def run(args: argparse.Namespace) -> tuple[list[dict[str, Any]], dict[int, dict[
                     break
                 trainings += 1
             record = run_scene(seed, path, work, verdict, args.starts, args.seed, args.latency, args.train_time_limit,
-                               args.loop, args.rti_relinearize_every)
+                               args.rti_relinearize_every)
             done.write_text(json.dumps(record, indent=1) + "\n")
         learned = sum(r["recovered"] for r in record["learned"]["recovery"])
         print(f"flyer {seed}: learned {learned}/{args.starts}, figure-eight RMS "
@@ -335,9 +329,7 @@ def write_report(records: list[dict[str, Any]], verdicts: dict[int, dict[str, An
         f"Latency mode **{args.latency}**" + (": the simulator waits for the controller — model-quality figures, "
                                               "not real time; deadline misses are not measured." if args.latency
                                               == "none" else ": the controller's compute time is charged to the "
-                                              "plant — real-time figures.")
-        + f" The members' MPC runs on the **{args.loop}** loop"
-        + (" (its generated C library through `ctypes`)." if args.loop == "c" else "."),
+                                              "plant — real-time figures."),
         f"Timings are from the shared 2-core CPU machine with other jobs running (1-minute load average "
         f"{args.load_average:.1f} when the report was written): wall times are several times an idle machine's.", "",
         "Crafts are drawn by `fvin_mpc.envs.flyer_family` (its docstring gives the ranges), kept if the closed-form "

@@ -212,7 +212,7 @@ def newton_region(kind: str, seed: int, step: float, rates: Sequence[float], fol
 
 
 # ----------------------------------------------------------------------------- the command
-def _parse(argv: Sequence[str] | None) -> argparse.Namespace:
+def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m benchmarks.mechanism_step_check",
                                      description=__doc__.split("\n\n")[0])
     parser.add_argument("--members", nargs="*", default=None, metavar="KIND:SEED",
@@ -225,7 +225,11 @@ def _parse(argv: Sequence[str] | None) -> argparse.Namespace:
                         help="the measures to run (default: all)")
     parser.add_argument("--output", type=Path, default=None, help="a JSON file for the results (default: none)")
     parser.add_argument("--force", action="store_true", help="overwrite --output if it exists")
-    args = parser.parse_args(argv)
+    return parser
+
+
+def _parse(argv: Sequence[str] | None) -> argparse.Namespace:
+    args = build_parser().parse_args(argv)
     if args.output is not None and args.output.exists() and not args.force:
         raise UsageError(f"{args.output} exists; pass --force to overwrite it")
     if args.duration <= 0 or args.step <= 0 or args.energy_steps < 1:

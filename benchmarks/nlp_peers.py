@@ -23,7 +23,10 @@ from typing import Any, Sequence
 import numpy as np
 
 from fvin_mpc._cli import run_command
+from fvin_mpc.control.closed_loop import episode_metrics, run_episode
+from fvin_mpc.control.scene import scene_env, scene_model, scene_mpc, scene_mpc_settings, scene_scales
 from fvin_mpc.core.errors import UsageError
+from fvin_mpc.swingup import default_duration
 
 #: (label, MPCSettings overrides): IPOPT as the command runs it, fatrop as the settings allow it.
 SOLVERS: dict[str, dict[str, Any]] = {
@@ -35,7 +38,6 @@ SOLVERS: dict[str, dict[str, Any]] = {
 def episode_row(env: Any, controller: Any, duration: float, options: dict[str, Any] | None, seed: int
                 ) -> dict[str, Any]:
     """One closed-loop episode of ``controller``: the command's summary numbers and the solves' times."""
-    from fvin_mpc.control.closed_loop import episode_metrics, run_episode
 
     episode, _ = run_episode(env, controller, duration, options, seed=seed, latency="none")
     metrics = episode_metrics(episode)
@@ -52,8 +54,6 @@ def episode_row(env: Any, controller: Any, duration: float, options: dict[str, A
 
 def run(seeds: Sequence[int], solvers: Sequence[str], duration: float | None) -> list[dict[str, Any]]:
     """Hanging at rest, then the random start of each of ``seeds``, each by every solver in turn."""
-    from fvin_mpc.control.scene import scene_env, scene_model, scene_mpc, scene_mpc_settings, scene_scales
-    from fvin_mpc.swingup import default_duration
 
     env = scene_env("pendulum")
     model = scene_model(env)

@@ -8,13 +8,11 @@ waiting mode, replayed — each period one after the other in alternating order,
 machine load; the wall clock of each phase is taken per period and the figures are medians and the
 ratio inputs / constants within this one run:
 
-* ``linearize``: the compiled ``rti_linearize_blocks`` alone (Python's buffered call) — where the model is;
-* ``python period``: the Python loop's feedback + preparation;
-* ``c feedback``, ``c period``: the generated C library's (:class:`~fvin_mpc.control.c_controller.CRealTimeMPC`,
-  one ``ctypes`` call per phase).
+* ``linearize``: the library's compiled ``rti_linearize_blocks`` alone (a buffered call) — where the model is;
+* ``feedback``, ``period``: the controller's library, one ``ctypes`` call per phase.
 
-The wall-clock budgets of the Python loop are set so that they never bind: both variants do the same
-iterations. Timings move with the machine's load; compare the ratios.
+The wall-clock budgets are set so that they never bind: both variants do the same iterations. Timings move
+with the machine's load; compare the ratios.
 """
 
 from __future__ import annotations
@@ -29,7 +27,6 @@ from typing import Any, Sequence
 import numpy as np
 
 from fvin_mpc._cli import run_command
-from fvin_mpc.control.c_controller import CRealTimeMPC
 from fvin_mpc.control.closed_loop import run_episode
 from fvin_mpc.control.flight import quadrotor_model, quadrotor_mpc, quadrotor_mpc_settings, recovery_starts
 from fvin_mpc.control.scene import scene_env, scene_model, scene_mpc, scene_mpc_settings
@@ -43,7 +40,7 @@ DURATION_S = {"pendulum": 6.0, "spherical_pendulum": 6.0, "quadrotor": 3.0}
 
 
 def controller_pair(scene: str, true_model: bool, seed: int) -> tuple[Any, dict[str, Any], dict[str, Any], int]:
-    """``(env, {variant: Python controller}, reset options, env seed)``; variants ``inputs`` and ``constants``."""
+    """``(env, {variant: controller}, reset options, env seed)``; variants ``inputs`` and ``constants``."""
     pairs = {}
     if resolve_scene(scene).goal_set.attitude_at_rest:
         env = scene_env(scene, true_model=true_model)
@@ -68,33 +65,28 @@ def timed(call: Any, *arguments: Any) -> float:
 
 
 def measure(scene: str, true_model: bool, seed: int) -> dict[str, Any]:
-    env, python, options, seed = controller_pair(scene, true_model, seed)
-    c_loop = {variant: CRealTimeMPC(controller) for variant, controller in python.items()}
-    episode, _ = run_episode(env, python["inputs"], DURATION_S.get(scene, 6.0), options, seed)
+    env, controllers, options, seed = controller_pair(scene, true_model, seed)
+    episode, _ = run_episode(env, controllers["inputs"], DURATION_S.get(scene, 6.0), options, seed)
     states = np.asarray(episode.states, dtype=float)
-    times: dict[str, dict[str, list[float]]] = {v: {"linearize": [], "python period": [], "c feedback": [],
-                                                    "c period": []} for v in python}
-    for controller in (*python.values(), *c_loop.values()):
+    times: dict[str, dict[str, list[float]]] = {v: {"linearize": [], "feedback": [], "period": []}
+                                                for v in controllers}
+    for controller in controllers.values():
         controller.reset()
     for k, x in enumerate(states):
-        order = list(python) if k % 2 == 0 else list(python)[::-1]
+        order = list(controllers) if k % 2 == 0 else list(controllers)[::-1]
         for variant in order:
-            mpc, c = python[variant], c_loop[variant]
-            record = times[variant]
+            controller, record = controllers[variant], times[variant]
             start = time.perf_counter()
-            mpc(x)
-            mpc.prepare()
-            record["python period"].append(time.perf_counter() - start)
-            plan = mpc._plan  # the prepared plan, linearized once more for the timing of the call alone
-            record["linearize"].append(timed(mpc._linearize_at, plan))
-            start = time.perf_counter()
-            c.feedback(x)
+            controller.feedback(x)
             feedback = time.perf_counter() - start
-            c.prepare()
-            record["c feedback"].append(feedback)
-            record["c period"].append(time.perf_counter() - start)
-    row: dict[str, Any] = {"scene": scene, "model": python["inputs"].model.name, "horizon": python["inputs"].horizon,
-                           "parameters": python["inputs"].model.model_parameters.size, "periods": len(states)}
+            controller.prepare()
+            record["feedback"].append(feedback)
+            record["period"].append(time.perf_counter() - start)
+            plan = controller.plan  # the prepared plan, linearized once more for the timing of the call alone
+            record["linearize"].append(timed(controller.linearize, plan))
+    first = controllers["inputs"]
+    row: dict[str, Any] = {"scene": scene, "model": first.model.name, "horizon": first.horizon,
+                           "parameters": first.model.model_parameters.size, "periods": len(states)}
     for phase in times["inputs"]:
         # the first (cold) period is not a period of the loop's steady state
         inputs, constants = (1e6 * float(np.median(times[v][phase][1:])) for v in ("inputs", "constants"))
@@ -103,7 +95,7 @@ def measure(scene: str, true_model: bool, seed: int) -> dict[str, Any]:
 
 
 def markdown(rows: list[dict[str, Any]]) -> str:
-    phases = ("linearize", "python period", "c feedback", "c period")
+    phases = ("linearize", "feedback", "period")
     lines = ["| scene | model | N | parameters | " + " | ".join(f"{p} µs: inputs / constants (ratio)" for p in phases)
              + " |", "|---|---|---|---|" + "---|" * len(phases)]
     for row in rows:

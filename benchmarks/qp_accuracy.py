@@ -36,36 +36,50 @@ SCENES = ("pendulum", "spherical_pendulum", "quadrotor")
 DURATION_S = {"pendulum": 6.0, "spherical_pendulum": 6.0, "quadrotor": 3.0}
 
 
+class _RecordingQPs:
+    """``controller`` as the closed loop calls it, writing down before each warm call the QP its first iteration
+    solves: the prepared plan's linearization (``RealTimeMPC.linearize``) with the measured state."""
+
+    def __init__(self, controller: Any, records: list[tuple[np.ndarray, ...]]) -> None:
+        self.controller, self.records = controller, records
+
+    def __call__(self, x: np.ndarray) -> tuple[np.ndarray, dict[str, Any]]:
+        plan = self.controller.plan
+        u, info = self.controller(x)
+        if plan is not None and "cold_start" not in info:
+            h, h_n, g, g_n, ab, gaps, _ = self.controller.linearize(plan)
+            x0 = self.controller.layout.check(x)
+            self.records.append(tuple(np.array(a, dtype=float) for a in (plan.states.T, plan.controls.T, x0, h, h_n,
+                                                                          g, g_n, ab, gaps)))
+        return u, info
+
+    def prepare(self) -> None:
+        self.controller.prepare()
+
+    def reset(self) -> None:
+        self.controller.reset()
+
+    def set_time(self, t: float) -> None:
+        self.controller.set_time(t)
+
+
 def record_qps(env: Any, controller: Any, duration: float, options: Any, seed: int | None = None
                ) -> list[tuple[np.ndarray, ...]]:
-    """The arguments of every QP ``controller`` (a :class:`~fvin_mpc.control.rti.RealTimeMPC` with the generated
-    Riccati QP) solves in one waiting-mode episode on ``env``, in the generated QP's input order."""
-    if controller.settings.rti.qp_solver != "riccati":
-        raise ValueError(f"the QP is {controller.settings.rti.qp_solver!r}, not the generated Riccati one")
+    """The arguments of the first QP of every warm call ``controller`` (a
+    :class:`~fvin_mpc.control.rti.RealTimeMPC`) solves in one waiting-mode episode on ``env``, in the generated
+    QP's input order (``rti_feedback``'s)."""
     records: list[tuple[np.ndarray, ...]] = []
-    solve = controller._iterate_riccati
-
-    def recording(plan: Any, linearization: tuple[Any, ...], x0: np.ndarray) -> Any:
-        h, h_n, g, g_n, ab, gaps, _ = linearization
-        records.append(tuple(np.array(a, dtype=float) for a in (plan.states.T, plan.controls.T, x0, h, h_n, g, g_n,
-                                                                  ab, gaps)))
-        return solve(plan, linearization, x0)
-
-    controller._iterate_riccati = recording
-    try:
-        run_episode(env, controller, duration, options, seed, latency="none")
-    finally:
-        del controller._iterate_riccati
+    run_episode(env, _RecordingQPs(controller, records), duration, options, seed, latency="none")
     return records
 
 
 def recorded_qps(scene: str, seed: int) -> tuple[Any, list[tuple[np.ndarray, ...]]]:
-    """The scene's learned real-time MPC and the QPs it solved in one waiting-mode episode (:func:`record_qps`)."""
+    """The scene's learned real-time MPC and the QPs it solved in one waiting-mode episode (:func:`record_qps`),
+    its wall-clock budgets lifted: the same QPs on every run."""
     from benchmarks.c_loop import controllers
 
-    env, controller, _, options, seed = controllers(scene, False, seed)
-    # the wall-clock budgets lifted: the same QPs on every run (the controller serves only this recording)
-    controller.settings = controller.settings.updated(rti={"budget_s": math.inf, "cold_budget_s": math.inf})
+    env, controller, options, seed = controllers(scene, False, seed,
+                                                 rti_options={"budget_s": math.inf, "cold_budget_s": math.inf})
     try:
         return controller, record_qps(env, controller, DURATION_S[scene], options, seed)
     finally:

@@ -55,7 +55,21 @@ import casadi as ca
 import numpy as np
 
 from fvin_mpc._cli import run_command
+from fvin_mpc.control import model_export
+from fvin_mpc.control.closed_loop import run_episode
+from fvin_mpc.control.flight import quadrotor_model, quadrotor_mpc, quadrotor_mpc_settings, recovery_starts
+from fvin_mpc.control.model_export import compile_functions
+from fvin_mpc.control.mpc import MPCSettings, RTIOptions
+from fvin_mpc.control.problem import control_bounds
+from fvin_mpc.control.rti import RealTimeMPC
+from fvin_mpc.control.scene import scene_env, scene_model, scene_mpc, scene_mpc_settings
+from fvin_mpc.core.backend import get_ops
 from fvin_mpc.core.errors import UsageError
+from fvin_mpc.core.goals import GoalSet
+from fvin_mpc.core.rigid_body import PivotedRigidBody
+from fvin_mpc.core.space import register, spaces
+from fvin_mpc.envs import QuadrotorEnv
+from fvin_mpc.envs.scenes import resolve_scene
 
 SCENES = ("pendulum", "spherical_pendulum", "quadrotor", "two_tops")
 #: Seconds of closed loop recorded per scene (the two tops: periods of their own loop).
@@ -236,13 +250,6 @@ def _two_tops_module() -> Any:
 def two_tops_controller() -> tuple[Any, Any, np.ndarray]:
     """The real-time MPC of the two tops on their closed-form model (its own plant), the model and the start:
     both tops hanging level, the goal both turned by 0.6 rad about different axes."""
-    from fvin_mpc.control import model_export
-    from fvin_mpc.control.mpc import MPCSettings, RTIOptions
-    from fvin_mpc.control.rti import RealTimeMPC
-    from fvin_mpc.core.backend import get_ops
-    from fvin_mpc.core.goals import GoalSet
-    from fvin_mpc.core.rigid_body import PivotedRigidBody
-    from fvin_mpc.core.space import register, spaces
 
     tops = _two_tops_module()
     if tops.TWO_TOPS.name not in {space.name for space in spaces()}:
@@ -269,10 +276,6 @@ def scene_controller(scene: str, seed: int) -> tuple[Any, Any, dict[str, Any] | 
     """``(env, controller, reset options, env seed)`` of a built-in scene: its learned real-time MPC with the
     scene's settings and the wall-clock budgets lifted; the swing-ups from hanging at rest, the quadrotor from its
     first tumbling recovery start."""
-    from fvin_mpc.control.flight import quadrotor_model, quadrotor_mpc, quadrotor_mpc_settings, recovery_starts
-    from fvin_mpc.control.scene import scene_env, scene_model, scene_mpc, scene_mpc_settings
-    from fvin_mpc.envs import QuadrotorEnv
-    from fvin_mpc.envs.scenes import resolve_scene
 
     lifted = {"budget_s": math.inf, "cold_budget_s": math.inf}
     if resolve_scene(scene).goal_set.attitude_at_rest:
@@ -333,7 +336,6 @@ class QPRecorder:
     def qp_at(self, states: np.ndarray, controls: np.ndarray, x0: np.ndarray) -> dict[str, np.ndarray]:
         """The QP at the previous plan shifted, ``δ_0`` from the measured ``x0``: the generated linearization's
         blocks (every stage's Jacobians computed afresh) and the boxes."""
-        from fvin_mpc.control.problem import control_bounds
 
         c = self.controller
         states, controls = self.shifted(states, controls)
@@ -363,7 +365,6 @@ def record(scene: str, seed: int) -> tuple[Any, list[dict[str, np.ndarray]]]:
             x = np.asarray(model(x, u)[0], dtype=float).ravel()
             controller.prepare()
         return controller, recorder.records
-    from fvin_mpc.control.closed_loop import run_episode
 
     env, controller, options, env_seed = scene_controller(scene, seed)
     recorder = QPRecorder(controller)
@@ -474,7 +475,6 @@ class PeerSolvers:
     """Every solver of the comparison, built once per scene, each ``solve(name, qp, condensed) -> Solved``."""
 
     def __init__(self, controller: Any, layout: FullSpaceLayout, build_folder: Path, solvers: Sequence[str]) -> None:
-        from fvin_mpc.control.model_export import compile_functions
 
         self.layout, self.names = layout, tuple(solvers)
         feedback = loop_function(controller, "rti_feedback")

@@ -180,13 +180,6 @@ def add_relinearize_argument(parser: Any) -> None:
                              "plan, for the rest (none older than K-1 periods; default 1: all renewed every time)")
 
 
-def add_loop_argument(parser: argparse.ArgumentParser) -> None:
-    """``--loop python|c``: which loop runs the real-time MPC (:func:`fvin_mpc.control.c_controller.on_loop`)."""
-    parser.add_argument("--loop", choices=["python", "c"], default="python",
-                        help="rti only: python runs the real-time iteration in Python (default); c runs the same "
-                             "controller as its generated C library (needs a C compiler; built once, cached)")
-
-
 def parse_latency(text: str) -> Any:
     """``--latency``: ``none``, ``measured`` or a fixed delay in seconds."""
     if text in ("none", "measured"):

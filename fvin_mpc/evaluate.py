@@ -15,7 +15,6 @@ import fvin_mpc.studies.evaluation as evaluation_module
 from fvin_mpc._cli import (
     add_backend_arguments,
     add_closed_loop_arguments,
-    add_loop_argument,
     add_scene_arguments,
     backend_options,
     check_craft_period,
@@ -29,7 +28,6 @@ from fvin_mpc._cli import (
     run_command,
     seed_value,
 )
-from fvin_mpc.control.c_controller import check_c_loop
 from fvin_mpc.core.checkpoint import checkpoint_exists
 from fvin_mpc.envs.scenes import existing_scene
 from fvin_mpc.studies.evaluation import (
@@ -38,7 +36,6 @@ from fvin_mpc.studies.evaluation import (
     EvaluationConfig,
     evaluate,
     make_env,
-    mpc_settings,
     summary_table,
     write_report,
 )
@@ -73,7 +70,6 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--json", type=Path, default=None, help="also write the JSON result here")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     add_closed_loop_arguments(parser)
-    add_loop_argument(parser)
     return parser
 
 
@@ -125,12 +121,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             controllers=tuple(n.strip() for n in args.controllers.split(",") if n.strip()), seed=args.seed,
             max_omega=args.max_omega, control_period=args.control_period,
             mpc=tuple((name, value) for name, value in mpc_overrides(args).items() if value is not None),
-            latency=args.latency, loop=args.loop)
+            latency=args.latency)
         backend = backend_options(args)
         _check_scene_and_checkpoint(config)
         make_env(config).close()  # fails early on a scene the env cannot simulate
-        if args.loop == "c" and any(name.startswith("mpc-") for name in config.controllers):
-            check_c_loop(mpc_settings(config).solver)  # before any worker builds one
         json_path = _check_outputs(args)
         result = evaluate(config, workers=args.workers, progress=not args.quiet, **backend)
     except (ValueError, FileNotFoundError, TasksFailed) as error:

@@ -15,7 +15,6 @@ from fvin_mpc._cli import (
     PLOT_SUFFIXES,
     VIDEO_SUFFIXES,
     add_latency_argument,
-    add_loop_argument,
     add_relinearize_argument,
     check_craft_period,
     check_output_file,
@@ -26,7 +25,6 @@ from fvin_mpc._cli import (
     run_command,
     seed_value,
 )
-from fvin_mpc.control.c_controller import on_loop
 from fvin_mpc.control.closed_loop import write_video
 from fvin_mpc.core.errors import UsageError
 from fvin_mpc.studies.report import json_text
@@ -50,7 +48,6 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--episodes", type=int, default=20, help="recovery starts (default: 20)")
     parser.add_argument("--seed", type=seed_value, default=0, help="seeds the recovery starts (default: 0)")
     add_latency_argument(parser, default="measured")
-    add_loop_argument(parser)
     parser.add_argument("--json", type=Path, default=None, help="write the per-episode results as JSON")
     parser.add_argument("--plot", type=Path, default=None, help="recovery or figure-eight plot (PNG)")
     parser.add_argument("--video", type=Path, default=None,
@@ -85,9 +82,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         raise UsageError(f"scene {spec.name!r} is a body on a pivot; swing it up with python -m fvin_mpc.swingup")
     check_craft_period(spec, checkpoint)
     if args.report is not None:
-        if args.loop != "python" or args.rti_relinearize_every is not None:
-            raise UsageError("--report runs the studies' own controllers in Python; leave out --loop c and "
-                             "--rti-relinearize-every")
+        if args.rti_relinearize_every is not None:
+            raise UsageError("--report runs the studies' own controllers; leave out --rti-relinearize-every")
         results = study.side_by_side(args.report, argv, args.episodes, args.seed, args.latency, args.checkpoint,
                                      progress=not args.quiet, scene=args.scene)
         study.print_rows([model["summary"] for model in results["models"].values()])
@@ -97,14 +93,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     if video is not None:
         check_rendering(env)
     rti = None if args.rti_relinearize_every is None else {"relinearize_every": args.rti_relinearize_every}
-    controller = on_loop(study.make_controller(env, args.model, args.checkpoint, solver=args.solver, rti=rti),
-                         args.loop)
+    controller = study.make_controller(env, args.model, args.checkpoint, solver=args.solver, rti=rti)
     if args.model == "closed-form":
         for left_out in env.space.closed_form(env.model, env.body_name).unmodelled:
             print(f"note: the closed form leaves out {left_out}", file=sys.stderr)
     print(f"model {controller.model.name}, horizon {controller.settings.horizon} "
           f"({controller.settings.horizon * controller.model.step_size:.2f} s), built in {controller.build_s:.1f} s, "
-          f"solver {args.solver}, {args.loop} loop, latency {args.latency}", file=sys.stderr)
+          f"solver {args.solver}, latency {args.latency}", file=sys.stderr)
     if args.task == "recovery":
         rows, episodes, frames = study.run_recovery(env, controller, args.episodes, args.seed, args.latency,
                                                     progress=not args.quiet, render_first=video is not None)

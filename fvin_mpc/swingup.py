@@ -22,7 +22,6 @@ from fvin_mpc._cli import (
     PLOT_SUFFIXES,
     VIDEO_SUFFIXES,
     add_closed_loop_arguments,
-    add_loop_argument,
     add_scene_arguments,
     check_output_file,
     check_rendering,
@@ -34,7 +33,6 @@ from fvin_mpc._cli import (
     run_command,
     seed_value,
 )
-from fvin_mpc.control.c_controller import on_loop
 from fvin_mpc.control.closed_loop import HOLD_WINDOW_S, episode_metrics, plot_episode, run_episode, write_video
 from fvin_mpc.control.scene import SceneScales, scene_env, scene_model, scene_mpc, scene_mpc_settings, scene_scales
 from fvin_mpc.core.errors import UsageError
@@ -99,7 +97,6 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--video", type=Path, default=None, help="render an MP4 (headless: MUJOCO_GL=egl)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     add_closed_loop_arguments(parser)
-    add_loop_argument(parser)
     return parser
 
 
@@ -127,8 +124,7 @@ def main(argv: Sequence[str] | None = None) -> int:
           f"solver built in {controller.build_s:.1f} s"
           + (f" ({'cached library' if report.cached else f'compiled in {report.compile_s:.1f} s'})" if report else ""),
           file=sys.stderr)
-    loop = on_loop(controller, args.loop)
-    episode, frames = run_episode(env, loop, duration, reset_options,
+    episode, frames = run_episode(env, controller, duration, reset_options,
                                   seed=args.seed, render=video is not None, progress=not args.quiet,
                                   description=f"swing-up {model.name}", latency=args.latency)
     metrics = episode_metrics(episode)
@@ -140,7 +136,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         "control_period_s": metrics["control_period_s"],
         "solver_failures": metrics["controller_failures"],
         "solver": settings.solver,
-        "loop": args.loop,
         "latency": args.latency,
         "deadline_misses": metrics["deadline_misses"],
         "newton_iters": model.newton_iters,

@@ -80,8 +80,8 @@ def iterated_rti_plan(controller, x0: np.ndarray, iterations: int):
     guess = controller._first_guess(x0, "goal")
     plan = Plan(guess.states, guess.controls, None, None)
     for _ in range(iterations):
-        plan, status = controller._iterate(plan, controller._linearize_at(plan), x0)
-        assert plan is not None, status
+        plan = controller.iterate(plan, x0)
+        assert plan is not None, "the QP gave no finite step"
     return (plan, *controller.plan_cost(plan))
 
 

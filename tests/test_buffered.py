@@ -60,13 +60,13 @@ def test_compiled_rti_functions_agree_with_their_unbuffered_calls():
     x0 = np.array([0.0, 1.0, 0.0, 0.0, 0.0, 0.3, 0.0])
     controller(x0)
     controller.prepare()
-    plan = controller._plan
-    buffered = controller._linearize
+    plan = controller.plan
+    buffered = controller.loop_function("rti_linearize_blocks")
     _, _, scales, references = controller._sample_reference()
     targets = np.clip(scales[:, None] * controller._u_goal, controller.torque_low, controller.torque_high).T
     renewed = controller.kept_jacobians[3]
     assert 0 < renewed.sum() < renewed.size
     arguments = (plan.states.T, plan.controls.T, references, controller.disturbance, targets, controller.parameters,
-                 *controller._plan_jacobians, renewed.reshape(1, -1))  # the prepared plan's, some items kept
+                 *controller.nothing_kept, renewed.reshape(1, -1))  # some items kept (as zeros)
     for result, reference in zip(buffered(*arguments), buffered.function(*arguments)):
         np.testing.assert_allclose(result, np.asarray(reference).reshape(result.shape), rtol=0, atol=0)

@@ -174,7 +174,7 @@ def test_a_controller_linearizes_in_lanes_as_it_does_without():
     plans, prepare = [], lanes.prepare
 
     def recorded() -> None:  # the plans its preparations linearize at
-        plans.append(lanes._plan)
+        plans.append(lanes.plan)
         prepare()
 
     lanes.prepare = recorded
@@ -182,7 +182,7 @@ def test_a_controller_linearizes_in_lanes_as_it_does_without():
     assert len(plans) == episode.u.shape[0] > 0
     generated.reset()
     for plan in plans:
-        want = [np.array(out, dtype=float) for out in generated._linearize_at(plan)]
-        got = [np.array(out, dtype=float) for out in lanes._linearize_at(plan)]
+        want = [np.array(out, dtype=float) for out in generated.linearize(plan)]
+        got = [np.array(out, dtype=float) for out in lanes.linearize(plan)]
         for a, b in zip(got, want):
             np.testing.assert_allclose(a, b, rtol=0, atol=1e-11 * max(np.abs(b).max(), 1e-300))

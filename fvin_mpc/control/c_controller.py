@@ -1,39 +1,25 @@
-"""The real-time controller as a self-contained C library, and Python driving that library.
+"""The real-time controller's one loop: a self-contained C library, which Python drives and a robot links.
 
 :func:`write_controller` writes a folder that builds with ``make`` (or ``cc -O2``): the CasADi
-functions a :class:`~fvin_mpc.control.rti.RealTimeMPC` calls every period —
-``rti_linearize_blocks``, ``rti_predict``, ``rti_feedback``, ``rti_apply``, taken from its
-:attr:`~fvin_mpc.control.rti.RealTimeMPC.loop_functions`, so the math has one source — generated as C
-(``fvc_model.c``: the very text the Python loop compiles, :data:`~fvin_mpc.control.rti.LOOP_SOURCE`) with the
-C functions it calls (``fvc_kernels.c``: the lane kernels of its linearization and the Riccati kernel where the
-controller uses them, :attr:`~fvin_mpc.control.rti.RealTimeMPC.loop_kernels`), a free body's generated first
-guess (``fvc_goal.c``),
-the settings the Python loop reads as constants (``fvc_config.h``), and a
-hand-written driver (``fvin_controller.c``, package data under ``c_template/``) that is the Python
-loop's orchestration: the cold multi-start, feedback, preparation (shift + linearization), fallback to
-the shifted plan, the disturbance estimate, the reference and the model parameters as run-time inputs
-(``fvc_set_parameters``; :meth:`CRealTimeMPC.set_parameters`). A header
-(``fvin_controller.h``), a ``Makefile`` and an example ``main.c`` come with it. Nothing of Python,
-NumPy, CasADi or torch at run time.
+functions of a :class:`~fvin_mpc.control.rti.RealTimeMPC` — ``rti_linearize_blocks``, ``rti_predict``,
+``rti_feedback``, ``rti_apply``, its :attr:`~fvin_mpc.control.rti.RealTimeMPC.loop_functions` — generated as C
+(``fvc_model.c``) with the C functions they call (``fvc_kernels.c``: the lane kernels of the linearization and the
+Riccati kernel where the controller uses them, :attr:`~fvin_mpc.control.rti.RealTimeMPC.loop_kernels`), a free
+body's generated first guess (``fvc_goal.c``), the settings as constants (``fvc_config.h``) and the hand-written
+driver (``fvin_controller.c``, package data under ``c_template/``): the cold multi-start, the warm iterations,
+the preparation (shift + linearization), the fallback to the shifted plan, the restart, the disturbance
+estimate, the reference and the model parameters as run-time inputs (``fvc_set_parameters``). A header
+(``fvin_controller.h``), a ``Makefile`` and an example ``main.c`` come with it. Nothing of Python, NumPy,
+CasADi or torch at run time.
 
-Iteration counts bound the C loop, not the wall clock: a cold call runs ``RTIOptions.cold_iter`` iterations
-per guess (fewer once a step is below ``tol``) and every guess of ``cold_starts``; a warm call up
-to ``max_iter``. The Python loop stops earlier where its wall-clock budgets
-(``RTIOptions.cold_budget_s``, ``budget_s``) bind; where they do not, both loops compute the same
-controls (tests/test_c_controller.py checks whole closed-loop episodes to 1e-9).
+Iteration counts and wall-clock budgets (``RTIOptions.cold_iter``, ``max_iter``, ``cold_budget_s``,
+``budget_s``; the monotonic clock) bound a call.
 
-:class:`CRealTimeMPC` builds (once, cached by the SHA-256 of the sources) and loads such a library
-through ``ctypes`` and is a controller like :class:`~fvin_mpc.control.rti.RealTimeMPC`:
-``u, info = controller(x)``, ``prepare()``, ``reset()``, ``set_time()``, ``set_reference()`` — so a
-study can run the Python loop and the C loop side by side.
+:func:`cached_library` builds such a library once, cached by the SHA-256 of its sources and flags;
+:class:`ControllerLibrary` loads it through ``ctypes`` — what :class:`~fvin_mpc.control.rti.RealTimeMPC` calls
+every period, and its compiled functions through CasADi's ``external`` for studies and tests.
 
-Refused, with the reason: a QP solver other than the generated Riccati one, and an IPOPT cold start
-(``RTIOptions(cold_solver="ipopt")``: IPOPT is not generated code; the C cold start is the RTI's own).
-
-The first guesses of the cold start: a pivoted body's ``"goal"`` slerp and the ``"rollout±"``
-rollouts are a few lines of the C driver; a free body's ``"goal"`` guess (the geodesic from the
-measured attitude to the reference's, :meth:`~fvin_mpc.control.mpc.MPC._first_guess`) is generated
-from the same S³ functions (:func:`goal_guess_function`).
+Refused, with the reason: a QP solver other than the generated Riccati one (:func:`check_exportable`).
 """
 
 from __future__ import annotations
@@ -44,7 +30,7 @@ import math
 import os
 import shutil
 import subprocess
-import time
+import sys
 from importlib import resources
 from pathlib import Path
 from types import SimpleNamespace
@@ -53,6 +39,7 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
+from fvin_mpc.control.buffered import BufferedFunction
 from fvin_mpc.control.model_export import (
     KERNEL_FLAGS,
     CompileCount,
@@ -61,14 +48,23 @@ from fvin_mpc.control.model_export import (
     host_cpu,
     write_generated_source,
 )
-from fvin_mpc.control.problem import ConstantReference, Reference
-from fvin_mpc.control.rti import LOOP_SOURCE, RTI_COLD_ORDER, RealTimeMPC
 from fvin_mpc.core import s3
 from fvin_mpc.core.backend import get_ops
 from fvin_mpc.core.blocks import Hinge, single_attitude
 from fvin_mpc.core.errors import FvinMpcError
 
+#: What the library is built from: a :class:`fvin_mpc.control.rti.RealTimeMPC` (that module imports this one).
+RealTimeMPC = Any
 CA = get_ops("casadi")
+
+#: The order a cold call tries ``cold_starts`` in (within ``rti.cold_budget_s``): from the ``"goal"``
+#: guess the iteration reached IPOPT's optimum on the ball joint in ~10 iterations, from the
+#: rollouts (ω clipped to the bound: large gaps) it diverged (docs/realtime.md).
+RTI_COLD_ORDER = ("goal", "rollout+", "rollout-")
+#: The cold guesses by the index the library reports (``fvc_cold_guess_name``).
+COLD_GUESS_NAMES = {-1: None, **dict(enumerate(RTI_COLD_ORDER))}
+#: The generated source of the loop's functions, ``fvc_model.c`` in the library's folder.
+LOOP_SOURCE = "fvc_model"
 
 #: The hand-written files copied next to the generated ones.
 TEMPLATE_FILES = ("fvin_controller.c", "fvin_controller.h", "main.c", "Makefile")
@@ -83,40 +79,20 @@ LIBRARY_FLAGS = ("-O2", "-fPIC")
 DRIVER_FLAGS = ("-ffp-contract=off",)
 #: What ``fvc_feedback`` returns (fvin_controller.h).
 STATUS_NAMES = {0: "rti", 1: "cold", 2: "previous-plan", -1: "bad-state", -2: "no-memory", -3: "bad-parameters",
-                -4: "not-parametric"}
+                -4: "not-parametric", -5: "not-measured", -6: "bad-plan"}
 
 
 class ControllerNotExportable(FvinMpcError, ValueError):
     """The controller's settings ask for something the C loop does not have (the message says what)."""
 
 
-#: Which loop runs a real-time controller: the Python :class:`~fvin_mpc.control.rti.RealTimeMPC` or its
-#: generated C library (:class:`CRealTimeMPC`).
-LOOPS = ("python", "c")
-
-
-def on_loop(controller: Any, loop: str) -> Any:
-    """``controller`` as it is (``loop="python"``) or run by its C library (``"c"``: :class:`CRealTimeMPC`,
-    built once and cached). ``ControllerNotExportable`` with the reason when ``"c"`` cannot run it: not
-    the real-time iteration, no C compiler, or settings the C loop does not have."""
-    if loop not in LOOPS:
-        raise ValueError(f"loop must be one of {LOOPS}, got {loop!r}")
-    if loop == "python":
-        return controller
-    check_c_loop(controller.settings.solver if not isinstance(controller, RealTimeMPC) else "rti")
-    return CRealTimeMPC(controller)
-
-
-def check_c_loop(solver: str) -> None:
-    """``ControllerNotExportable`` with the reason unless a controller of ``solver`` can run on the C loop
-    here: the real-time iteration, and a C compiler on PATH (``$CC``, default ``cc``)."""
-    if solver != "rti":
-        raise ControllerNotExportable(f"--loop c runs the real-time iteration's generated C library; this "
-                                      f"controller solves with {solver!r}: add --solver rti")
+def check_compiler() -> None:
+    """``ControllerNotExportable`` with the reason unless a C compiler is on PATH (``$CC``, default ``cc``): the
+    real-time iteration runs as its generated C library."""
     compiler = os.environ.get("CC", "cc")
     if shutil.which(compiler) is None:
-        raise ControllerNotExportable(f"--loop c needs a C compiler: no {compiler!r} on PATH (install cc, gcc or "
-                                      "clang, or set CC); --loop python runs the same controller without one")
+        raise ControllerNotExportable(f"the real-time iteration runs as generated C and needs a C compiler: no "
+                                      f"{compiler!r} on PATH (install cc, gcc or clang, or set CC)")
 
 
 def solver_settings(controller: RealTimeMPC) -> dict[str, Any]:
@@ -126,13 +102,15 @@ def solver_settings(controller: RealTimeMPC) -> dict[str, Any]:
     return {"cold_solver": s.cold_solver, "qp_solver": s.qp_solver, "dynamics": s.dynamics,
             "max_iter": s.max_iter, "cold_iter": s.cold_iter, "tol": s.tol,
             "qp_iterations": s.qp_iterations, "model_parameters": s.model_parameters,
-            "feedback": s.feedback, "restart_speed": s.restart_speed}
+            "feedback": s.feedback, "restart_speed": s.restart_speed, "cold_budget_s": s.cold_budget_s,
+            "budget_s": s.budget_s}
 
 
-def check_exportable(controller: RealTimeMPC) -> None:
-    """``ControllerNotExportable`` unless the C loop can run ``controller``'s settings."""
+def check_exportable(controller: RealTimeMPC, standalone: bool = True) -> None:
+    """``ControllerNotExportable`` unless the library can run ``controller``'s settings; ``standalone``: a folder
+    that runs without Python, which cannot hold an IPOPT cold start."""
     s = SimpleNamespace(**solver_settings(controller))
-    if s.cold_solver != "rti":
+    if standalone and s.cold_solver != "rti":
         raise ControllerNotExportable(
             f"RTIOptions.cold_solver={s.cold_solver!r}: a cold start with IPOPT cannot be generated as C; "
             "use cold_solver='rti' (the real-time iteration's own multi-start cold start)")
@@ -207,6 +185,10 @@ def _literal(values: Any) -> str:
     return ", ".join(repr(float(v)) for v in np.ravel(values))
 
 
+def _seconds(value: float) -> str:
+    return repr(float(value)) if math.isfinite(value) else "INFINITY"
+
+
 def _int_array(name: str, values: list[int]) -> str:
     """A C array of ints (ISO C has no empty arrays: an unused ``-1`` where there are none)."""
     return f"static const int {name}[{max(1, len(values))}] = {{{', '.join(map(str, values or [-1]))}}};"
@@ -247,6 +229,7 @@ def config_header(controller: RealTimeMPC, example_state: np.ndarray) -> str:
         f"#define FVC_MAX_ITER {rti.max_iter}", f"#define FVC_COLD_ITER {rti.cold_iter}",
         f"#define FVC_N_COLD {len(order)}",
         f"#define FVC_TOL {rti.tol!r}", f"#define FVC_STEP_SIZE {controller.model.step_size!r}",
+        f"#define FVC_COLD_BUDGET_S {_seconds(rti.cold_budget_s)}", f"#define FVC_BUDGET_S {_seconds(rti.budget_s)}",
         f"#define FVC_OMEGA_BOUND {controller.omega_bound!r}",
         f"#define FVC_INITIAL_TORQUE_FRACTION {s.initial_torque_fraction!r}",
         f"#define FVC_DISTURBANCE_GAIN {s.disturbance_gain!r}",
@@ -276,12 +259,13 @@ def config_header(controller: RealTimeMPC, example_state: np.ndarray) -> str:
     return "\n".join(lines)
 
 
-def write_controller(controller: RealTimeMPC, directory: str | Path, example_state: Any = None) -> Path:
+def write_controller(controller: RealTimeMPC, directory: str | Path, example_state: Any = None,
+                     standalone: bool = True) -> Path:
     """Write the C library of ``controller`` (module docstring) into ``directory``; returns it.
 
     ``example_state``: where ``main.c`` starts (default: the rest orientation at rest, or the goal
-    state for a free body)."""
-    check_exportable(controller)
+    state for a free body). ``standalone``: refuse what only the Python driver can add (an IPOPT cold start)."""
+    check_exportable(controller, standalone)
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     # the loop's functions under the Python loop's source name: the same text as its library's
@@ -358,13 +342,15 @@ def build_library(directory: str | Path, flags: tuple[str, ...] | None = None) -
     return library
 
 
-def cached_library(controller: RealTimeMPC) -> Path:
-    """The built library of ``controller``, under :func:`~fvin_mpc.control.model_export.cache_dir`
-    ``/c_controller``, named by the SHA-256 of its sources: written and compiled only once."""
+def cached_library(controller: RealTimeMPC) -> tuple[Path, bool]:
+    """The built library of ``controller`` and whether it was on disk already: under
+    :func:`~fvin_mpc.control.model_export.cache_dir` ``/c_controller``, named by the SHA-256 of its sources,
+    written and compiled only once."""
+    check_compiler()
     CompileCount.calls += 1
     staging = cache_dir() / "c_controller" / f"staging_{os.getpid()}"
     shutil.rmtree(staging, ignore_errors=True)
-    write_controller(controller, staging)
+    write_controller(controller, staging, standalone=False)
     digest = hashlib.sha256()
     for path in sorted(staging.iterdir()):
         digest.update(path.name.encode() + path.read_bytes())
@@ -372,18 +358,22 @@ def cached_library(controller: RealTimeMPC) -> Path:
     flags = " ".join((*LIBRARY_FLAGS, *DRIVER_FLAGS, *KERNEL_FLAGS, *target))
     digest.update(flags.encode() + (host_cpu().encode() if target else b""))
     final = cache_dir() / "c_controller" / f"{controller.model.name.replace(':', '_')}_{digest.hexdigest()[:20]}"
-    if not (final / "libfvin_controller.so").is_file():
+    cached = (final / "libfvin_controller.so").is_file()
+    if not cached:
+        print(f"compiling the real-time controller of {controller.model.name} (once; cached in {final.parent})",
+              file=sys.stderr, flush=True)
         build_library(staging)
         shutil.rmtree(final, ignore_errors=True)
         os.replace(staging, final)
     else:
         shutil.rmtree(staging, ignore_errors=True)
-    return final / "libfvin_controller.so"
+    return final / "libfvin_controller.so", cached
 
 
 class _Status(ctypes.Structure):
     _fields_ = [("status", ctypes.c_int), ("iterations", ctypes.c_int), ("cold_guess", ctypes.c_int),
                 ("last_step", ctypes.c_double), ("qp_mu", ctypes.c_double), ("step_residual", ctypes.c_double),
+                ("budget", ctypes.c_int), ("restarted", ctypes.c_int),
                 ("calls", ctypes.c_long), ("cold_calls", ctypes.c_long), ("fallbacks", ctypes.c_long),
                 ("prepares", ctypes.c_long), ("bad_states", ctypes.c_long)]
 
@@ -395,7 +385,11 @@ def load_library(path: str | Path) -> ctypes.CDLL:
     lib.fvc_create.restype = pointer
     lib.fvc_free.argtypes = lib.fvc_reset.argtypes = lib.fvc_prepare.argtypes = lib.fvc_complete.argtypes = [pointer]
     lib.fvc_feedback.argtypes = [pointer, double_p, double_p]
-    lib.fvc_feedback.restype = ctypes.c_int
+    lib.fvc_measure.argtypes = [pointer, double_p]
+    lib.fvc_solve.argtypes = [pointer, double_p]
+    lib.fvc_solve_from.argtypes = [pointer, double_p, double_p, double_p]
+    lib.fvc_feedback.restype = lib.fvc_measure.restype = lib.fvc_solve.restype = lib.fvc_solve_from.restype = \
+        ctypes.c_int
     lib.fvc_set_reference.argtypes = [pointer, double_p, double_p, ctypes.c_int]
     lib.fvc_set_time.argtypes = [pointer, ctypes.c_double, ctypes.c_int]
     lib.fvc_time.argtypes = [pointer]
@@ -403,6 +397,8 @@ def load_library(path: str | Path) -> ctypes.CDLL:
     lib.fvc_get_status.argtypes = [pointer, ctypes.POINTER(_Status)]
     lib.fvc_get_plan.argtypes = [pointer, double_p, double_p]
     lib.fvc_get_disturbance.argtypes = lib.fvc_get_goal_control.argtypes = [pointer, double_p]
+    lib.fvc_set_disturbance.argtypes = [pointer, double_p]
+    lib.fvc_get_cold_costs.argtypes = [pointer, double_p]
     lib.fvc_dims.argtypes = [ctypes.POINTER(ctypes.c_int)] * 4
     lib.fvc_cold_guess_name.restype = ctypes.c_char_p
     lib.fvc_cold_guess_name.argtypes = [ctypes.c_int]
@@ -420,50 +416,39 @@ def _pointer(array: np.ndarray) -> Any:
     return array.ctypes.data_as(ctypes.POINTER(ctypes.c_double))
 
 
-class CRealTimeMPC:
-    """A :class:`~fvin_mpc.control.rti.RealTimeMPC`'s loop run by its generated C library.
+class ControllerLibrary:
+    """One controller of a built library (:func:`cached_library`), through ``ctypes``: every call of the loop
+    (``feedback``, ``measure``/``solve``/``solve_from``, ``prepare``, ``reset``, the clock, the reference, the
+    model parameters) and what it reports (``status``, ``plan``, ``disturbance``, ``cold_costs``). Arrays go
+    through preallocated buffers: a ctypes pointer costs microseconds to make, and the feedback is timed.
 
-    ``controller`` is the Python controller whose functions and settings are generated (it is not
-    called: its reference is read only to sample time-varying references). ``library``: a built
-    library of it (default: :func:`cached_library`). Same contract as the Python controller:
-    ``u, info = c(x)`` then ``c.prepare()``; ``info`` has ``status``, ``success``, ``fallback``,
-    ``iterations``, ``solve_time_s``, ``step_residual``, ``disturbance``, ``states``, ``controls``,
-    ``qp_iterations`` and on cold calls ``cold_start``.
+    ``controller``: the :class:`~fvin_mpc.control.rti.RealTimeMPC` it was built from, whose dimensions and
+    model parameters' names the library must have.
     """
 
-    def __init__(self, controller: RealTimeMPC, library: str | Path | None = None) -> None:
-        check_exportable(controller)
-        self.python = controller
-        self.settings, self.model, self.layout = controller.settings, controller.model, controller.layout
-        self.horizon = controller.horizon
-        self.build_s, self.compile_report = controller.build_s, controller.compile_report
-        self._qp_iterations = solver_settings(controller)["qp_iterations"]
-        self._had_plan = False
-        self.library = Path(library) if library is not None else cached_library(controller)
-        self._lib = load_library(self.library)
+    def __init__(self, path: str | Path, controller: RealTimeMPC) -> None:
+        self.path = Path(path)
+        self._lib = load_library(self.path)
         dims = [ctypes.c_int() for _ in range(4)]
         self._lib.fvc_dims(*[ctypes.byref(d) for d in dims])
         ns, _, m, n = (d.value for d in dims)
-        if (ns, m, n) != (self.layout.state_dim, self.model.control_dim, self.horizon):
-            raise ValueError(f"{self.library}: a controller of {ns} states, {m} controls, horizon {n}, not "
-                             f"{self.layout.state_dim}, {self.model.control_dim}, {self.horizon}")
+        layout, horizon = controller.layout, controller.horizon
+        if (ns, m, n) != (layout.state_dim, controller.model.control_dim, horizon):
+            raise ValueError(f"{self.path}: a controller of {ns} states, {m} controls, horizon {n}, not "
+                             f"{layout.state_dim}, {controller.model.control_dim}, {horizon}")
+        count = self._lib.fvc_parameter_count()
+        names = tuple(self._lib.fvc_parameter_name(i).decode() for i in range(count))
+        if names != controller.parameter_names:
+            raise ValueError(f"{self.path}: model parameters {names}, the controller has {controller.parameter_names}")
         self._handle = ctypes.c_void_p(self._lib.fvc_create())
         if not self._handle.value:
             raise MemoryError("fvc_create: out of memory")
         self._x, self._u = np.zeros(ns), np.zeros(m)
-        # made once: a ctypes pointer costs microseconds to make, and the feedback call is timed
         self._x_pointer, self._u_pointer = _pointer(self._x), _pointer(self._u)
         self._states, self._controls = np.zeros((n + 1, ns)), np.zeros((n, m))
-        self._d = np.zeros(m)
+        self._d, self._p, self._costs = np.zeros(m), np.zeros(count), np.zeros(len(RTI_COLD_ORDER))
         self._status = _Status()
-        count = self._lib.fvc_parameter_count()
-        #: the model parameters' names as the library lists them (those of the Python controller)
-        self.parameter_names = tuple(self._lib.fvc_parameter_name(i).decode() for i in range(count))
-        if self.parameter_names != controller.parameter_names:
-            raise ValueError(f"{self.library}: model parameters {self.parameter_names}, the controller has "
-                             f"{controller.parameter_names}")
-        self._p = np.zeros(count)
-        self.set_reference(ConstantReference(controller.goal_state))
+        self._functions: dict[str, BufferedFunction] = {}
 
     def __del__(self) -> None:
         handle = getattr(self, "_handle", None)
@@ -471,98 +456,105 @@ class CRealTimeMPC:
             self._lib.fvc_free(handle)
             handle.value = None
 
-    # ------------------------------------------------------------------ reference and clock
-    def set_reference(self, reference: Reference) -> None:
-        """Track ``reference`` from now on (as :meth:`RealTimeMPC.set_reference`)."""
-        self._reference = reference
-        self._push_reference(new_reference=True)
+    def function(self, name: str) -> BufferedFunction:
+        """The library's compiled CasADi function ``name``, callable through buffers."""
+        if name not in self._functions:
+            self._functions[name] = BufferedFunction(ca.external(name, str(self.path)))
+        return self._functions[name]
 
-    def _push_reference(self, new_reference: bool) -> None:
-        t = self._lib.fvc_time(self._handle)
-        times = t + self.model.step_size * np.arange(self.horizon + 1)
-        states, scales = self._reference(times)
-        states = np.ascontiguousarray(np.asarray(states, dtype=float).reshape(self.horizon + 1, -1))
-        scales = np.ascontiguousarray(np.asarray(scales, dtype=float).reshape(self.horizon + 1)[:self.horizon])
-        self._lib.fvc_set_reference(self._handle, _pointer(states), _pointer(scales), int(new_reference))
-
-    def set_time(self, t: float) -> None:
-        """The time of the next measurement (as :meth:`RealTimeMPC.set_time`)."""
-        self._lib.fvc_set_time(self._handle, float(t), int(not self._reference.constant))
-
-    # ------------------------------------------------------------------ the loop
-    def reset(self) -> None:
-        """Forget the plan and the disturbance estimate; the clock restarts at 0."""
-        self._lib.fvc_reset(self._handle)
-        self._had_plan = False
-        if not self._reference.constant:
-            self._push_reference(new_reference=False)
-
-    def prepare(self) -> None:
-        """Shift the plan and linearize it for the next call (the preparation phase)."""
-        if not self._reference.constant:
-            self._push_reference(new_reference=False)
-        self._lib.fvc_prepare(self._handle)
-
-    def feedback(self, x: Any) -> np.ndarray:
-        """The control for the measured state ``x`` alone: one C call, no ``info`` (for timing loops)."""
-        self._x[:] = x
-        status = self._lib.fvc_feedback(self._handle, self._x_pointer, self._u_pointer)
+    # ------------------------------------------------------------------ a call
+    def _checked(self, status: int) -> np.ndarray:
         if status < 0:
-            raise ValueError(f"the C controller refused the state {self._x} ({STATUS_NAMES[status]})")
+            raise ValueError(f"the controller refused the state {self._x} ({STATUS_NAMES[status]})")
         return self._u.copy()
 
-    def __call__(self, x: Any) -> tuple[np.ndarray, dict[str, Any]]:
-        start = time.perf_counter()
-        x0 = self.layout.check(x)
-        if not self._reference.constant:
-            self._push_reference(new_reference=False)
-        u = self.feedback(x0)
-        solve_time = time.perf_counter() - start
-        self._lib.fvc_complete(self._handle)  # the step's residual for info (the C loop defers it)
-        self._lib.fvc_get_status(self._handle, ctypes.byref(self._status))
-        self._lib.fvc_get_plan(self._handle, _pointer(self._states), _pointer(self._controls))
-        self._lib.fvc_get_disturbance(self._handle, _pointer(self._d))
-        status = STATUS_NAMES[self._status.status]
-        info = {"status": status if status != "previous-plan" else "qp-not-finite",
-                "success": status != "previous-plan",
-                "fallback": "previous-plan" if status == "previous-plan" else None,
-                "iterations": int(self._status.iterations), "solve_time_s": solve_time, "cost": float("nan"),
-                "step_residual": float(self._status.step_residual), "states": self._states.copy(),
-                "controls": self._controls.copy(), "disturbance": self._d.copy(),
-                "qp_iterations": self._qp_iterations, "loop": "c",
-                # the C loop starts cold only without a plan: after reset(), or a restart (RTIOptions.restart_speed)
-                "restarted": status == "cold" and self._had_plan}
-        self._had_plan = True
-        if status == "cold":
-            info["cold_start"] = self._lib.fvc_cold_guess_name(self._status.cold_guess).decode()
-        return u, info
+    def feedback(self, x: Any) -> np.ndarray:
+        """The control for the measured state ``x``: one C call."""
+        self._x[:] = x
+        return self._checked(self._lib.fvc_feedback(self._handle, self._x_pointer, self._u_pointer))
 
-    @property
+    def measure(self, x: Any) -> str:
+        """The call's first half (``fvc_measure``): ``"cold"`` or ``"warm"``."""
+        self._x[:] = x
+        status = self._lib.fvc_measure(self._handle, self._x_pointer)
+        self._checked(status)
+        return "cold" if status == 1 else "warm"
+
+    def solve(self) -> np.ndarray:
+        """The call's second half: the library's own cold start or warm iterations."""
+        return self._checked(self._lib.fvc_solve(self._handle, self._u_pointer))
+
+    def solve_from(self, states: Any, controls: Any) -> np.ndarray:
+        """A cold call's second half from a given plan (improved by one iteration)."""
+        states = np.ascontiguousarray(states, dtype=float).reshape(self._states.shape)
+        controls = np.ascontiguousarray(controls, dtype=float).reshape(self._controls.shape)
+        status = self._lib.fvc_solve_from(self._handle, _pointer(states), _pointer(controls), self._u_pointer)
+        if status == -6:
+            raise ValueError("the cold plan handed to the controller is not finite")
+        return self._checked(status)
+
+    def prepare(self) -> None:
+        self._lib.fvc_prepare(self._handle)
+
+    def complete(self) -> None:
+        self._lib.fvc_complete(self._handle)
+
+    def reset(self) -> None:
+        self._lib.fvc_reset(self._handle)
+
+    # ------------------------------------------------------------------ the clock and the reference
+    def time(self) -> float:
+        return float(self._lib.fvc_time(self._handle))
+
+    def set_time(self, t: float, time_varying_reference: bool) -> None:
+        self._lib.fvc_set_time(self._handle, float(t), int(time_varying_reference))
+
+    def set_reference(self, states: Any, scales: Any, new_reference: bool) -> None:
+        states = np.ascontiguousarray(states, dtype=float).reshape(self._states.shape)
+        scales = np.ascontiguousarray(scales, dtype=float).reshape(-1)[:self._controls.shape[0]]
+        self._lib.fvc_set_reference(self._handle, _pointer(states), _pointer(scales), int(new_reference))
+
+    # ------------------------------------------------------------------ what it reports
+    def status(self) -> _Status:
+        self._lib.fvc_get_status(self._handle, ctypes.byref(self._status))
+        return self._status
+
+    def plan(self) -> tuple[np.ndarray, np.ndarray]:
+        self._lib.fvc_get_plan(self._handle, _pointer(self._states), _pointer(self._controls))
+        return self._states.copy(), self._controls.copy()
+
     def disturbance(self) -> np.ndarray:
-        """``d̂`` of the C loop's estimate."""
         self._lib.fvc_get_disturbance(self._handle, _pointer(self._d))
         return self._d.copy()
 
-    @property
+    def set_disturbance(self, d: Any) -> None:
+        self._d[:] = d
+        self._lib.fvc_set_disturbance(self._handle, _pointer(self._d))
+
+    def goal_control(self) -> np.ndarray:
+        self._lib.fvc_get_goal_control(self._handle, _pointer(self._d))
+        return self._d.copy()
+
+    def cold_costs(self) -> dict[str, float]:
+        """Each first guess's score on the last cold call (the guesses tried)."""
+        self._lib.fvc_get_cold_costs(self._handle, _pointer(self._costs))
+        return {name: float(cost) for name, cost in zip(RTI_COLD_ORDER, self._costs) if not math.isnan(cost)}
+
+    def counters(self) -> dict[str, int]:
+        status = self.status()
+        return {name: int(getattr(status, name)) for name in ("calls", "cold_calls", "fallbacks", "prepares",
+                                                              "bad_states")}
+
+    # ------------------------------------------------------------------ model parameters
     def parameters(self) -> np.ndarray:
-        """The model parameters in use in the library."""
         self._lib.fvc_get_parameters(self._handle, _pointer(self._p))
         return self._p.copy()
 
-    def set_parameters(self, values: Any = None, **blocks: Any) -> None:
-        """As :meth:`RealTimeMPC.set_parameters <fvin_mpc.control.rti.RealTimeMPC.set_parameters>`, in the
-        library (``fvc_set_parameters``): no recompilation."""
-        vector = np.ascontiguousarray(self.model.model_parameters.values(
-            self.parameters if values is None else values, **blocks))
+    def set_parameters(self, vector: Any) -> None:
+        vector = np.ascontiguousarray(vector, dtype=float)
         status = self._lib.fvc_set_parameters(self._handle, _pointer(vector))
         if status == -4:
             raise ValueError("this controller has its model parameters baked in (rti.model_parameters=False); "
-                             "export it with rti.model_parameters=True to change them at run time")
+                             "build it with rti.model_parameters=True to change them at run time")
         if status != 0:
-            raise ValueError(f"the C controller refused the model parameters {vector} ({STATUS_NAMES[status]})")
-
-    def counters(self) -> dict[str, int]:
-        """Calls, cold calls, fallbacks, preparations and refused states since creation."""
-        self._lib.fvc_get_status(self._handle, ctypes.byref(self._status))
-        return {name: int(getattr(self._status, name))
-                for name in ("calls", "cold_calls", "fallbacks", "prepares", "bad_states")}
+            raise ValueError(f"the controller refused the model parameters {vector} ({STATUS_NAMES[status]})")

@@ -1,5 +1,8 @@
 """Real-time iteration MPC: one Gauss–Newton SQP step per control period, bounded compute — the controller.
-Its linearization is :mod:`fvin_mpc.control.linearization`, its QP solver :mod:`fvin_mpc.control.riccati_qp`.
+Its linearization is :mod:`fvin_mpc.control.linearization`, its QP solver :mod:`fvin_mpc.control.riccati_qp`,
+its loop the generated C library of :mod:`fvin_mpc.control.c_controller`: this class builds the problem's
+functions, has them generated and compiled once (cached), and drives the library through ``ctypes`` — the
+same library ``python -m fvin_mpc.export --controller`` writes for a robot.
 
 ``controller = RealTimeMPC(model, settings, goal, torque_low, torque_high, rest)`` — or
 :func:`fvin_mpc.control.scene.scene_mpc` with ``MPCSettings(solver="rti")`` — then
@@ -28,13 +31,9 @@ an unbiased model). Solved differently (Diehl's real-time iteration, as in acado
   (``rti.qp_solver="riccati"``) it is solved by a fixed number of primal–dual interior-point
   iterations on the input boxes, each a Riccati recursion (``O(N)``), generated together with the
   trust region and the update of the plan as one CasADi function
-  (:func:`~fvin_mpc.control.riccati_qp.riccati_feedback_function`) and
-  compiled with the linearization (:func:`fvin_mpc.control.model_export.compile_functions`): one C call
-  per iteration, no Python between stages. The compiled functions are called through preallocated
-  NumPy buffers (:class:`fvin_mpc.control.buffered.BufferedFunction`): CasADi's own call converts
-  every argument and result, which cost more than the arithmetic here (docs/realtime.md).
-  ``"hpipm"`` sends the same QP to HPIPM through ``casadi.conic`` (about 1 ms of interface
-  overhead per call here, docs/realtime.md).
+  (:func:`~fvin_mpc.control.riccati_qp.riccati_feedback_function`) and generated into the library with the
+  linearization: no Python between stages or iterations (docs/peers.md measures it beside HPIPM, DAQP,
+  ProxQP and OSQP on the same QPs).
   ``A_k, B_k, c_k``, Hessian blocks and gradients come from one compiled function, which evaluates its
   stages four at a time on the vector units where it can (``rti.stage_lanes``,
   :mod:`fvin_mpc.control.lane_kernel`).
@@ -52,7 +51,9 @@ an unbiased model). Solved differently (Diehl's real-time iteration, as in acado
 * **cold start** — after :meth:`reset`, ``cold_starts``' first guesses in :data:`RTI_COLD_ORDER`
   (``"goal"`` first: an orientation path to the goal, or the model rolled out under ``±f·u_max``;
   neither is the symmetric rest, so the first torque is non-zero), each improved by up to
-  ``rti.cold_iter`` iterations while ``rti.cold_budget_s`` lasts; the best is kept. Guesses reached
+  ``rti.cold_iter`` iterations while ``rti.cold_budget_s`` lasts; the best is kept
+  (``rti.cold_solver="ipopt"``: the IPOPT MPC's solution instead, handed to the library and improved by one
+  iteration). Guesses reached
   after the budget is spent are still scored, un-iterated (a rollout is a plan of the model with no
   gaps), so the clock never hands the call a half-iterated guess unchallenged. The budget is
   what bounds the first call (it is below the 50 ms period by default); the plan keeps improving by
@@ -66,8 +67,8 @@ an unbiased model). Solved differently (Diehl's real-time iteration, as in acado
   constant input disturbance ``d``. After each step the prediction ``F(x_prev, u_prev + d̂)`` is
   compared with the measured ``ω``: ``d̂ ← d̂ + α·B⁺(ω − ω̂)`` (``B = ∂ω⁺/∂u``, least squares),
   within ``disturbance_region_rad`` of the reference attitude and below ``disturbance_region_speed``
-  only, ``|d̂|`` at most half the torque range (:class:`fvin_mpc.control.problem.DisturbanceEstimate`,
-  shared with the IPOPT MPC). The
+  only, ``|d̂|`` at most half the torque range (the library's; the IPOPT MPC's is
+  :class:`fvin_mpc.control.problem.DisturbanceEstimate`). The
   control cost is ``|u − u_s|²`` with ``u_s = u_goal − d̂`` the torque that holds the goal in the
   model (``F(goal, 0, u_goal) = (goal, 0)``): at the goal the MPC has no reason to move, and the
   plant's steady state is where the corrected model agrees with it — no steady error from a
@@ -78,8 +79,7 @@ an unbiased model). Solved differently (Diehl's real-time iteration, as in acado
 
 from __future__ import annotations
 
-import math
-import re
+import hashlib
 import time
 from dataclasses import replace
 from typing import Any
@@ -89,24 +89,25 @@ import numpy as np
 
 from fvin_mpc.control import implicit_dynamics, lane_kernel, riccati_kernel
 from fvin_mpc.control.buffered import BufferedFunction
+from fvin_mpc.control.c_controller import (
+    COLD_GUESS_NAMES,
+    LOOP_SOURCE,
+    RTI_COLD_ORDER,
+    STATUS_NAMES,
+    ControllerLibrary,
+    cached_library,
+)
 from fvin_mpc.control.linearization import (
     STEP_LIMIT_OMEGA,
     kept_jacobian_switch,
     node_distance_function,
     relinearized,
     renewing_item_function,
-    shifted_items,
     stage_distance_function,
     step_limits,
     unrolled_stage_function,
 )
-from fvin_mpc.control.model_export import (
-    GENERATED_SX_OPTIONS,
-    CKernel,
-    ExportedModel,
-    compile_functions,
-    kernel_function,
-)
+from fvin_mpc.control.model_export import GENERATED_SX_OPTIONS, CKernel, CompileReport, ExportedModel, kernel_function
 from fvin_mpc.control.mpc import MPC, MPCSettings
 from fvin_mpc.control.problem import ControlProblem, Plan, control_bounds, predict_function, residual_functions
 from fvin_mpc.control.riccati_qp import riccati_feedback_function
@@ -114,15 +115,8 @@ from fvin_mpc.core.backend import get_ops
 
 CA, NP = get_ops("casadi"), get_ops("numpy")
 
-#: The order a cold call tries ``cold_starts`` in (within ``rti.cold_budget_s``): from the ``"goal"``
-#: guess the iteration reached IPOPT's optimum on the ball joint in ~10 iterations, from the
-#: rollouts (ω clipped to the bound: large gaps) it diverged (docs/realtime.md).
-RTI_COLD_ORDER = ("goal", "rollout+", "rollout-")
-#: The generated source of the loop's functions (``rti_linearize_blocks``, ``rti_predict``, ``rti_feedback``,
-#: ``rti_apply``), by that name in both loops: the Python loop compiles it into its library, the C loop's folder
-#: holds it as ``fvc_model.c`` (:mod:`fvin_mpc.control.c_controller`) — the same text, so the same machine code
-#: (a different name alone moved a function's time by 4 %: it changes the code's layout).
-LOOP_SOURCE = "fvc_model"
+__all__ = ["LOOP_SOURCE", "RTI_COLD_ORDER", "RealTimeMPC"]
+
 #: Planned ``|ω_i|`` are kept below this fraction of ``1/h`` (the step's solvability limit).
 OMEGA_VALID_FRACTION = 0.9
 
@@ -132,10 +126,15 @@ class RealTimeMPC(ControlProblem):
     :class:`~fvin_mpc.control.mpc.MPC`, plus :meth:`prepare` and :attr:`disturbance`.
 
     ``info`` keys: ``success``, ``fallback`` (``None`` or ``"previous-plan"``), ``iterations``,
-    ``solve_time_s`` (the whole call), ``status`` (``"rti"``, ``"cold"``, ``"budget"`` or the QP
-    solver's failure), ``cost`` (the model cost of the plan's linearization point), ``step_residual``,
-    ``states``, ``controls``, ``disturbance`` (``d̂``, control units), ``gap`` (largest dynamics gap
-    of the plan, in the charts), and on cold calls ``cold_start`` and ``cold_costs``.
+    ``solve_time_s`` (the library's call), ``status`` (``"rti"``, ``"cold"``, ``"budget"`` — a wall-clock
+    budget ended the iterations — or ``"qp-not-finite"``), ``cost`` (NaN: :meth:`plan_cost` computes it),
+    ``step_residual`` (the model's Newton residual for the applied step), ``states``, ``controls``,
+    ``disturbance`` (``d̂``, control units), ``qp_iterations``, ``restarted``, and on cold calls
+    ``cold_start`` and ``cold_costs`` (with ``rti.cold_solver="ipopt"``: ``cold_solver`` and
+    ``cold_ipopt_success``).
+
+    ``compile="none"`` defers building the library to its first use (``python -m fvin_mpc.export`` writes the
+    folder without it).
     """
 
     def __init__(self, model: ExportedModel, settings: MPCSettings, goal: Any, torque_low: Any, torque_high: Any,
@@ -151,11 +150,18 @@ class RealTimeMPC(ControlProblem):
         if settings.solver != "rti":
             raise ValueError(f"RealTimeMPC solves settings with solver='rti', got {settings.solver!r} "
                              "(fvin_mpc.control.scene.scene_mpc picks the class from the settings)")
+        if settings.rti.qp_solver != "riccati":
+            raise ValueError(f"rti.qp_solver={settings.rti.qp_solver!r}: the real-time loop is generated C and its "
+                             "QP is the generated Riccati interior-point solver ('riccati'); docs/peers.md "
+                             "compares it with HPIPM, DAQP, ProxQP and OSQP on the same QPs")
+        self._had_plan = False
         super().__init__(model, settings, goal, torque_low, torque_high, rest, goal_set=goal_set)
         self._cold_mpc = None
         if settings.rti.cold_solver == "ipopt":
             self._cold_mpc = MPC(model, replace(settings, solver="ipopt"), goal, torque_low,
                                  torque_high, rest, goal_set=goal_set)
+        if settings.compile == "cached":
+            self._load_library()
 
     # ------------------------------------------------------------------ problem
     def _build(self) -> None:
@@ -297,22 +303,6 @@ class RealTimeMPC(ControlProblem):
         hessians, gradients, costs = stage_costs(states[:, :n], controls, references[:, :n], u_s_mx, *p_stages)
         terminal_hessian, terminal_gradient, terminal_value = terminal_cost(states[:, n], references[:, n],
                                                                             *([p_mx] if parametric else []))
-        size = stage_size * n
-        blocks = [hessians[:, k * stage_size:(k + 1) * stage_size] for k in range(n)]
-        hessian = ca.diagcat(blocks[0][nd:, nd:], *blocks[1:], terminal_hessian)
-        rows = [ca.horzcat(jacobians[:, nd:stage_size], -ca.MX.eye(nd), ca.MX(nd, size - m - nd))]
-        for k in range(1, n):
-            column = m + (k - 1) * stage_size
-            rows.append(ca.horzcat(ca.MX(nd, column), jacobians[:, k * stage_size:(k + 1) * stage_size],
-                                   -ca.MX.eye(nd), ca.MX(nd, size - column - stage_size - nd)))
-        constraints = ca.vertcat(*rows)
-        gradient = ca.vertcat(gradients[nd:, 0], ca.vec(gradients[:, 1:]), terminal_gradient)
-        linearize = ca.Function("rti_linearize",
-                                [states, controls, references, d_mx, u_s_mx, p_mx, kept_mx, points_mx, fresh_mx],
-                                [hessian, gradient, constraints, ca.vec(gaps), ca.sum2(costs) + terminal_value,
-                                 jacobians[:, :nd], blocks[0][nd:, :nd], kept_out, points_out],
-                                ["X", "U", "R", "d", "u_s", "p", "J_kept", "points_kept", "fresh"],
-                                ["H", "g", "A", "gaps", "cost", "A0", "S0", "J", "points"])
         linearize_blocks = ca.Function("rti_linearize_blocks",
                                        [states, controls, references, d_mx, u_s_mx, p_mx, kept_mx, points_mx, fresh_mx],
                                        # dense where the Jacobians have structural zeros: the C driver passes
@@ -336,93 +326,61 @@ class RealTimeMPC(ControlProblem):
         for first in [0] if implicit else [quaternion.start for quaternion in layout.quaternions]:
             no_points[:, first] = 1.0
         self._nothing_kept = (np.zeros((kept_rows, kept_width * items)), no_points.T.copy())
-        self._plan_jacobians: tuple[np.ndarray, np.ndarray] | None = None
         self._control_bounds = control_bounds(self.torque_low, self.torque_high, n, s.torque_reserve)
         self._omega_valid = OMEGA_VALID_FRACTION / self.model.step_size
-        riccati = s.rti.qp_solver == "riccati"
-        if riccati:
-            linearize = linearize_blocks
-            sweep = None
-            if riccati_kernel.uses_kernel(s.rti.riccati_stage, nd, s.compile == "cached", s.rti.qp_method):
-                self.loop_kernels += (riccati_kernel.riccati_stage_kernel(nd, m, n),)
-                sweep = kernel_function(self.loop_kernels[-1])
-            functions = [linearize, predict, *riccati_feedback_function(
-                layout, n, m, *self._control_bounds, self._step_limits, self._omega_valid, s.rti.qp_iterations,
-                method=s.rti.qp_method, sweep=sweep)]
-        else:
-            functions = [linearize, predict]
-        #: the CasADi functions the loop calls (linearize, predict, feedback), before compilation: what
-        #: :mod:`fvin_mpc.control.c_controller` generates as C — one source for both loops
-        self.loop_functions = tuple(functions)
-        self.compile_report = None
-        if s.compile == "cached":
-            compiled, self.compile_report = compile_functions(
-                functions, prefix=re.sub(r"[^0-9A-Za-z_]", "_", f"rti_{self.model.name}"), kernels=self.loop_kernels,
-                source_name=LOOP_SOURCE if riccati else None)
-            functions = [compiled[function.name()] for function in functions]
-        if riccati:  # every argument of the Riccati path is dense: call through buffers, not DMs
-            functions = [BufferedFunction(function) for function in functions]
-        self._linearize, self._predict_with_parameters = functions[:2]
-        self._feedback = functions[2] if riccati else None
-        self._apply = functions[3] if riccati else None
-        self._qp = None if riccati else self._make_qp(hessian.sparsity(), constraints.sparsity())
-        self._size = size
-        self._stage_size = stage_size
+        sweep = None
+        if riccati_kernel.uses_kernel(s.rti.riccati_stage, nd, s.compile == "cached", s.rti.qp_method):
+            self.loop_kernels += (riccati_kernel.riccati_stage_kernel(nd, m, n),)
+            sweep = kernel_function(self.loop_kernels[-1])
+        #: the CasADi functions the loop calls (linearize, predict, feedback, apply), before generation: what
+        #: :mod:`fvin_mpc.control.c_controller` generates as the library's C — their one source
+        self.loop_functions = (linearize_blocks, predict, *riccati_feedback_function(
+            layout, n, m, *self._control_bounds, self._step_limits, self._omega_valid, s.rti.qp_iterations,
+            method=s.rti.qp_method, sweep=sweep))
+        self.compile_report: CompileReport | None = None
+        self._library: ControllerLibrary | None = None
+        self._predict_function: Any = BufferedFunction(predict)  # CasADi's VM until the library is loaded
 
-    def _make_qp(self, h: ca.Sparsity, a: ca.Sparsity) -> ca.Function:
-        s, n, m = self.settings, self.horizon, self.model.control_dim
-        if s.rti.qp_solver == "hpipm":
-            options = {"N": n, "nx": [0] + [self.layout.tangent_dim] * n, "nu": [m] * n + [0], "ng": [0] * (n + 1),
-                       "hpipm": {"iter_max": 50, "warm_start": 0, "mode": "speed_abs"},
-                       "error_on_fail": False}
-        elif s.rti.qp_solver == "qrqp":
-            options = {"print_iter": False, "print_header": False, "error_on_fail": False}
-        else:
-            options = {"osqp": {"verbose": False, "eps_abs": 1e-8, "eps_rel": 1e-8, "max_iter": 4000},
-                       "error_on_fail": False}
-        return ca.conic("rti_qp", s.rti.qp_solver, {"h": h, "a": a}, options)
+    # ------------------------------------------------------------------ the library
+    def _load_library(self) -> ControllerLibrary:
+        """The controller's generated C library, built once (cached by its sources' SHA-256) and loaded."""
+        if self._library is None:
+            start = time.perf_counter()
+            path, cached = cached_library(self)
+            library = ControllerLibrary(path, self)
+            source = hashlib.sha256((path.parent / f"{LOOP_SOURCE}.c").read_bytes()).hexdigest()
+            self.compile_report = CompileReport(library=path, cached=cached, codegen_s=0.0,
+                                                compile_s=0.0 if cached else time.perf_counter() - start,
+                                                source_sha256=source)
+            self._predict_function = library.function("rti_predict")
+            if self.settings.rti.model_parameters:
+                library.set_parameters(self._parameters)
+            self._library = library
+            self._u_goal = library.goal_control()
+            self._push_reference(new_reference=True)
+            self.build_s += time.perf_counter() - start
+        return self._library
 
-    def _linearize_at(self, plan: Plan, kept: tuple[np.ndarray, np.ndarray] | None = None,
-                      by_rule: bool = True) -> tuple[Any, ...]:
-        """The linearization at ``plan``. ``kept``: the previous linearization's Jacobians on this plan's
-        lineage and the points they were computed at (shifted as the plan was), of which it keeps those that
-        :func:`relinearized` does not renew (``by_rule``; else, in a period's further iteration, it renews only
-        what moved — all when ``rti.relinearize_every`` is 1) and that moved less than ``rti.relinearize_tol``;
-        ``None`` renews all. The Jacobians and points it ends with are left in ``_last_jacobians``."""
-        if self._implicit:
-            # Both ends of a stage on one sheet of S³, as the exported step continues q_k: a model
-            # whose terms are not sign-invariant reads them at each node's own sign (the measured
-            # state's sign can differ from the plan's). The same rotations, the same charts.
-            quaternions = plan.states[:, self.layout.attitude(by="the implicit dynamics").quaternion]
-            turns = np.einsum("ij,ij->i", quaternions[:-1], quaternions[1:])
-            if turns.min() < 0.0:  # rare (the measured state's sign): flip every node after a sign change
-                quaternions *= np.cumprod(np.concatenate([[1.0], np.where(turns < 0.0, -1.0, 1.0)]))[:, None]
-        time_, _, _, references = self._sample_reference()
-        key = (time_, self.disturbance.tobytes())
-        cached = getattr(self, "_targets_cache", None)
-        if cached is None or cached[0] != key:  # u_s changes only with the time and d̂: compute once
-            cached = self._targets_cache = (key, self.reference_window()[1].T)
-        *linearization, jacobians, points = self._linearize(
-            plan.states.T, plan.controls.T, references, self.disturbance, cached[1], self._parameters,
-            *(self._nothing_kept if kept is None else kept),
-            self._all_fresh if kept is None else self._relinearized if by_rule else self._renewed_further)
-        self._last_jacobians = (np.asarray(jacobians, dtype=float), np.asarray(points, dtype=float))
-        return tuple(linearization)
+    @property
+    def library(self) -> ControllerLibrary:
+        """The loaded library (built on first use where ``compile="none"`` deferred it)."""
+        return self._load_library()
+
+    def loop_function(self, name: str) -> BufferedFunction:
+        """The library's compiled ``name`` (one of :data:`~fvin_mpc.control.c_controller.LOOP_FUNCTION_NAMES`),
+        callable from Python through preallocated buffers: the machine code the loop runs."""
+        return self.library.function(name)
 
     # ------------------------------------------------------------------ model parameters
     def _predict(self, x: Any, u: Any) -> tuple[Any, ...]:
         """One model step with the current model parameters (``predict_function``'s outputs)."""
-        return self._predict_with_parameters(x, u, self._parameters)
+        return self._predict_function(x, u, self._parameters)
 
-    def _rollout(self, x0: np.ndarray, controls: np.ndarray) -> np.ndarray:
-        """The rollout first guesses step with the loop's own compiled prediction (``rti_predict``, with the
-        current model parameters), as the C driver does: the same machine code, so the two loops' cold plans
-        agree to the bit even where the compiled code rounds apart from CasADi's interpreter (fused
-        multiply–adds)."""
-        states = [np.asarray(x0, dtype=float)]
-        for u in controls:
-            states.append(np.asarray(self._predict(states[-1], u)[0], dtype=float).ravel())
-        return np.array(states)
+    def _goal_control(self) -> np.ndarray:
+        """``u_goal`` as the library computes it (its ``rti_predict``), where it is loaded."""
+        if self._library is None:
+            return super()._goal_control()
+        return self._library.goal_control()
 
     @property
     def kept_jacobians(self) -> tuple[int, int, int, np.ndarray, np.ndarray]:
@@ -461,247 +419,155 @@ class RealTimeMPC(ControlProblem):
         if not self.settings.rti.model_parameters:
             raise ValueError("this controller has its model parameters baked in (rti.model_parameters=False); "
                              "build it with rti.model_parameters=True to change them at run time")
-        parameters = self.model.model_parameters
-        self._parameters = parameters.values(self._parameters if values is None else values, **blocks)
+        parameters = self.model.model_parameters.values(self._parameters if values is None else values, **blocks)
+        self.library.set_parameters(parameters)
+        self._parameters = parameters
         self._u_goal = self._goal_control()
-        self._targets_cache = None
-        self._plan_jacobians = None  # computed with the old parameters: the next linearization renews them all
 
-    # ------------------------------------------------------------------ one SQP iteration
-    def _iterate(self, plan: Plan, linearization: tuple[Any, ...], x0: np.ndarray) -> tuple[Plan | None, str]:
-        """Solve the QP at ``plan`` with ``δ_0`` fixed by the measured ``x0``; the updated plan (or
-        ``None`` and the QP solver's status)."""
-        if self._feedback is not None:
-            return self._iterate_riccati(plan, linearization, x0)
-        h, g, a, gaps, _, a0, s0 = linearization
-        n, m, size, layout = self.horizon, self.model.control_dim, self._stage_size, self.layout
-        nd = layout.tangent_dim
-        delta0 = layout.local(plan.states[0], x0)
-        gaps = -np.asarray(gaps, dtype=float).ravel()
-        gaps[:nd] -= np.asarray(a0, dtype=float) @ delta0
-        g = np.asarray(g, dtype=float).ravel()
-        g[:m] += np.asarray(s0, dtype=float) @ delta0
-        lower, upper = np.full(self._size, -np.inf), np.full(self._size, np.inf)
-        control_lower = lower[:size * n].reshape(n, size)[:, :m]  # Δu_k sits first in each stage
-        control_upper = upper[:size * n].reshape(n, size)[:, :m]
-        stage_low, stage_high = self._control_bounds
-        control_lower[:] = stage_low - plan.controls
-        control_upper[:] = stage_high - plan.controls
-        solution = self._qp(h=h, g=g, a=a, lba=gaps, uba=gaps, lbx=lower, ubx=upper)
-        stats = self._qp.stats()
-        self.qp_iterations = int(stats.get("iter_count", -1))
-        z = np.asarray(solution["x"], dtype=float).ravel()
-        if not (stats.get("success", False) and np.all(np.isfinite(z))):
-            return None, str(stats.get("return_status", "qp-failed"))
-        stages = z[:n * size].reshape(n, size)  # rows: (Δu_k, δ_{k+1})
-        # A crude trust region: each stage's state step is clipped to `step_limits` (`STEP_LIMIT_ANGLE`,
-        # a fraction of the ω bound, …: a Gauss–Newton step from a poor guess — with large gaps — can
-        # otherwise leap past h|ω| ≈ 1, where the model means nothing). Clipping per stage, not
-        # scaling the whole step, keeps the progress of the stages that are fine.
-        steps = stages[:, m:]
-        clipped = np.clip(steps, -self._step_limits, self._step_limits)
-        deltas = np.vstack([delta0[None, :], clipped])
-        states = layout.retract(plan.states, deltas)
-        rates = layout.angular_rates
-        states[:, rates] = np.clip(states[:, rates], -self._omega_valid, self._omega_valid)
-        states[0] = x0
-        controls = np.clip(plan.controls + stages[:, :m], stage_low, stage_high)
-        self.step_scale = float(np.mean(clipped == steps))
-        #: size of the last step: largest |Δu| over the torque range, or |δ| over the trust region
-        self.last_step = max(float(np.max(np.abs(stages[:, :m]) / (self.torque_high - self.torque_low))),
-                             float(np.max(np.abs(clipped) / self._step_limits)))
-        return Plan(states, controls, None, None), "rti"
+    # ------------------------------------------------------------------ the reference and the clock
+    @property
+    def disturbance(self) -> np.ndarray:
+        """``d̂``, the library's input-disturbance estimate (control units)."""
+        return self.library.disturbance() if self._library is not None else np.zeros(self.model.control_dim)
 
-    def _iterate_riccati(self, plan: Plan, linearization: tuple[Any, ...],
-                         x0: np.ndarray) -> tuple[Plan | None, str]:
-        """:meth:`_iterate` in one compiled call (:func:`riccati_feedback_function`)."""
-        h, h_n, g, g_n, ab, gaps, _ = linearization
-        states, controls, step, mu, _, _ = self._feedback(plan.states.T, plan.controls.T, x0, h, h_n, g, g_n, ab, gaps)
-        states, controls = np.asarray(states, dtype=float).T, np.asarray(controls, dtype=float).T
-        self.qp_iterations = self.settings.rti.qp_iterations
-        self.last_step, self.qp_mu = float(step), float(mu)
-        if not (np.all(np.isfinite(states)) and np.all(np.isfinite(controls))):
-            return None, "qp-not-finite"
-        return Plan(states, controls, None, None), "rti"
+    def set_disturbance(self, value: Any) -> None:
+        """Set ``d̂`` (control units), e.g. an estimate carried over from another controller of the same plant;
+        the next preparation plans with it."""
+        self.library.set_disturbance(np.broadcast_to(np.asarray(value, dtype=float), (self.model.control_dim,)))
 
-    def _apply_prepared(self, x0: np.ndarray) -> tuple[Plan | None, int, str]:
-        """The prepared feedback (``rti.feedback="prepared"``): the preparation's QP gains applied to the
-        measured ``x0`` — one forward pass, no factorization in the call."""
-        assert self._plan is not None and self._linearization is not None
-        gains, feedforwards = self._gains
-        _, _, _, _, ab, gaps, _ = self._linearization
-        states, controls, step = self._apply(self._plan.states.T, self._plan.controls.T, x0, gains, feedforwards, ab,
-                                             gaps)
-        states, controls = np.asarray(states, dtype=float).T, np.asarray(controls, dtype=float).T
-        self.last_step = float(step)
-        if not (np.all(np.isfinite(states)) and np.all(np.isfinite(controls))):
-            return None, 0, "qp-not-finite"
-        return Plan(states, controls, None, None), 1, "rti"
+    def set_reference(self, reference: Any) -> None:
+        """Track ``reference`` from now on (sampled here, handed to the library over the horizon)."""
+        super().set_reference(reference)
+        self._push_reference(new_reference=True)
 
-    def _improve(self, plan: Plan, x0: np.ndarray, iterations: int, deadline: float,
-                 linearization: tuple[Any, ...] | None = None,
-                 keep_jacobians: bool = False) -> tuple[Plan | None, int, str, float]:
-        """Up to ``iterations`` SQP iterations from ``plan``: the first always, each further one only
-        while the last step was not negligible (``rti.tol``) and the last iteration's duration still
-        fits before ``deadline`` (perf_counter). Returns the plan (``None`` if the first QP failed), the
-        iterations done, the status (``"budget"`` if time, not convergence, stopped it) and the time of
-        the last iteration. ``keep_jacobians``: ``plan`` is the controller's own (a warm call), and each
-        further linearization keeps the last one's Jacobians where the plan's nodes did not move
-        (``rti.relinearize_tol``): the period's first linearization renewed those the rule renews."""
-        done, status, last = 0, "rti", 0.0
-        current = plan
-        while done < iterations:
-            if done > 0:
-                if self.last_step < self.settings.rti.tol:
-                    break
-                if time.perf_counter() + last > deadline:
-                    status = "budget"
-                    break
-            start = time.perf_counter()
-            if linearization is None:
-                keeps = keep_jacobians and self.settings.rti.relinearize_every > 1
-                linearization = self._linearize_at(current, self._plan_jacobians if keeps else None, by_rule=False)
-                if keep_jacobians:
-                    self._plan_jacobians = self._last_jacobians
-            updated, qp_status = self._iterate(current, linearization, x0)
-            linearization = None
-            last = time.perf_counter() - start
-            if updated is None:
-                return (None if done == 0 else current), done, qp_status, last
-            current, done = updated, done + 1
-        return current, done, status, last
-
-    # ------------------------------------------------------------------ control
-    def prepare(self) -> None:
-        """Shift the plan by one step and linearize it for the next call (the preparation phase)."""
-        if self._plan is None or self._linearization is not None:
+    def _push_reference(self, new_reference: bool = False) -> None:
+        if self._library is None:
             return
-        plan = self._plan
-        last_state = self._predict(plan.states[-1], plan.controls[-1] + self.disturbance)[0]
-        states = np.vstack([plan.states[1:], np.asarray(last_state, dtype=float).reshape(1, self.layout.state_dim)])
-        rates = self.layout.angular_rates
-        states[-1, rates] = np.clip(states[-1, rates], -self.omega_bound, self.omega_bound)
-        controls = np.vstack([plan.controls[1:], plan.controls[-1:]])
-        self._plan = Plan(states, controls, None, None)
-        # relinearize_every = 1 renews every item: nothing kept to shift
-        kept = None if self._plan_jacobians is None or self.settings.rti.relinearize_every == 1 else tuple(
-            shifted_items(array, self._kept_items) for array in self._plan_jacobians)
-        self._linearization = self._linearize_at(self._plan, kept)
-        self._plan_jacobians = self._last_jacobians
-        if self.settings.rti.feedback == "prepared":
-            # The QP solved now, at the predicted first state; the call applies its gains to the measured one.
-            h, h_n, g, g_n, ab, gaps, _ = self._linearization
-            plan = self._plan
-            *_, mu, gains, feedforwards = self._feedback(plan.states.T, plan.controls.T, plan.states[0], h, h_n, g,
-                                                         g_n, ab, gaps)
-            self._gains, self.qp_mu = (gains, feedforwards), float(mu)
+        _, states, scales, _ = self._sample_reference()
+        self._library.set_reference(states, scales, new_reference)
+
+    def set_time(self, t: float) -> None:
+        """The time of the next measurement (s, on the reference's clock); without it the clock advances by
+        one step per call (:func:`fvin_mpc.control.closed_loop.run_episode` tells it)."""
+        self._time = float(t)
+        self.library.set_time(self._time, not self._reference.constant)
 
     def reset(self) -> None:
-        """Forget the plan and the disturbance estimate (the next call is a cold start); the clock
-        restarts at 0."""
+        """Forget the plan and the disturbance estimate (the next call is a cold start); the clock restarts
+        at 0."""
         super().reset()
-        self._plan: Plan | None = None
-        self._plan_jacobians = None
+        self._had_plan = False
+        if self._library is not None:
+            self._library.reset()
+            self._push_reference(new_reference=True)
 
-    def _forget_preparation(self) -> None:
-        self._linearization: tuple[Any, ...] | None = None
+    # ------------------------------------------------------------------ the loop
+    def prepare(self) -> None:
+        """Shift the plan by one step and linearize it for the next call (the preparation phase)."""
+        if not self._reference.constant:
+            self._time = self.library.time()
+            self._push_reference()
+        self.library.prepare()
+
+    def feedback(self, x: Any) -> np.ndarray:
+        """The control for the measured state ``x`` alone: one C call, no ``info`` (for timing loops)."""
+        return self.library.feedback(x)
 
     def __call__(self, x: Any) -> tuple[np.ndarray, dict[str, Any]]:
         """The torque for the measured state ``x (n,)``; see the class docstring for ``info``."""
         start = time.perf_counter()
         x0 = self.layout.check(x)
-        s = self.settings
+        library = self.library
+        if not self._reference.constant:
+            self._time = library.time()
+            self._push_reference()
         extra: dict[str, Any] = {}
-        self._update_estimate(x0)
-        restarted = self._leaves_plan(x0)
-        if restarted:
-            self._plan, self._linearization = None, None
-        if self._plan is None:  # a cold call's plan comes with no Jacobians of its own lineage
-            self._plan_jacobians = None
-        if self._plan is None and self._cold_mpc is not None:  # cold: IPOPT to convergence, once
+        if self._cold_mpc is None:
+            u = library.feedback(x0)
+        elif library.measure(x0) == "cold":  # cold: IPOPT to convergence, then one iteration of the loop
             self._cold_mpc.reset()
             _, cold_info = self._cold_mpc(x0)
-            self._plan = Plan(np.asarray(cold_info["states"], dtype=float).copy(),
-                               np.asarray(cold_info["controls"], dtype=float).copy(), None, None)
-            self._plan.states[0] = x0
+            u = library.solve_from(cold_info["states"], cold_info["controls"])
             extra = {"cold_start": cold_info.get("cold_start"), "cold_solver": "ipopt",
                      "cold_ipopt_success": cold_info["success"]}
-            plan, iterations, status, _ = self._improve(self._plan, x0, 1, start, None)
-            fallback, success = None, plan is not None
-            if plan is None:
-                plan, fallback = self._plan, "previous-plan"
-        elif self._plan is None:  # cold: each first guess, a few iterations, within the cold budget
-            deadline = start + s.rti.cold_budget_s
-            best: tuple[float, Plan, str] | None = None
-            costs: dict[str, float] = {}
-            iterations, status = 0, "cold"
-            for number, guess_name in enumerate(sorted(s.cold_starts, key=RTI_COLD_ORDER.index)):
-                guess = self._first_guess(x0, guess_name)
-                guess = Plan(guess.states, guess.controls, None, None)
-                # Past the budget a guess is still scored, un-iterated: the budget must not decide which
-                # guess wins. On a loaded machine it ran out inside the first ("goal") guess, whose gaps
-                # were still open, and the others were never looked at: from 7 of 20 starts near hanging
-                # that half-iterated plan (off the hinge, where a learned model means nothing) was kept and
-                # the torque chattered at the bottom. A rollout is a plan of the model from the start.
-                over = number > 0 and time.perf_counter() > deadline
-                plan, done, step_status, _ = (None, 0, "budget", None) if over else self._improve(
-                    guess, x0, s.rti.cold_iter, deadline)
-                iterations += done
-                status = "budget" if step_status == "budget" else status
-                plan = guess if plan is None else plan
-                score = self._score(plan)
-                costs[guess_name] = score
-                if best is None or score < best[0]:
-                    best = (score, plan, guess_name)
-            assert best is not None
-            plan, fallback, success = best[1], None, True
-            extra = {"cold_start": best[2], "cold_costs": costs}
         else:
-            if self._linearization is None:
-                self.prepare()
-            assert self._plan is not None
-            if s.rti.feedback == "prepared":
-                plan, iterations, status = self._apply_prepared(x0)
-            else:
-                plan, iterations, status, _ = self._improve(self._plan, x0, s.rti.max_iter, start + s.rti.budget_s,
-                                                            self._linearization, keep_jacobians=True)
-            fallback, success = None, plan is not None
-            if plan is None:  # the shifted previous plan, clipped
-                plan, fallback = self._plan, "previous-plan"
-        self._plan, self._linearization = plan, None
-        u = np.clip(plan.controls[0], self.torque_low, self.torque_high)
-        residual = self._predicted(x0, u)
-        info = {"status": status, "success": success, "fallback": fallback, "iterations": iterations,
-                "solve_time_s": time.perf_counter() - start, "cost": float("nan"), "step_residual": residual,
-                "states": plan.states, "controls": plan.controls, "disturbance": self.disturbance.copy(),
-                "qp_iterations": getattr(self, "qp_iterations", -1), "restarted": restarted, **extra}
+            u = library.solve()
+        solve_time = time.perf_counter() - start
+        status = library.status()
+        states, controls = library.plan()
+        name = STATUS_NAMES[status.status]
+        info = {"status": "qp-not-finite" if name == "previous-plan" else "budget" if status.budget else name,
+                "success": name != "previous-plan", "fallback": "previous-plan" if name == "previous-plan" else None,
+                "iterations": int(status.iterations), "solve_time_s": solve_time, "cost": float("nan"),
+                "states": states, "controls": controls, "disturbance": library.disturbance(),
+                "qp_iterations": self.settings.rti.qp_iterations, "restarted": bool(status.restarted), **extra}
+        if name == "cold" and self._cold_mpc is None:
+            info["cold_start"] = COLD_GUESS_NAMES[status.cold_guess]
+            info["cold_costs"] = library.cold_costs()
+        self._had_plan = True
+        library.complete()  # the step's residual for info (the loop itself defers it to the preparation)
+        info["step_residual"] = float(library.status().step_residual)
         return u, info
 
-    def _leaves_plan(self, x0: np.ndarray) -> bool:
-        """Whether the measured ``ω`` is more than ``rti.restart_speed`` from the prepared plan's first
-        state (the model's prediction of now) in some component: the plan is stale, start cold."""
-        limit = self.settings.rti.restart_speed
-        if self._plan is None or not math.isfinite(limit):
-            return False
-        if self._linearization is None:
-            self.prepare()
-        rates = self.layout.angular_rates
-        return bool(np.max(np.abs(x0[rates] - self._plan.states[0][rates])) > limit)
+    def counters(self) -> dict[str, int]:
+        """Calls, cold calls, fallbacks, preparations and refused states since the library's controller was made."""
+        return self.library.counters()
 
-    def _score(self, plan: Plan) -> float:
-        """A cold guess's merit: model cost plus a heavy penalty on its dynamics gaps."""
-        gaps, cost = self._gaps_and_cost(plan)
-        return float(cost) + 1e3 * float(np.sum(np.square(np.asarray(gaps, dtype=float))))
+    # ------------------------------------------------------------------ the plan, for studies and tests
+    @property
+    def plan(self) -> Plan | None:
+        """The library's plan (after :meth:`prepare`: shifted and linearized for the next call); ``None`` before
+        the first call."""
+        if not self._had_plan:
+            return None
+        return Plan(*self.library.plan(), None, None)
 
-    def _gaps_and_cost(self, plan: Plan) -> tuple[Any, Any]:
-        linearization = self._linearize_at(plan)
-        return linearization[5:7] if self._feedback is not None else linearization[3:5]
+    @property
+    def qp_mu(self) -> float:
+        """The last QP's final barrier parameter."""
+        return float(self.library.status().qp_mu)
+
+    def linearize(self, plan: Plan, kept: tuple[np.ndarray, np.ndarray] | None = None,
+                  renewed: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
+        """The loop's linearization at ``plan`` (``rti_linearize_blocks`` of the library) with the reference,
+        ``d̂`` and the model parameters in use: ``(H, H_N, g, g_N, AB, gaps, cost)``. ``kept``: Jacobians and
+        their points to keep where ``renewed`` (per item, default: all renewed) is 0 and they did not move
+        (``rti.relinearize_every``); what it ends with is left in ``last_jacobians``."""
+        states = np.array(plan.states, dtype=float)
+        if self._implicit:
+            # Both ends of a stage on one sheet of S³, as the exported step continues q_k (the library's
+            # linearization does the same before it calls the function).
+            quaternions = states[:, self.layout.attitude(by="the implicit dynamics").quaternion]
+            turns = np.einsum("ij,ij->i", quaternions[:-1], quaternions[1:])
+            quaternions *= np.cumprod(np.concatenate([[1.0], np.where(turns < 0.0, -1.0, 1.0)]))[:, None]
+            states[:, self.layout.attitude(by="the implicit dynamics").quaternion] = quaternions
+        _, _, _, references = self._sample_reference()
+        targets = self.reference_window()[1].T
+        kept = self._nothing_kept if kept is None else kept
+        renewed = self._all_fresh if renewed is None else renewed
+        *linearization, jacobians, points = self.loop_function("rti_linearize_blocks")(
+            states.T, np.asarray(plan.controls, dtype=float).T, references, self.disturbance, targets,
+            self._parameters, *kept, renewed)
+        self.last_jacobians = (np.array(jacobians, dtype=float), np.array(points, dtype=float))
+        return tuple(np.array(out, dtype=float) for out in linearization)
 
     def plan_cost(self, plan: Plan | None = None) -> tuple[float, float]:
-        """``(cost, largest gap)`` of ``plan`` (default: the current one) under the model — for tests
+        """``(cost, largest gap)`` of ``plan`` (default: the library's current one) under the model — for tests
         and studies; the cost is the MPC's objective when the gaps are zero."""
-        plan = self._plan if plan is None else plan
+        plan = self.plan if plan is None else plan
         if plan is None:
             raise ValueError("no plan yet: call the controller first")
-        gaps, cost = self._gaps_and_cost(plan)
-        return float(cost), float(np.max(np.abs(np.asarray(gaps, dtype=float))))
+        linearization = self.linearize(plan)
+        return float(linearization[6]), float(np.max(np.abs(linearization[5])))
+
+    def iterate(self, plan: Plan, x0: Any) -> Plan | None:
+        """One SQP iteration from ``plan`` with ``δ_0`` fixed by the measured ``x0`` (the library's linearization
+        and ``rti_feedback``): the updated plan, or ``None`` where the QP gave no finite step."""
+        h, h_n, g, g_n, ab, gaps, _ = self.linearize(plan)
+        states, controls, *_ = self.loop_function("rti_feedback")(
+            np.asarray(plan.states, dtype=float).T, np.asarray(plan.controls, dtype=float).T,
+            self.layout.check(x0), h, h_n, g, g_n, ab, gaps)
+        states, controls = np.array(states, dtype=float).T, np.array(controls, dtype=float).T
+        if not (np.all(np.isfinite(states)) and np.all(np.isfinite(controls))):
+            return None
+        return Plan(states, controls, None, None)

@@ -45,7 +45,6 @@ from typing import Any
 
 import numpy as np
 
-from fvin_mpc.control.c_controller import LOOPS, on_loop
 from fvin_mpc.control.closed_loop import NOT_MEASURED, ZeroController, check_latency, episode_metrics, run_episode
 from fvin_mpc.control.energy_shaping import EnergyShapingNotApplicable
 from fvin_mpc.control.mpc import MPCSettings
@@ -84,8 +83,6 @@ class EvaluationConfig:
             (:func:`fvin_mpc.control.scene.scene_mpc_settings`), as ``(name, value)`` pairs.
         latency: :func:`~fvin_mpc.control.closed_loop.run_episode`'s ``latency``: ``"none"`` (the
             simulator waits for the controller), ``"measured"`` or a fixed delay in seconds.
-        loop: which loop runs the MPC controllers: ``"python"`` or ``"c"`` (the real-time iteration's
-            generated C library: :func:`fvin_mpc.control.c_controller.on_loop`).
     """
 
     scene: str = "pendulum"
@@ -98,7 +95,6 @@ class EvaluationConfig:
     control_period: float | None = None
     mpc: tuple[tuple[str, Any], ...] = ()
     latency: Any = "none"
-    loop: str = "python"
 
     def __post_init__(self) -> None:
         if self.episodes < 1:
@@ -112,8 +108,6 @@ class EvaluationConfig:
             raise ValueError(f"max_omega must be finite and >= 0, got {self.max_omega}")
 
         check_latency(self.latency)
-        if self.loop not in LOOPS:
-            raise ValueError(f"loop must be one of {LOOPS}, got {self.loop!r}")
         try:  # validate the overrides (names and values) now, not in a worker
             MPCSettings().updated(**dict(self.mpc))  # rti and ipopt as mappings of their fields
         except TypeError as error:
@@ -149,7 +143,7 @@ def build_controller(name: str, env: Any, config: EvaluationConfig) -> Any:
         return ZeroController(env.unwrapped.action_space.shape[0])
     model = scene_model(env, config.checkpoint_name if learned else None, true_model=not learned)
     if name.startswith("mpc-"):
-        return on_loop(scene_mpc(env, model, mpc_settings(config, env)), config.loop)
+        return scene_mpc(env, model, mpc_settings(config, env))
     if name.startswith("energy-"):
         try:
             return scene_energy_shaping(env, model)
@@ -448,7 +442,6 @@ def _settings_text(config: EvaluationConfig) -> str:
         f"solver {settings.solver}, horizon {settings.horizon}, Hessian {settings.ipopt.hessian}, max_iter "
         f"{settings.ipopt.max_iter}, "
         f"terminal energy weight {settings.terminal_energy_weight:g}, cold starts {', '.join(settings.cold_starts)}"
-        + (", the C loop" if config.loop == "c" else "")
     )
 
 

@@ -1,12 +1,15 @@
-/* The real-time iteration of fvin_mpc.control.rti.RealTimeMPC, in C, around the same CasADi functions
- * generated as C (fvc_model.c: rti_linearize_blocks, rti_predict, rti_feedback). This file is the
- * orchestration only — every piece of the math is in the generated functions; what is here mirrors
- * RealTimeMPC.__call__ / prepare / _improve / _first_guess and DisturbanceEstimate line by line, with
- * iteration counts for bounds (no wall clock). tests/test_c_controller.py checks both loops agree. */
+/* The real-time iteration of fvin_mpc.control.rti.RealTimeMPC: its one loop, which the Python class drives
+ * through ctypes and a robot links as it is. Every piece of the math is in the CasADi functions generated as
+ * C (fvc_model.c: rti_linearize_blocks, rti_predict, rti_feedback, rti_apply; fvc_goal.c); this file is the
+ * orchestration: the cold multi-start, the warm iterations, the preparation, the fallback, the restart and the
+ * disturbance estimate. Iteration counts and wall-clock budgets (FVC_COLD_BUDGET_S, FVC_BUDGET_S; the monotonic
+ * clock) bound a call. */
+#define _POSIX_C_SOURCE 199309L
 #include <float.h>
 #include <math.h>
 #include <stdlib.h>
 #include <string.h>
+#include <time.h>
 
 #include "fvin_controller.h"
 #include "fvc_config.h"
@@ -44,7 +47,10 @@ struct fvc_controller {
     double p[FVC_NP];                        /* the model parameters (fvc_set_parameters) */
     double K[M * FVC_ND * N], k[M * N];       /* the prepared QP's Riccati gains (FVC_PREPARED_FEEDBACK) */
     double pred_rates[NR], pred_inverse[M * NR]; /* the last one-step prediction (column-major inverse) */
-    int have_plan, prepared, have_prediction, pending_prediction;
+    double x0[NS];                           /* the measured state of the call under way (fvc_measure) */
+    double start;                            /* when that call began (monotonic clock, s) */
+    double cold_costs[3];                    /* each first guess's score on the last cold call (NaN: not tried) */
+    int have_plan, prepared, have_prediction, pending_prediction, measured;
     double sent_x[NS], sent_u[M];            /* the last call's state and control, for the prediction */
     double time;
     double *lin[LIN_COUNT];
@@ -66,6 +72,12 @@ double fvc_step_size(void) { return FVC_STEP_SIZE; }
 const char *fvc_cold_guess_name(int index) { return index >= 0 && index < 3 ? guess_names[index] : "none"; }
 
 static double clip(double v, double lo, double hi) { return v < lo ? lo : (v > hi ? hi : v); }
+
+static double now_s(void) {
+    struct timespec t;
+    clock_gettime(CLOCK_MONOTONIC, &t);
+    return (double)t.tv_sec + 1e-9 * (double)t.tv_nsec;
+}
 
 static casadi_int out_size(const casadi_int *sp) { return sp[0] * sp[1]; } /* every output is dense */
 
@@ -172,15 +184,24 @@ static int apply_prepared(fvc_controller *c, const double *x0) {
     return all_finite(c->NX_, (N + 1) * NS) && all_finite(c->NU, N * M);
 }
 
-/* Up to `iterations` iterations on the plan (X, U) in place (RealTimeMPC._improve without the wall
- * clock): the first always, each further one while the last step was not below the tolerance.
- * Returns the iterations done; *failed when the first gave no finite plan (X, U unchanged). */
+/* Up to `iterations` iterations on the plan (X, U) in place: the first always, each further one while the last
+ * step was not below the tolerance and the last iteration's duration still fits before `deadline` (monotonic
+ * clock, s; the budget's end sets status.budget). Returns the iterations done; *failed when the first gave no
+ * finite plan (X, U unchanged). */
 static int improve(fvc_controller *c, double *X, double *U, const double *x0, int iterations, int linearized,
-                   int keep, int *failed) {
+                   int keep, double deadline, int *failed) {
     int done = 0;
+    double last = 0.0;
     *failed = 0;
     while (done < iterations) {
-        if (done > 0 && c->status.last_step < FVC_TOL) break;
+        if (done > 0) {
+            if (c->status.last_step < FVC_TOL) break;
+            if (now_s() + last > deadline) {
+                c->status.budget = 1;
+                break;
+            }
+        }
+        double begin = now_s();
         if (!linearized) call_linearize(c, X, U, keep);
         linearized = 0;
         if (!iterate(c, X, U, x0)) {
@@ -190,6 +211,7 @@ static int improve(fvc_controller *c, double *X, double *U, const double *x0, in
         memcpy(X, c->NX_, sizeof c->NX_);
         memcpy(U, c->NU, sizeof c->NU);
         done++;
+        last = now_s() - begin;
     }
     return done;
 }
@@ -245,15 +267,21 @@ static double score(fvc_controller *c, double *X, double *U) {
     return c->lin[LIN_COST][0] + 1e3 * gaps;
 }
 
+/* Each first guess in fvc_cold_order, improved by up to FVC_COLD_ITER iterations while the cold budget lasts; the
+ * best by score is the plan. Past the budget a guess is still scored, un-iterated (a rollout is a plan of the
+ * model, with no gaps): the budget must not decide which guess wins. */
 static int cold_start(fvc_controller *c, const double *x0) {
     int iterations = 0, have_best = 0, failed;
-    double best = 0.0;
+    double best = 0.0, deadline = c->start + FVC_COLD_BUDGET_S;
+    for (int g = 0; g < 3; g++) c->cold_costs[g] = NAN;
     for (int g = 0; g < FVC_N_COLD; g++) {
         int guess = fvc_cold_order[g];
         if (guess == 0) goal_guess(c, x0, c->CX, c->CU);
         else rollout_guess(c, x0, guess == 1 ? 1.0 : -1.0, c->CX, c->CU);
-        iterations += improve(c, c->CX, c->CU, x0, FVC_COLD_ITER, 0, RENEW_ALL, &failed);
+        if (g > 0 && now_s() > deadline) c->status.budget = 1;
+        else iterations += improve(c, c->CX, c->CU, x0, FVC_COLD_ITER, 0, RENEW_ALL, deadline, &failed);
         double value = score(c, c->CX, c->CU);
+        c->cold_costs[guess] = value;
         if (!have_best || value < best) {
             have_best = 1;
             best = value;
@@ -400,6 +428,8 @@ void fvc_free(fvc_controller *c) {
 
 void fvc_reset(fvc_controller *c) {
     c->have_plan = c->prepared = c->have_prediction = c->pending_prediction = c->jacobians_on_plan = 0;
+    c->measured = 0;
+    for (int g = 0; g < 3; g++) c->cold_costs[g] = NAN;
     memset(c->d, 0, sizeof c->d);
     c->time = 0.0;
 }
@@ -425,13 +455,14 @@ void fvc_prepare(fvc_controller *c) {
     c->status.prepares++;
 }
 
-int fvc_feedback(fvc_controller *c, const double *x, double *u) {
-    double x0[NS], norms[FVC_NQUAT > 0 ? FVC_NQUAT : 1];
+int fvc_measure(fvc_controller *c, const double *x) {
+    double norms[FVC_NQUAT > 0 ? FVC_NQUAT : 1];
+    c->start = now_s();
+    c->measured = 0;
     int bad = !all_finite(x, NS);
-    memcpy(x0, x, sizeof x0);
     for (int b = 0; b < FVC_NQUAT; b++) {
         double norm = 0.0;
-        for (int i = 0; i < 4; i++) norm += x0[fvc_quaternions[b] + i] * x0[fvc_quaternions[b] + i];
+        for (int i = 0; i < 4; i++) norm += x[fvc_quaternions[b] + i] * x[fvc_quaternions[b] + i];
         norms[b] = sqrt(norm);
         bad |= !(fabs(norms[b] - 1.0) <= 1e-3);
     }
@@ -439,30 +470,57 @@ int fvc_feedback(fvc_controller *c, const double *x, double *u) {
         c->status.bad_states++;
         return FVC_BAD_STATE;
     }
+    memcpy(c->x0, x, sizeof c->x0);
     /* A quaternion already unit to rounding is left as it is: dividing by a norm of 1 ± 1 ulp would
-     * only add rounding (and make the C loop differ from a caller that normalized it already). */
+     * only add rounding. */
     for (int b = 0; b < FVC_NQUAT; b++)
         if (fabs(norms[b] - 1.0) > 4.0 * DBL_EPSILON)
-            for (int i = 0; i < 4; i++) x0[fvc_quaternions[b] + i] /= norms[b];
+            for (int i = 0; i < 4; i++) c->x0[fvc_quaternions[b] + i] /= norms[b];
     complete_prediction(c);
     c->status.calls++;
     c->status.cold_guess = -1;
-    update_estimate(c, x0);
-    if (c->have_plan && !isinf(FVC_RESTART_SPEED)) {  /* RealTimeMPC._leaves_plan: a stale plan starts cold */
+    c->status.budget = 0;
+    c->status.restarted = 0;
+    update_estimate(c, c->x0);
+    if (c->have_plan && !isinf(FVC_RESTART_SPEED)) {  /* a stale plan (the measured rates far from the
+                                                        * prediction of now) starts cold */
         if (!c->prepared) fvc_prepare(c);
         for (int a = 0; a < FVC_NANGULAR; a++)
-            if (fabs(x0[fvc_angular[a]] - c->X[fvc_angular[a]]) > FVC_RESTART_SPEED) c->have_plan = 0;
-        if (!c->have_plan) c->prepared = 0;
+            if (fabs(c->x0[fvc_angular[a]] - c->X[fvc_angular[a]]) > FVC_RESTART_SPEED) c->have_plan = 0;
+        if (!c->have_plan) {
+            c->prepared = 0;
+            c->status.restarted = 1;
+        }
     }
+    c->measured = 1;
+    return c->have_plan ? FVC_RTI : FVC_COLD;
+}
+
+/* The call's end: the plan's first control, clipped, and what the next prediction needs. */
+static int finish(fvc_controller *c, int status, double *u) {
+    c->have_plan = 1;
+    c->prepared = 0;
+    c->measured = 0;
+    for (int j = 0; j < M; j++) u[j] = clip(c->U[j], fvc_torque_low[j], fvc_torque_high[j]);
+    memcpy(c->sent_x, c->x0, sizeof c->x0);
+    memcpy(c->sent_u, u, sizeof c->sent_u);
+    c->pending_prediction = 1;
+    c->time += FVC_STEP_SIZE;  /* the next measurement's time unless fvc_set_time says otherwise */
+    c->status.status = status;
+    return status;
+}
+
+int fvc_solve(fvc_controller *c, double *u) {
+    if (!c->measured) return FVC_NOT_MEASURED;
     int status, failed = 0;
     if (!c->have_plan) {
-        c->status.iterations = cold_start(c, x0);
+        c->status.iterations = cold_start(c, c->x0);
         c->status.cold_calls++;
         status = FVC_COLD;
     } else {
         if (!c->prepared) fvc_prepare(c);
         if (FVC_PREPARED_FEEDBACK) {
-            failed = !apply_prepared(c, x0);
+            failed = !apply_prepared(c, c->x0);
             c->status.iterations = !failed;
             if (!failed) {
                 memcpy(c->CX, c->NX_, sizeof c->NX_);
@@ -471,7 +529,8 @@ int fvc_feedback(fvc_controller *c, const double *x, double *u) {
         } else {
             memcpy(c->CX, c->X, sizeof c->X);
             memcpy(c->CU, c->U, sizeof c->U);
-            c->status.iterations = improve(c, c->CX, c->CU, x0, FVC_MAX_ITER, 1, KEEP_SAME, &failed);
+            c->status.iterations = improve(c, c->CX, c->CU, c->x0, FVC_MAX_ITER, 1, KEEP_SAME,
+                                           c->start + FVC_BUDGET_S, &failed);
         }
         if (failed) {  /* the shifted previous plan */
             c->status.fallbacks++;
@@ -482,15 +541,34 @@ int fvc_feedback(fvc_controller *c, const double *x, double *u) {
             status = FVC_RTI;
         }
     }
-    c->have_plan = 1;
-    c->prepared = 0;
-    for (int j = 0; j < M; j++) u[j] = clip(c->U[j], fvc_torque_low[j], fvc_torque_high[j]);
-    memcpy(c->sent_x, x0, sizeof x0);
-    memcpy(c->sent_u, u, sizeof c->sent_u);
-    c->pending_prediction = 1;
-    c->time += FVC_STEP_SIZE;  /* the next measurement's time unless fvc_set_time says otherwise */
-    c->status.status = status;
-    return status;
+    return finish(c, status, u);
+}
+
+int fvc_solve_from(fvc_controller *c, const double *states, const double *controls, double *u) {
+    if (!c->measured) return FVC_NOT_MEASURED;
+    if (!all_finite(states, (N + 1) * NS) || !all_finite(controls, N * M)) return FVC_BAD_PLAN;
+    int failed;
+    memcpy(c->X, states, sizeof c->X);
+    memcpy(c->U, controls, sizeof c->U);
+    memcpy(c->X, c->x0, sizeof c->x0);  /* the plan starts at the measured state */
+    for (int g = 0; g < 3; g++) c->cold_costs[g] = NAN;
+    memcpy(c->CX, c->X, sizeof c->X);
+    memcpy(c->CU, c->U, sizeof c->U);
+    c->jacobians_on_plan = 0;
+    c->status.iterations = improve(c, c->CX, c->CU, c->x0, 1, 0, RENEW_ALL, c->start, &failed);
+    c->status.cold_calls++;
+    if (!failed) {
+        memcpy(c->X, c->CX, sizeof c->X);
+        memcpy(c->U, c->CU, sizeof c->U);
+    } else {
+        c->status.fallbacks++;
+    }
+    return finish(c, failed ? FVC_FALLBACK : FVC_COLD, u);
+}
+
+int fvc_feedback(fvc_controller *c, const double *x, double *u) {
+    int status = fvc_measure(c, x);
+    return status < 0 ? status : fvc_solve(c, u);
 }
 
 void fvc_set_reference(fvc_controller *c, const double *states, const double *scales, int new_reference) {
@@ -516,6 +594,7 @@ void fvc_get_plan(const fvc_controller *c, double *states, double *controls) {
 void fvc_get_disturbance(const fvc_controller *c, double *d) { memcpy(d, c->d, sizeof c->d); }
 void fvc_set_disturbance(fvc_controller *c, const double *d) { memcpy(c->d, d, sizeof c->d); }
 void fvc_get_goal_control(const fvc_controller *c, double *u_goal) { memcpy(u_goal, c->u_goal, sizeof c->u_goal); }
+void fvc_get_cold_costs(const fvc_controller *c, double *costs) { memcpy(costs, c->cold_costs, sizeof c->cold_costs); }
 
 int fvc_parameter_count(void) { return FVC_NP; }
 const char *fvc_parameter_name(int index) { return index >= 0 && index < FVC_NP ? fvc_parameter_names[index] : NULL; }
