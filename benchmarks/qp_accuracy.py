@@ -26,6 +26,7 @@ from typing import Any, Sequence
 import casadi as ca
 import numpy as np
 
+from benchmarks.c_loop import LeanLoop, controllers
 from fvin_mpc._cli import run_command
 from fvin_mpc.control.buffered import BufferedFunction
 from fvin_mpc.control.closed_loop import run_episode
@@ -36,12 +37,13 @@ SCENES = ("pendulum", "spherical_pendulum", "quadrotor")
 DURATION_S = {"pendulum": 6.0, "spherical_pendulum": 6.0, "quadrotor": 3.0}
 
 
-class _RecordingQPs:
+class _RecordingQPs(LeanLoop):
     """``controller`` as the closed loop calls it, writing down before each warm call the QP its first iteration
     solves: the prepared plan's linearization (``RealTimeMPC.linearize``) with the measured state."""
 
     def __init__(self, controller: Any, records: list[tuple[np.ndarray, ...]]) -> None:
-        self.controller, self.records = controller, records
+        super().__init__(controller)
+        self.records = records
 
     def __call__(self, x: np.ndarray) -> tuple[np.ndarray, dict[str, Any]]:
         plan = self.controller.plan
@@ -52,15 +54,6 @@ class _RecordingQPs:
             self.records.append(tuple(np.array(a, dtype=float) for a in (plan.states.T, plan.controls.T, x0, h, h_n,
                                                                           g, g_n, ab, gaps)))
         return u, info
-
-    def prepare(self) -> None:
-        self.controller.prepare()
-
-    def reset(self) -> None:
-        self.controller.reset()
-
-    def set_time(self, t: float) -> None:
-        self.controller.set_time(t)
 
 
 def record_qps(env: Any, controller: Any, duration: float, options: Any, seed: int | None = None
@@ -76,8 +69,6 @@ def record_qps(env: Any, controller: Any, duration: float, options: Any, seed: i
 def recorded_qps(scene: str, seed: int) -> tuple[Any, list[tuple[np.ndarray, ...]]]:
     """The scene's learned real-time MPC and the QPs it solved in one waiting-mode episode (:func:`record_qps`),
     its wall-clock budgets lifted: the same QPs on every run."""
-    from benchmarks.c_loop import controllers
-
     env, controller, options, seed = controllers(scene, False, seed,
                                                  rti_options={"budget_s": math.inf, "cold_budget_s": math.inf})
     try:
