@@ -475,6 +475,10 @@ class MPC(ControlProblem):
     # ------------------------------------------------------------------ problem
     def _build(self) -> None:
         s, n, m, nx, layout = self.settings, self.horizon, self.model.control_dim, self.model.state_dim, self.layout
+        # The exact-Hessian retry's state (IpoptOptions.exact_retry), for every solver and compile mode;
+        # exact_hessian is set once a retry converged where Gauss–Newton did not: the model's curvature does not change.
+        self._exact_source, self.exact_retries, self.exact_hessian = None, 0, False
+        self._exact_solvers: dict[bool, Any] | None = None
         states = ca.MX.sym("X", nx, n + 1)
         controls = ca.MX.sym("U", m, n)
         # Parameters: the reference over the horizon, the target controls u_s = u_goal − d̂, and d̂.
@@ -570,10 +574,6 @@ class MPC(ControlProblem):
         # The exact-Hessian solvers an unconverged Gauss–Newton solve retries with, built on first need.
         self._exact_source = nlp if s.solver == "ipopt" and s.ipopt.hessian == "gauss-newton" and s.ipopt.exact_retry \
             else None
-        self._exact_solvers: dict[bool, Any] | None = None
-        self.exact_retries = 0
-        # Set once an exact retry converged where Gauss–Newton did not: the model's curvature does not change.
-        self.exact_hessian = False
 
     def _exact_solver(self, warm: bool) -> Any:
         """The IPOPT solver with the exact Lagrangian Hessian (the dynamics' second derivatives weighted by
