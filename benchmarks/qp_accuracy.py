@@ -2,8 +2,8 @@
 ``python -m benchmarks.qp_accuracy``.
 
 The generated QP (``rti.qp_solver="riccati"``) runs a fixed count of primal–dual interior-point iterations
-(``rti.qp_iterations``, ``--rti-qp-iterations`` on the closed-loop commands). Per scene this records every QP the
-Python loop solves in one closed-loop episode (waiting mode, learned model, the scene's settings), solves each again
+(``rti.qp_iterations``, ``--rti-qp-iterations`` on the closed-loop commands). Per scene this records the first QP of
+every warm call in one closed-loop episode (waiting mode, learned model, the scene's settings), solves each again
 with each count of ``--counts`` and ``--reference``, and once more exactly (an active-set solver, qpOASES through
 ``casadi.conic``, on the same QP written out whole), and reports the distance of the first control (the one sent)
 to the exact solution's, as a fraction of the torque range: median, p99 and

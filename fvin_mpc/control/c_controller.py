@@ -70,12 +70,12 @@ LOOP_SOURCE = "fvc_model"
 TEMPLATE_FILES = ("fvin_controller.c", "fvin_controller.h", "main.c", "Makefile")
 #: The generated functions, in the order RealTimeMPC.loop_functions holds them.
 LOOP_FUNCTION_NAMES = ("rti_linearize_blocks", "rti_predict", "rti_feedback", "rti_apply")
-#: Flags of the shared library's objects: those of the Python loop's compiled functions
-#: (:data:`fvin_mpc.control.model_export.COMPILER_FLAGS` and the host's target flags,
-#: :func:`~fvin_mpc.control.model_export.generated_code_flags`), so both run the same machine code.
+#: Flags of the shared library's objects, beside the host's target flags
+#: (:func:`~fvin_mpc.control.model_export.generated_code_flags`), as for the package's other generated code.
 LIBRARY_FLAGS = ("-O2", "-fPIC")
 #: The hand-written driver is also compiled without fused multiply–adds: its sums (the goal control, the
-#: disturbance estimate) must round as the Python loop's (``problem.ordered_matvec``), whatever the target.
+#: disturbance estimate) round in source order, whatever the target — as when the reference episodes of
+#: ``tests/data/loop_reference`` were recorded.
 DRIVER_FLAGS = ("-ffp-contract=off",)
 #: What ``fvc_feedback`` returns (fvin_controller.h).
 STATUS_NAMES = {0: "rti", 1: "cold", 2: "previous-plan", -1: "bad-state", -2: "no-memory", -3: "bad-parameters",
@@ -83,7 +83,7 @@ STATUS_NAMES = {0: "rti", 1: "cold", 2: "previous-plan", -1: "bad-state", -2: "n
 
 
 class ControllerNotExportable(FvinMpcError, ValueError):
-    """The controller's settings ask for something the C loop does not have (the message says what)."""
+    """The controller's settings ask for something the library does not have (the message says what)."""
 
 
 def check_compiler() -> None:
@@ -96,7 +96,7 @@ def check_compiler() -> None:
 
 
 def solver_settings(controller: RealTimeMPC) -> dict[str, Any]:
-    """The real-time iteration's own settings the C loop reads, by their names here — the one place
+    """The real-time iteration's own settings the library reads, by their names here — the one place
     that knows where :class:`~fvin_mpc.control.mpc.MPCSettings` keeps them."""
     s = controller.settings.rti
     return {"cold_solver": s.cold_solver, "qp_solver": s.qp_solver, "dynamics": s.dynamics,
@@ -153,7 +153,7 @@ def goal_guess_function(controller: RealTimeMPC) -> ca.Function:
 
 
 def generated_functions(controller: RealTimeMPC) -> list[ca.Function]:
-    """What ``fvc_model.c`` holds: the loop's functions, as the Python loop compiles them (every output dense
+    """What ``fvc_model.c`` holds: the loop's functions (every output dense
     already: the driver passes plain arrays between them)."""
     for function in controller.loop_functions:
         sparse = [function.name_out(i) for i in range(function.n_out()) if not function.sparsity_out(i).is_dense()]
@@ -268,7 +268,7 @@ def write_controller(controller: RealTimeMPC, directory: str | Path, example_sta
     check_exportable(controller, standalone)
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
-    # the loop's functions under the Python loop's source name: the same text as its library's
+    # the loop's functions under one source name: the same text wherever they are generated
     write_generated_source(generated_functions(controller), LOOP_SOURCE, directory)
     if free_goal_guess(controller):
         write_generated_source([dense_outputs(goal_guess_function(controller))], "fvc_goal", directory)
@@ -300,7 +300,7 @@ def kernels_source(controller: RealTimeMPC) -> str:
 
 def library_flags(compiler: str) -> tuple[str, ...]:
     """The flags :func:`build_library` compiles with on this host: :data:`LIBRARY_FLAGS` and the target flags
-    of the Python loop's libraries (``-march=native`` where ``compiler`` takes it)."""
+    of generated code (``-march=native`` where ``compiler`` takes it)."""
     return (*LIBRARY_FLAGS, *generated_code_flags(compiler))
 
 

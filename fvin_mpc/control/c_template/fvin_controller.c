@@ -604,8 +604,8 @@ void fvc_get_parameters(const fvc_controller *c, double *p) { memcpy(p, c->p, si
 int fvc_set_parameters(fvc_controller *c, const double *p) {
     if (!FVC_PARAMETRIC) return FVC_NOT_PARAMETRIC;
     if (!all_finite(p, FVC_NP)) return FVC_BAD_PARAMETERS;
-    /* The prediction after the control already sent is the old model's (as the Python loop computes it
-     * in the call): finish it before the model changes. */
+    /* The prediction after the control already sent is the old model's: finish it before the model
+     * changes. */
     complete_prediction(c);
     memcpy(c->p, p, sizeof c->p);
     goal_control(c);
